@@ -1,0 +1,47 @@
+//! The iHEX CAN protocol, shared verbatim by the gateway (SocketCAN) and the sub-controllers (bxCAN).
+//!
+//! Everything on the island's bus is a CAN 2.0B frame with a 29-bit extended identifier laid out as
+//!
+//! | bits  | 28 – 24 | 23 – 12             | 11 – 0         |
+//! |-------|---------|---------------------|----------------|
+//! | field | [`Kind`]  | destination [`NodeId`] | source [`NodeId`] |
+//!
+//! The kind sits in the most significant bits, so its numeric value *is* the arbitration priority:
+//! power and docking traffic always wins over LED and health traffic. Node IDs are 12 bits;
+//! [`NodeId::GATEWAY`] (`0x000`) is the main controller, [`NodeId::BROADCAST`] (`0xFFF`) addresses every
+//! node and [`NodeId::UNCONFIGURED`] (`0xFFE`) is the source address of a sub-controller that has no ID yet.
+//!
+//! * [`Packet`] / [`Message`] — one typed value per interaction, with [`Packet::to_frame`] and
+//!   [`Packet::from_frame`] generic over any [`embedded_can::Frame`] (socketcan and embassy frames alike).
+//! * [`filter`] — accept/reject ID and mask filters with the seed's semantics, and their translation to
+//!   SocketCAN kernel filters and bxCAN filter banks.
+//! * [`timing`] — bxCAN bit timing from a peripheral clock and a bitrate.
+//! * [`uart`] — the 2-byte node-ID configuration message spoken over the ST-Link virtual COM port.
+//!
+//! The full byte layout of every message is in `docs/protocol.md`.
+#![cfg_attr(not(test), no_std)]
+#![warn(missing_docs)]
+#![forbid(unsafe_code)]
+
+mod addr;
+mod error;
+pub mod filter;
+mod header;
+mod message;
+pub mod timing;
+pub mod uart;
+
+pub use addr::{NodeId, Port, Seq};
+pub use error::DecodeError;
+pub use header::{Header, Kind};
+pub use message::{
+    AckResult, BootRole, BuzzerCommand, FaultCode, HealthFlags, HealthReply, LedCommand, Message, Packet, Rgb,
+    Uid, DockRefuseReason, ResetReason,
+};
+
+/// Bitrate of the island bus, in bit/s.
+pub const BITRATE: u32 = 500_000;
+
+/// Firmware/protocol version carried in [`Message::BootUp`]: bump the minor on additions, the major on
+/// any change an old peer would misread.
+pub const PROTOCOL_VERSION: (u8, u8) = (1, 0);

@@ -1,0 +1,831 @@
+//! Typed messages: one variant per interaction, with the exact byte layout of `docs/protocol.md`.
+
+use embedded_can::Frame;
+
+use crate::{DecodeError, Header, Kind, NodeId, Port, Seq};
+
+/// An 8-bit-per-channel colour.
+#[derive(Clone, Copy, PartialEq, Eq, Hash, Debug, Default)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
+pub struct Rgb {
+    /// Red.
+    pub r: u8,
+    /// Green.
+    pub g: u8,
+    /// Blue.
+    pub b: u8,
+}
+
+impl Rgb {
+    /// Builds a colour.
+    pub const fn new(r: u8, g: u8, b: u8) -> Self {
+        Rgb { r, g, b }
+    }
+}
+
+/// What the LED strip should show.
+#[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum LedCommand {
+    /// Dark.
+    Off,
+    /// A steady colour; `brightness` scales all three channels (255 = full).
+    Steady {
+        /// Colour.
+        color: Rgb,
+        /// 0–255 overall brightness.
+        brightness: u8,
+    },
+    /// The colour switched on and off: on for `duty_pct` % of every `period_10ms` × 10 ms.
+    Blink {
+        /// Colour.
+        color: Rgb,
+        /// 0–255 overall brightness.
+        brightness: u8,
+        /// Blink period in units of 10 ms (1–255, i.e. 10 ms to 2.55 s).
+        period_10ms: u8,
+        /// Share of the period the LEDs are on, 1–99 %.
+        duty_pct: u8,
+    },
+}
+
+/// What the buzzer should do.
+#[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum BuzzerCommand {
+    /// Silent.
+    Off,
+    /// A continuous tone.
+    Continuous {
+        /// Tone frequency, [`BuzzerCommand::MIN_FREQ_HZ`]–[`BuzzerCommand::MAX_FREQ_HZ`].
+        freq_hz: u16,
+    },
+    /// Beeps: `count` times (0 = until told otherwise) on for `on_10ms`, off for `off_10ms`.
+    Pattern {
+        /// Tone frequency.
+        freq_hz: u16,
+        /// Beep length in 10 ms units (1–255).
+        on_10ms: u8,
+        /// Pause length in 10 ms units (1–255).
+        off_10ms: u8,
+        /// Number of beeps; 0 repeats forever.
+        count: u8,
+    },
+}
+
+impl BuzzerCommand {
+    /// Lowest tone the buzzer command accepts, in Hz.
+    pub const MIN_FREQ_HZ: u16 = 20;
+    /// Highest tone the buzzer command accepts, in Hz.
+    pub const MAX_FREQ_HZ: u16 = 20_000;
+}
+
+/// Result code of an [`Message::Ack`] or [`Message::AssignReply`]; anything but `Ok` is a refusal.
+#[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum AckResult {
+    /// Done.
+    Ok,
+    /// A value was out of range for this node.
+    InvalidValue,
+    /// Not possible in the node's current state (e.g. confirming a dock with nothing docked).
+    InvalidState,
+    /// The node is busy with something that excludes this command.
+    Busy,
+    /// The node does not implement this command (e.g. a dock command on an element without dock ports).
+    Unsupported,
+    /// Persisting the result failed (flash write).
+    StoreFailed,
+    /// A code this version does not know; kept so that newer nodes do not break older gateways.
+    Other(u8),
+}
+
+impl AckResult {
+    /// Wire value.
+    pub const fn to_raw(self) -> u8 {
+        match self {
+            AckResult::Ok => 0,
+            AckResult::InvalidValue => 1,
+            AckResult::InvalidState => 2,
+            AckResult::Busy => 3,
+            AckResult::Unsupported => 4,
+            AckResult::StoreFailed => 5,
+            AckResult::Other(v) => v,
+        }
+    }
+
+    /// From the wire value; unknown values become [`AckResult::Other`].
+    pub const fn from_raw(raw: u8) -> Self {
+        match raw {
+            0 => AckResult::Ok,
+            1 => AckResult::InvalidValue,
+            2 => AckResult::InvalidState,
+            3 => AckResult::Busy,
+            4 => AckResult::Unsupported,
+            5 => AckResult::StoreFailed,
+            v => AckResult::Other(v),
+        }
+    }
+}
+
+/// Fault code of a [`Message::Fault`].
+#[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum FaultCode {
+    /// A dock confirm arrived for a port whose signal loop is open (`arg` = port).
+    DockConfirmNotDocked,
+    /// The CAN controller went bus-off and recovered (`detail` = how many times since boot).
+    BusOff,
+    /// The CAN controller is error-passive (`detail` = TEC << 8 | REC).
+    ErrorPassive,
+    /// Received frames were lost (`detail` = count).
+    RxOverrun,
+    /// The node was reset by its watchdog.
+    WatchdogReset,
+    /// Writing the configuration to flash failed.
+    ConfigStore,
+    /// A well-formed message arrived that makes no sense here (`arg` = its kind).
+    UnexpectedMessage,
+    /// A frame addressed to this node could not be decoded (`arg` = its kind bits).
+    BadFrame,
+    /// A code this version does not know.
+    Other(u8),
+}
+
+impl FaultCode {
+    /// Wire value.
+    pub const fn to_raw(self) -> u8 {
+        match self {
+            FaultCode::DockConfirmNotDocked => 1,
+            FaultCode::BusOff => 2,
+            FaultCode::ErrorPassive => 3,
+            FaultCode::RxOverrun => 4,
+            FaultCode::WatchdogReset => 5,
+            FaultCode::ConfigStore => 6,
+            FaultCode::UnexpectedMessage => 7,
+            FaultCode::BadFrame => 8,
+            FaultCode::Other(v) => v,
+        }
+    }
+
+    /// From the wire value; unknown values become [`FaultCode::Other`].
+    pub const fn from_raw(raw: u8) -> Self {
+        match raw {
+            1 => FaultCode::DockConfirmNotDocked,
+            2 => FaultCode::BusOff,
+            3 => FaultCode::ErrorPassive,
+            4 => FaultCode::RxOverrun,
+            5 => FaultCode::WatchdogReset,
+            6 => FaultCode::ConfigStore,
+            7 => FaultCode::UnexpectedMessage,
+            8 => FaultCode::BadFrame,
+            v => FaultCode::Other(v),
+        }
+    }
+}
+
+/// Why the gateway refused a docking.
+#[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum DockRefuseReason {
+    /// Another docking is in progress (one at a time).
+    Busy,
+    /// The operator or configuration does not allow docking here.
+    NotAllowed,
+    /// A code this version does not know.
+    Other(u8),
+}
+
+impl DockRefuseReason {
+    /// Wire value.
+    pub const fn to_raw(self) -> u8 {
+        match self {
+            DockRefuseReason::Busy => 1,
+            DockRefuseReason::NotAllowed => 2,
+            DockRefuseReason::Other(v) => v,
+        }
+    }
+
+    /// From the wire value.
+    pub const fn from_raw(raw: u8) -> Self {
+        match raw {
+            1 => DockRefuseReason::Busy,
+            2 => DockRefuseReason::NotAllowed,
+            v => DockRefuseReason::Other(v),
+        }
+    }
+}
+
+/// Whether a node is part of the static island or a mobile element.
+#[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
+pub enum BootRole {
+    /// Wired on the bus, has dock ports.
+    Static,
+    /// Docks onto a static element and is powered through it.
+    Mobile,
+}
+
+/// Why the node (re)started.
+#[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum ResetReason {
+    /// Power applied.
+    PowerOn,
+    /// Independent watchdog expired.
+    Watchdog,
+    /// Software requested the reset.
+    Software,
+    /// NRST pin (reset button).
+    Pin,
+    /// A code this version does not know.
+    Other(u8),
+}
+
+impl ResetReason {
+    /// Wire value.
+    pub const fn to_raw(self) -> u8 {
+        match self {
+            ResetReason::PowerOn => 0,
+            ResetReason::Watchdog => 1,
+            ResetReason::Software => 2,
+            ResetReason::Pin => 3,
+            ResetReason::Other(v) => v,
+        }
+    }
+
+    /// From the wire value.
+    pub const fn from_raw(raw: u8) -> Self {
+        match raw {
+            0 => ResetReason::PowerOn,
+            1 => ResetReason::Watchdog,
+            2 => ResetReason::Software,
+            3 => ResetReason::Pin,
+            v => ResetReason::Other(v),
+        }
+    }
+}
+
+/// The 96-bit unique device ID of an STM32 (reference manual, "Unique device ID register").
+#[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct Uid(pub [u8; 12]);
+
+impl Uid {
+    /// The 8 bytes carried by [`Message::AssignSelect`].
+    pub fn head(&self) -> [u8; 8] {
+        let mut h = [0; 8];
+        h.copy_from_slice(&self.0[..8]);
+        h
+    }
+
+    /// The 4 bytes carried by [`Message::AssignCommit`] and [`Message::AssignReply`].
+    pub fn tail(&self) -> [u8; 4] {
+        let mut t = [0; 4];
+        t.copy_from_slice(&self.0[8..]);
+        t
+    }
+}
+
+/// Bit flags of a [`HealthReply`].
+#[derive(Clone, Copy, PartialEq, Eq, Hash, Debug, Default)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct HealthFlags(pub u8);
+
+impl HealthFlags {
+    /// Relay (power to the dock) is on.
+    pub const RELAY: u8 = 1 << 0;
+    /// LED strip is lit (steady or blinking).
+    pub const LED_ON: u8 = 1 << 1;
+    /// LED strip is blinking.
+    pub const LED_BLINK: u8 = 1 << 2;
+    /// Buzzer is sounding or running a pattern.
+    pub const BUZZER: u8 = 1 << 3;
+    /// The node is a mobile element.
+    pub const MOBILE: u8 = 1 << 4;
+    /// The CAN controller is error-passive.
+    pub const ERROR_PASSIVE: u8 = 1 << 5;
+    /// An identify sequence is running.
+    pub const IDENTIFY: u8 = 1 << 6;
+
+    /// True when every bit of `flag` is set.
+    pub const fn contains(self, flag: u8) -> bool {
+        self.0 & flag == flag
+    }
+
+    /// Returns the flags with `flag` set or cleared.
+    pub const fn with(self, flag: u8, on: bool) -> Self {
+        if on {
+            HealthFlags(self.0 | flag)
+        } else {
+            HealthFlags(self.0 & !flag)
+        }
+    }
+}
+
+/// A node's state snapshot, sent in answer to [`Message::HealthCheck`].
+#[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct HealthReply {
+    /// Sequence number of the health check answered.
+    pub seq: Seq,
+    /// Relay, LED, buzzer, role and CAN state flags.
+    pub flags: HealthFlags,
+    /// Signal-loop bitmap: bit *n* set = something is docked on port *n* (loop closed).
+    pub loops: u8,
+    /// CAN transmit error counter.
+    pub tec: u8,
+    /// CAN receive error counter.
+    pub rec: u8,
+    /// Seconds since boot, saturating at [`HealthReply::MAX_UPTIME_S`] (24 bits, ~194 days).
+    pub uptime_s: u32,
+}
+
+impl HealthReply {
+    /// Largest uptime that fits the 24-bit field.
+    pub const MAX_UPTIME_S: u32 = 0xFF_FFFF;
+}
+
+/// One iHEX message: the payload part of a frame. See `docs/protocol.md` for each layout.
+#[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum Message {
+    /// `[seq, on]` — switch the power relay (`on` is 0 or 1).
+    PowerSet {
+        /// Sequence number echoed by the ack.
+        seq: Seq,
+        /// Relay state.
+        on: bool,
+    },
+    /// `[code, arg, detail:u32le]` — a fault report.
+    Fault {
+        /// What happened.
+        code: FaultCode,
+        /// Code-specific argument (a port, a kind).
+        arg: u8,
+        /// Code-specific detail (counters, registers).
+        detail: u32,
+    },
+    /// `[port]` — the signal loop of `port` closed (debounced).
+    DockDetected {
+        /// Dock port of the reporting (static) node.
+        port: Port,
+    },
+    /// `[port]` — the signal loop of `port` opened; the node already switched its relay off.
+    DockRemoved {
+        /// Dock port of the reporting node.
+        port: Port,
+    },
+    /// `[seq, port]` — the gateway allows docking on `port`: the node powers its relay.
+    DockConfirm {
+        /// Sequence number echoed by the ack.
+        seq: Seq,
+        /// Dock port.
+        port: Port,
+    },
+    /// `[seq, port, reason]` — the gateway refuses docking on `port`.
+    DockRefuse {
+        /// Sequence number echoed by the ack.
+        seq: Seq,
+        /// Dock port.
+        port: Port,
+        /// Why.
+        reason: DockRefuseReason,
+    },
+    /// `[port]` — a mobile element that was just powered through a dock announces itself and the port
+    /// (of its own) it is docked by.
+    Handshake {
+        /// The mobile element's own port.
+        port: Port,
+    },
+    /// `[kind, seq, result, detail]` — answers an acknowledged command.
+    Ack {
+        /// Kind of the command answered.
+        kind: Kind,
+        /// Its sequence number.
+        seq: Seq,
+        /// Done, or why not.
+        result: AckResult,
+        /// Result-specific detail (for `InvalidValue`, the byte offset of the bad field).
+        detail: u8,
+    },
+    /// `[uid0..uid7]` — selects the node whose unique ID starts with these bytes for numbering.
+    AssignSelect {
+        /// First 8 bytes of the unique ID.
+        uid_head: [u8; 8],
+    },
+    /// `[uid8..uid11, id:u16le, seq]` — the selected node whose unique ID ends so takes `new_id`.
+    AssignCommit {
+        /// Last 4 bytes of the unique ID.
+        uid_tail: [u8; 4],
+        /// The ID to take (`0x001..=0xFFD`).
+        new_id: NodeId,
+        /// Sequence number echoed by the reply.
+        seq: Seq,
+    },
+    /// `[seq, result, id:u16le, uid8..uid11]` — a node's answer to [`Message::AssignCommit`].
+    AssignReply {
+        /// Sequence number of the commit.
+        seq: Seq,
+        /// Done, or why not.
+        result: AckResult,
+        /// The ID the node now has.
+        new_id: NodeId,
+        /// Last 4 bytes of its unique ID, so the gateway can tell boards apart.
+        uid_tail: [u8; 4],
+    },
+    /// `[major, minor, role, ports, reset]` — sent once after every reset.
+    BootUp {
+        /// Protocol/firmware version.
+        version: (u8, u8),
+        /// Static or mobile element.
+        role: BootRole,
+        /// Number of dock ports (`0..=8`).
+        ports: u8,
+        /// Why the node started.
+        reset: ResetReason,
+    },
+    /// `[seq, mode, freq:u16le, on, off, count]` — buzzer command.
+    BuzzerSet {
+        /// Sequence number echoed by the ack.
+        seq: Seq,
+        /// What to do.
+        cmd: BuzzerCommand,
+    },
+    /// `[seq, mode, r, g, b, brightness, period, duty]` — LED strip command.
+    LedSet {
+        /// Sequence number echoed by the ack.
+        seq: Seq,
+        /// What to show.
+        cmd: LedCommand,
+    },
+    /// `[seq, seconds]` — blink and beep for `seconds` (0 stops an identify in progress).
+    Identify {
+        /// Sequence number echoed by the ack.
+        seq: Seq,
+        /// Duration.
+        seconds: u8,
+    },
+    /// `[seq]` — everybody addressed answers with a [`Message::HealthReply`].
+    HealthCheck {
+        /// Sequence number echoed in the replies.
+        seq: Seq,
+    },
+    /// `[seq, flags, loops, tec, rec, uptime:u24le]` — state snapshot.
+    HealthReply(HealthReply),
+}
+
+/// A message with its addresses: exactly what one frame carries.
+#[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct Packet {
+    /// Sender.
+    pub src: NodeId,
+    /// Addressee.
+    pub dest: NodeId,
+    /// Content.
+    pub msg: Message,
+}
+
+/// Encoded payload: up to 8 bytes.
+type Data = heapless::Vec<u8, 8>;
+
+fn push_all(d: &mut Data, bytes: &[u8]) {
+    // Every layout in this module is at most 8 bytes long, so this never truncates.
+    let _ = d.extend_from_slice(bytes);
+}
+
+impl Message {
+    /// The kind field this message is sent with.
+    pub const fn kind(&self) -> Kind {
+        match self {
+            Message::PowerSet { .. } => Kind::PowerSet,
+            Message::Fault { .. } => Kind::Fault,
+            Message::DockDetected { .. } => Kind::DockDetected,
+            Message::DockRemoved { .. } => Kind::DockRemoved,
+            Message::DockConfirm { .. } => Kind::DockConfirm,
+            Message::DockRefuse { .. } => Kind::DockRefuse,
+            Message::Handshake { .. } => Kind::Handshake,
+            Message::Ack { .. } => Kind::Ack,
+            Message::AssignSelect { .. } => Kind::AssignSelect,
+            Message::AssignCommit { .. } => Kind::AssignCommit,
+            Message::AssignReply { .. } => Kind::AssignReply,
+            Message::BootUp { .. } => Kind::BootUp,
+            Message::BuzzerSet { .. } => Kind::BuzzerSet,
+            Message::LedSet { .. } => Kind::LedSet,
+            Message::Identify { .. } => Kind::Identify,
+            Message::HealthCheck { .. } => Kind::HealthCheck,
+            Message::HealthReply(_) => Kind::HealthReply,
+        }
+    }
+
+    /// The sequence number of a command that expects an [`Message::Ack`], if this is one.
+    pub const fn ack_seq(&self) -> Option<Seq> {
+        match *self {
+            Message::PowerSet { seq, .. }
+            | Message::DockConfirm { seq, .. }
+            | Message::DockRefuse { seq, .. }
+            | Message::BuzzerSet { seq, .. }
+            | Message::LedSet { seq, .. }
+            | Message::Identify { seq, .. } => Some(seq),
+            _ => None,
+        }
+    }
+
+    /// Checks value ranges. [`Message::decode`] only returns messages that pass this; call it before
+    /// encoding values that came from outside (a JSON command, a test generator).
+    pub fn validate(&self) -> Result<(), DecodeError> {
+        let kind = self.kind();
+        let bad = |field: &'static str, raw: u32| Err(DecodeError::Value { kind, field, raw });
+        match *self {
+            Message::LedSet { cmd: LedCommand::Blink { period_10ms, duty_pct, .. }, .. } => {
+                if period_10ms == 0 {
+                    return bad("period", 0);
+                }
+                if duty_pct == 0 || duty_pct > 99 {
+                    return bad("duty", duty_pct as u32);
+                }
+            }
+            Message::BuzzerSet { cmd, .. } => {
+                let freq = match cmd {
+                    BuzzerCommand::Off => None,
+                    BuzzerCommand::Continuous { freq_hz } => Some(freq_hz),
+                    BuzzerCommand::Pattern { freq_hz, on_10ms, off_10ms, .. } => {
+                        if on_10ms == 0 {
+                            return bad("on", 0);
+                        }
+                        if off_10ms == 0 {
+                            return bad("off", 0);
+                        }
+                        Some(freq_hz)
+                    }
+                };
+                if let Some(f) = freq {
+                    if !(BuzzerCommand::MIN_FREQ_HZ..=BuzzerCommand::MAX_FREQ_HZ).contains(&f) {
+                        return bad("freq", f as u32);
+                    }
+                }
+            }
+            Message::AssignCommit { new_id, .. } | Message::AssignReply { new_id, .. } => {
+                if !new_id.is_sc() && !(kind == Kind::AssignReply && new_id == NodeId::UNCONFIGURED) {
+                    return bad("id", new_id.get() as u32);
+                }
+            }
+            Message::BootUp { ports, .. } => {
+                if ports > Port::COUNT {
+                    return bad("ports", ports as u32);
+                }
+            }
+            Message::HealthReply(h) => {
+                if h.uptime_s > HealthReply::MAX_UPTIME_S {
+                    return bad("uptime", h.uptime_s);
+                }
+            }
+            _ => {}
+        }
+        Ok(())
+    }
+
+    /// Encodes the payload bytes (no validation: see [`Message::validate`]).
+    pub fn encode(&self) -> heapless::Vec<u8, 8> {
+        let mut d = Data::new();
+        match *self {
+            Message::PowerSet { seq, on } => push_all(&mut d, &[seq, on as u8]),
+            Message::Fault { code, arg, detail } => {
+                push_all(&mut d, &[code.to_raw(), arg]);
+                push_all(&mut d, &detail.to_le_bytes());
+            }
+            Message::DockDetected { port } | Message::DockRemoved { port } | Message::Handshake { port } => {
+                push_all(&mut d, &[port.get()])
+            }
+            Message::DockConfirm { seq, port } => push_all(&mut d, &[seq, port.get()]),
+            Message::DockRefuse { seq, port, reason } => push_all(&mut d, &[seq, port.get(), reason.to_raw()]),
+            Message::Ack { kind, seq, result, detail } => push_all(&mut d, &[kind as u8, seq, result.to_raw(), detail]),
+            Message::AssignSelect { uid_head } => push_all(&mut d, &uid_head),
+            Message::AssignCommit { uid_tail, new_id, seq } => {
+                push_all(&mut d, &uid_tail);
+                push_all(&mut d, &new_id.get().to_le_bytes());
+                push_all(&mut d, &[seq]);
+            }
+            Message::AssignReply { seq, result, new_id, uid_tail } => {
+                push_all(&mut d, &[seq, result.to_raw()]);
+                push_all(&mut d, &new_id.get().to_le_bytes());
+                push_all(&mut d, &uid_tail);
+            }
+            Message::BootUp { version, role, ports, reset } => push_all(
+                &mut d,
+                &[version.0, version.1, matches!(role, BootRole::Mobile) as u8, ports, reset.to_raw()],
+            ),
+            Message::BuzzerSet { seq, cmd } => {
+                let (mode, f, on, off, count) = match cmd {
+                    BuzzerCommand::Off => (0, 0, 0, 0, 0),
+                    BuzzerCommand::Continuous { freq_hz } => (1, freq_hz, 0, 0, 0),
+                    BuzzerCommand::Pattern { freq_hz, on_10ms, off_10ms, count } => (2, freq_hz, on_10ms, off_10ms, count),
+                };
+                let f = f.to_le_bytes();
+                push_all(&mut d, &[seq, mode, f[0], f[1], on, off, count]);
+            }
+            Message::LedSet { seq, cmd } => {
+                let (mode, c, br, p, duty) = match cmd {
+                    LedCommand::Off => (0, Rgb::default(), 0, 0, 0),
+                    LedCommand::Steady { color, brightness } => (1, color, brightness, 0, 0),
+                    LedCommand::Blink { color, brightness, period_10ms, duty_pct } => {
+                        (2, color, brightness, period_10ms, duty_pct)
+                    }
+                };
+                push_all(&mut d, &[seq, mode, c.r, c.g, c.b, br, p, duty]);
+            }
+            Message::Identify { seq, seconds } => push_all(&mut d, &[seq, seconds]),
+            Message::HealthCheck { seq } => push_all(&mut d, &[seq]),
+            Message::HealthReply(h) => {
+                let up = h.uptime_s.min(HealthReply::MAX_UPTIME_S).to_le_bytes();
+                push_all(&mut d, &[h.seq, h.flags.0, h.loops, h.tec, h.rec, up[0], up[1], up[2]]);
+            }
+        }
+        d
+    }
+
+    /// Number of data bytes a kind always has.
+    pub const fn len_of(kind: Kind) -> u8 {
+        match kind {
+            Kind::PowerSet => 2,
+            Kind::Fault => 6,
+            Kind::DockDetected | Kind::DockRemoved | Kind::Handshake => 1,
+            Kind::DockConfirm => 2,
+            Kind::DockRefuse => 3,
+            Kind::Ack => 4,
+            Kind::AssignSelect => 8,
+            Kind::AssignCommit => 7,
+            Kind::AssignReply => 8,
+            Kind::BootUp => 5,
+            Kind::BuzzerSet => 7,
+            Kind::LedSet => 8,
+            Kind::Identify => 2,
+            Kind::HealthCheck => 1,
+            Kind::HealthReply => 8,
+        }
+    }
+
+    /// Decodes the payload of a frame of this kind, checking length and every value range.
+    pub fn decode(kind: Kind, d: &[u8]) -> Result<Message, DecodeError> {
+        let expected = Self::len_of(kind);
+        if d.len() != expected as usize {
+            return Err(DecodeError::Length { kind, expected, got: d.len().min(255) as u8 });
+        }
+        let bad = |field: &'static str, raw: u8| DecodeError::Value { kind, field, raw: raw as u32 };
+        let port = |raw: u8| Port::new(raw).ok_or(bad("port", raw));
+        let msg = match kind {
+            Kind::PowerSet => Message::PowerSet {
+                seq: d[0],
+                on: match d[1] {
+                    0 => false,
+                    1 => true,
+                    v => return Err(bad("on", v)),
+                },
+            },
+            Kind::Fault => Message::Fault {
+                code: FaultCode::from_raw(d[0]),
+                arg: d[1],
+                detail: u32::from_le_bytes([d[2], d[3], d[4], d[5]]),
+            },
+            Kind::DockDetected => Message::DockDetected { port: port(d[0])? },
+            Kind::DockRemoved => Message::DockRemoved { port: port(d[0])? },
+            Kind::Handshake => Message::Handshake { port: port(d[0])? },
+            Kind::DockConfirm => Message::DockConfirm { seq: d[0], port: port(d[1])? },
+            Kind::DockRefuse => {
+                Message::DockRefuse { seq: d[0], port: port(d[1])?, reason: DockRefuseReason::from_raw(d[2]) }
+            }
+            Kind::Ack => Message::Ack {
+                kind: Kind::from_raw(d[0]).ok_or(bad("kind", d[0]))?,
+                seq: d[1],
+                result: AckResult::from_raw(d[2]),
+                detail: d[3],
+            },
+            Kind::AssignSelect => {
+                let mut uid_head = [0; 8];
+                uid_head.copy_from_slice(d);
+                Message::AssignSelect { uid_head }
+            }
+            Kind::AssignCommit => Message::AssignCommit {
+                uid_tail: [d[0], d[1], d[2], d[3]],
+                new_id: node_id(u16::from_le_bytes([d[4], d[5]])).ok_or(bad("id", d[4]))?,
+                seq: d[6],
+            },
+            Kind::AssignReply => Message::AssignReply {
+                seq: d[0],
+                result: AckResult::from_raw(d[1]),
+                new_id: node_id(u16::from_le_bytes([d[2], d[3]])).ok_or(bad("id", d[2]))?,
+                uid_tail: [d[4], d[5], d[6], d[7]],
+            },
+            Kind::BootUp => Message::BootUp {
+                version: (d[0], d[1]),
+                role: match d[2] {
+                    0 => BootRole::Static,
+                    1 => BootRole::Mobile,
+                    v => return Err(bad("role", v)),
+                },
+                ports: d[3],
+                reset: ResetReason::from_raw(d[4]),
+            },
+            Kind::BuzzerSet => {
+                let freq_hz = u16::from_le_bytes([d[2], d[3]]);
+                Message::BuzzerSet {
+                    seq: d[0],
+                    cmd: match d[1] {
+                        0 => BuzzerCommand::Off,
+                        1 => BuzzerCommand::Continuous { freq_hz },
+                        2 => BuzzerCommand::Pattern { freq_hz, on_10ms: d[4], off_10ms: d[5], count: d[6] },
+                        v => return Err(bad("mode", v)),
+                    },
+                }
+            }
+            Kind::LedSet => {
+                let color = Rgb::new(d[2], d[3], d[4]);
+                Message::LedSet {
+                    seq: d[0],
+                    cmd: match d[1] {
+                        0 => LedCommand::Off,
+                        1 => LedCommand::Steady { color, brightness: d[5] },
+                        2 => LedCommand::Blink { color, brightness: d[5], period_10ms: d[6], duty_pct: d[7] },
+                        v => return Err(bad("mode", v)),
+                    },
+                }
+            }
+            Kind::Identify => Message::Identify { seq: d[0], seconds: d[1] },
+            Kind::HealthCheck => Message::HealthCheck { seq: d[0] },
+            Kind::HealthReply => Message::HealthReply(HealthReply {
+                seq: d[0],
+                flags: HealthFlags(d[1]),
+                loops: d[2],
+                tec: d[3],
+                rec: d[4],
+                uptime_s: u32::from_le_bytes([d[5], d[6], d[7], 0]),
+            }),
+        };
+        msg.validate()?;
+        Ok(msg)
+    }
+}
+
+fn node_id(raw: u16) -> Option<NodeId> {
+    NodeId::new(raw)
+}
+
+impl Packet {
+    /// A command from the gateway to `dest` (a node or [`NodeId::BROADCAST`]).
+    pub const fn command(dest: NodeId, msg: Message) -> Packet {
+        Packet { src: NodeId::GATEWAY, dest, msg }
+    }
+
+    /// A report from node `src` to the gateway.
+    pub const fn report(src: NodeId, msg: Message) -> Packet {
+        Packet { src, dest: NodeId::GATEWAY, msg }
+    }
+
+    /// The identifier fields.
+    pub const fn header(&self) -> Header {
+        Header { kind: self.msg.kind(), dest: self.dest, src: self.src }
+    }
+
+    /// Checks addresses and value ranges: exactly what [`Packet::from_frame`] accepts.
+    pub fn validate(&self) -> Result<(), DecodeError> {
+        self.header().check_addresses()?;
+        self.msg.validate()
+    }
+
+    /// Raw 29-bit identifier and payload bytes.
+    pub fn encode(&self) -> (u32, heapless::Vec<u8, 8>) {
+        (self.header().to_raw(), self.msg.encode())
+    }
+
+    /// Decodes a raw 29-bit identifier and payload.
+    pub fn decode(raw_id: u32, data: &[u8]) -> Result<Packet, DecodeError> {
+        let h = Header::from_raw(raw_id)?;
+        h.check_addresses()?;
+        let msg = Message::decode(h.kind, data)?;
+        Ok(Packet { src: h.src, dest: h.dest, msg })
+    }
+
+    /// Builds a frame of any embedded-can frame type (socketcan's `CanFrame`, embassy's `Frame`, …).
+    ///
+    /// Returns `None` only if `F` refuses an extended data frame of at most 8 bytes, which no
+    /// conforming implementation does.
+    pub fn to_frame<F: Frame>(&self) -> Option<F> {
+        F::new(self.header().to_id(), &self.msg.encode())
+    }
+
+    /// Decodes a received frame: standard IDs, remote frames, unknown kinds, wrong lengths, bad
+    /// addresses and out-of-range values are all errors, never panics.
+    pub fn from_frame<F: Frame>(frame: &F) -> Result<Packet, DecodeError> {
+        if frame.is_remote_frame() {
+            return Err(DecodeError::Remote);
+        }
+        let h = Header::from_id(frame.id())?;
+        h.check_addresses()?;
+        let data = frame.data();
+        let msg = Message::decode(h.kind, &data[..data.len().min(8)])?;
+        Ok(Packet { src: h.src, dest: h.dest, msg })
+    }
+}
