@@ -42,14 +42,24 @@ pub enum DecodeError {
 impl fmt::Display for DecodeError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
-            DecodeError::StandardId => f.write_str("standard 11-bit identifier (iHEX uses 29-bit identifiers)"),
+            DecodeError::StandardId => {
+                f.write_str("standard 11-bit identifier (iHEX uses 29-bit identifiers)")
+            }
             DecodeError::Remote => f.write_str("remote frame (iHEX does not use RTR)"),
             DecodeError::UnknownKind(k) => write!(f, "unknown message kind 0x{k:02x}"),
-            DecodeError::Length { kind, expected, got } => {
+            DecodeError::Length {
+                kind,
+                expected,
+                got,
+            } => {
                 write!(f, "{kind:?}: expected {expected} data bytes, got {got}")
             }
-            DecodeError::Value { kind, field, raw } => write!(f, "{kind:?}: field `{field}` out of range ({raw:#x})"),
-            DecodeError::Address { kind } => write!(f, "{kind:?}: invalid source/destination for this kind"),
+            DecodeError::Value { kind, field, raw } => {
+                write!(f, "{kind:?}: field `{field}` out of range ({raw:#x})")
+            }
+            DecodeError::Address { kind } => {
+                write!(f, "{kind:?}: invalid source/destination for this kind")
+            }
         }
     }
 }

@@ -82,9 +82,13 @@ pub enum FilterError {
 impl core::fmt::Display for FilterError {
     fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
         f.write_str(match self {
-            FilterError::RejectUnsupported => "bxCAN filter banks cannot reject; apply reject filters in software",
+            FilterError::RejectUnsupported => {
+                "bxCAN filter banks cannot reject; apply reject filters in software"
+            }
             FilterError::EffNotFixed => "bxCAN filters must include the EFF bit in the mask",
-            FilterError::NeverMatches => "standard-ID filter compares bits above bit 10 against ones",
+            FilterError::NeverMatches => {
+                "standard-ID filter compares bits above bit 10 against ones"
+            }
             FilterError::TooMany => "more filters than the target has room for",
         })
     }
@@ -109,12 +113,20 @@ pub fn word_of<F: Frame>(frame: &F) -> u32 {
 impl Filter {
     /// Accepts frames whose match word has the bits of `mask` equal to those of `id`.
     pub const fn accept(id: u32, mask: u32) -> Self {
-        Filter { action: Action::Accept, id, mask }
+        Filter {
+            action: Action::Accept,
+            id,
+            mask,
+        }
     }
 
     /// Rejects frames whose match word has the bits of `mask` equal to those of `id`.
     pub const fn reject(id: u32, mask: u32) -> Self {
-        Filter { action: Action::Reject, id, mask }
+        Filter {
+            action: Action::Reject,
+            id,
+            mask,
+        }
     }
 
     /// Accepts exactly one match word (an ID filter).
@@ -141,7 +153,10 @@ impl Filter {
     /// Accepts extended data frames whose destination field is `dest`, from any source and of any kind.
     pub const fn to_node(dest: NodeId) -> Self {
         let shift = Header::DEST_SHIFT;
-        Self::accept(EFF | ((dest.get() as u32) << shift), EFF | RTR | (Header::NODE_MASK << shift))
+        Self::accept(
+            EFF | ((dest.get() as u32) << shift),
+            EFF | RTR | (Header::NODE_MASK << shift),
+        )
     }
 }
 
@@ -224,20 +239,33 @@ pub const fn kernel_bits(word: u32) -> u32 {
 
 fn kernel_filter(f: &Filter, invert: bool) -> KernelFilter {
     let can_id = kernel_bits(f.id & f.mask) | if invert { CAN_INV_FILTER } else { 0 };
-    KernelFilter { can_id, can_mask: kernel_bits(f.mask) }
+    KernelFilter {
+        can_id,
+        can_mask: kernel_bits(f.mask),
+    }
 }
 
 /// Translates a filter set to kernel filters with exactly [`accepts`]'s semantics where the kernel can
 /// express it: accepts alone are OR-ed, rejects become inverted filters joined with AND, one accept and
 /// rejects are joined; several accepts with rejects install the accepts and ask for a software check.
 pub fn to_kernel(filters: &[Filter]) -> Result<KernelPlan, FilterError> {
-    let accepts_n = filters.iter().filter(|f| f.action == Action::Accept).count();
+    let accepts_n = filters
+        .iter()
+        .filter(|f| f.action == Action::Accept)
+        .count();
     let rejects_n = filters.len() - accepts_n;
-    let mut plan = KernelPlan { filters: heapless::Vec::new(), join: false, software_check: false };
+    let mut plan = KernelPlan {
+        filters: heapless::Vec::new(),
+        join: false,
+        software_check: false,
+    };
     let mut push = |k: KernelFilter| plan.filters.push(k).map_err(|_| FilterError::TooMany);
     if filters.is_empty() {
         // Zero kernel filters would receive nothing; an all-don't-care filter receives everything.
-        push(KernelFilter { can_id: 0, can_mask: 0 })?;
+        push(KernelFilter {
+            can_id: 0,
+            can_mask: 0,
+        })?;
     } else if rejects_n == 0 || accepts_n <= 1 {
         for f in filters {
             push(kernel_filter(f, f.action == Action::Reject))?;
@@ -323,15 +351,21 @@ pub fn to_bxcan(filters: &[Filter]) -> Result<heapless::Vec<BxcanBank, BXCAN_BAN
         let (id, mask) = bxcan_mask_bits(f)?;
         if f.is_id_filter() {
             match pending_id.take() {
-                Some(first) => banks.push(BxcanBank::List32 { ids: [first, id] }).map_err(|_| FilterError::TooMany)?,
+                Some(first) => banks
+                    .push(BxcanBank::List32 { ids: [first, id] })
+                    .map_err(|_| FilterError::TooMany)?,
                 None => pending_id = Some(id),
             }
         } else {
-            banks.push(BxcanBank::Mask32 { id, mask }).map_err(|_| FilterError::TooMany)?;
+            banks
+                .push(BxcanBank::Mask32 { id, mask })
+                .map_err(|_| FilterError::TooMany)?;
         }
     }
     if let Some(id) = pending_id {
-        banks.push(BxcanBank::List32 { ids: [id, id] }).map_err(|_| FilterError::TooMany)?;
+        banks
+            .push(BxcanBank::List32 { ids: [id, id] })
+            .map_err(|_| FilterError::TooMany)?;
     }
     Ok(banks)
 }

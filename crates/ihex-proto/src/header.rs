@@ -97,7 +97,12 @@ impl Kind {
     pub const fn is_acknowledged(self) -> bool {
         matches!(
             self,
-            Kind::PowerSet | Kind::DockConfirm | Kind::DockRefuse | Kind::BuzzerSet | Kind::LedSet | Kind::Identify
+            Kind::PowerSet
+                | Kind::DockConfirm
+                | Kind::DockRefuse
+                | Kind::BuzzerSet
+                | Kind::LedSet
+                | Kind::Identify
         )
     }
 }
@@ -170,13 +175,16 @@ impl Header {
         let ok = if self.kind.is_command() {
             self.src.get() == NodeId::GATEWAY.get()
                 && match self.kind {
-                    Kind::AssignSelect | Kind::AssignCommit => self.dest.get() == NodeId::BROADCAST.get(),
+                    Kind::AssignSelect | Kind::AssignCommit => {
+                        self.dest.get() == NodeId::BROADCAST.get()
+                    }
                     _ => self.dest.is_sc() || self.dest.get() == NodeId::BROADCAST.get(),
                 }
         } else {
             self.dest.get() == NodeId::GATEWAY.get()
                 && (self.src.is_sc()
-                    || (matches!(self.kind, Kind::AssignReply) && self.src.get() == NodeId::UNCONFIGURED.get()))
+                    || (matches!(self.kind, Kind::AssignReply)
+                        && self.src.get() == NodeId::UNCONFIGURED.get()))
         };
         if ok {
             Ok(())

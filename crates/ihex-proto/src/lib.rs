@@ -35,8 +35,8 @@ pub use addr::{NodeId, Port, Seq};
 pub use error::DecodeError;
 pub use header::{Header, Kind};
 pub use message::{
-    AckResult, BootRole, BuzzerCommand, FaultCode, HealthFlags, HealthReply, LedCommand, Message, Packet, Rgb,
-    Uid, DockRefuseReason, ResetReason,
+    AckResult, BootRole, BuzzerCommand, DockRefuseReason, FaultCode, HealthFlags, HealthReply,
+    LedCommand, Message, Packet, ResetReason, Rgb, Uid,
 };
 
 /// Bitrate of the island bus, in bit/s.

@@ -540,7 +540,15 @@ impl Message {
         let kind = self.kind();
         let bad = |field: &'static str, raw: u32| Err(DecodeError::Value { kind, field, raw });
         match *self {
-            Message::LedSet { cmd: LedCommand::Blink { period_10ms, duty_pct, .. }, .. } => {
+            Message::LedSet {
+                cmd:
+                    LedCommand::Blink {
+                        period_10ms,
+                        duty_pct,
+                        ..
+                    },
+                ..
+            } => {
                 if period_10ms == 0 {
                     return bad("period", 0);
                 }
@@ -552,7 +560,12 @@ impl Message {
                 let freq = match cmd {
                     BuzzerCommand::Off => None,
                     BuzzerCommand::Continuous { freq_hz } => Some(freq_hz),
-                    BuzzerCommand::Pattern { freq_hz, on_10ms, off_10ms, .. } => {
+                    BuzzerCommand::Pattern {
+                        freq_hz,
+                        on_10ms,
+                        off_10ms,
+                        ..
+                    } => {
                         if on_10ms == 0 {
                             return bad("on", 0);
                         }
@@ -569,7 +582,8 @@ impl Message {
                 }
             }
             Message::AssignCommit { new_id, .. } | Message::AssignReply { new_id, .. } => {
-                if !new_id.is_sc() && !(kind == Kind::AssignReply && new_id == NodeId::UNCONFIGURED) {
+                if !new_id.is_sc() && !(kind == Kind::AssignReply && new_id == NodeId::UNCONFIGURED)
+                {
                     return bad("id", new_id.get() as u32);
                 }
             }
@@ -597,32 +611,64 @@ impl Message {
                 push_all(&mut d, &[code.to_raw(), arg]);
                 push_all(&mut d, &detail.to_le_bytes());
             }
-            Message::DockDetected { port } | Message::DockRemoved { port } | Message::Handshake { port } => {
-                push_all(&mut d, &[port.get()])
-            }
+            Message::DockDetected { port }
+            | Message::DockRemoved { port }
+            | Message::Handshake { port } => push_all(&mut d, &[port.get()]),
             Message::DockConfirm { seq, port } => push_all(&mut d, &[seq, port.get()]),
-            Message::DockRefuse { seq, port, reason } => push_all(&mut d, &[seq, port.get(), reason.to_raw()]),
-            Message::Ack { kind, seq, result, detail } => push_all(&mut d, &[kind as u8, seq, result.to_raw(), detail]),
+            Message::DockRefuse { seq, port, reason } => {
+                push_all(&mut d, &[seq, port.get(), reason.to_raw()])
+            }
+            Message::Ack {
+                kind,
+                seq,
+                result,
+                detail,
+            } => push_all(&mut d, &[kind as u8, seq, result.to_raw(), detail]),
             Message::AssignSelect { uid_head } => push_all(&mut d, &uid_head),
-            Message::AssignCommit { uid_tail, new_id, seq } => {
+            Message::AssignCommit {
+                uid_tail,
+                new_id,
+                seq,
+            } => {
                 push_all(&mut d, &uid_tail);
                 push_all(&mut d, &new_id.get().to_le_bytes());
                 push_all(&mut d, &[seq]);
             }
-            Message::AssignReply { seq, result, new_id, uid_tail } => {
+            Message::AssignReply {
+                seq,
+                result,
+                new_id,
+                uid_tail,
+            } => {
                 push_all(&mut d, &[seq, result.to_raw()]);
                 push_all(&mut d, &new_id.get().to_le_bytes());
                 push_all(&mut d, &uid_tail);
             }
-            Message::BootUp { version, role, ports, reset } => push_all(
+            Message::BootUp {
+                version,
+                role,
+                ports,
+                reset,
+            } => push_all(
                 &mut d,
-                &[version.0, version.1, matches!(role, BootRole::Mobile) as u8, ports, reset.to_raw()],
+                &[
+                    version.0,
+                    version.1,
+                    matches!(role, BootRole::Mobile) as u8,
+                    ports,
+                    reset.to_raw(),
+                ],
             ),
             Message::BuzzerSet { seq, cmd } => {
                 let (mode, f, on, off, count) = match cmd {
                     BuzzerCommand::Off => (0, 0, 0, 0, 0),
                     BuzzerCommand::Continuous { freq_hz } => (1, freq_hz, 0, 0, 0),
-                    BuzzerCommand::Pattern { freq_hz, on_10ms, off_10ms, count } => (2, freq_hz, on_10ms, off_10ms, count),
+                    BuzzerCommand::Pattern {
+                        freq_hz,
+                        on_10ms,
+                        off_10ms,
+                        count,
+                    } => (2, freq_hz, on_10ms, off_10ms, count),
                 };
                 let f = f.to_le_bytes();
                 push_all(&mut d, &[seq, mode, f[0], f[1], on, off, count]);
@@ -631,9 +677,12 @@ impl Message {
                 let (mode, c, br, p, duty) = match cmd {
                     LedCommand::Off => (0, Rgb::default(), 0, 0, 0),
                     LedCommand::Steady { color, brightness } => (1, color, brightness, 0, 0),
-                    LedCommand::Blink { color, brightness, period_10ms, duty_pct } => {
-                        (2, color, brightness, period_10ms, duty_pct)
-                    }
+                    LedCommand::Blink {
+                        color,
+                        brightness,
+                        period_10ms,
+                        duty_pct,
+                    } => (2, color, brightness, period_10ms, duty_pct),
                 };
                 push_all(&mut d, &[seq, mode, c.r, c.g, c.b, br, p, duty]);
             }
@@ -641,7 +690,10 @@ impl Message {
             Message::HealthCheck { seq } => push_all(&mut d, &[seq]),
             Message::HealthReply(h) => {
                 let up = h.uptime_s.min(HealthReply::MAX_UPTIME_S).to_le_bytes();
-                push_all(&mut d, &[h.seq, h.flags.0, h.loops, h.tec, h.rec, up[0], up[1], up[2]]);
+                push_all(
+                    &mut d,
+                    &[h.seq, h.flags.0, h.loops, h.tec, h.rec, up[0], up[1], up[2]],
+                );
             }
         }
         d
@@ -672,9 +724,17 @@ impl Message {
     pub fn decode(kind: Kind, d: &[u8]) -> Result<Message, DecodeError> {
         let expected = Self::len_of(kind);
         if d.len() != expected as usize {
-            return Err(DecodeError::Length { kind, expected, got: d.len().min(255) as u8 });
+            return Err(DecodeError::Length {
+                kind,
+                expected,
+                got: d.len().min(255) as u8,
+            });
         }
-        let bad = |field: &'static str, raw: u8| DecodeError::Value { kind, field, raw: raw as u32 };
+        let bad = |field: &'static str, raw: u8| DecodeError::Value {
+            kind,
+            field,
+            raw: raw as u32,
+        };
         let port = |raw: u8| Port::new(raw).ok_or(bad("port", raw));
         let msg = match kind {
             Kind::PowerSet => Message::PowerSet {
@@ -693,10 +753,15 @@ impl Message {
             Kind::DockDetected => Message::DockDetected { port: port(d[0])? },
             Kind::DockRemoved => Message::DockRemoved { port: port(d[0])? },
             Kind::Handshake => Message::Handshake { port: port(d[0])? },
-            Kind::DockConfirm => Message::DockConfirm { seq: d[0], port: port(d[1])? },
-            Kind::DockRefuse => {
-                Message::DockRefuse { seq: d[0], port: port(d[1])?, reason: DockRefuseReason::from_raw(d[2]) }
-            }
+            Kind::DockConfirm => Message::DockConfirm {
+                seq: d[0],
+                port: port(d[1])?,
+            },
+            Kind::DockRefuse => Message::DockRefuse {
+                seq: d[0],
+                port: port(d[1])?,
+                reason: DockRefuseReason::from_raw(d[2]),
+            },
             Kind::Ack => Message::Ack {
                 kind: Kind::from_raw(d[0]).ok_or(bad("kind", d[0]))?,
                 seq: d[1],
@@ -736,7 +801,12 @@ impl Message {
                     cmd: match d[1] {
                         0 => BuzzerCommand::Off,
                         1 => BuzzerCommand::Continuous { freq_hz },
-                        2 => BuzzerCommand::Pattern { freq_hz, on_10ms: d[4], off_10ms: d[5], count: d[6] },
+                        2 => BuzzerCommand::Pattern {
+                            freq_hz,
+                            on_10ms: d[4],
+                            off_10ms: d[5],
+                            count: d[6],
+                        },
                         v => return Err(bad("mode", v)),
                     },
                 }
@@ -747,13 +817,24 @@ impl Message {
                     seq: d[0],
                     cmd: match d[1] {
                         0 => LedCommand::Off,
-                        1 => LedCommand::Steady { color, brightness: d[5] },
-                        2 => LedCommand::Blink { color, brightness: d[5], period_10ms: d[6], duty_pct: d[7] },
+                        1 => LedCommand::Steady {
+                            color,
+                            brightness: d[5],
+                        },
+                        2 => LedCommand::Blink {
+                            color,
+                            brightness: d[5],
+                            period_10ms: d[6],
+                            duty_pct: d[7],
+                        },
                         v => return Err(bad("mode", v)),
                     },
                 }
             }
-            Kind::Identify => Message::Identify { seq: d[0], seconds: d[1] },
+            Kind::Identify => Message::Identify {
+                seq: d[0],
+                seconds: d[1],
+            },
             Kind::HealthCheck => Message::HealthCheck { seq: d[0] },
             Kind::HealthReply => Message::HealthReply(HealthReply {
                 seq: d[0],
@@ -776,17 +857,29 @@ fn node_id(raw: u16) -> Option<NodeId> {
 impl Packet {
     /// A command from the gateway to `dest` (a node or [`NodeId::BROADCAST`]).
     pub const fn command(dest: NodeId, msg: Message) -> Packet {
-        Packet { src: NodeId::GATEWAY, dest, msg }
+        Packet {
+            src: NodeId::GATEWAY,
+            dest,
+            msg,
+        }
     }
 
     /// A report from node `src` to the gateway.
     pub const fn report(src: NodeId, msg: Message) -> Packet {
-        Packet { src, dest: NodeId::GATEWAY, msg }
+        Packet {
+            src,
+            dest: NodeId::GATEWAY,
+            msg,
+        }
     }
 
     /// The identifier fields.
     pub const fn header(&self) -> Header {
-        Header { kind: self.msg.kind(), dest: self.dest, src: self.src }
+        Header {
+            kind: self.msg.kind(),
+            dest: self.dest,
+            src: self.src,
+        }
     }
 
     /// Checks addresses and value ranges: exactly what [`Packet::from_frame`] accepts.
@@ -805,7 +898,11 @@ impl Packet {
         let h = Header::from_raw(raw_id)?;
         h.check_addresses()?;
         let msg = Message::decode(h.kind, data)?;
-        Ok(Packet { src: h.src, dest: h.dest, msg })
+        Ok(Packet {
+            src: h.src,
+            dest: h.dest,
+            msg,
+        })
     }
 
     /// Builds a frame of any embedded-can frame type (socketcan's `CanFrame`, embassy's `Frame`, …).
@@ -826,6 +923,10 @@ impl Packet {
         h.check_addresses()?;
         let data = frame.data();
         let msg = Message::decode(h.kind, &data[..data.len().min(8)])?;
-        Ok(Packet { src: h.src, dest: h.dest, msg })
+        Ok(Packet {
+            src: h.src,
+            dest: h.dest,
+            msg,
+        })
     }
 }

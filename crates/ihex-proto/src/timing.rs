@@ -28,7 +28,9 @@ impl core::fmt::Display for TimingError {
     fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
         f.write_str(match self {
             TimingError::Zero => "clock and bitrate must be non-zero",
-            TimingError::NoExactTiming => "no bxCAN prescaler/segment split gives this bitrate exactly from this clock",
+            TimingError::NoExactTiming => {
+                "no bxCAN prescaler/segment split gives this bitrate exactly from this clock"
+            }
         })
     }
 }
@@ -70,7 +72,12 @@ impl BitTiming {
                     if bs1 >= 1 && bs1 <= 16 && bs2 >= 1 && bs2 <= 8 {
                         let sp = before * 1000 / tq;
                         let err = sp.abs_diff(Self::TARGET_SAMPLE_POINT_PERMILLE);
-                        let t = BitTiming { prescaler: prescaler as u16, bs1: bs1 as u8, bs2: bs2 as u8, sjw: 1 };
+                        let t = BitTiming {
+                            prescaler: prescaler as u16,
+                            bs1: bs1 as u8,
+                            bs2: bs2 as u8,
+                            sjw: 1,
+                        };
                         let better = match best {
                             None => true,
                             Some((_, e)) => err < e,

@@ -95,7 +95,10 @@ impl UartReply {
     /// The two bytes of this reply.
     pub const fn encode(self) -> [u8; 2] {
         match self {
-            UartReply::Id(id) => [(REPLY_ID_MARKER << 4) | (id.get() >> 8) as u8, id.get() as u8],
+            UartReply::Id(id) => [
+                (REPLY_ID_MARKER << 4) | (id.get() >> 8) as u8,
+                id.get() as u8,
+            ],
             UartReply::Error(e) => [REPLY_ERR_MARKER << 4, e as u8],
         }
     }
@@ -153,7 +156,9 @@ impl UartDecoder {
         Some(match b0 >> 4 {
             SET_MARKER => {
                 let raw = (((b0 & 0xF) as u16) << 8) | byte as u16;
-                NodeId::new_sc(raw).map(UartRequest::SetId).ok_or(UartError::ReservedId)
+                NodeId::new_sc(raw)
+                    .map(UartRequest::SetId)
+                    .ok_or(UartError::ReservedId)
             }
             _ if b0 == QUERY_MARKER << 4 && byte == 0 => Ok(UartRequest::Query),
             _ => Err(UartError::Malformed),
