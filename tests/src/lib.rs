@@ -1,1 +1,13 @@
-//! placeholder
+//! Support library for iHEX integration tests: SocketCAN interface leases, a throwaway Mosquitto
+//! broker, and timeouts that turn a hang into a failure.
+//!
+//! The SocketCAN tests live behind the `vcan` feature and expect `IHEX_TEST_CAN` to name the
+//! interfaces they may use. `cargo xtask test` sets it up: natively when the host has vcan,
+//! otherwise inside a QEMU microVM (see `docs/testing.md`).
+#![warn(missing_docs)]
+
+pub mod broker;
+pub mod can;
+pub mod time;
+
+pub use time::{within, within_or_panic};

@@ -1,0 +1,220 @@
+//! A throwaway Mosquitto broker per test, on a free loopback port, killed when dropped.
+//!
+//! [`Mosquitto::start`] spawns the system's `mosquitto` with a generated config that needs no other
+//! files, so it runs natively and inside the test microVM alike (the harness copies the binary and
+//! its libraries into the VM). [`external`] returns the broker the harness itself started on the
+//! host, if any (`IHEX_TEST_MQTT`).
+
+use std::fs;
+use std::io;
+use std::net::{Ipv4Addr, SocketAddr, TcpListener, TcpStream};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, ExitStatus, Stdio};
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::time::{Duration, Instant};
+
+/// Environment variable naming the mosquitto binary to use (default: `mosquitto` on `PATH`, then
+/// `/usr/sbin/mosquitto`).
+pub const BIN_ENV: &str = "IHEX_MOSQUITTO";
+
+/// Environment variable with the address (`host:port`) of a broker the harness started on the host.
+pub const EXTERNAL_ENV: &str = "IHEX_TEST_MQTT";
+
+/// How long a started broker may take to accept connections (before [`crate::time::scaled`]).
+const READY_TIMEOUT: Duration = Duration::from_secs(10);
+
+static INSTANCE: AtomicUsize = AtomicUsize::new(0);
+
+/// Why a broker could not be started.
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    /// No mosquitto binary was found.
+    #[error(
+        "mosquitto not found (looked at ${BIN_ENV}, PATH, /usr/sbin, /usr/local/sbin): \
+         install it (`apt-get install mosquitto`) or run `cargo xtask setup`"
+    )]
+    NotFound,
+    /// A file or process operation failed.
+    #[error("{action}: {source}")]
+    Io {
+        /// What was being done.
+        action: String,
+        /// The underlying error.
+        source: io::Error,
+    },
+    /// The broker exited before it accepted connections.
+    #[error("mosquitto exited ({status}) before listening on {addr}; its log:\n{log}")]
+    Exited {
+        /// Where it should have listened.
+        addr: SocketAddr,
+        /// Its exit status.
+        status: ExitStatus,
+        /// What it wrote to stderr.
+        log: String,
+    },
+    /// The broker did not accept connections in time.
+    #[error("mosquitto did not accept connections on {addr} within {after:?}; its log:\n{log}")]
+    NotReady {
+        /// Where it should have listened.
+        addr: SocketAddr,
+        /// How long we waited.
+        after: Duration,
+        /// What it wrote to stderr.
+        log: String,
+    },
+}
+
+fn io_err(action: impl Into<String>) -> impl FnOnce(io::Error) -> Error {
+    let action = action.into();
+    move |source| Error::Io { action, source }
+}
+
+/// The broker address in `IHEX_TEST_MQTT`, if the harness started one (in the VM this is the
+/// host's broker at `10.0.2.2:port`).
+pub fn external() -> Option<SocketAddr> {
+    std::env::var(EXTERNAL_ENV).ok()?.trim().parse().ok()
+}
+
+/// The mosquitto binary this process would run.
+pub fn binary() -> Option<PathBuf> {
+    if let Some(p) = std::env::var_os(BIN_ENV) {
+        return Some(PathBuf::from(p));
+    }
+    let path = std::env::var_os("PATH").unwrap_or_default();
+    std::env::split_paths(&path)
+        .chain(["/usr/sbin".into(), "/usr/local/sbin".into()])
+        .map(|dir| dir.join("mosquitto"))
+        .find(|p| p.is_file())
+}
+
+/// A running mosquitto process listening on `127.0.0.1:<port>`; killed on drop.
+#[derive(Debug)]
+pub struct Mosquitto {
+    bin: PathBuf,
+    dir: PathBuf,
+    addr: SocketAddr,
+    child: Option<Child>,
+}
+
+impl Mosquitto {
+    /// Starts a broker on a free loopback port and waits until it accepts TCP connections.
+    pub fn start() -> Result<Mosquitto, Error> {
+        let bin = binary().ok_or(Error::NotFound)?;
+        let port = free_port()?;
+        let addr = SocketAddr::from((Ipv4Addr::LOCALHOST, port));
+        let dir = std::env::temp_dir().join(format!(
+            "ihex-mosquitto-{}-{}",
+            std::process::id(),
+            INSTANCE.fetch_add(1, Ordering::Relaxed)
+        ));
+        fs::create_dir_all(&dir).map_err(io_err(format!("creating {}", dir.display())))?;
+        // `user root` keeps a root-run broker from switching to a `mosquitto` account, which the
+        // test VM does not have; for non-root runs mosquitto ignores it.
+        let conf = format!(
+            "listener {port} 127.0.0.1\nallow_anonymous true\npersistence false\nuser root\n\
+             log_dest stderr\nlog_type error\nlog_type warning\n"
+        );
+        let conf_path = dir.join("mosquitto.conf");
+        fs::write(&conf_path, conf).map_err(io_err(format!("writing {}", conf_path.display())))?;
+        let mut broker = Mosquitto {
+            bin,
+            dir,
+            addr,
+            child: None,
+        };
+        broker.spawn()?;
+        Ok(broker)
+    }
+
+    /// Where clients connect.
+    pub fn addr(&self) -> SocketAddr {
+        self.addr
+    }
+
+    /// Kills the broker (clients see their connection drop). Idempotent.
+    pub fn stop(&mut self) {
+        if let Some(mut child) = self.child.take() {
+            let _ = child.kill();
+            let _ = child.wait();
+        }
+    }
+
+    /// Stops the broker and starts a fresh one on the same port (sessions and retained messages
+    /// are gone: persistence is off), waiting until it accepts connections again.
+    pub fn restart(&mut self) -> Result<(), Error> {
+        self.stop();
+        self.spawn()
+    }
+
+    /// True while the broker process is alive.
+    pub fn is_running(&mut self) -> bool {
+        matches!(self.child.as_mut().map(|c| c.try_wait()), Some(Ok(None)))
+    }
+
+    fn log_path(&self) -> PathBuf {
+        self.dir.join("mosquitto.log")
+    }
+
+    fn spawn(&mut self) -> Result<(), Error> {
+        let log_path = self.log_path();
+        let log = fs::File::create(&log_path)
+            .map_err(io_err(format!("creating {}", log_path.display())))?;
+        let child = Command::new(&self.bin)
+            .arg("-c")
+            .arg(self.dir.join("mosquitto.conf"))
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(log)
+            .spawn()
+            .map_err(io_err(format!("starting {}", self.bin.display())))?;
+        self.child = Some(child);
+        self.wait_ready()
+    }
+
+    fn wait_ready(&mut self) -> Result<(), Error> {
+        let after = crate::time::scaled(READY_TIMEOUT);
+        let deadline = Instant::now() + after;
+        loop {
+            let child = self.child.as_mut().expect("spawn sets the child");
+            if let Ok(Some(status)) = child.try_wait() {
+                self.child = None;
+                return Err(Error::Exited {
+                    addr: self.addr,
+                    status,
+                    log: read_log(&self.log_path()),
+                });
+            }
+            if TcpStream::connect_timeout(&self.addr, Duration::from_millis(200)).is_ok() {
+                return Ok(());
+            }
+            if Instant::now() >= deadline {
+                self.stop();
+                return Err(Error::NotReady {
+                    addr: self.addr,
+                    after,
+                    log: read_log(&self.log_path()),
+                });
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+}
+
+impl Drop for Mosquitto {
+    fn drop(&mut self) {
+        self.stop();
+        let _ = fs::remove_dir_all(&self.dir);
+    }
+}
+
+fn read_log(path: &Path) -> String {
+    fs::read_to_string(path).unwrap_or_else(|e| format!("(no log: {e})"))
+}
+
+/// A loopback port nobody listens on right now (the kernel picks it; we release it for mosquitto).
+fn free_port() -> Result<u16, Error> {
+    let l = TcpListener::bind((Ipv4Addr::LOCALHOST, 0)).map_err(io_err("binding a free port"))?;
+    Ok(l.local_addr()
+        .map_err(io_err("reading the bound port"))?
+        .port())
+}
