@@ -34,6 +34,11 @@ pub const CAN_EFF_FLAG: u32 = 0x8000_0000;
 pub const CAN_RTR_FLAG: u32 = 0x4000_0000;
 /// SocketCAN `CAN_INV_FILTER`, set in a filter's `can_id` to invert it.
 pub const CAN_INV_FILTER: u32 = 0x2000_0000;
+/// SocketCAN `CAN_ERR_FLAG`: the same bit as [`CAN_INV_FILTER`], but in a filter's `can_mask` it
+/// turns the filter into an error-frame filter.
+pub const CAN_ERR_FLAG: u32 = 0x2000_0000;
+/// SocketCAN `CAN_SFF_MASK`: the bits of a standard identifier.
+pub const CAN_SFF_MASK: u32 = 0x7FF;
 
 /// Number of filter banks of the STM32F303's bxCAN.
 pub const BXCAN_BANKS: usize = 14;
@@ -144,6 +149,12 @@ impl Filter {
         self.mask & WORD_MASK == WORD_MASK
     }
 
+    /// True for a standard-frame filter (EFF compared and clear) that compares identifier bits above
+    /// bit 10 against ones: no frame can match it.
+    pub const fn never_matches(&self) -> bool {
+        self.mask & EFF != 0 && self.id & EFF == 0 && (self.id & self.mask & ID_MASK & !0x7FF) != 0
+    }
+
     /// True when the word's masked bits equal the filter's (whatever the action).
     pub const fn matches(&self, word: u32) -> bool {
         let m = self.mask & WORD_MASK;
@@ -210,10 +221,21 @@ impl KernelFilter {
         self.can_id & CAN_INV_FILTER != 0
     }
 
-    /// The kernel's own matching rule for a frame's raw `can_id` (flags included), for tests and for
-    /// software fall-back: `((can_id ^ filter.can_id) & can_mask) == 0`, negated when inverted.
+    /// The kernel's own matching rule for a data or remote frame's raw `can_id` (flags included), for
+    /// tests and for software fall-back, as `can_rcv_list_find` and `can_rcv_filter` in Linux's
+    /// `net/can/af_can.c` apply it: `((can_id ^ filter.can_id) & can_mask) == 0`, negated when inverted,
+    /// where a filter whose mask has `CAN_EFF_FLAG` but whose `can_id` does not ("standard frames only")
+    /// compares only the 11 standard bits and the flags, and a filter whose mask has `CAN_ERR_FLAG`
+    /// only ever sees error frames.
     pub const fn kernel_matches(&self, frame_can_id: u32) -> bool {
-        let hit = ((frame_can_id ^ (self.can_id & !CAN_INV_FILTER)) & self.can_mask) == 0;
+        let mut mask = self.can_mask;
+        if mask & CAN_ERR_FLAG != 0 {
+            return false;
+        }
+        if mask & CAN_EFF_FLAG != 0 && self.can_id & CAN_EFF_FLAG == 0 {
+            mask &= CAN_SFF_MASK | CAN_EFF_FLAG | CAN_RTR_FLAG;
+        }
+        let hit = ((frame_can_id ^ (self.can_id & !CAN_INV_FILTER)) & mask) == 0;
         hit != self.inverted()
     }
 }
@@ -221,7 +243,8 @@ impl KernelFilter {
 /// How to install a filter set on a SocketCAN socket.
 #[derive(Clone, PartialEq, Eq, Debug)]
 pub struct KernelPlan {
-    /// `CAN_RAW_FILTER` entries.
+    /// `CAN_RAW_FILTER` entries. Empty means "receive nothing" (every accept filter of the set can
+    /// never match): install it as an empty list, which the kernel takes as exactly that.
     pub filters: heapless::Vec<KernelFilter, MAX_KERNEL_FILTERS>,
     /// Set `CAN_RAW_JOIN_FILTERS` (a frame must match every entry instead of any).
     pub join: bool,
@@ -248,31 +271,36 @@ fn kernel_filter(f: &Filter, invert: bool) -> KernelFilter {
 /// Translates a filter set to kernel filters with exactly [`accepts`]'s semantics where the kernel can
 /// express it: accepts alone are OR-ed, rejects become inverted filters joined with AND, one accept and
 /// rejects are joined; several accepts with rejects install the accepts and ask for a software check.
+///
+/// Standard-frame filters that compare identifier bits above bit 10 against ones can never match
+/// ([`accepts`]), but the kernel would ignore those bits and match: they are left out (a set whose
+/// accept filters are all such gives an empty, receive-nothing plan).
 pub fn to_kernel(filters: &[Filter]) -> Result<KernelPlan, FilterError> {
-    let accepts_n = filters
-        .iter()
-        .filter(|f| f.action == Action::Accept)
-        .count();
-    let rejects_n = filters.len() - accepts_n;
+    let any_accept = filters.iter().any(|f| f.action == Action::Accept);
+    let live = || filters.iter().filter(|f| !f.never_matches());
+    let accepts_n = live().filter(|f| f.action == Action::Accept).count();
+    let rejects_n = live().count() - accepts_n;
     let mut plan = KernelPlan {
         filters: heapless::Vec::new(),
         join: false,
         software_check: false,
     };
     let mut push = |k: KernelFilter| plan.filters.push(k).map_err(|_| FilterError::TooMany);
-    if filters.is_empty() {
+    if any_accept && accepts_n == 0 {
+        // Accept filters exist but none can match: nothing passes, which is an empty kernel list.
+    } else if accepts_n + rejects_n == 0 {
         // Zero kernel filters would receive nothing; an all-don't-care filter receives everything.
         push(KernelFilter {
             can_id: 0,
             can_mask: 0,
         })?;
     } else if rejects_n == 0 || accepts_n <= 1 {
-        for f in filters {
+        for f in live() {
             push(kernel_filter(f, f.action == Action::Reject))?;
         }
         plan.join = rejects_n > 0;
     } else {
-        for f in filters.iter().filter(|f| f.action == Action::Accept) {
+        for f in live().filter(|f| f.action == Action::Accept) {
             push(kernel_filter(f, false))?;
         }
         plan.software_check = true;
@@ -328,21 +356,33 @@ fn bxcan_mask_bits(f: &Filter) -> Result<(u32, u32), FilterError> {
     if f.mask & EFF == 0 {
         return Err(FilterError::EffNotFixed);
     }
-    if f.id & EFF == 0 && (f.id & f.mask & ID_MASK & !0x7FF) != 0 {
+    if f.never_matches() {
         return Err(FilterError::NeverMatches);
     }
-    // The IDE bit is always compared (the EFF bit is in the mask); for standard filters only the
-    // 11 STID bits exist.
+    // The IDE bit is always compared (the EFF bit is in the mask). The mask must be laid out like
+    // the identifier it applies to: EXID bits for an extended filter, only the 11 STID bits for a
+    // standard one (a standard frame has no EXID bits to compare).
     let id = bxcan_bits(f.id & f.mask);
-    let mask_word = f.mask | (f.id & EFF);
+    let mask_word = if f.id & EFF != 0 {
+        f.mask
+    } else {
+        f.mask & !EFF
+    };
     let mask = bxcan_bits(mask_word) | BXCAN_IDE;
     Ok((id, mask))
 }
 
 /// Translates accept filters into bxCAN banks: ID filters two to a list bank, mask filters one per mask
-/// bank. Reject filters, filters that leave EFF open, and more than [`BXCAN_BANKS`] banks are errors.
+/// bank; an empty set becomes one bank that passes everything, as [`accepts`] does. Reject filters,
+/// filters that leave EFF open, and more than [`BXCAN_BANKS`] banks are errors.
 pub fn to_bxcan(filters: &[Filter]) -> Result<heapless::Vec<BxcanBank, BXCAN_BANKS>, FilterError> {
     let mut banks: heapless::Vec<BxcanBank, BXCAN_BANKS> = heapless::Vec::new();
+    if filters.is_empty() {
+        // No filter means "everything passes" ([`accepts`]), but bxCAN with no active bank
+        // receives nothing: install one bank that compares no bit.
+        let _ = banks.push(BxcanBank::Mask32 { id: 0, mask: 0 });
+        return Ok(banks);
+    }
     let mut pending_id: Option<u32> = None;
     for f in filters {
         if f.action == Action::Reject {
