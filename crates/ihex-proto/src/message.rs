@@ -720,7 +720,8 @@ impl Message {
         }
     }
 
-    /// Decodes the payload of a frame of this kind, checking length and every value range.
+    /// Decodes the payload of a frame of this kind, checking length, every value range and that
+    /// bytes the mode leaves unused are zero: an accepted payload re-encodes to the same bytes.
     pub fn decode(kind: Kind, d: &[u8]) -> Result<Message, DecodeError> {
         let expected = Self::len_of(kind);
         if d.len() != expected as usize {
@@ -736,6 +737,19 @@ impl Message {
             raw: raw as u32,
         };
         let port = |raw: u8| Port::new(raw).ok_or(bad("port", raw));
+        let node_id = |raw: u16| {
+            NodeId::new(raw).ok_or(DecodeError::Value {
+                kind,
+                field: "id",
+                raw: raw as u32,
+            })
+        };
+        // Bytes a mode does not use must be zero, so that every accepted payload has exactly one
+        // encoding (decode then encode gives the same bytes) and a future use of them is detectable.
+        let reserved = |bytes: &[u8]| match bytes.iter().find(|b| **b != 0) {
+            Some(b) => Err(bad("reserved", *b)),
+            None => Ok(()),
+        };
         let msg = match kind {
             Kind::PowerSet => Message::PowerSet {
                 seq: d[0],
@@ -775,13 +789,13 @@ impl Message {
             }
             Kind::AssignCommit => Message::AssignCommit {
                 uid_tail: [d[0], d[1], d[2], d[3]],
-                new_id: node_id(u16::from_le_bytes([d[4], d[5]])).ok_or(bad("id", d[4]))?,
+                new_id: node_id(u16::from_le_bytes([d[4], d[5]]))?,
                 seq: d[6],
             },
             Kind::AssignReply => Message::AssignReply {
                 seq: d[0],
                 result: AckResult::from_raw(d[1]),
-                new_id: node_id(u16::from_le_bytes([d[2], d[3]])).ok_or(bad("id", d[2]))?,
+                new_id: node_id(u16::from_le_bytes([d[2], d[3]]))?,
                 uid_tail: [d[4], d[5], d[6], d[7]],
             },
             Kind::BootUp => Message::BootUp {
@@ -799,8 +813,14 @@ impl Message {
                 Message::BuzzerSet {
                     seq: d[0],
                     cmd: match d[1] {
-                        0 => BuzzerCommand::Off,
-                        1 => BuzzerCommand::Continuous { freq_hz },
+                        0 => {
+                            reserved(&d[2..])?;
+                            BuzzerCommand::Off
+                        }
+                        1 => {
+                            reserved(&d[4..])?;
+                            BuzzerCommand::Continuous { freq_hz }
+                        }
                         2 => BuzzerCommand::Pattern {
                             freq_hz,
                             on_10ms: d[4],
@@ -816,11 +836,17 @@ impl Message {
                 Message::LedSet {
                     seq: d[0],
                     cmd: match d[1] {
-                        0 => LedCommand::Off,
-                        1 => LedCommand::Steady {
-                            color,
-                            brightness: d[5],
-                        },
+                        0 => {
+                            reserved(&d[2..])?;
+                            LedCommand::Off
+                        }
+                        1 => {
+                            reserved(&d[6..])?;
+                            LedCommand::Steady {
+                                color,
+                                brightness: d[5],
+                            }
+                        }
                         2 => LedCommand::Blink {
                             color,
                             brightness: d[5],
@@ -848,10 +874,6 @@ impl Message {
         msg.validate()?;
         Ok(msg)
     }
-}
-
-fn node_id(raw: u16) -> Option<NodeId> {
-    NodeId::new(raw)
 }
 
 impl Packet {
