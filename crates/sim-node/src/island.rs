@@ -1,0 +1,911 @@
+//! A running island: one [`ihex_sc_core::Node`] per element, wired to a [`Link`], with the physical
+//! world (power through dock relays, signal loops, cables) simulated around them.
+//!
+//! One task owns every node and the topology, so a dock, a relay edge and the power it switches are
+//! handled in a consistent order. Per powered node a small reader task forwards received frames to it.
+//! The rules of the physical world:
+//! - static elements are powered from the start (and after [`IslandHandle::power_cycle`]);
+//! - a mobile element is powered exactly while it is docked on a powered static element whose relay is
+//!   on; power-up is a fresh `Node` (reset `PowerOn`, the ID it last stored), power loss drops it;
+//! - docking closes the static element's signal loop on that port and the mobile's own loop on its
+//!   port; undocking opens both (with optional contact bounce);
+//! - a node taken off the bus keeps running but neither sends nor receives frames.
+//!
+//! Time is tokio's clock, so tests may run with a paused clock.
+
+use std::collections::BTreeMap;
+
+use embedded_can::Frame as EmbeddedFrame;
+use ihex_proto::{filter::sc_filters, BootRole, NodeId, Port, ResetReason, Uid};
+use ihex_sc_core::{Actuators, BuzzerOutput, Config, Millis, Node, Output};
+use socketcan::CanFrame;
+use tokio::{
+    sync::{broadcast, mpsc, oneshot},
+    task::JoinHandle,
+    time::{Duration, Instant},
+};
+
+use crate::{
+    desc::IslandDesc,
+    link::{Link, LinkError, LinkTx},
+};
+
+/// Offsets (ms) and levels (relative to the final level) of a bouncing contact: four short glitches,
+/// all well inside the core's debounce window.
+const BOUNCE: [(u64, bool); 5] = [(0, true), (2, false), (4, true), (6, false), (9, true)];
+
+/// Capacity of the event stream ([`IslandHandle::subscribe`]).
+pub const EVENT_CAPACITY: usize = 256;
+
+/// Why an island operation was refused.
+#[derive(Debug, thiserror::Error)]
+pub enum IslandError {
+    /// No element with this ID in the island.
+    #[error("no element \"{0}\" in this island")]
+    UnknownNode(NodeId),
+    /// The element is static where a mobile one is needed.
+    #[error("\"{0}\" is not a mobile element")]
+    NotMobile(NodeId),
+    /// The element is mobile where a static one is needed.
+    #[error("\"{0}\" is not a static element")]
+    NotStatic(NodeId),
+    /// The element has no such port.
+    #[error("\"{node}\" has no port {port}")]
+    NoSuchPort {
+        /// Element.
+        node: NodeId,
+        /// Requested port.
+        port: u8,
+    },
+    /// Another mobile element is docked on that port.
+    #[error("port {port} of \"{static_id}\" is taken by \"{by}\"")]
+    PortTaken {
+        /// Static element.
+        static_id: NodeId,
+        /// Port.
+        port: Port,
+        /// The mobile element there.
+        by: NodeId,
+    },
+    /// The mobile element is already docked somewhere.
+    #[error("\"{mobile}\" is already docked on \"{static_id}\" port {port}")]
+    AlreadyDocked {
+        /// Mobile element.
+        mobile: NodeId,
+        /// Where.
+        static_id: NodeId,
+        /// Port.
+        port: Port,
+    },
+    /// The mobile element is not docked.
+    #[error("\"{0}\" is not docked")]
+    NotDocked(NodeId),
+    /// The element has no power (a mobile element not powered through a dock).
+    #[error("\"{0}\" has no power")]
+    NotPowered(NodeId),
+    /// The bus could not be opened or configured.
+    #[error(transparent)]
+    Link(#[from] LinkError),
+    /// The island task has stopped.
+    #[error("the island is not running")]
+    Stopped,
+}
+
+/// Something that changed in the island (see [`IslandHandle::subscribe`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum IslandEvent {
+    /// A powered node's actuators changed (also sent at power-up).
+    Actuators {
+        /// Element.
+        node: NodeId,
+        /// The new setting.
+        actuators: Actuators,
+    },
+    /// An element gained or lost power.
+    Power {
+        /// Element.
+        node: NodeId,
+        /// Powered now.
+        on: bool,
+    },
+    /// An element was put on or taken off the bus.
+    Bus {
+        /// Element.
+        node: NodeId,
+        /// Connected now.
+        on: bool,
+    },
+    /// A mobile element was docked.
+    Docked {
+        /// Mobile element.
+        mobile: NodeId,
+        /// Static element.
+        static_id: NodeId,
+        /// Static element's port.
+        port: Port,
+    },
+    /// A mobile element was undocked.
+    Undocked {
+        /// Mobile element.
+        mobile: NodeId,
+        /// Static element it left.
+        static_id: NodeId,
+        /// Port it left.
+        port: Port,
+    },
+    /// A node asked to persist a new node ID ("flash" write; used at its next power-up).
+    IdStored {
+        /// Element.
+        node: NodeId,
+        /// The stored ID.
+        id: NodeId,
+    },
+}
+
+/// What one element looks like right now (see [`IslandHandle::snapshot`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct NodeView {
+    /// The element's name in the island (its ID in the island file).
+    pub name: NodeId,
+    /// Static or mobile.
+    pub role: BootRole,
+    /// The ID the node uses now (powered) or would boot with (unpowered); `None` = unconfigured.
+    pub node_id: Option<NodeId>,
+    /// Its unique ID.
+    pub uid: Uid,
+    /// Has power (a `Node` is running).
+    pub powered: bool,
+    /// Connected to the bus.
+    pub on_bus: bool,
+    /// Actuators (all off when unpowered).
+    pub actuators: Actuators,
+    /// Signal-loop levels as its pins read them: bit n = port n closed.
+    pub loops: u8,
+    /// Mobile: where it is docked.
+    pub docked: Option<(NodeId, Port)>,
+}
+
+enum Command {
+    Dock(NodeId, NodeId, u8, oneshot::Sender<Result<(), IslandError>>),
+    Undock(NodeId, oneshot::Sender<Result<(), IslandError>>),
+    PowerCycle(NodeId, oneshot::Sender<Result<(), IslandError>>),
+    SetOnBus(NodeId, bool, oneshot::Sender<Result<(), IslandError>>),
+    Uart(
+        NodeId,
+        Vec<u8>,
+        oneshot::Sender<Result<Vec<u8>, IslandError>>,
+    ),
+    Snapshot(oneshot::Sender<Vec<NodeView>>),
+    Shutdown(oneshot::Sender<()>),
+}
+
+/// Controls a running island. Cheap to clone; the island stops when every handle is dropped or
+/// [`IslandHandle::shutdown`] is called.
+#[derive(Clone, Debug)]
+pub struct IslandHandle {
+    cmd: mpsc::Sender<Command>,
+    events: broadcast::Sender<IslandEvent>,
+}
+
+impl IslandHandle {
+    async fn call<T>(
+        &self,
+        make: impl FnOnce(oneshot::Sender<T>) -> Command,
+    ) -> Result<T, IslandError> {
+        let (tx, rx) = oneshot::channel();
+        self.cmd
+            .send(make(tx))
+            .await
+            .map_err(|_| IslandError::Stopped)?;
+        rx.await.map_err(|_| IslandError::Stopped)
+    }
+
+    /// Docks `mobile` on `port` of `static_id`: closes both signal loops. The mobile gets power when
+    /// the static element's relay is (or turns) on.
+    pub async fn dock(
+        &self,
+        mobile: NodeId,
+        static_id: NodeId,
+        port: u8,
+    ) -> Result<(), IslandError> {
+        self.call(|r| Command::Dock(mobile, static_id, port, r))
+            .await?
+    }
+
+    /// Undocks `mobile`: it loses power at once and both signal loops open.
+    pub async fn undock(&self, mobile: NodeId) -> Result<(), IslandError> {
+        self.call(|r| Command::Undock(mobile, r)).await?
+    }
+
+    /// Removes and restores an element's power: a fresh boot (reset `PowerOn`) with its stored ID.
+    /// A static element's mobiles lose power with it. A mobile element must be powered.
+    pub async fn power_cycle(&self, node: NodeId) -> Result<(), IslandError> {
+        self.call(|r| Command::PowerCycle(node, r)).await?
+    }
+
+    /// Connects an element to the bus or disconnects it (it keeps running).
+    pub async fn set_on_bus(&self, node: NodeId, on: bool) -> Result<(), IslandError> {
+        self.call(|r| Command::SetOnBus(node, on, r)).await?
+    }
+
+    /// Writes `bytes` to the element's configuration UART and returns what it answered meanwhile
+    /// (2 bytes per complete request, see `ihex_proto::uart`). The element must be powered.
+    pub async fn uart(&self, node: NodeId, bytes: &[u8]) -> Result<Vec<u8>, IslandError> {
+        let bytes = bytes.to_vec();
+        self.call(|r| Command::Uart(node, bytes, r)).await?
+    }
+
+    /// One element's actuators (all off when unpowered).
+    pub async fn actuators(&self, node: NodeId) -> Result<Actuators, IslandError> {
+        self.view(node).await.map(|v| v.actuators)
+    }
+
+    /// One element's state.
+    pub async fn view(&self, node: NodeId) -> Result<NodeView, IslandError> {
+        let all = self.snapshot().await?;
+        all.into_iter()
+            .find(|v| v.name == node)
+            .ok_or(IslandError::UnknownNode(node))
+    }
+
+    /// Every element's state, static elements first, in file order.
+    pub async fn snapshot(&self) -> Result<Vec<NodeView>, IslandError> {
+        self.call(Command::Snapshot).await
+    }
+
+    /// A stream of changes from now on. A receiver that lags more than [`EVENT_CAPACITY`] events
+    /// behind gets `RecvError::Lagged` and continues with the newest.
+    pub fn subscribe(&self) -> broadcast::Receiver<IslandEvent> {
+        self.events.subscribe()
+    }
+
+    /// Stops the island: every node loses power and leaves the bus.
+    pub async fn shutdown(&self) {
+        let _ = self.call(Command::Shutdown).await;
+    }
+}
+
+struct Live {
+    node: Node,
+    tx: LinkTx,
+    reader: JoinHandle<()>,
+    epoch: u64,
+    actuators: Actuators,
+    buzzer_done_at: Option<Millis>,
+}
+
+impl Drop for Live {
+    fn drop(&mut self) {
+        self.reader.abort();
+    }
+}
+
+struct Element {
+    name: NodeId,
+    role: BootRole,
+    ports: u8,
+    uid: Uid,
+    /// The "flash": the ID the board boots with.
+    stored_id: Option<NodeId>,
+    /// Mobile: its own port it docks by.
+    own_port: Port,
+    /// Mobile: where it is docked.
+    docked: Option<(NodeId, Port)>,
+    /// Pin levels of the signal loops (bit n = port n closed).
+    loops: u8,
+    on_bus: bool,
+    live: Option<Live>,
+}
+
+type Received = (NodeId, u64, CanFrame);
+
+/// The island's state, owned by its task. Start one with [`Island::start`].
+pub struct Island {
+    link: Link,
+    origin: Instant,
+    bounce: bool,
+    elements: BTreeMap<NodeId, Element>,
+    /// Element names in display order (statics first, file order).
+    order: Vec<NodeId>,
+    events: broadcast::Sender<IslandEvent>,
+    frames_tx: mpsc::Sender<Received>,
+    next_epoch: u64,
+    /// Pending loop-level changes (bounce): (due, element, port, closed).
+    levels: Vec<(Millis, NodeId, Port, bool)>,
+}
+
+impl Island {
+    /// Builds the island on `link`, powers the static elements (and mobiles docked on a static whose
+    /// relay comes on) and runs it on a tokio task. Must be called inside a tokio runtime.
+    pub fn start(desc: &IslandDesc, link: Link) -> Result<IslandHandle, IslandError> {
+        let (events, _) = broadcast::channel(EVENT_CAPACITY);
+        let (frames_tx, frames_rx) = mpsc::channel(256);
+        let (cmd_tx, cmd_rx) = mpsc::channel(32);
+        let mut island = Island {
+            link,
+            origin: Instant::now(),
+            bounce: desc.bounce,
+            elements: BTreeMap::new(),
+            order: Vec::new(),
+            events: events.clone(),
+            frames_tx,
+            next_epoch: 0,
+            levels: Vec::new(),
+        };
+        let zero = Port::new(0).expect("port 0 exists");
+        for s in &desc.statics {
+            island.add(Element {
+                name: s.id,
+                role: BootRole::Static,
+                ports: s.ports,
+                uid: s.uid,
+                stored_id: s.configured.then_some(s.id),
+                own_port: zero,
+                docked: None,
+                loops: 0,
+                on_bus: true,
+                live: None,
+            });
+        }
+        for m in &desc.mobiles {
+            island.add(Element {
+                name: m.id,
+                role: BootRole::Mobile,
+                ports: m.ports,
+                uid: m.uid,
+                stored_id: m.configured.then_some(m.id),
+                own_port: m.port,
+                docked: m.dock,
+                loops: if m.dock.is_some() { m.port.mask() } else { 0 },
+                on_bus: true,
+                live: None,
+            });
+            if let Some((s, p)) = m.dock {
+                if let Some(st) = island.elements.get_mut(&s) {
+                    st.loops |= p.mask();
+                }
+            }
+        }
+        let statics: Vec<NodeId> = desc.statics.iter().map(|s| s.id).collect();
+        let now = island.now();
+        for s in statics {
+            island.boot(s, now)?;
+        }
+        tokio::spawn(island.run(cmd_rx, frames_rx));
+        Ok(IslandHandle {
+            cmd: cmd_tx,
+            events,
+        })
+    }
+
+    fn add(&mut self, e: Element) {
+        self.order.push(e.name);
+        self.elements.insert(e.name, e);
+    }
+
+    fn now(&self) -> Millis {
+        Millis(self.origin.elapsed().as_millis() as u64)
+    }
+
+    fn instant(&self, m: Millis) -> Instant {
+        self.origin + Duration::from_millis(m.0)
+    }
+
+    fn emit(&self, e: IslandEvent) {
+        tracing::debug!(event = ?e, "island");
+        let _ = self.events.send(e);
+    }
+
+    async fn run(
+        mut self,
+        mut cmd_rx: mpsc::Receiver<Command>,
+        mut frames_rx: mpsc::Receiver<Received>,
+    ) {
+        // Start-up may already have powered mobiles' static relays: settle once before serving.
+        self.settle().await;
+        loop {
+            let deadline = self.next_deadline();
+            tokio::select! {
+                cmd = cmd_rx.recv() => match cmd {
+                    None => break,
+                    Some(Command::Shutdown(done)) => {
+                        self.power_off_all();
+                        let _ = done.send(());
+                        return;
+                    }
+                    Some(c) => self.command(c).await,
+                },
+                Some((name, epoch, frame)) = frames_rx.recv() => self.frame(name, epoch, frame),
+                _ = tokio::time::sleep_until(deadline.unwrap_or_else(Instant::now)), if deadline.is_some() => {
+                    self.timers();
+                }
+            }
+            self.settle().await;
+        }
+        self.power_off_all();
+    }
+
+    fn power_off_all(&mut self) {
+        for e in self.elements.values_mut() {
+            e.live = None;
+        }
+    }
+
+    fn next_deadline(&self) -> Option<Instant> {
+        let nodes = self
+            .elements
+            .values()
+            .filter_map(|e| e.live.as_ref())
+            .flat_map(|l| [l.node.poll_at(), l.buzzer_done_at].into_iter().flatten());
+        let levels = self.levels.iter().map(|l| l.0);
+        nodes.chain(levels).min().map(|m| self.instant(m))
+    }
+
+    fn timers(&mut self) {
+        let now = self.now();
+        let mut due: Vec<_> = Vec::new();
+        self.levels.retain(|l| {
+            if l.0 <= now {
+                due.push(*l);
+                false
+            } else {
+                true
+            }
+        });
+        due.sort_by_key(|l| l.0);
+        for (_, name, port, closed) in due {
+            self.set_level(name, port, closed, now);
+        }
+        for e in self.elements.values_mut() {
+            if let Some(l) = e.live.as_mut() {
+                if l.buzzer_done_at.is_some_and(|t| t <= now) {
+                    l.buzzer_done_at = None;
+                    l.node.handle_buzzer_done(now);
+                }
+                if l.node.poll_at().is_some_and(|t| t <= now) {
+                    l.node.tick(now);
+                }
+            }
+        }
+    }
+
+    fn frame(&mut self, name: NodeId, epoch: u64, frame: CanFrame) {
+        let now = self.now();
+        let Some(e) = self.elements.get_mut(&name) else {
+            return;
+        };
+        if !e.on_bus {
+            return;
+        }
+        let Some(l) = e.live.as_mut().filter(|l| l.epoch == epoch) else {
+            return;
+        };
+        if let CanFrame::Error(_) = frame {
+            // Error frames carry no message; the core learns about bus trouble from counters only.
+            return;
+        }
+        let raw = match frame.id() {
+            embedded_can::Id::Standard(s) => s.as_raw() as u32,
+            embedded_can::Id::Extended(x) => x.as_raw(),
+        };
+        l.node.handle_frame(
+            raw,
+            frame.is_extended(),
+            frame.is_remote_frame(),
+            frame.data(),
+            now,
+        );
+    }
+
+    /// Sets a loop's pin level and tells the node (if powered).
+    fn set_level(&mut self, name: NodeId, port: Port, closed: bool, now: Millis) {
+        let Some(e) = self.elements.get_mut(&name) else {
+            return;
+        };
+        if closed {
+            e.loops |= port.mask();
+        } else {
+            e.loops &= !port.mask();
+        }
+        if let Some(l) = e.live.as_mut() {
+            l.node.handle_loop_level(port, closed, now);
+        }
+    }
+
+    /// Changes a loop level, through a bouncing contact if enabled.
+    fn change_level(&mut self, name: NodeId, port: Port, closed: bool) {
+        let now = self.now();
+        // A newer change supersedes any bounce still pending on the same contact.
+        self.levels.retain(|l| !(l.1 == name && l.2 == port));
+        if self.bounce {
+            for (dt, same) in BOUNCE {
+                let level = if same { closed } else { !closed };
+                if dt == 0 {
+                    self.set_level(name, port, level, now);
+                } else {
+                    self.levels.push((now.add_ms(dt), name, port, level));
+                }
+            }
+        } else {
+            self.set_level(name, port, closed, now);
+        }
+    }
+
+    /// Powers an element up: a fresh node, its own endpoint and reader.
+    fn boot(&mut self, name: NodeId, now: Millis) -> Result<(), IslandError> {
+        let (tx, mut rx) = self.link.open()?;
+        let epoch = self.next_epoch;
+        self.next_epoch += 1;
+        let e = self
+            .elements
+            .get_mut(&name)
+            .ok_or(IslandError::UnknownNode(name))?;
+        tx.set_filters(&sc_filters(e.stored_id))?;
+        let config = Config {
+            role: e.role,
+            ports: e.ports,
+            uid: e.uid,
+            node_id: e.stored_id,
+            reset: ResetReason::PowerOn,
+        };
+        let mut node = Node::new(config, now);
+        for p in 0..e.ports.min(Port::COUNT) {
+            let port = Port::new(p).expect("p < Port::COUNT");
+            let closed = e.loops & port.mask() != 0;
+            // Pins start open (pulled up): only closed loops are an edge worth reporting.
+            if closed {
+                node.handle_loop_level(port, closed, now);
+            }
+        }
+        let frames = self.frames_tx.clone();
+        let reader = tokio::spawn(async move {
+            loop {
+                match rx.recv().await {
+                    Ok(f) => {
+                        if frames.send((name, epoch, f)).await.is_err() {
+                            return;
+                        }
+                    }
+                    Err(err) => {
+                        tracing::warn!(node = %name, %err, "receive failed; node no longer hears the bus");
+                        return;
+                    }
+                }
+            }
+        });
+        e.live = Some(Live {
+            node,
+            tx,
+            reader,
+            epoch,
+            actuators: Actuators::default(),
+            buzzer_done_at: None,
+        });
+        tracing::info!(node = %name, role = ?e.role, id = ?e.stored_id, "power on");
+        // Report the power-up actuator state even if the core does not flag a change.
+        let ev_act = IslandEvent::Actuators {
+            node: name,
+            actuators: Actuators::default(),
+        };
+        self.emit(IslandEvent::Power {
+            node: name,
+            on: true,
+        });
+        self.emit(ev_act);
+        Ok(())
+    }
+
+    fn power_off(&mut self, name: NodeId) {
+        let Some(e) = self.elements.get_mut(&name) else {
+            return;
+        };
+        if e.live.take().is_some() {
+            tracing::info!(node = %name, "power off");
+            self.emit(IslandEvent::Power {
+                node: name,
+                on: false,
+            });
+            self.emit(IslandEvent::Actuators {
+                node: name,
+                actuators: Actuators::default(),
+            });
+        }
+    }
+
+    /// Carries out every node's outputs, then brings mobile power in line with the relays, until
+    /// nothing changes any more.
+    async fn settle(&mut self) {
+        // Mobiles cannot power other elements, so this converges in two rounds; the bound is a guard.
+        for _ in 0..4 {
+            self.drain_all().await;
+            if !self.reconcile_power() {
+                break;
+            }
+        }
+    }
+
+    async fn drain_all(&mut self) {
+        let now = self.now();
+        let mut events = Vec::new();
+        for e in self.elements.values_mut() {
+            drain(e, now, &mut events, None).await;
+        }
+        for ev in events {
+            self.emit(ev);
+        }
+    }
+
+    /// Powers mobiles up or down to match their static element's relay; true if anything changed.
+    fn reconcile_power(&mut self) -> bool {
+        let mut changes = Vec::new();
+        for e in self.elements.values() {
+            if e.role != BootRole::Mobile {
+                continue;
+            }
+            let want = e.docked.is_some_and(|(s, _)| {
+                self.elements
+                    .get(&s)
+                    .and_then(|st| st.live.as_ref())
+                    .is_some_and(|l| l.actuators.relay)
+            });
+            if want != e.live.is_some() {
+                changes.push((e.name, want));
+            }
+        }
+        let now = self.now();
+        for (name, on) in &changes {
+            if *on {
+                if let Err(err) = self.boot(*name, now) {
+                    tracing::error!(node = %name, %err, "cannot power up");
+                }
+            } else {
+                self.power_off(*name);
+            }
+        }
+        !changes.is_empty()
+    }
+
+    async fn command(&mut self, c: Command) {
+        match c {
+            Command::Dock(m, s, p, r) => {
+                let _ = r.send(self.dock(m, s, p));
+            }
+            Command::Undock(m, r) => {
+                let _ = r.send(self.undock(m));
+            }
+            Command::PowerCycle(n, r) => {
+                let res = self.power_cycle(n).await;
+                let _ = r.send(res);
+            }
+            Command::SetOnBus(n, on, r) => {
+                let res = match self.elements.get_mut(&n) {
+                    None => Err(IslandError::UnknownNode(n)),
+                    Some(e) => {
+                        let changed = e.on_bus != on;
+                        e.on_bus = on;
+                        if changed {
+                            self.emit(IslandEvent::Bus { node: n, on });
+                        }
+                        Ok(())
+                    }
+                };
+                let _ = r.send(res);
+            }
+            Command::Uart(n, bytes, r) => {
+                let res = self.uart(n, &bytes).await;
+                let _ = r.send(res);
+            }
+            Command::Snapshot(r) => {
+                let _ = r.send(self.snapshot());
+            }
+            Command::Shutdown(_) => unreachable!("handled in run"),
+        }
+    }
+
+    fn element(&self, name: NodeId) -> Result<&Element, IslandError> {
+        self.elements
+            .get(&name)
+            .ok_or(IslandError::UnknownNode(name))
+    }
+
+    fn dock(&mut self, mobile: NodeId, static_id: NodeId, port: u8) -> Result<(), IslandError> {
+        let m = self.element(mobile)?;
+        if m.role != BootRole::Mobile {
+            return Err(IslandError::NotMobile(mobile));
+        }
+        if let Some((s, p)) = m.docked {
+            return Err(IslandError::AlreadyDocked {
+                mobile,
+                static_id: s,
+                port: p,
+            });
+        }
+        let own = m.own_port;
+        let s = self.element(static_id)?;
+        if s.role != BootRole::Static {
+            return Err(IslandError::NotStatic(static_id));
+        }
+        let port =
+            Port::new(port)
+                .filter(|p| p.get() < s.ports)
+                .ok_or(IslandError::NoSuchPort {
+                    node: static_id,
+                    port,
+                })?;
+        if let Some(by) = self
+            .elements
+            .values()
+            .find(|e| e.docked == Some((static_id, port)))
+        {
+            return Err(IslandError::PortTaken {
+                static_id,
+                port,
+                by: by.name,
+            });
+        }
+        if let Some(m) = self.elements.get_mut(&mobile) {
+            m.docked = Some((static_id, port));
+        }
+        // The mobile's own loop is closed by the contact itself; it reads it when it powers up.
+        self.set_level(mobile, own, true, self.now());
+        self.change_level(static_id, port, true);
+        self.emit(IslandEvent::Docked {
+            mobile,
+            static_id,
+            port,
+        });
+        Ok(())
+    }
+
+    fn undock(&mut self, mobile: NodeId) -> Result<(), IslandError> {
+        let m = self.element(mobile)?;
+        if m.role != BootRole::Mobile {
+            return Err(IslandError::NotMobile(mobile));
+        }
+        let (static_id, port) = m.docked.ok_or(IslandError::NotDocked(mobile))?;
+        let own = m.own_port;
+        if let Some(m) = self.elements.get_mut(&mobile) {
+            m.docked = None;
+        }
+        // Pulled away: power is gone before the loop contact settles.
+        self.power_off(mobile);
+        self.set_level(mobile, own, false, self.now());
+        self.change_level(static_id, port, false);
+        self.emit(IslandEvent::Undocked {
+            mobile,
+            static_id,
+            port,
+        });
+        Ok(())
+    }
+
+    async fn power_cycle(&mut self, name: NodeId) -> Result<(), IslandError> {
+        let e = self.element(name)?;
+        if e.live.is_none() {
+            return Err(IslandError::NotPowered(name));
+        }
+        self.power_off(name);
+        // Let the loss of power propagate (a static element's mobiles go dark) before it returns.
+        self.settle().await;
+        if self.element(name)?.role == BootRole::Static || self.mobile_powered(name) {
+            self.boot(name, self.now())?;
+        }
+        Ok(())
+    }
+
+    fn mobile_powered(&self, name: NodeId) -> bool {
+        let docked = self.elements.get(&name).and_then(|e| e.docked);
+        docked.is_some_and(|(s, _)| {
+            self.elements
+                .get(&s)
+                .and_then(|st| st.live.as_ref())
+                .is_some_and(|l| l.actuators.relay)
+        })
+    }
+
+    async fn uart(&mut self, name: NodeId, bytes: &[u8]) -> Result<Vec<u8>, IslandError> {
+        let now = self.now();
+        let e = self
+            .elements
+            .get_mut(&name)
+            .ok_or(IslandError::UnknownNode(name))?;
+        let l = e.live.as_mut().ok_or(IslandError::NotPowered(name))?;
+        for b in bytes {
+            l.node.handle_uart_byte(*b, now);
+        }
+        let mut reply = Vec::new();
+        let mut events = Vec::new();
+        drain(e, now, &mut events, Some(&mut reply)).await;
+        for ev in events {
+            self.emit(ev);
+        }
+        Ok(reply)
+    }
+
+    fn snapshot(&self) -> Vec<NodeView> {
+        self.order
+            .iter()
+            .filter_map(|n| self.elements.get(n))
+            .map(|e| NodeView {
+                name: e.name,
+                role: e.role,
+                node_id: e.live.as_ref().map_or(e.stored_id, |l| l.node.node_id()),
+                uid: e.uid,
+                powered: e.live.is_some(),
+                on_bus: e.on_bus,
+                actuators: e
+                    .live
+                    .as_ref()
+                    .map_or(Actuators::default(), |l| l.actuators),
+                loops: e.loops,
+                docked: e.docked,
+            })
+            .collect()
+    }
+}
+
+/// Carries out one node's queued outputs; UART bytes go to `uart` when given (else they are logged).
+async fn drain(
+    e: &mut Element,
+    now: Millis,
+    events: &mut Vec<IslandEvent>,
+    mut uart: Option<&mut Vec<u8>>,
+) {
+    let Some(l) = e.live.as_mut() else { return };
+    while let Some(out) = l.node.poll_output() {
+        match out {
+            Output::Frame(p) => {
+                if !e.on_bus {
+                    tracing::trace!(node = %e.name, packet = ?p, "off the bus: frame lost");
+                    continue;
+                }
+                let Some(frame) = p.to_frame::<CanFrame>() else {
+                    continue;
+                };
+                if let Err(err) = l.tx.send(frame).await {
+                    tracing::warn!(node = %e.name, %err, "send failed");
+                }
+            }
+            Output::Uart(b) => match uart.as_deref_mut() {
+                Some(buf) => buf.extend_from_slice(&b),
+                None => tracing::info!(node = %e.name, bytes = ?b, "unsolicited UART output"),
+            },
+            Output::StoreId(id) => {
+                e.stored_id = Some(id);
+                events.push(IslandEvent::IdStored { node: e.name, id });
+            }
+            Output::FiltersChanged => {
+                if let Err(err) = l.tx.set_filters(&sc_filters(l.node.node_id())) {
+                    tracing::error!(node = %e.name, %err, "cannot install filters");
+                }
+            }
+        }
+    }
+    if l.node.actuators_changed() {
+        let a = l.node.actuators();
+        if a.buzzer != l.actuators.buzzer {
+            l.buzzer_done_at = pattern_len(a.buzzer).map(|ms| now.add_ms(ms));
+        }
+        l.actuators = a;
+        events.push(IslandEvent::Actuators {
+            node: e.name,
+            actuators: a,
+        });
+    }
+}
+
+/// How long a finite buzzer pattern sounds (the last beep has no pause after it).
+fn pattern_len(b: BuzzerOutput) -> Option<u64> {
+    match b {
+        BuzzerOutput::Pattern {
+            on_ms,
+            off_ms,
+            count,
+            ..
+        } if count > 0 => {
+            let n = count as u64;
+            Some(n * on_ms as u64 + (n - 1) * off_ms as u64)
+        }
+        _ => None,
+    }
+}

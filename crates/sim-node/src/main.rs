@@ -1,0 +1,2 @@
+//! `sim-node`: run an island of virtual sub-controllers on a SocketCAN interface.
+fn main() {}
