@@ -106,16 +106,39 @@ impl BitTiming {
         (1 + self.bs1 as u32) * 1000 / self.quanta()
     }
 
-    /// The bitrate this timing gives from `pclk_hz`.
+    /// True when every field is in the range bxCAN can hold (prescaler 1–1024, BS1 1–16, BS2 1–8,
+    /// SJW 1–4 and no longer than either segment). [`BitTiming::compute`] only returns valid timings.
+    pub const fn is_valid(&self) -> bool {
+        self.prescaler >= 1
+            && self.prescaler <= 1024
+            && self.bs1 >= 1
+            && self.bs1 <= 16
+            && self.bs2 >= 1
+            && self.bs2 <= 8
+            && self.sjw >= 1
+            && self.sjw <= 4
+            && self.sjw <= self.bs1
+            && self.sjw <= self.bs2
+    }
+
+    /// The bitrate this timing gives from `pclk_hz` (0 for a zero prescaler rather than a panic).
     pub const fn bitrate(&self, pclk_hz: u32) -> u32 {
-        pclk_hz / (self.prescaler as u32 * self.quanta())
+        let div = self.prescaler as u32 * self.quanta();
+        if div == 0 {
+            0
+        } else {
+            pclk_hz / div
+        }
     }
 
     /// The value of bxCAN's `CAN_BTR` register timing fields (BRP, TS1, TS2, SJW; mode bits clear).
+    ///
+    /// Each field is masked to its register width, so an invalid timing (see
+    /// [`BitTiming::is_valid`]) gives a wrong value but never a panic or a bit in a neighbouring field.
     pub const fn btr(&self) -> u32 {
-        ((self.sjw as u32 - 1) << 24)
-            | ((self.bs2 as u32 - 1) << 20)
-            | ((self.bs1 as u32 - 1) << 16)
-            | (self.prescaler as u32 - 1)
+        ((self.sjw.saturating_sub(1) as u32 & 0x3) << 24)
+            | ((self.bs2.saturating_sub(1) as u32 & 0x7) << 20)
+            | ((self.bs1.saturating_sub(1) as u32 & 0xF) << 16)
+            | (self.prescaler.saturating_sub(1) as u32 & 0x3FF)
     }
 }
