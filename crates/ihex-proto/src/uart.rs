@@ -143,25 +143,36 @@ impl UartDecoder {
     }
 
     /// Feeds one byte; returns a result once a request is complete or a byte cannot start one.
+    ///
+    /// Only `0xA_` and `0xB0` can start a request. After `0xB0`, anything but `0x00` is answered with
+    /// `Malformed`, and if that byte can itself start a request it is kept as the new first byte, so
+    /// a query that lost its second byte does not swallow the request after it.
     pub fn push(&mut self, byte: u8) -> Option<Result<UartRequest, UartError>> {
         let Some(b0) = self.first.take() else {
-            return match byte >> 4 {
-                SET_MARKER | QUERY_MARKER => {
-                    self.first = Some(byte);
-                    None
-                }
-                _ => Some(Err(UartError::Malformed)),
+            return if Self::starts_request(byte) {
+                self.first = Some(byte);
+                None
+            } else {
+                Some(Err(UartError::Malformed))
             };
         };
-        Some(match b0 >> 4 {
-            SET_MARKER => {
-                let raw = (((b0 & 0xF) as u16) << 8) | byte as u16;
-                NodeId::new_sc(raw)
-                    .map(UartRequest::SetId)
-                    .ok_or(UartError::ReservedId)
+        Some(if b0 >> 4 == SET_MARKER {
+            let raw = (((b0 & 0xF) as u16) << 8) | byte as u16;
+            NodeId::new_sc(raw)
+                .map(UartRequest::SetId)
+                .ok_or(UartError::ReservedId)
+        } else if byte == 0 {
+            Ok(UartRequest::Query)
+        } else {
+            if Self::starts_request(byte) {
+                self.first = Some(byte);
             }
-            _ if b0 == QUERY_MARKER << 4 && byte == 0 => Ok(UartRequest::Query),
-            _ => Err(UartError::Malformed),
+            Err(UartError::Malformed)
         })
+    }
+
+    /// True for a byte that can open a request: a set marker or the query byte `0xB0`.
+    const fn starts_request(byte: u8) -> bool {
+        byte >> 4 == SET_MARKER || byte == QUERY_MARKER << 4
     }
 }
