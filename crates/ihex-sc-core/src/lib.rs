@@ -14,9 +14,15 @@
 #![forbid(unsafe_code)]
 
 mod actuator;
+mod debounce;
 mod node;
+mod queue;
 mod time;
 
 pub use actuator::{Actuators, BuzzerOutput, LedOutput};
-pub use node::{Config, Node, Output, DEBOUNCE_MS, UART_IDLE_RESET_MS};
+pub use node::{
+    Config, Node, Output, DEBOUNCE_MS, HANDSHAKE_SETTLE_MS, IDENTIFY_BUZZER, IDENTIFY_LED,
+    UART_IDLE_RESET_MS,
+};
+pub use queue::OUTPUT_QUEUE_LEN;
 pub use time::Millis;
