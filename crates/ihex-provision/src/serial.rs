@@ -6,6 +6,7 @@
 //! with a bounded wait for every reply.
 
 use std::{
+    collections::VecDeque,
     fs::File,
     io::{self, Read, Write},
     path::{Path, PathBuf},
@@ -220,10 +221,15 @@ impl SerialPort {
 }
 
 /// Request/reply exchanges over one open port.
+///
+/// Received bytes beyond the reply being waited for are kept, not dropped: a board whose flash write
+/// fails answers a set with its ID *and then* a `StoreFailed` error (the core queues the error when the
+/// adapter reports the failure), and that error must surface as the answer to the next request.
 #[derive(Debug)]
 pub struct Session {
     port: SerialPort,
     decoder: ReplyDecoder,
+    pending: VecDeque<u8>,
     timeout: Duration,
 }
 
@@ -233,32 +239,33 @@ impl Session {
         Session {
             port,
             decoder: ReplyDecoder::new(),
+            pending: VecDeque::new(),
             timeout,
         }
     }
 
     /// Sends `request` and returns the checked reply (see [`check_reply`]).
     pub fn exchange(&mut self, request: UartRequest) -> Result<NodeId, SerialError> {
-        self.decoder = ReplyDecoder::new();
         self.port.write_all(&request.encode())?;
         let deadline = Instant::now() + self.timeout;
         let mut buf = [0u8; 64];
         loop {
+            while let Some(b) = self.pending.pop_front() {
+                if let Some(reply) = self.decoder.push(b) {
+                    return check_reply(request, reply?);
+                }
+            }
             let left = deadline.saturating_duration_since(Instant::now());
             if left.is_zero() {
                 return Err(SerialError::Timeout(self.timeout));
             }
             let n = self.port.read_timeout(&mut buf, left)?;
-            // A reply never comes in pieces that matter: the decoder pairs bytes across reads.
-            for &b in &buf[..n] {
-                if let Some(reply) = self.decoder.push(b) {
-                    return check_reply(request, reply?);
-                }
-            }
+            self.pending.extend(&buf[..n]);
         }
     }
 
-    /// Stores `id` on the board, then reads it back to confirm it is in force.
+    /// Stores `id` on the board, then reads it back to confirm it is in force. The read-back also
+    /// catches a `StoreFailed` error that trails the set reply.
     pub fn set_id(&mut self, id: NodeId) -> Result<NodeId, SerialError> {
         self.exchange(UartRequest::SetId(id))?;
         let now = self.exchange(UartRequest::Query)?;
