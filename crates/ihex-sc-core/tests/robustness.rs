@@ -1,0 +1,240 @@
+//! Property test: any sequence of frames, UART bytes, loop levels, CAN status and ticks never makes
+//! the core panic, emit an undecodable frame, speak while unconfigured or leave a deadline overdue.
+
+use ihex_proto::{BootRole, Header, Kind, Message, NodeId, Packet, Port, ResetReason, Uid};
+use ihex_sc_core::{Config, Millis, Node, Output, OUTPUT_QUEUE_LEN};
+use proptest::prelude::*;
+
+const UID: [u8; 12] = [0xA5, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11];
+
+#[derive(Clone, Debug)]
+enum Dest {
+    Own,
+    Broadcast,
+    Other(u16),
+}
+
+#[derive(Clone, Debug)]
+enum Input {
+    /// Anything at all on the bus.
+    RawFrame {
+        raw_id: u32,
+        extended: bool,
+        remote: bool,
+        data: Vec<u8>,
+    },
+    /// A frame with a real kind and the right length for it, mostly from the gateway: most decode.
+    Command {
+        kind: u8,
+        dest: Dest,
+        src: u16,
+        data: [u8; 8],
+    },
+    /// Select + commit aimed at this node's UID (or a near miss).
+    Assign {
+        head_ok: bool,
+        tail_ok: bool,
+        new_id: u16,
+        seq: u8,
+    },
+    Loop {
+        port: u8,
+        closed: bool,
+    },
+    Uart(u8),
+    CanStatus {
+        tec: u8,
+        rec: u8,
+        bus_off: bool,
+    },
+    StoreFailed,
+    BuzzerDone,
+    Tick,
+}
+
+fn dest() -> impl Strategy<Value = Dest> {
+    prop_oneof![
+        4 => Just(Dest::Own),
+        3 => Just(Dest::Broadcast),
+        1 => (0u16..0x1000).prop_map(Dest::Other),
+    ]
+}
+
+fn input() -> impl Strategy<Value = Input> {
+    prop_oneof![
+        2 => (any::<u32>(), any::<bool>(), any::<bool>(), prop::collection::vec(any::<u8>(), 0..=10))
+            .prop_map(|(raw_id, extended, remote, data)| Input::RawFrame { raw_id, extended, remote, data }),
+        6 => (0u8..20, dest(), prop_oneof![5 => Just(0u16), 1 => 0u16..0x1000], any::<[u8; 8]>())
+            .prop_map(|(kind, dest, src, data)| Input::Command { kind, dest, src, data }),
+        1 => (any::<bool>(), any::<bool>(), 0u16..0x1000, any::<u8>())
+            .prop_map(|(head_ok, tail_ok, new_id, seq)| Input::Assign { head_ok, tail_ok, new_id, seq }),
+        4 => (0u8..8, any::<bool>()).prop_map(|(port, closed)| Input::Loop { port, closed }),
+        3 => prop_oneof![
+            any::<u8>(),
+            Just(0xA1u8), Just(0x11), Just(0xB0), Just(0x00), Just(0xAF), Just(0xFF)
+        ].prop_map(Input::Uart),
+        1 => (any::<u8>(), any::<u8>(), any::<bool>())
+            .prop_map(|(tec, rec, bus_off)| Input::CanStatus { tec, rec, bus_off }),
+        1 => Just(Input::StoreFailed),
+        1 => Just(Input::BuzzerDone),
+        3 => Just(Input::Tick),
+    ]
+}
+
+fn config() -> impl Strategy<Value = Config> {
+    (
+        prop_oneof![Just(BootRole::Static), Just(BootRole::Mobile)],
+        prop_oneof![4 => 0u8..=8, 1 => any::<u8>()],
+        prop_oneof![1 => Just(None), 3 => (0u16..0x1000).prop_map(NodeId::new)],
+        any::<u8>(),
+    )
+        .prop_map(|(role, ports, node_id, reset)| Config {
+            role,
+            ports,
+            uid: Uid(UID),
+            node_id,
+            reset: ResetReason::from_raw(reset),
+        })
+}
+
+fn apply(n: &mut Node, input: &Input, now: Millis) {
+    let own = n.node_id().map_or(0x123, NodeId::get);
+    match input {
+        Input::RawFrame {
+            raw_id,
+            extended,
+            remote,
+            data,
+        } => n.handle_frame(*raw_id, *extended, *remote, data, now),
+        Input::Command {
+            kind,
+            dest,
+            src,
+            data,
+        } => {
+            let dest = match dest {
+                Dest::Own => own,
+                Dest::Broadcast => 0xFFF,
+                Dest::Other(d) => *d,
+            };
+            let len = Kind::from_raw(*kind).map_or(3, |k| Message::len_of(k) as usize);
+            let raw = (u32::from(*kind) << Header::KIND_SHIFT)
+                | (u32::from(dest) << Header::DEST_SHIFT)
+                | u32::from(*src);
+            n.handle_frame(raw, true, false, &data[..len], now);
+        }
+        Input::Assign {
+            head_ok,
+            tail_ok,
+            new_id,
+            seq,
+        } => {
+            let mut head: [u8; 8] = UID[..8].try_into().unwrap();
+            let mut tail: [u8; 4] = UID[8..].try_into().unwrap();
+            head[0] ^= u8::from(!head_ok);
+            tail[3] ^= u8::from(!tail_ok);
+            let sel = Packet::command(NodeId::BROADCAST, Message::AssignSelect { uid_head: head });
+            let (raw, d) = sel.encode();
+            n.handle_frame(raw, true, false, &d, now);
+            // Raw bytes, so out-of-range IDs are exercised too.
+            let [lo, hi] = new_id.to_le_bytes();
+            let d = [tail[0], tail[1], tail[2], tail[3], lo, hi, *seq];
+            let raw = (Kind::AssignCommit as u32) << 24 | 0xFFF << 12;
+            n.handle_frame(raw, true, false, &d, now);
+        }
+        Input::Loop { port, closed } => {
+            n.handle_loop_level(Port::new(*port).unwrap(), *closed, now)
+        }
+        Input::Uart(b) => n.handle_uart_byte(*b, now),
+        Input::CanStatus { tec, rec, bus_off } => n.handle_can_status(*tec, *rec, *bus_off, now),
+        Input::StoreFailed => n.handle_store_failed(now),
+        Input::BuzzerDone => n.handle_buzzer_done(now),
+        Input::Tick => n.tick(now),
+    }
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 500, ..ProptestConfig::default() })]
+
+    #[test]
+    fn never_panics_and_only_emits_valid_frames(
+        cfg in config(),
+        start in 0u64..1_000_000,
+        steps in prop::collection::vec((input(), prop_oneof![4 => 0u64..20, 2 => 20u64..400, 1 => 0u64..100_000]), 0..80),
+    ) {
+        let mut now = Millis(start);
+        let mut n = Node::new(cfg, now);
+        let ports = cfg.ports.min(8);
+        let has_relay = cfg.role == BootRole::Static && ports > 0;
+        for (input, dt) in std::iter::once((Input::Tick, 0)).chain(steps) {
+            now = now.add_ms(dt);
+            let before = n.node_id();
+            apply(&mut n, &input, now);
+            while let Some(out) = n.poll_output() {
+                if let Output::Frame(p) = out {
+                    prop_assert_eq!(p.validate(), Ok(()), "{:?} after {:?}", p, input);
+                    let (raw, data) = p.encode();
+                    prop_assert_eq!(Packet::decode(raw, &data), Ok(p));
+                    // Timers run before the input, so one call may report under the old ID first.
+                    prop_assert!(
+                        Some(p.src) == n.node_id() || Some(p.src) == before,
+                        "frames come from the ID in force: {:?}", p
+                    );
+                    prop_assert_eq!(p.dest, NodeId::GATEWAY);
+                }
+                if let Output::StoreId(id) = out {
+                    prop_assert!(id.is_sc());
+                }
+            }
+            prop_assert!(n.node_id().is_none_or(|id| id.is_sc()));
+            prop_assert_eq!(n.dropped_outputs(), 0, "drained after every call, the queue never fills");
+            if let Some(t) = n.poll_at() {
+                prop_assert!(t > now, "deadline {:?} overdue at {:?}", t, now);
+            }
+            let a = n.actuators();
+            prop_assert!(!a.relay || has_relay, "only a static element with ports has a relay");
+            prop_assert_eq!(n.loops() & !((1u16 << ports) - 1) as u8, 0);
+            if let Some((_, duty)) = a.led.blink {
+                prop_assert!((1..=99).contains(&duty));
+            }
+            let _ = n.actuators_changed();
+        }
+    }
+
+    #[test]
+    fn full_queue_keeps_every_ack_fault_and_adapter_request(
+        steps in prop::collection::vec(input(), 0..200),
+    ) {
+        // Two identical nodes: one drained after every call (sees everything), one never drained.
+        let cfg = Config {
+            role: BootRole::Static,
+            ports: 6,
+            uid: Uid(UID),
+            node_id: NodeId::new_sc(0x111),
+            reset: ResetReason::PowerOn,
+        };
+        let mut drained = Node::new(cfg, Millis(0));
+        let mut stuck = Node::new(cfg, Millis(0));
+        let mut all: Vec<Output> = std::iter::from_fn(|| drained.poll_output()).collect();
+        for (i, input) in steps.iter().enumerate() {
+            apply(&mut drained, input, Millis(i as u64 * 7));
+            apply(&mut stuck, input, Millis(i as u64 * 7));
+            all.extend(std::iter::from_fn(|| drained.poll_output()));
+        }
+        let kept: Vec<Output> = std::iter::from_fn(|| stuck.poll_output()).collect();
+        prop_assert!(kept.len() <= OUTPUT_QUEUE_LEN);
+        let essentials = |v: &[Output]| -> Vec<Output> {
+            v.iter().copied().filter(|o| !matches!(o, Output::Frame(p) if !matches!(p.msg, Message::Ack { .. } | Message::Fault { .. }))).collect()
+        };
+        let want = essentials(&all);
+        if want.len() <= OUTPUT_QUEUE_LEN {
+            prop_assert_eq!(essentials(&kept), want, "essentials are never sacrificed while others remain");
+        }
+        // What was kept is a subsequence of what was produced.
+        let mut it = all.iter();
+        for k in &kept {
+            prop_assert!(it.any(|o| o == k), "{:?} kept out of order or invented", k);
+        }
+        prop_assert_eq!(stuck.dropped_outputs() as usize, all.len() - kept.len());
+    }
+}
