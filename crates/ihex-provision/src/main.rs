@@ -133,6 +133,12 @@ struct WaitArgs {
     /// Give up after this many seconds (exit code 1).
     #[arg(long, default_value_t = 30)]
     timeout_secs: u64,
+    /// Create this file once subscribed, so a script knows when to start the event's source.
+    #[arg(long)]
+    ready_file: Option<PathBuf>,
+    /// Retry connecting to the broker until the timeout (it may still be starting).
+    #[arg(long)]
+    retry_connect: bool,
 }
 
 fn parse_kv(s: &str) -> Result<(String, String), String> {
@@ -230,8 +236,22 @@ async fn run_wait(a: WaitArgs) -> Result<()> {
     let topics = a.broker.topics();
     let timeout = Duration::from_secs(a.timeout_secs);
     let deadline = tokio::time::Instant::now() + timeout;
-    let mut session =
-        Session::connect(&broker, std::slice::from_ref(&topics.events), timeout).await?;
+    let subs = std::slice::from_ref(&topics.events);
+    let mut session = loop {
+        let left = deadline.saturating_duration_since(tokio::time::Instant::now());
+        match Session::connect(&broker, subs, left.max(Duration::from_secs(1))).await {
+            Ok(s) => break s,
+            Err(e) if a.retry_connect && !left.is_zero() => {
+                eprintln!("(broker not ready: {e}; retrying)");
+                tokio::time::sleep(Duration::from_millis(500)).await;
+            }
+            Err(e) => return Err(e.into()),
+        }
+    };
+    if let Some(path) = &a.ready_file {
+        std::fs::write(path, b"subscribed\n")
+            .with_context(|| format!("writing {}", path.display()))?;
+    }
     if let Some(cmd) = a.send {
         serde_json::from_str::<serde_json::Value>(&cmd).context("--send is not JSON")?;
         session.publish(&topics.commands, cmd).await?;
