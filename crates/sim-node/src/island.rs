@@ -582,16 +582,11 @@ impl Island {
             buzzer_done_at: None,
         });
         tracing::info!(node = %name, role = ?e.role, id = ?e.stored_id, "power on");
-        // Report the power-up actuator state even if the core does not flag a change.
-        let ev_act = IslandEvent::Actuators {
-            node: name,
-            actuators: Actuators::default(),
-        };
+        // The core flags its initial actuators as changed: the next drain reports them.
         self.emit(IslandEvent::Power {
             node: name,
             on: true,
         });
-        self.emit(ev_act);
         Ok(())
     }
 
@@ -784,23 +779,15 @@ impl Island {
         if e.live.is_none() {
             return Err(IslandError::NotPowered(name));
         }
+        let role = e.role;
         self.power_off(name);
-        // Let the loss of power propagate (a static element's mobiles go dark) before it returns.
+        // Let the loss of power propagate: a static element's mobiles go dark, and a mobile whose
+        // dock is still powered comes straight back (that is its fresh boot).
         self.settle().await;
-        if self.element(name)?.role == BootRole::Static || self.mobile_powered(name) {
+        if role == BootRole::Static {
             self.boot(name, self.now())?;
         }
         Ok(())
-    }
-
-    fn mobile_powered(&self, name: NodeId) -> bool {
-        let docked = self.elements.get(&name).and_then(|e| e.docked);
-        docked.is_some_and(|(s, _)| {
-            self.elements
-                .get(&s)
-                .and_then(|st| st.live.as_ref())
-                .is_some_and(|l| l.actuators.relay)
-        })
     }
 
     async fn uart(&mut self, name: NodeId, bytes: &[u8]) -> Result<Vec<u8>, IslandError> {

@@ -1,0 +1,538 @@
+//! Island scenarios shared by the in-memory tests (`crates/sim-node/tests/island.rs`) and the
+//! SocketCAN tests (`tests/tests/sim_island.rs`, included there by path): the same code runs on a
+//! `MemBus` and on a real vcan interface. The test plays the gateway on its own endpoint.
+#![allow(dead_code)]
+
+use std::time::Duration;
+
+use ihex_proto::{
+    filter::gateway_filters, AckResult, BootRole, BuzzerCommand, Kind, LedCommand, Message, NodeId,
+    Packet, Port, ResetReason, Rgb,
+};
+use ihex_sc_core::{BuzzerOutput, LedOutput};
+use sim_node::{
+    link::{LinkRx, LinkTx},
+    Island, IslandDesc, IslandEvent, IslandHandle, Link, NodeView,
+};
+
+/// Longest wait for one expected frame or state (multiplied by `IHEX_TEST_TIME_SCALE`).
+const WAIT: Duration = Duration::from_secs(5);
+/// How long "nothing more arrives" is watched for.
+const QUIET: Duration = Duration::from_millis(300);
+
+fn scaled(d: Duration) -> Duration {
+    let f = std::env::var("IHEX_TEST_TIME_SCALE")
+        .ok()
+        .and_then(|s| s.trim().parse::<f64>().ok())
+        .filter(|f| f.is_finite() && *f > 0.0)
+        .unwrap_or(1.0);
+    d.mul_f64(f)
+}
+
+/// A node ID from its raw value.
+pub fn id(raw: u16) -> NodeId {
+    NodeId::new_sc(raw).expect("valid SC id")
+}
+
+fn port(raw: u8) -> Port {
+    Port::new(raw).expect("valid port")
+}
+
+/// The island every scenario uses: two static hexagons (111 with 6 ports, 112 with 4), a mobile
+/// element 2 that docks by its own port 1, a mobile 3, and a factory-fresh static 120.
+pub const ISLAND: &str = r#"
+[[static]]
+id = "111"
+ports = 6
+
+[[static]]
+id = "112"
+ports = 4
+
+[[static]]
+id = "120"
+unconfigured = true
+
+[[mobile]]
+id = "2"
+port = 1
+
+[[mobile]]
+id = "3"
+"#;
+
+/// The test's gateway: an endpoint with the gateway's filters.
+pub struct Gateway {
+    tx: LinkTx,
+    rx: LinkRx,
+    /// Frames received but not yet consumed by an expectation.
+    backlog: Vec<Packet>,
+}
+
+impl Gateway {
+    /// Opens the gateway's endpoint (before the island starts, to see the boot-up frames).
+    pub fn open(link: &Link) -> Self {
+        let (tx, rx) = link.open().expect("open gateway endpoint");
+        tx.set_filters(&gateway_filters()).expect("gateway filters");
+        Gateway {
+            tx,
+            rx,
+            backlog: Vec::new(),
+        }
+    }
+
+    /// Sends a command from the gateway.
+    pub async fn send(&self, dest: NodeId, msg: Message) {
+        let frame = Packet::command(dest, msg).to_frame().expect("frame");
+        self.tx.send(frame).await.expect("gateway send");
+    }
+
+    async fn next(&mut self, until: tokio::time::Instant) -> Option<Packet> {
+        loop {
+            let frame = tokio::time::timeout_at(until, self.rx.recv()).await.ok()?;
+            let frame = frame.expect("gateway receive");
+            match Packet::from_frame(&frame) {
+                Ok(p) => return Some(p),
+                Err(e) => panic!("a virtual node sent an undecodable frame: {e:?} ({frame:?})"),
+            }
+        }
+    }
+
+    /// Waits for a packet matching `pred` (earlier non-matching packets stay in the backlog).
+    pub async fn expect(&mut self, what: &str, mut pred: impl FnMut(&Packet) -> bool) -> Packet {
+        if let Some(i) = self.backlog.iter().position(&mut pred) {
+            return self.backlog.remove(i);
+        }
+        let until = tokio::time::Instant::now() + scaled(WAIT);
+        while let Some(p) = self.next(until).await {
+            if pred(&p) {
+                return p;
+            }
+            self.backlog.push(p);
+        }
+        panic!(
+            "gateway did not receive {what} within {:?}; other frames: {:#?}",
+            scaled(WAIT),
+            self.backlog
+        )
+    }
+
+    /// Waits for the report `msg` from `src`.
+    pub async fn expect_from(&mut self, src: NodeId, msg: Message) -> Packet {
+        self.expect(&format!("{msg:?} from {src}"), |p| {
+            p.src == src && p.msg == msg
+        })
+        .await
+    }
+
+    /// Asserts that nothing matching `pred` arrives for a while (and nothing is in the backlog).
+    pub async fn expect_none(&mut self, what: &str, mut pred: impl FnMut(&Packet) -> bool) {
+        if let Some(p) = self.backlog.iter().find(|p| pred(p)) {
+            panic!("unexpected {what}: {p:?}");
+        }
+        let until = tokio::time::Instant::now() + scaled(QUIET);
+        while let Some(p) = self.next(until).await {
+            assert!(!pred(&p), "unexpected {what}: {p:?}");
+            self.backlog.push(p);
+        }
+    }
+}
+
+fn boot_up(role: BootRole, ports: u8) -> Message {
+    Message::BootUp {
+        version: ihex_proto::PROTOCOL_VERSION,
+        role,
+        ports,
+        reset: ResetReason::PowerOn,
+    }
+}
+
+fn ack(kind: Kind, seq: u8) -> Message {
+    Message::Ack {
+        kind,
+        seq,
+        result: AckResult::Ok,
+        detail: 0,
+    }
+}
+
+/// Polls the island until `node`'s view satisfies `pred`.
+pub async fn wait_view(
+    island: &IslandHandle,
+    node: NodeId,
+    what: &str,
+    pred: impl Fn(&NodeView) -> bool,
+) {
+    let until = tokio::time::Instant::now() + scaled(WAIT);
+    loop {
+        let v = island.view(node).await.expect("view");
+        if pred(&v) {
+            return;
+        }
+        if tokio::time::Instant::now() >= until {
+            panic!(
+                "{node}: {what} did not happen within {:?}; now {v:?}",
+                scaled(WAIT)
+            );
+        }
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+}
+
+/// Starts the scenario island on `link` with the gateway already listening; waits for the three
+/// configured static elements to announce themselves.
+pub async fn start(link: &Link, text: &str) -> (Gateway, IslandHandle) {
+    let mut gw = Gateway::open(link);
+    let desc = IslandDesc::parse(text).expect("island");
+    let island = Island::start(&desc, link.clone()).expect("island starts");
+    for s in desc.statics.iter().filter(|s| s.configured) {
+        gw.expect_from(s.id, boot_up(BootRole::Static, s.ports))
+            .await;
+    }
+    (gw, island)
+}
+
+/// Docks 2 on port 3 of 111 and plays the gateway's part until 2 has shaken hands.
+pub async fn dock_and_confirm(gw: &mut Gateway, island: &IslandHandle, seq: u8) {
+    island.dock(id(2), id(0x111), 3).await.expect("dock");
+    gw.expect_from(id(0x111), Message::DockDetected { port: port(3) })
+        .await;
+    assert!(
+        !island.actuators(id(0x111)).await.unwrap().relay,
+        "relay waits for the confirmation"
+    );
+    assert!(
+        !island.view(id(2)).await.unwrap().powered,
+        "no power before the confirmation"
+    );
+    gw.send(id(0x111), Message::DockConfirm { seq, port: port(3) })
+        .await;
+    gw.expect_from(id(0x111), ack(Kind::DockConfirm, seq)).await;
+    gw.expect_from(id(2), boot_up(BootRole::Mobile, 6)).await;
+    // The mobile docks by its own port 1, which is what it must report.
+    gw.expect_from(id(2), Message::Handshake { port: port(1) })
+        .await;
+}
+
+/// Static elements boot and announce themselves; the unconfigured one and the undocked mobiles
+/// stay silent.
+pub async fn boot(link: Link) {
+    let (mut gw, island) = start(&link, ISLAND).await;
+    let snap = island.snapshot().await.unwrap();
+    let names: Vec<_> = snap.iter().map(|v| v.name).collect();
+    assert_eq!(names, [id(0x111), id(0x112), id(0x120), id(2), id(3)]);
+    assert!(snap[..3].iter().all(|v| v.powered && v.on_bus));
+    assert!(snap[3..].iter().all(|v| !v.powered && v.docked.is_none()));
+    assert_eq!(snap[2].node_id, None, "120 is factory-fresh");
+    gw.expect_none("a frame from an unconfigured or unpowered node", |p| {
+        p.src == NodeId::UNCONFIGURED || p.src == id(2) || p.src == id(3)
+    })
+    .await;
+    island.shutdown().await;
+}
+
+/// Dock → DockDetected → (gateway) DockConfirm → relay on → mobile BootUp + Handshake; undock →
+/// DockRemoved, relay off, the mobile loses power.
+pub async fn dock_and_undock(link: Link) {
+    let (mut gw, island) = start(&link, ISLAND).await;
+    let mut events = island.subscribe();
+    dock_and_confirm(&mut gw, &island, 7).await;
+    assert!(island.actuators(id(0x111)).await.unwrap().relay);
+    let v = island.view(id(2)).await.unwrap();
+    assert!(v.powered);
+    assert_eq!(v.docked, Some((id(0x111), port(3))));
+    assert_eq!(
+        v.loops,
+        port(1).mask(),
+        "the mobile's own loop on port 1 is closed"
+    );
+    assert_eq!(island.view(id(0x111)).await.unwrap().loops, port(3).mask());
+
+    island.undock(id(2)).await.expect("undock");
+    assert!(
+        !island.view(id(2)).await.unwrap().powered,
+        "power is gone at once"
+    );
+    gw.expect_from(id(0x111), Message::DockRemoved { port: port(3) })
+        .await;
+    wait_view(&island, id(0x111), "relay off", |v| !v.actuators.relay).await;
+    let v = island.view(id(2)).await.unwrap();
+    assert_eq!((v.docked, v.loops), (None, 0));
+    assert!(
+        island.undock(id(2)).await.is_err(),
+        "undocking twice is an error"
+    );
+
+    // The event stream told the same story, in order.
+    let mut seen = Vec::new();
+    while let Ok(e) = events.try_recv() {
+        seen.push(e);
+    }
+    let pos = |want: &IslandEvent| {
+        seen.iter()
+            .position(|e| e == want)
+            .unwrap_or_else(|| panic!("{want:?} not in {seen:#?}"))
+    };
+    let docked = pos(&IslandEvent::Docked {
+        mobile: id(2),
+        static_id: id(0x111),
+        port: port(3),
+    });
+    let on = pos(&IslandEvent::Power {
+        node: id(2),
+        on: true,
+    });
+    let off = pos(&IslandEvent::Power {
+        node: id(2),
+        on: false,
+    });
+    let undocked = pos(&IslandEvent::Undocked {
+        mobile: id(2),
+        static_id: id(0x111),
+        port: port(3),
+    });
+    assert!(docked < on && on < off && off < undocked, "{seen:#?}");
+    island.shutdown().await;
+}
+
+/// Docking refusals and impossible requests are errors, not panics.
+pub async fn bad_requests(link: Link) {
+    let (_gw, island) = start(&link, ISLAND).await;
+    assert!(
+        island.dock(id(0x111), id(0x112), 0).await.is_err(),
+        "a static element cannot dock"
+    );
+    assert!(
+        island.dock(id(2), id(3), 0).await.is_err(),
+        "cannot dock on a mobile"
+    );
+    assert!(
+        island.dock(id(2), id(0x112), 4).await.is_err(),
+        "112 has ports 0..=3"
+    );
+    assert!(
+        island.dock(id(2), id(0x999), 0).await.is_err(),
+        "no such element"
+    );
+    island.dock(id(2), id(0x112), 0).await.unwrap();
+    assert!(
+        island.dock(id(3), id(0x112), 0).await.is_err(),
+        "port taken"
+    );
+    assert!(
+        island.dock(id(2), id(0x111), 0).await.is_err(),
+        "already docked"
+    );
+    assert!(island.power_cycle(id(3)).await.is_err(), "3 has no power");
+    assert!(
+        island.uart(id(3), &[0xB0, 0]).await.is_err(),
+        "3 has no power"
+    );
+    island.shutdown().await;
+}
+
+/// A power cycle is a fresh boot; the static element's mobile loses power with the relay, and the
+/// rebooted static element reports the still-closed loop again.
+pub async fn power_cycle(link: Link) {
+    let (mut gw, island) = start(&link, ISLAND).await;
+    dock_and_confirm(&mut gw, &island, 1).await;
+
+    island.power_cycle(id(2)).await.expect("cycle the mobile");
+    gw.expect_from(id(2), boot_up(BootRole::Mobile, 6)).await;
+    gw.expect_from(id(2), Message::Handshake { port: port(1) })
+        .await;
+
+    island
+        .power_cycle(id(0x111))
+        .await
+        .expect("cycle the static");
+    assert!(
+        !island.view(id(2)).await.unwrap().powered,
+        "the relay went off with the power"
+    );
+    gw.expect_from(id(0x111), boot_up(BootRole::Static, 6))
+        .await;
+    assert!(!island.actuators(id(0x111)).await.unwrap().relay);
+    gw.expect_from(id(0x111), Message::DockDetected { port: port(3) })
+        .await;
+    gw.send(
+        id(0x111),
+        Message::DockConfirm {
+            seq: 2,
+            port: port(3),
+        },
+    )
+    .await;
+    gw.expect_from(id(0x111), ack(Kind::DockConfirm, 2)).await;
+    gw.expect_from(id(2), boot_up(BootRole::Mobile, 6)).await;
+    island.shutdown().await;
+}
+
+/// A node off the bus keeps running but neither hears nor answers health checks; back on the bus
+/// it answers again.
+pub async fn off_bus(link: Link) {
+    let (mut gw, island) = start(&link, ISLAND).await;
+    let reply_from = |src: NodeId, seq: u8| {
+        move |p: &Packet| p.src == src && matches!(p.msg, Message::HealthReply(h) if h.seq == seq)
+    };
+    island.set_on_bus(id(0x112), false).await.unwrap();
+    assert!(!island.view(id(0x112)).await.unwrap().on_bus);
+    gw.send(NodeId::BROADCAST, Message::HealthCheck { seq: 1 })
+        .await;
+    gw.expect("health reply 1 from 111", reply_from(id(0x111), 1))
+        .await;
+    gw.send(id(0x112), Message::HealthCheck { seq: 2 }).await;
+    gw.expect_none("a health reply from 112 while off the bus", |p| {
+        p.src == id(0x112)
+    })
+    .await;
+    assert!(
+        island.view(id(0x112)).await.unwrap().powered,
+        "it is still running"
+    );
+    // Nor does it hear commands: this LED command is lost on the way in.
+    let red = LedCommand::Steady {
+        color: Rgb::new(255, 0, 0),
+        brightness: 255,
+    };
+    gw.send(id(0x112), Message::LedSet { seq: 4, cmd: red })
+        .await;
+    gw.expect_none("an ack from 112 while off the bus", |p| p.src == id(0x112))
+        .await;
+    assert_eq!(
+        island.actuators(id(0x112)).await.unwrap().led,
+        LedOutput::default()
+    );
+
+    island.set_on_bus(id(0x112), true).await.unwrap();
+    gw.send(NodeId::BROADCAST, Message::HealthCheck { seq: 3 })
+        .await;
+    gw.expect("health reply 3 from 111", reply_from(id(0x111), 3))
+        .await;
+    let p = gw
+        .expect("health reply 3 from 112", reply_from(id(0x112), 3))
+        .await;
+    let Message::HealthReply(h) = p.msg else {
+        unreachable!()
+    };
+    assert_eq!(h.loops, 0);
+    island.shutdown().await;
+}
+
+/// LED, buzzer and relay commands show up as virtual actuator state and as events.
+pub async fn actuators(link: Link) {
+    let (mut gw, island) = start(&link, ISLAND).await;
+    let mut events = island.subscribe();
+    let color = Rgb::new(255, 0, 0);
+    let blink = LedCommand::Blink {
+        color,
+        brightness: 255,
+        period_10ms: 50,
+        duty_pct: 50,
+    };
+    gw.send(id(0x111), Message::LedSet { seq: 5, cmd: blink })
+        .await;
+    gw.expect_from(id(0x111), ack(Kind::LedSet, 5)).await;
+    let a = island.actuators(id(0x111)).await.unwrap();
+    assert_eq!(
+        a.led,
+        LedOutput {
+            duty: color,
+            blink: Some((500, 50))
+        }
+    );
+    let tone = BuzzerCommand::Continuous { freq_hz: 440 };
+    gw.send(id(0x112), Message::BuzzerSet { seq: 6, cmd: tone })
+        .await;
+    gw.expect_from(id(0x112), ack(Kind::BuzzerSet, 6)).await;
+    assert_eq!(
+        island.actuators(id(0x112)).await.unwrap().buzzer,
+        BuzzerOutput::Tone { freq_hz: 440 }
+    );
+    assert_eq!(
+        island.actuators(id(0x111)).await.unwrap().buzzer,
+        BuzzerOutput::Off,
+        "only 112 beeps"
+    );
+
+    // Relay on by command powers a docked mobile too (no confirmation needed for PowerSet).
+    island.dock(id(3), id(0x112), 2).await.unwrap();
+    gw.expect_from(id(0x112), Message::DockDetected { port: port(2) })
+        .await;
+    gw.send(id(0x112), Message::PowerSet { seq: 7, on: true })
+        .await;
+    gw.expect_from(id(0x112), ack(Kind::PowerSet, 7)).await;
+    gw.expect_from(id(3), boot_up(BootRole::Mobile, 6)).await;
+    gw.send(id(0x112), Message::PowerSet { seq: 8, on: false })
+        .await;
+    gw.expect_from(id(0x112), ack(Kind::PowerSet, 8)).await;
+    wait_view(&island, id(3), "power off with the relay", |v| !v.powered).await;
+
+    let mut led_event = false;
+    while let Ok(e) = events.try_recv() {
+        if let IslandEvent::Actuators { node, actuators } = e {
+            led_event |= node == id(0x111) && actuators.led.blink == Some((500, 50));
+        }
+    }
+    assert!(led_event, "the LED change was published");
+    island.shutdown().await;
+}
+
+/// With contact bounce on, one dock and one undock still produce exactly one report each.
+pub async fn bounce(link: Link) {
+    let text = format!("bounce = true\n{ISLAND}");
+    let (mut gw, island) = start(&link, &text).await;
+    let dock_report = |p: &Packet| {
+        p.src == id(0x111)
+            && matches!(
+                p.msg,
+                Message::DockDetected { .. } | Message::DockRemoved { .. }
+            )
+    };
+    island.dock(id(2), id(0x111), 5).await.unwrap();
+    gw.expect_from(id(0x111), Message::DockDetected { port: port(5) })
+        .await;
+    gw.expect_none("a second dock report", dock_report).await;
+    island.undock(id(2)).await.unwrap();
+    gw.expect_from(id(0x111), Message::DockRemoved { port: port(5) })
+        .await;
+    gw.expect_none("a second dock report", dock_report).await;
+    island.shutdown().await;
+}
+
+/// The UART ID message configures a factory-fresh board; the stored ID survives a power cycle.
+pub async fn uart_id(link: Link) {
+    let (mut gw, island) = start(&link, ISLAND).await;
+    let fresh = id(0x120);
+    assert_eq!(
+        island.uart(fresh, &[0xB0, 0x00]).await.unwrap(),
+        [0x5F, 0xFE],
+        "no ID yet"
+    );
+    assert_eq!(
+        island.uart(fresh, &[0xA0, 0x00]).await.unwrap(),
+        [0xE0, 0x01],
+        "reserved ID refused"
+    );
+    assert_eq!(
+        island.uart(fresh, &[0xA1, 0x23]).await.unwrap(),
+        [0x51, 0x23]
+    );
+    gw.expect_from(id(0x123), boot_up(BootRole::Static, 6))
+        .await;
+    assert_eq!(island.view(fresh).await.unwrap().node_id, Some(id(0x123)));
+    gw.send(id(0x123), Message::HealthCheck { seq: 9 }).await;
+    gw.expect("health reply from 123", |p| {
+        p.src == id(0x123) && matches!(p.msg, Message::HealthReply(h) if h.seq == 9)
+    })
+    .await;
+
+    island.power_cycle(fresh).await.unwrap();
+    gw.expect_from(id(0x123), boot_up(BootRole::Static, 6))
+        .await;
+    assert_eq!(
+        island.uart(fresh, &[0xB0, 0x00]).await.unwrap(),
+        [0x51, 0x23]
+    );
+    island.shutdown().await;
+}
