@@ -1196,3 +1196,16 @@ fn bus_off_reported_after_recovery_with_count() {
         }]
     );
 }
+
+// ---- footprint ----
+
+#[test]
+fn node_is_small_enough_for_the_firmware() {
+    // sc-fw has 16 KiB of static RAM for everything; the node state must stay a small part of it.
+    let size = std::mem::size_of::<Node>();
+    println!(
+        "size_of::<Node>() = {size}, Output = {}",
+        std::mem::size_of::<Output>()
+    );
+    assert!(size <= 1536, "Node grew to {size} bytes");
+}
