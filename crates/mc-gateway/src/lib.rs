@@ -2,3 +2,9 @@
 #![warn(missing_docs)]
 
 pub mod bridge;
+pub mod command;
+pub mod docking;
+pub mod error_frame;
+pub mod event;
+pub mod registry;
+pub mod throttle;

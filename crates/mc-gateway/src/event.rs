@@ -1,0 +1,642 @@
+//! JSON events published on `EventsTopic` and the retained per-node state documents: typed serde DTOs
+//! whose serialised form *is* the MQTT API described in `docs/mqtt-api.md`.
+//!
+//! Every DTO also implements `Deserialize`, so test harnesses and tools (provisioning, dashboards written
+//! in Rust) can read events back with the same types instead of poking at untyped JSON.
+
+use std::fmt;
+
+use ihex_proto::{BuzzerCommand, LedCommand, NodeId};
+use serde::{Deserialize, Deserializer, Serialize, Serializer};
+
+/// A node ID in its MQTT form: lower-case hex without leading zeros or prefix (`"111"`, `"2"`).
+#[derive(Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Debug)]
+pub struct HexId(pub NodeId);
+
+impl HexId {
+    /// Parses 1–3 hex digits (either case) into any 12-bit node ID, reserved ones included.
+    pub fn parse(s: &str) -> Option<NodeId> {
+        if s.is_empty() || s.len() > 3 || !s.bytes().all(|b| b.is_ascii_hexdigit()) {
+            return None;
+        }
+        u16::from_str_radix(s, 16).ok().and_then(NodeId::new)
+    }
+}
+
+impl fmt::Display for HexId {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        self.0.fmt(f)
+    }
+}
+
+impl Serialize for HexId {
+    fn serialize<S: Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        s.collect_str(&self.0)
+    }
+}
+
+impl<'de> Deserialize<'de> for HexId {
+    fn deserialize<D: Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        let s = String::deserialize(d)?;
+        HexId::parse(&s)
+            .map(HexId)
+            .ok_or_else(|| serde::de::Error::custom(format!("not a hex node id: {s:?}")))
+    }
+}
+
+/// Who a command is for: one node, or every node through one broadcast frame (`"all"`).
+#[derive(Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Debug)]
+pub enum Target {
+    /// One node.
+    Node(NodeId),
+    /// Every node (`"all"`).
+    All,
+}
+
+impl Target {
+    /// The target of a frame sent to `dest`.
+    pub fn from_dest(dest: NodeId) -> Target {
+        if dest == NodeId::BROADCAST {
+            Target::All
+        } else {
+            Target::Node(dest)
+        }
+    }
+
+    /// The CAN destination of the command frame.
+    pub fn dest(self) -> NodeId {
+        match self {
+            Target::Node(id) => id,
+            Target::All => NodeId::BROADCAST,
+        }
+    }
+}
+
+impl fmt::Display for Target {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Target::Node(id) => id.fmt(f),
+            Target::All => f.write_str("all"),
+        }
+    }
+}
+
+impl Serialize for Target {
+    fn serialize<S: Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        s.collect_str(self)
+    }
+}
+
+impl<'de> Deserialize<'de> for Target {
+    fn deserialize<D: Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        let s = String::deserialize(d)?;
+        if s == "all" {
+            return Ok(Target::All);
+        }
+        HexId::parse(&s)
+            .map(Target::Node)
+            .ok_or_else(|| serde::de::Error::custom(format!("not a node id or \"all\": {s:?}")))
+    }
+}
+
+/// One end of a docking connection: an element and its dock port.
+#[derive(Clone, Copy, PartialEq, Eq, Debug, Serialize, Deserialize)]
+pub struct End {
+    /// The element.
+    pub id: HexId,
+    /// Its dock port.
+    pub port: u8,
+}
+
+/// Payload of `new_connection` / `connection_removed`, in the seed's exact shape and key order:
+/// `{"n": {"id": "2", "port": 0}, "n-1": {"id": "111", "port": 3}}`.
+#[derive(Clone, Copy, PartialEq, Eq, Debug, Serialize, Deserialize)]
+pub struct Connection {
+    /// The mobile element that docked, and its own port.
+    pub n: End,
+    /// The static element it docked onto, and that element's dock port.
+    #[serde(rename = "n-1")]
+    pub n_1: End,
+}
+
+/// Static island element or mobile element.
+#[derive(Clone, Copy, PartialEq, Eq, Debug, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Role {
+    /// Wired on the bus, has dock ports.
+    Static,
+    /// Docks onto a static element.
+    Mobile,
+}
+
+/// Payload of `node_online`: a node was heard for the first time, or again after `node_lost`.
+#[derive(Clone, PartialEq, Eq, Debug, Serialize, Deserialize)]
+pub struct NodeOnline {
+    /// The node.
+    pub id: HexId,
+    /// Its role, when the frame that announced it tells (`BootUp`, `HealthReply`).
+    pub role: Option<Role>,
+    /// True the first time this gateway hears the node, false when it returns after `node_lost`.
+    pub first_seen: bool,
+}
+
+/// Payload of `node_lost`: the node missed `missed` consecutive health checks.
+#[derive(Clone, PartialEq, Eq, Debug, Serialize, Deserialize)]
+pub struct NodeLost {
+    /// The node.
+    pub id: HexId,
+    /// Consecutive health checks it did not answer.
+    pub missed: u32,
+    /// Milliseconds since anything was last heard from it.
+    pub last_seen_ms: u64,
+}
+
+/// Payload of `node_rebooted`: a `BootUp` from a node that was known and online.
+#[derive(Clone, PartialEq, Eq, Debug, Serialize, Deserialize)]
+pub struct NodeRebooted {
+    /// The node.
+    pub id: HexId,
+    /// Why it restarted: `power_on`, `watchdog`, `software`, `pin` or `other_<n>`.
+    pub reset: String,
+    /// Firmware/protocol version `"major.minor"`.
+    pub version: String,
+    /// Its role.
+    pub role: Role,
+}
+
+/// How a command ended.
+#[derive(Clone, Copy, PartialEq, Eq, Debug, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Outcome {
+    /// The node (every node, for `"all"`) acknowledged it.
+    Ok,
+    /// A node answered with a refusal; `reason` names the ack result.
+    Refused,
+    /// No (or not every) answer within the command timeout.
+    Timeout,
+    /// The frame could not be sent on the bus.
+    Failed,
+}
+
+/// One node's refusal of a broadcast command.
+#[derive(Clone, PartialEq, Eq, Debug, Serialize, Deserialize)]
+pub struct Refusal {
+    /// The node.
+    pub id: HexId,
+    /// The ack result name (`invalid_value`, `busy`, …).
+    pub reason: String,
+}
+
+/// Payload of `command_result`.
+#[derive(Clone, PartialEq, Eq, Debug, Serialize, Deserialize)]
+pub struct CommandResult {
+    /// The command's `request_id`, `null` when it had none.
+    pub request_id: Option<String>,
+    /// The command name (`led`, `buzzer`, `power`, `identify`, `assign`).
+    pub cmd: String,
+    /// The node (for `assign`: the new ID) or `"all"`.
+    pub node: Target,
+    /// How it ended.
+    pub result: Outcome,
+    /// Why, for anything but `ok` (`null` for `ok`).
+    pub reason: Option<String>,
+    /// Broadcasts only: nodes that acknowledged with `ok`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub acked: Option<Vec<HexId>>,
+    /// Broadcasts only: nodes that refused.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub refused: Option<Vec<Refusal>>,
+    /// Broadcasts only: nodes that were online when the command was sent and did not answer.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub missing: Option<Vec<HexId>>,
+}
+
+/// Payload of `command_rejected`: the command was not sent because it is invalid.
+#[derive(Clone, PartialEq, Eq, Debug, Serialize, Deserialize)]
+pub struct CommandRejected {
+    /// The command's `request_id` when it could be read, else `null`.
+    pub request_id: Option<String>,
+    /// What was wrong and what is accepted.
+    pub reason: String,
+}
+
+/// Payload of `fault`: a node's `Fault` report, or a protocol violation the gateway noticed.
+#[derive(Clone, PartialEq, Eq, Debug, Serialize, Deserialize)]
+pub struct FaultEvent {
+    /// The node concerned.
+    pub node: HexId,
+    /// Fault name (`dock_confirm_not_docked`, `bus_off`, …, `unexpected_handshake`, `other_<n>`).
+    pub code: String,
+    /// Code-specific argument (a port, a kind).
+    pub arg: u8,
+    /// Code-specific detail.
+    pub detail: u32,
+    /// Human-readable explanation.
+    pub message: String,
+    /// Faults of this node and code not published since the previous one (rate limit).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub suppressed: Option<u32>,
+}
+
+/// Payload of `bus_error`: a condition of the CAN bus or interface, or frames the gateway cannot use.
+#[derive(Clone, PartialEq, Eq, Debug, Default, Serialize, Deserialize)]
+pub struct BusError {
+    /// `error_frame`, `bus_off`, `interface_down`, `recovered`, `rx_dropped`, `undecodable_frame`,
+    /// `send_failed`.
+    pub error: String,
+    /// Human-readable explanation.
+    pub message: String,
+    /// `rx_dropped`: frames dropped since the last report.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub count: Option<u64>,
+    /// `error_frame`: the class bits decoded (`tx_timeout`, `lost_arbitration`, `controller`, …).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub classes: Option<Vec<String>>,
+    /// `error_frame` with the controller class: controller status (`rx_passive`, `tx_warning`, …).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub controller: Option<Vec<String>>,
+    /// `error_frame` with the protocol class: violation types (`bit`, `form`, `stuff`, …).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub protocol: Option<Vec<String>>,
+    /// `error_frame`: transmit error counter, when the frame carries it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tec: Option<u8>,
+    /// `error_frame`: receive error counter, when the frame carries it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rec: Option<u8>,
+    /// `undecodable_frame`: the 29-bit identifier as `0x…`; `send_failed`: the frame's identifier.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub raw_id: Option<String>,
+    /// `undecodable_frame` / `error_frame`: the data bytes in hex.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub data: Option<String>,
+    /// Events of this same kind not published since the previous one (rate limit).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub suppressed: Option<u32>,
+}
+
+/// Payload of `dock_failed`: a docking on `node`'s `port` did not complete.
+#[derive(Clone, PartialEq, Eq, Debug, Serialize, Deserialize)]
+pub struct DockFailed {
+    /// The static element that reported the docking.
+    pub node: HexId,
+    /// Its dock port.
+    pub port: u8,
+    /// Why (`handshake timeout after 5000 ms`, `confirm refused: invalid_state`, …).
+    pub reason: String,
+}
+
+/// Payload of `node_list`, the answer to the `list` command.
+#[derive(Clone, PartialEq, Debug, Serialize, Deserialize)]
+pub struct NodeList {
+    /// The `list` command's `request_id`, `null` when it had none.
+    pub request_id: Option<String>,
+    /// Every known node, by ascending ID.
+    pub nodes: Vec<NodeState>,
+}
+
+/// One JSON event: `{"event": "<name>", "payload": {...}}`.
+#[derive(Clone, PartialEq, Debug, Serialize, Deserialize)]
+#[serde(tag = "event", content = "payload", rename_all = "snake_case")]
+pub enum Event {
+    /// A mobile element docked and handshook.
+    NewConnection(Connection),
+    /// A recorded connection ended (undocked, or the mobile element was lost).
+    ConnectionRemoved(Connection),
+    /// A node was heard for the first time or after being lost.
+    NodeOnline(NodeOnline),
+    /// A node stopped answering health checks.
+    NodeLost(NodeLost),
+    /// A known, online node announced a restart.
+    NodeRebooted(NodeRebooted),
+    /// A command was acknowledged, refused, timed out or could not be sent.
+    CommandResult(CommandResult),
+    /// A command was invalid and not sent.
+    CommandRejected(CommandRejected),
+    /// A node reported a fault, or misbehaved.
+    Fault(FaultEvent),
+    /// The bus or interface reported a problem, or a frame could not be decoded.
+    BusError(BusError),
+    /// A docking did not complete.
+    DockFailed(DockFailed),
+    /// Answer to `list`.
+    NodeList(NodeList),
+}
+
+impl Event {
+    /// The event's name as published (`new_connection`, …).
+    pub fn name(&self) -> &'static str {
+        match self {
+            Event::NewConnection(_) => "new_connection",
+            Event::ConnectionRemoved(_) => "connection_removed",
+            Event::NodeOnline(_) => "node_online",
+            Event::NodeLost(_) => "node_lost",
+            Event::NodeRebooted(_) => "node_rebooted",
+            Event::CommandResult(_) => "command_result",
+            Event::CommandRejected(_) => "command_rejected",
+            Event::Fault(_) => "fault",
+            Event::BusError(_) => "bus_error",
+            Event::DockFailed(_) => "dock_failed",
+            Event::NodeList(_) => "node_list",
+        }
+    }
+
+    /// Compact JSON text, as published.
+    pub fn to_json(&self) -> String {
+        to_json(self)
+    }
+}
+
+/// Compact JSON of a DTO. Serialising these types cannot fail (plain structs, string keys only);
+/// should it ever, an empty object is published rather than panicking the gateway.
+pub(crate) fn to_json<T: Serialize>(value: &T) -> String {
+    serde_json::to_string(value).unwrap_or_else(|_| String::from("{}"))
+}
+
+/// The LED state a node acknowledged.
+#[derive(Clone, PartialEq, Eq, Debug, Serialize, Deserialize)]
+pub struct LedState {
+    /// `off`, `steady` or `blink`.
+    pub mode: String,
+    /// `#rrggbb`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub color: Option<String>,
+    /// 0–255.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub brightness: Option<u8>,
+    /// Blink period in ms.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub period_ms: Option<u16>,
+    /// Blink duty cycle in %.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub duty: Option<u8>,
+}
+
+impl From<LedCommand> for LedState {
+    fn from(cmd: LedCommand) -> Self {
+        let hex = |c: ihex_proto::Rgb| format!("#{:02x}{:02x}{:02x}", c.r, c.g, c.b);
+        match cmd {
+            LedCommand::Off => LedState {
+                mode: "off".into(),
+                color: None,
+                brightness: None,
+                period_ms: None,
+                duty: None,
+            },
+            LedCommand::Steady { color, brightness } => LedState {
+                mode: "steady".into(),
+                color: Some(hex(color)),
+                brightness: Some(brightness),
+                period_ms: None,
+                duty: None,
+            },
+            LedCommand::Blink {
+                color,
+                brightness,
+                period_10ms,
+                duty_pct,
+            } => LedState {
+                mode: "blink".into(),
+                color: Some(hex(color)),
+                brightness: Some(brightness),
+                period_ms: Some(u16::from(period_10ms) * 10),
+                duty: Some(duty_pct),
+            },
+        }
+    }
+}
+
+/// The buzzer state a node acknowledged.
+#[derive(Clone, PartialEq, Eq, Debug, Serialize, Deserialize)]
+pub struct BuzzerState {
+    /// `off`, `on` or `pattern`.
+    pub mode: String,
+    /// Tone frequency.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub freq_hz: Option<u16>,
+    /// Beep length in ms.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub on_ms: Option<u16>,
+    /// Pause length in ms.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub off_ms: Option<u16>,
+    /// Number of beeps, 0 = until told otherwise.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub count: Option<u8>,
+}
+
+impl From<BuzzerCommand> for BuzzerState {
+    fn from(cmd: BuzzerCommand) -> Self {
+        let none = BuzzerState {
+            mode: String::new(),
+            freq_hz: None,
+            on_ms: None,
+            off_ms: None,
+            count: None,
+        };
+        match cmd {
+            BuzzerCommand::Off => BuzzerState {
+                mode: "off".into(),
+                ..none
+            },
+            BuzzerCommand::Continuous { freq_hz } => BuzzerState {
+                mode: "on".into(),
+                freq_hz: Some(freq_hz),
+                ..none
+            },
+            BuzzerCommand::Pattern {
+                freq_hz,
+                on_10ms,
+                off_10ms,
+                count,
+            } => BuzzerState {
+                mode: "pattern".into(),
+                freq_hz: Some(freq_hz),
+                on_ms: Some(u16::from(on_10ms) * 10),
+                off_ms: Some(u16::from(off_10ms) * 10),
+                count: Some(count),
+            },
+        }
+    }
+}
+
+/// What the node itself reported in its last `HealthReply`.
+#[derive(Clone, PartialEq, Eq, Debug, Serialize, Deserialize)]
+pub struct Reported {
+    /// Relay on.
+    pub relay: bool,
+    /// LED strip lit.
+    pub led_on: bool,
+    /// LED strip blinking.
+    pub led_blink: bool,
+    /// Buzzer sounding.
+    pub buzzer: bool,
+    /// Identify running.
+    pub identify: bool,
+    /// CAN controller error-passive.
+    pub error_passive: bool,
+    /// CAN transmit error counter.
+    pub tec: u8,
+    /// CAN receive error counter.
+    pub rec: u8,
+    /// Seconds since the node booted.
+    pub uptime_s: u32,
+}
+
+/// A docking connection seen from one element: its port, and who is at the other end on which port.
+#[derive(Clone, PartialEq, Eq, Debug, Serialize, Deserialize)]
+pub struct Link {
+    /// This element's port.
+    pub port: u8,
+    /// The element at the other end.
+    pub peer: HexId,
+    /// The other element's port.
+    pub peer_port: u8,
+}
+
+/// The retained state document of one node (published on its state topic and listed by `node_list`).
+#[derive(Clone, PartialEq, Eq, Debug, Serialize, Deserialize)]
+pub struct NodeState {
+    /// The node.
+    pub id: HexId,
+    /// Answering health checks.
+    pub online: bool,
+    /// Static or mobile, once known.
+    pub role: Option<Role>,
+    /// Number of dock ports, from its `BootUp`.
+    pub ports: Option<u8>,
+    /// Firmware/protocol version `"major.minor"`, from its `BootUp`.
+    pub version: Option<String>,
+    /// LED state last acknowledged by the node.
+    pub led: Option<LedState>,
+    /// Buzzer state last acknowledged by the node.
+    pub buzzer: Option<BuzzerState>,
+    /// Relay state: last acknowledged `power` command or last health report, whichever is newer.
+    pub relay: Option<bool>,
+    /// Dock ports whose signal loop is closed (something docked), ascending.
+    pub loops: Vec<u8>,
+    /// Docking connections of this element.
+    pub connections: Vec<Link>,
+    /// The node's last health report.
+    pub reported: Option<Reported>,
+    /// Milliseconds since the node was last heard, at the time of publication.
+    pub last_seen_ms: u64,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn id(raw: u16) -> HexId {
+        HexId(NodeId::new(raw).unwrap())
+    }
+
+    #[test]
+    fn new_connection_is_byte_for_byte_the_seed_shape() {
+        let ev = Event::NewConnection(Connection {
+            n: End {
+                id: id(0x2),
+                port: 0,
+            },
+            n_1: End {
+                id: id(0x111),
+                port: 3,
+            },
+        });
+        assert_eq!(
+            ev.to_json(),
+            r#"{"event":"new_connection","payload":{"n":{"id":"2","port":0},"n-1":{"id":"111","port":3}}}"#
+        );
+        let removed = Event::ConnectionRemoved(Connection {
+            n: End {
+                id: id(0xabc),
+                port: 5,
+            },
+            n_1: End {
+                id: id(0x10),
+                port: 1,
+            },
+        });
+        assert_eq!(
+            removed.to_json(),
+            r#"{"event":"connection_removed","payload":{"n":{"id":"abc","port":5},"n-1":{"id":"10","port":1}}}"#
+        );
+    }
+
+    #[test]
+    fn events_round_trip_through_json() {
+        let ev = Event::CommandResult(CommandResult {
+            request_id: Some("r1".into()),
+            cmd: "led".into(),
+            node: Target::All,
+            result: Outcome::Timeout,
+            reason: Some("1 of 2 nodes did not answer".into()),
+            acked: Some(vec![id(1)]),
+            refused: Some(vec![]),
+            missing: Some(vec![id(0xffd)]),
+        });
+        let text = ev.to_json();
+        assert!(text.contains(r#""node":"all""#), "{text}");
+        assert!(text.contains(r#""missing":["ffd"]"#), "{text}");
+        let back: Event = serde_json::from_str(&text).unwrap();
+        assert_eq!(back, ev);
+    }
+
+    #[test]
+    fn command_result_without_request_id_carries_null() {
+        let ev = Event::CommandResult(CommandResult {
+            request_id: None,
+            cmd: "power".into(),
+            node: Target::Node(NodeId::new(0x2a).unwrap()),
+            result: Outcome::Ok,
+            reason: None,
+            acked: None,
+            refused: None,
+            missing: None,
+        });
+        assert_eq!(
+            ev.to_json(),
+            r#"{"event":"command_result","payload":{"request_id":null,"cmd":"power","node":"2a","result":"ok","reason":null}}"#
+        );
+    }
+
+    #[test]
+    fn hex_ids_parse_strictly() {
+        assert_eq!(HexId::parse("111"), NodeId::new(0x111));
+        assert_eq!(HexId::parse("FfD"), NodeId::new(0xffd));
+        assert_eq!(HexId::parse(""), None);
+        assert_eq!(HexId::parse("1000"), None);
+        assert_eq!(HexId::parse("0x1"), None);
+        assert_eq!(HexId::parse("-1"), None);
+        assert_eq!(HexId::parse("+1"), None);
+        assert!(serde_json::from_str::<Target>(r#""xyz""#).is_err());
+        assert_eq!(
+            serde_json::from_str::<Target>(r#""all""#).unwrap(),
+            Target::All
+        );
+    }
+
+    #[test]
+    fn led_and_buzzer_states_report_milliseconds() {
+        let led = LedState::from(LedCommand::Blink {
+            color: ihex_proto::Rgb::new(255, 0, 16),
+            brightness: 200,
+            period_10ms: 50,
+            duty_pct: 25,
+        });
+        assert_eq!(
+            to_json(&led),
+            r##"{"mode":"blink","color":"#ff0010","brightness":200,"period_ms":500,"duty":25}"##
+        );
+        let buz = BuzzerState::from(BuzzerCommand::Pattern {
+            freq_hz: 2000,
+            on_10ms: 10,
+            off_10ms: 255,
+            count: 3,
+        });
+        assert_eq!(
+            to_json(&buz),
+            r#"{"mode":"pattern","freq_hz":2000,"on_ms":100,"off_ms":2550,"count":3}"#
+        );
+    }
+}

@@ -1,0 +1,354 @@
+//! The registry of nodes the gateway has heard: when, in which role, what they last reported, what they
+//! last acknowledged, and whether they still answer health checks. Pure bookkeeping, no I/O.
+
+use std::collections::BTreeMap;
+use std::time::Instant;
+
+use ihex_proto::{BootRole, BuzzerCommand, HealthFlags, HealthReply, LedCommand, NodeId};
+
+use crate::event::{HexId, Link, NodeState, Reported, Role};
+
+/// How a frame from a node changed its standing.
+#[derive(Clone, Copy, PartialEq, Eq, Debug)]
+pub enum Seen {
+    /// Never heard before: now registered and online.
+    New,
+    /// Was lost: online again.
+    Back,
+    /// Already known and online.
+    Known,
+}
+
+/// Everything known about one node.
+#[derive(Clone, Debug)]
+pub struct NodeEntry {
+    /// The node.
+    pub id: NodeId,
+    /// When it was first heard.
+    pub first_seen: Instant,
+    /// When it was last heard (any valid frame).
+    pub last_seen: Instant,
+    /// False once it missed `lost_after_misses` health checks in a row.
+    pub online: bool,
+    /// Consecutive health checks missed.
+    pub misses: u32,
+    /// It answered the health check currently outstanding.
+    pub replied: bool,
+    /// From `BootUp`, or from the `MOBILE` health flag.
+    pub role: Option<BootRole>,
+    /// Dock port count from `BootUp`.
+    pub ports: Option<u8>,
+    /// Version from `BootUp`.
+    pub version: Option<(u8, u8)>,
+    /// The last health report.
+    pub health: Option<HealthReply>,
+    /// LED command last acknowledged.
+    pub led: Option<LedCommand>,
+    /// Buzzer command last acknowledged.
+    pub buzzer: Option<BuzzerCommand>,
+    /// Relay: last acknowledged `power`, or last reported.
+    pub relay: Option<bool>,
+    /// Signal-loop bitmap (bit n = port n closed).
+    pub loops: u8,
+    /// The stable part of the state document last published (see [`Registry::state_changed`]).
+    published: Option<NodeState>,
+}
+
+impl NodeEntry {
+    fn new(id: NodeId, now: Instant) -> Self {
+        NodeEntry {
+            id,
+            first_seen: now,
+            last_seen: now,
+            online: true,
+            misses: 0,
+            // A node first heard mid-round has not been asked yet: do not count this round against it.
+            replied: true,
+            role: None,
+            ports: None,
+            version: None,
+            health: None,
+            led: None,
+            buzzer: None,
+            relay: None,
+            loops: 0,
+            published: None,
+        }
+    }
+
+    /// The node's role for events.
+    pub fn role(&self) -> Option<Role> {
+        self.role.map(|r| match r {
+            BootRole::Static => Role::Static,
+            BootRole::Mobile => Role::Mobile,
+        })
+    }
+
+    /// Forgets acknowledged actuator state: the node restarted with everything off.
+    pub fn reset_actuators(&mut self) {
+        self.led = None;
+        self.buzzer = None;
+        self.relay = None;
+    }
+
+    /// The state document as of `now`, with the node's docking links.
+    pub fn state(&self, links: Vec<Link>, now: Instant) -> NodeState {
+        NodeState {
+            id: HexId(self.id),
+            online: self.online,
+            role: self.role(),
+            ports: self.ports,
+            version: self.version.map(|(a, b)| format!("{a}.{b}")),
+            led: self.led.map(Into::into),
+            buzzer: self.buzzer.map(Into::into),
+            relay: self.relay,
+            loops: (0..8).filter(|p| self.loops & (1 << p) != 0).collect(),
+            connections: links,
+            reported: self.health.map(|h| Reported {
+                relay: h.flags.contains(HealthFlags::RELAY),
+                led_on: h.flags.contains(HealthFlags::LED_ON),
+                led_blink: h.flags.contains(HealthFlags::LED_BLINK),
+                buzzer: h.flags.contains(HealthFlags::BUZZER),
+                identify: h.flags.contains(HealthFlags::IDENTIFY),
+                error_passive: h.flags.contains(HealthFlags::ERROR_PASSIVE),
+                tec: h.tec,
+                rec: h.rec,
+                uptime_s: h.uptime_s,
+            }),
+            last_seen_ms: millis(now.saturating_duration_since(self.last_seen)),
+        }
+    }
+}
+
+/// Milliseconds of a duration, saturating.
+pub(crate) fn millis(d: std::time::Duration) -> u64 {
+    u64::try_from(d.as_millis()).unwrap_or(u64::MAX)
+}
+
+/// Strips what changes on every health reply, so that only real changes trigger a retained publish.
+fn stable(mut s: NodeState) -> NodeState {
+    s.last_seen_ms = 0;
+    if let Some(r) = &mut s.reported {
+        r.tec = 0;
+        r.rec = 0;
+        r.uptime_s = 0;
+    }
+    s
+}
+
+/// All known nodes, by ID.
+#[derive(Debug, Default)]
+pub struct Registry {
+    nodes: BTreeMap<NodeId, NodeEntry>,
+}
+
+impl Registry {
+    /// An empty registry.
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Records that `id` was heard at `now` (registering it if new, reviving it if lost).
+    pub fn touch(&mut self, id: NodeId, now: Instant) -> Seen {
+        match self.nodes.get_mut(&id) {
+            None => {
+                self.nodes.insert(id, NodeEntry::new(id, now));
+                Seen::New
+            }
+            Some(e) => {
+                e.last_seen = now;
+                e.misses = 0;
+                if e.online {
+                    Seen::Known
+                } else {
+                    e.online = true;
+                    Seen::Back
+                }
+            }
+        }
+    }
+
+    /// The entry of `id`.
+    pub fn get(&self, id: NodeId) -> Option<&NodeEntry> {
+        self.nodes.get(&id)
+    }
+
+    /// The entry of `id`, mutable.
+    pub fn get_mut(&mut self, id: NodeId) -> Option<&mut NodeEntry> {
+        self.nodes.get_mut(&id)
+    }
+
+    /// Every entry, by ascending ID.
+    pub fn iter(&self) -> impl Iterator<Item = &NodeEntry> {
+        self.nodes.values()
+    }
+
+    /// IDs of nodes currently online.
+    pub fn online_ids(&self) -> Vec<NodeId> {
+        self.nodes
+            .values()
+            .filter(|e| e.online)
+            .map(|e| e.id)
+            .collect()
+    }
+
+    /// Known IDs as `"1, 2, 111"` (or `"none yet"`), for error messages.
+    pub fn known_list(&self) -> String {
+        if self.nodes.is_empty() {
+            return "none yet".into();
+        }
+        let ids: Vec<String> = self.nodes.keys().map(|id| id.to_string()).collect();
+        ids.join(", ")
+    }
+
+    /// Stores a health reply; returns true if it answers the outstanding check `seq`.
+    pub fn record_health(
+        &mut self,
+        id: NodeId,
+        reply: HealthReply,
+        outstanding: Option<u8>,
+    ) -> bool {
+        let Some(e) = self.nodes.get_mut(&id) else {
+            return false;
+        };
+        e.health = Some(reply);
+        e.loops = reply.loops;
+        e.relay = Some(reply.flags.contains(HealthFlags::RELAY));
+        if e.role.is_none() {
+            e.role = Some(if reply.flags.contains(HealthFlags::MOBILE) {
+                BootRole::Mobile
+            } else {
+                BootRole::Static
+            });
+        }
+        let answers = outstanding == Some(reply.seq);
+        if answers {
+            e.replied = true;
+        }
+        answers
+    }
+
+    /// Closes a health round before the next check goes out: every online node that did not answer
+    /// gets a miss; those reaching `lost_after` go offline and are returned with their miss count.
+    pub fn close_round(&mut self, lost_after: u32) -> Vec<(NodeId, u32)> {
+        let mut lost = Vec::new();
+        for e in self.nodes.values_mut() {
+            if e.online && !e.replied {
+                e.misses += 1;
+                if e.misses >= lost_after.max(1) {
+                    e.online = false;
+                    lost.push((e.id, e.misses));
+                }
+            }
+            e.replied = false;
+        }
+        lost
+    }
+
+    /// True when the state document of `id` differs from the last one published (ignoring counters
+    /// and ages), and remembers `doc` as published.
+    pub fn state_changed(&mut self, id: NodeId, doc: &NodeState) -> bool {
+        let Some(e) = self.nodes.get_mut(&id) else {
+            return false;
+        };
+        let s = stable(doc.clone());
+        if e.published.as_ref() == Some(&s) {
+            return false;
+        }
+        e.published = Some(s);
+        true
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::time::Duration;
+
+    fn id(raw: u16) -> NodeId {
+        NodeId::new(raw).unwrap()
+    }
+
+    fn reply(seq: u8, flags: u8, uptime_s: u32) -> HealthReply {
+        HealthReply {
+            seq,
+            flags: HealthFlags(flags),
+            loops: 0b1001,
+            tec: 0,
+            rec: 0,
+            uptime_s,
+        }
+    }
+
+    #[test]
+    fn touch_registers_and_revives() {
+        let t0 = Instant::now();
+        let mut r = Registry::new();
+        assert_eq!(r.touch(id(5), t0), Seen::New);
+        assert_eq!(r.touch(id(5), t0), Seen::Known);
+        r.get_mut(id(5)).unwrap().replied = false;
+        assert_eq!(r.close_round(1), vec![(id(5), 1)]);
+        assert!(!r.get(id(5)).unwrap().online);
+        assert_eq!(r.touch(id(5), t0 + Duration::from_secs(1)), Seen::Back);
+        assert_eq!(r.get(id(5)).unwrap().misses, 0);
+        assert_eq!(r.known_list(), "5");
+    }
+
+    #[test]
+    fn misses_count_only_unanswered_rounds() {
+        let t0 = Instant::now();
+        let mut r = Registry::new();
+        r.touch(id(1), t0);
+        r.touch(id(2), t0);
+        // Round 0 (nodes new this round): no misses.
+        assert!(r.close_round(3).is_empty());
+        // Round 1: node 1 answers, node 2 is silent.
+        assert!(r.record_health(id(1), reply(1, 0, 1), Some(1)));
+        assert!(
+            !r.record_health(id(2), reply(0, 0, 1), Some(1)),
+            "stale seq does not answer"
+        );
+        assert!(r.close_round(3).is_empty());
+        assert_eq!(r.get(id(2)).unwrap().misses, 1);
+        assert!(r.close_round(3).is_empty());
+        assert_eq!(
+            r.close_round(3),
+            vec![(id(2), 3)],
+            "node 1 did not answer rounds 2-3 either"
+        );
+    }
+
+    #[test]
+    fn health_sets_role_relay_and_loops_and_state_changes_ignore_counters() {
+        let t0 = Instant::now();
+        let mut r = Registry::new();
+        r.touch(id(7), t0);
+        r.record_health(
+            id(7),
+            reply(0, HealthFlags::MOBILE | HealthFlags::RELAY, 10),
+            None,
+        );
+        let e = r.get(id(7)).unwrap();
+        assert_eq!(e.role(), Some(Role::Mobile));
+        assert_eq!(e.relay, Some(true));
+        let doc = e.state(vec![], t0);
+        assert_eq!(doc.loops, vec![0, 3]);
+        assert!(r.state_changed(id(7), &doc));
+        assert!(!r.state_changed(id(7), &doc));
+        // Only the uptime moved: no publish.
+        r.record_health(
+            id(7),
+            reply(1, HealthFlags::MOBILE | HealthFlags::RELAY, 11),
+            None,
+        );
+        let doc = r
+            .get(id(7))
+            .unwrap()
+            .state(vec![], t0 + Duration::from_secs(1));
+        assert!(!r.state_changed(id(7), &doc));
+        // The relay went off: publish.
+        r.record_health(id(7), reply(2, HealthFlags::MOBILE, 12), None);
+        let doc = r.get(id(7)).unwrap().state(vec![], t0);
+        assert!(r.state_changed(id(7), &doc));
+    }
+}
