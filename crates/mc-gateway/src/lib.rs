@@ -1,10 +1,37 @@
 //! iHEX main controller: bridges MQTT JSON commands and events to the island's CAN bus.
+//!
+//! The logic is sans-IO ([`bridge`] and the modules it uses); the rest are thin async adapters:
+//! [`can`] (SocketCAN or the demo's in-memory bus), [`mqtt`] (rumqttc, one task owning the event
+//! loop), [`run`] wiring them around the bridge, [`config`] (CLI > env > TOML > defaults), [`log`],
+//! [`shutdown`], the embedded [`broker`] and the simulated island of the [`demo`].
+//!
+//! ```no_run
+//! # async fn f() -> Result<(), Box<dyn std::error::Error>> {
+//! let config = mc_gateway::Config::lab("127.0.0.1:1883", "vcan0")?;
+//! let stop = tokio_util::sync::CancellationToken::new();
+//! mc_gateway::run(config, stop).await?;
+//! # Ok(()) }
+//! ```
 #![warn(missing_docs)]
 
 pub mod bridge;
+pub mod broker;
+pub mod can;
 pub mod command;
+pub mod config;
+pub mod demo;
 pub mod docking;
+pub mod error;
 pub mod error_frame;
 pub mod event;
+pub mod log;
+pub mod mqtt;
 pub mod registry;
+pub mod run;
+pub mod shutdown;
 pub mod throttle;
+pub mod topic;
+
+pub use config::Config;
+pub use error::GatewayError;
+pub use run::{run, run_with_stats};

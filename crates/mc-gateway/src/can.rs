@@ -1,0 +1,445 @@
+//! The CAN side: a receive task and a transmit task around one link (a SocketCAN socket, or an
+//! in-memory bus endpoint for the demo), turning frames into [`CanInput`]s for the bridge and the
+//! bridge's packets into frames.
+//!
+//! On SocketCAN the receive task owns the socket's life: it installs the gateway's kernel filters,
+//! enables error frames, sizes the receive buffer, and when a read fails (interface down or gone)
+//! reports [`BusEvent::InterfaceDown`], reopens with a capped back-off once the interface is up again,
+//! and reports [`BusEvent::Recovered`]. The transmit task always writes on the socket of the moment
+//! (shared through a `watch`), and reports every packet it cannot send.
+
+use std::{io, sync::Arc, time::Duration};
+
+use embedded_can::{Frame as _, Id};
+use ihex_proto::{
+    filter::{self, Filter},
+    DecodeError, Packet,
+};
+use sim_node::bus::{MemEndpoint, MemSender};
+use socketcan::{CanFilter, CanFrame, SocketOptions};
+use tokio::sync::{mpsc, watch};
+use tokio_util::sync::CancellationToken;
+use tracing::{debug, info, warn};
+
+use crate::{bridge::BusEvent, error::CanError};
+
+/// `CAN_ERR_BUSOFF` (linux/can/error.h): the controller went bus-off.
+pub const CAN_ERR_BUSOFF: u32 = 0x0000_0040;
+/// `CAN_ERR_RESTARTED`: the controller restarted after bus-off.
+pub const CAN_ERR_RESTARTED: u32 = 0x0000_0100;
+/// First reopen delay after the interface is lost; doubles up to [`REOPEN_MAX`].
+pub const REOPEN_MIN: Duration = Duration::from_millis(100);
+/// Longest reopen delay.
+pub const REOPEN_MAX: Duration = Duration::from_secs(5);
+/// A write that cannot get into the kernel's queue within this time fails (the bus is stuck).
+const WRITE_TIMEOUT: Duration = Duration::from_millis(200);
+
+/// What the CAN tasks report to the bridge.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum CanInput {
+    /// A valid iHEX packet.
+    Packet(Packet),
+    /// A frame that passed the filters but does not decode.
+    Undecodable {
+        /// Raw identifier (29 or 11 bits, no flags).
+        raw_id: u32,
+        /// Its data.
+        data: Vec<u8>,
+        /// Why it does not decode.
+        err: DecodeError,
+    },
+    /// A bus condition.
+    Bus(BusEvent),
+    /// A packet could not be transmitted.
+    SendFailed(Packet, String),
+}
+
+/// How to reach the bus.
+#[derive(Debug)]
+pub enum LinkSpec {
+    /// A SocketCAN interface.
+    SocketCan {
+        /// Interface name.
+        iface: String,
+        /// Receive buffer to ask for, bytes.
+        rx_buffer: usize,
+    },
+    /// An endpoint on the in-memory bus of the simulated island.
+    Mem(MemEndpoint),
+}
+
+/// What the transmit task writes on.
+#[derive(Clone, Debug)]
+enum TxLink {
+    Socket(Arc<socketcan::tokio::CanSocket>),
+    Mem(MemSender),
+}
+
+/// Spawns the receive and transmit tasks into `tasks`; returns the transmit queue (bounded,
+/// `tx_queue` frames). Fails only when the gateway's filters cannot be expressed for the kernel.
+pub fn spawn(
+    link: LinkSpec,
+    tx_queue: usize,
+    inputs: mpsc::Sender<CanInput>,
+    tasks: &mut tokio::task::JoinSet<()>,
+    cancel: CancellationToken,
+) -> Result<mpsc::Sender<Packet>, CanError> {
+    let filters = filter::gateway_filters();
+    let plan = filter::to_kernel(&filters)?;
+    let (tx_packets, rx_packets) = mpsc::channel(tx_queue);
+    let (link_tx, link_rx) = watch::channel(None);
+    match link {
+        LinkSpec::SocketCan { iface, rx_buffer } => {
+            let opts = SocketSetup {
+                iface,
+                rx_buffer,
+                plan,
+                filters: filters.to_vec(),
+            };
+            tasks.spawn(receive_socket(
+                opts,
+                inputs.clone(),
+                link_tx,
+                cancel.clone(),
+            ));
+        }
+        LinkSpec::Mem(ep) => {
+            ep.set_filters(&filters);
+            link_tx.send_replace(Some(TxLink::Mem(ep.sender())));
+            tasks.spawn(receive_mem(ep, inputs.clone(), link_tx, cancel.clone()));
+        }
+    }
+    tasks.spawn(transmit(rx_packets, link_rx, inputs, cancel));
+    Ok(tx_packets)
+}
+
+struct SocketSetup {
+    iface: String,
+    rx_buffer: usize,
+    plan: filter::KernelPlan,
+    filters: Vec<Filter>,
+}
+
+impl SocketSetup {
+    /// Opens and configures the socket. `Ok(None)` means "not now" (interface missing or down).
+    fn open(&self) -> Result<Option<socketcan::tokio::CanSocket>, CanError> {
+        if !interface_up(&self.iface) {
+            return Ok(None);
+        }
+        let sock = match socketcan::tokio::CanSocket::open(&self.iface) {
+            Ok(s) => s,
+            Err(e) => {
+                debug!(iface = %self.iface, error = %e, "cannot open CAN interface yet");
+                return Ok(None);
+            }
+        };
+        let opt = |option: &'static str| move |source| CanError::SocketOption { option, source };
+        let kf: Vec<CanFilter> = self
+            .plan
+            .filters
+            .iter()
+            .map(|k| CanFilter::new(k.can_id, k.can_mask))
+            .collect();
+        sock.set_filters(&kf).map_err(opt("CAN_RAW_FILTER"))?;
+        sock.set_join_filters(self.plan.join)
+            .map_err(opt("CAN_RAW_JOIN_FILTERS"))?;
+        sock.set_error_filter_accept_all()
+            .map_err(opt("CAN_RAW_ERR_FILTER"))?;
+        let got = set_receive_buffer(&sock, self.rx_buffer);
+        info!(iface = %self.iface, rx_buffer = got, asked = self.rx_buffer, join = self.plan.join,
+              software_check = self.plan.software_check, "CAN interface open");
+        Ok(Some(sock))
+    }
+}
+
+/// Asks for `bytes` of receive buffer: `SO_RCVBUFFORCE` (needs CAP_NET_ADMIN, ignores
+/// `net.core.rmem_max`) first, `SO_RCVBUF` (capped by rmem_max) otherwise. The default buffer loses
+/// frames at high rates. Returns what the kernel granted (it doubles the value for bookkeeping).
+fn set_receive_buffer(sock: &socketcan::tokio::CanSocket, bytes: usize) -> usize {
+    let val = bytes.min(i32::MAX as usize) as i32;
+    if sock
+        .set_socket_option_int(libc::SOL_SOCKET, libc::SO_RCVBUFFORCE, val)
+        .is_err()
+    {
+        if let Err(e) = sock.set_socket_option_int(libc::SOL_SOCKET, libc::SO_RCVBUF, val) {
+            warn!(error = %e, "cannot set SO_RCVBUF on the CAN socket");
+        }
+    }
+    let mut buf = [0u8; 4];
+    match sock.get_socket_option_bytes(libc::SOL_SOCKET, libc::SO_RCVBUF, &mut buf) {
+        Ok(4) => i32::from_ne_bytes(buf).max(0) as usize,
+        _ => 0,
+    }
+}
+
+/// True when the interface exists and is administratively up (`/sys/class/net/IF/flags` & IFF_UP).
+/// Without sysfs the answer is "up" and opening the socket decides.
+fn interface_up(iface: &str) -> bool {
+    match std::fs::read_to_string(format!("/sys/class/net/{iface}/flags")) {
+        Ok(s) => u32::from_str_radix(s.trim().trim_start_matches("0x"), 16)
+            .map(|f| f & libc::IFF_UP as u32 != 0)
+            .unwrap_or(true),
+        Err(e) if e.kind() == io::ErrorKind::NotFound => {
+            // No such interface, or no sysfs at all.
+            !std::path::Path::new("/sys/class/net").exists()
+        }
+        Err(_) => true,
+    }
+}
+
+#[tracing::instrument(name = "can_rx", skip_all, fields(iface = %setup.iface))]
+async fn receive_socket(
+    setup: SocketSetup,
+    inputs: mpsc::Sender<CanInput>,
+    link: watch::Sender<Option<TxLink>>,
+    cancel: CancellationToken,
+) {
+    let mut delay = REOPEN_MIN;
+    let mut down = false;
+    loop {
+        let sock = match setup.open() {
+            Ok(Some(s)) => Arc::new(s),
+            Ok(None) => {
+                if !down {
+                    warn!("CAN interface missing or down; retrying");
+                    down = true;
+                    let _ = inputs.send(CanInput::Bus(BusEvent::InterfaceDown)).await;
+                }
+                tokio::select! {
+                    _ = cancel.cancelled() => return,
+                    _ = tokio::time::sleep(delay) => {}
+                }
+                delay = (delay * 2).min(REOPEN_MAX);
+                continue;
+            }
+            Err(e) => {
+                // A socket that refuses our filters will never work: say so loudly, keep retrying
+                // in case the interface is replaced, but slowly.
+                tracing::error!(error = %e, "CAN socket set-up failed");
+                tokio::select! {
+                    _ = cancel.cancelled() => return,
+                    _ = tokio::time::sleep(REOPEN_MAX) => {}
+                }
+                continue;
+            }
+        };
+        if down {
+            info!("CAN interface back");
+            let _ = inputs.send(CanInput::Bus(BusEvent::Recovered)).await;
+        }
+        delay = REOPEN_MIN;
+        link.send_replace(Some(TxLink::Socket(sock.clone())));
+        loop {
+            let frame = tokio::select! {
+                _ = cancel.cancelled() => return,
+                r = sock.read_frame() => r,
+            };
+            match frame {
+                Ok(frame) => {
+                    let Some(input) = classify(&frame, &setup.filters, setup.plan.software_check)
+                    else {
+                        continue;
+                    };
+                    if inputs.send(input).await.is_err() {
+                        return;
+                    }
+                }
+                Err(e) => {
+                    warn!(error = %e, "CAN read failed; interface down?");
+                    link.send_replace(None);
+                    down = true;
+                    let _ = inputs.send(CanInput::Bus(BusEvent::InterfaceDown)).await;
+                    break;
+                }
+            }
+        }
+    }
+}
+
+#[tracing::instrument(name = "can_rx", skip_all, fields(iface = "mem"))]
+async fn receive_mem(
+    mut ep: MemEndpoint,
+    inputs: mpsc::Sender<CanInput>,
+    link: watch::Sender<Option<TxLink>>,
+    cancel: CancellationToken,
+) {
+    // The endpoint already filters with the same rule as the kernel.
+    loop {
+        let frame = tokio::select! {
+            _ = cancel.cancelled() => return,
+            f = ep.recv() => f,
+        };
+        let Some(frame) = frame else {
+            warn!("in-memory bus closed");
+            link.send_replace(None);
+            let _ = inputs.send(CanInput::Bus(BusEvent::InterfaceDown)).await;
+            cancel.cancelled().await;
+            return;
+        };
+        if let Some(input) = classify(&frame, &[], false) {
+            if inputs.send(input).await.is_err() {
+                return;
+            }
+        }
+    }
+}
+
+/// Turns a received frame into the bridge's input; `None` when the software filter check drops it.
+pub fn classify(frame: &CanFrame, filters: &[Filter], software_check: bool) -> Option<CanInput> {
+    if let CanFrame::Error(ef) = frame {
+        let class = ef.error_bits();
+        let mut data = [0u8; 8];
+        let d = frame.data();
+        data[..d.len().min(8)].copy_from_slice(&d[..d.len().min(8)]);
+        let event = if class & CAN_ERR_BUSOFF != 0 {
+            BusEvent::BusOff
+        } else if class & CAN_ERR_RESTARTED != 0 {
+            BusEvent::Recovered
+        } else {
+            BusEvent::ErrorFrame { class, data }
+        };
+        return Some(CanInput::Bus(event));
+    }
+    if software_check && !filter::accepts(filters, filter::word_of(frame)) {
+        return None;
+    }
+    Some(match Packet::from_frame(frame) {
+        Ok(p) => CanInput::Packet(p),
+        Err(err) => CanInput::Undecodable {
+            raw_id: match frame.id() {
+                Id::Standard(s) => s.as_raw() as u32,
+                Id::Extended(e) => e.as_raw(),
+            },
+            data: frame.data().to_vec(),
+            err,
+        },
+    })
+}
+
+#[tracing::instrument(name = "can_tx", skip_all)]
+async fn transmit(
+    mut packets: mpsc::Receiver<Packet>,
+    link: watch::Receiver<Option<TxLink>>,
+    inputs: mpsc::Sender<CanInput>,
+    cancel: CancellationToken,
+) {
+    loop {
+        let packet = tokio::select! {
+            _ = cancel.cancelled() => return,
+            p = packets.recv() => match p { Some(p) => p, None => return },
+        };
+        let current = link.borrow().clone();
+        if let Err(reason) = write(current, &packet).await {
+            debug!(?packet, %reason, "send failed");
+            if inputs
+                .send(CanInput::SendFailed(packet, reason))
+                .await
+                .is_err()
+            {
+                return;
+            }
+        }
+    }
+}
+
+async fn write(link: Option<TxLink>, packet: &Packet) -> Result<(), String> {
+    let frame: CanFrame = packet
+        .to_frame()
+        .ok_or_else(|| "packet cannot be encoded".to_owned())?;
+    match link {
+        None => Err("CAN interface down".into()),
+        Some(TxLink::Mem(tx)) => tx.send(frame).await.map_err(|e| e.to_string()),
+        Some(TxLink::Socket(sock)) => {
+            // ENOBUFS means the interface's queue is full (the socket does not wait for room on its
+            // own): retry briefly, then give up so one stuck bus cannot stall the gateway.
+            let deadline = tokio::time::Instant::now() + WRITE_TIMEOUT;
+            loop {
+                match tokio::time::timeout_at(deadline, sock.write_frame(frame)).await {
+                    Ok(Ok(())) => return Ok(()),
+                    Ok(Err(e)) if e.raw_os_error() == Some(libc::ENOBUFS) => {
+                        if tokio::time::Instant::now() >= deadline {
+                            return Err("transmit queue full (ENOBUFS)".into());
+                        }
+                        tokio::time::sleep(Duration::from_millis(2)).await;
+                    }
+                    Ok(Err(e)) => return Err(e.to_string()),
+                    Err(_) => return Err("transmit timed out".into()),
+                }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use embedded_can::ExtendedId;
+    use ihex_proto::{Message, NodeId};
+    use socketcan::CanErrorFrame;
+
+    #[test]
+    fn error_frames_become_bus_events() {
+        let f = |class| CanFrame::Error(CanErrorFrame::new_error(class, &[1, 2, 3]).unwrap());
+        assert_eq!(
+            classify(&f(CAN_ERR_BUSOFF), &[], false),
+            Some(CanInput::Bus(BusEvent::BusOff))
+        );
+        assert_eq!(
+            classify(&f(CAN_ERR_RESTARTED), &[], false),
+            Some(CanInput::Bus(BusEvent::Recovered))
+        );
+        assert_eq!(
+            classify(&f(0x04), &[], false),
+            Some(CanInput::Bus(BusEvent::ErrorFrame {
+                class: 0x04,
+                data: [1, 2, 3, 0, 0, 0, 0, 0]
+            }))
+        );
+    }
+
+    #[test]
+    fn packets_and_garbage_are_told_apart() {
+        let port = ihex_proto::Port::new(3).unwrap();
+        let p = Packet::report(
+            NodeId::new_sc(0x111).unwrap(),
+            Message::DockDetected { port },
+        );
+        let frame: CanFrame = p.to_frame().unwrap();
+        let filters = filter::gateway_filters();
+        assert_eq!(classify(&frame, &filters, true), Some(CanInput::Packet(p)));
+        // Kind 31 is unassigned: passes the filters, fails to decode.
+        let raw = (31 << 24) | 0x111;
+        let junk = CanFrame::new(ExtendedId::new(raw).unwrap(), &[0xde, 0xad]).unwrap();
+        match classify(&junk, &[], false) {
+            Some(CanInput::Undecodable { raw_id, data, .. }) => {
+                assert_eq!(raw_id, raw);
+                assert_eq!(data, vec![0xde, 0xad]);
+            }
+            other => panic!("{other:?}"),
+        }
+    }
+
+    #[test]
+    fn software_check_drops_what_the_filters_refuse() {
+        // A frame addressed to another node, which the gateway filters do not accept.
+        let p = Packet::command(
+            NodeId::new_sc(0x222).unwrap(),
+            Message::HealthCheck { seq: 1 },
+        );
+        let frame: CanFrame = p.to_frame().unwrap();
+        let filters = filter::gateway_filters();
+        assert!(
+            !filter::accepts(&filters, filter::word_of(&frame)),
+            "test premise"
+        );
+        assert_eq!(classify(&frame, &filters, true), None);
+    }
+
+    #[test]
+    fn missing_interfaces_are_not_up() {
+        if std::path::Path::new("/sys/class/net/lo/flags").exists() {
+            assert!(interface_up("lo"));
+            assert!(!interface_up("ihexnone0"));
+        }
+    }
+}

@@ -1,0 +1,130 @@
+//! One error enum per layer of the gateway (configuration, CAN, MQTT, embedded broker), gathered by
+//! [`GatewayError`] for [`crate::run`].
+
+use std::{io, net::SocketAddr, path::PathBuf};
+
+/// The configuration (CLI, environment, TOML file) is unusable.
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    /// The `--config` file could not be read.
+    #[error("cannot read config file {path}: {source}")]
+    Read {
+        /// The file.
+        path: PathBuf,
+        /// Why.
+        source: io::Error,
+    },
+    /// The `--config` file is not valid TOML for the gateway (unknown keys are refused too).
+    #[error("invalid config file {path}: {source}")]
+    Parse {
+        /// The file.
+        path: PathBuf,
+        /// What the TOML parser said.
+        source: Box<toml::de::Error>,
+    },
+    /// A value is out of range or malformed (`field` names the flag / TOML key).
+    #[error("invalid {field}: {reason}")]
+    Invalid {
+        /// Flag or TOML key.
+        field: &'static str,
+        /// What is wrong, with the offending value.
+        reason: String,
+    },
+}
+
+impl ConfigError {
+    pub(crate) fn invalid(field: &'static str, reason: impl Into<String>) -> Self {
+        ConfigError::Invalid {
+            field,
+            reason: reason.into(),
+        }
+    }
+}
+
+/// The CAN side failed in a way the gateway cannot retry.
+#[derive(Debug, thiserror::Error)]
+pub enum CanError {
+    /// The protocol's gateway filters cannot be expressed as kernel filters.
+    #[error("gateway filters cannot be installed: {0}")]
+    Filter(#[from] ihex_proto::filter::FilterError),
+    /// A socket option could not be set.
+    #[error("cannot set {option} on the CAN socket: {source}")]
+    SocketOption {
+        /// The option (`CAN_RAW_FILTER`, `SO_RCVBUF`, ...).
+        option: &'static str,
+        /// The kernel's answer.
+        source: io::Error,
+    },
+    /// The interface could not be opened at start-up.
+    #[error("cannot open CAN interface {iface}: {source}")]
+    Open {
+        /// Interface name.
+        iface: String,
+        /// The kernel's answer.
+        source: io::Error,
+    },
+}
+
+/// The MQTT side is misconfigured (connection problems are retried, never returned).
+#[derive(Debug, thiserror::Error)]
+pub enum MqttError {
+    /// TLS was asked for but the binary was built without the `tls` feature.
+    #[error("TLS requested but this gateway was built without the `tls` cargo feature")]
+    TlsUnavailable,
+    /// The TLS CA file could not be read.
+    #[error("cannot read TLS CA file {path}: {source}")]
+    TlsCa {
+        /// The file.
+        path: PathBuf,
+        /// Why.
+        source: io::Error,
+    },
+}
+
+/// The embedded broker could not be started.
+#[derive(Debug, thiserror::Error)]
+pub enum BrokerError {
+    /// The listen address is taken (another broker is probably running).
+    #[error(
+        "cannot listen on {addr} for the embedded broker: {source} (is another MQTT broker running? \
+         pick another address with --broker-listen, or use it with --broker)"
+    )]
+    Bind {
+        /// The address.
+        addr: SocketAddr,
+        /// The OS's answer.
+        source: io::Error,
+    },
+    /// The broker thread did not accept connections in time.
+    #[error("the embedded broker on {0} did not start accepting connections")]
+    NotReady(SocketAddr),
+    /// The binary was built without the `embedded-broker` feature.
+    #[error(
+        "no broker configured and this gateway was built without the `embedded-broker` feature: \
+         pass --broker HOST:PORT"
+    )]
+    Unavailable,
+}
+
+/// Everything [`crate::run`] can fail with.
+#[derive(Debug, thiserror::Error)]
+pub enum GatewayError {
+    /// Bad configuration.
+    #[error(transparent)]
+    Config(#[from] ConfigError),
+    /// CAN set-up failure.
+    #[error(transparent)]
+    Can(#[from] CanError),
+    /// MQTT set-up failure.
+    #[error(transparent)]
+    Mqtt(#[from] MqttError),
+    /// Embedded broker failure.
+    #[error(transparent)]
+    Broker(#[from] BrokerError),
+    /// The simulated island could not be built.
+    #[error("simulated island: {0}")]
+    Sim(String),
+    /// A gateway task panicked.
+    #[error("gateway task failed: {0}")]
+    Task(String),
+}

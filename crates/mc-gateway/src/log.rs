@@ -1,0 +1,108 @@
+//! Logging set-up for the binary: human-readable lines on stderr and JSON lines in a rotated file,
+//! both written by background threads (`tracing-appender` non-blocking writers, lossy when full), so
+//! logging never blocks the data path. Keep the returned [`LogGuard`] until shutdown: dropping it
+//! flushes what is still buffered.
+
+use tracing_appender::{non_blocking::WorkerGuard, rolling};
+use tracing_subscriber::{fmt, layer::SubscriberExt, util::SubscriberInitExt, EnvFilter, Layer};
+
+use crate::config::{LogConfig, Rotation};
+
+/// Name of the log files: `mc-gateway.<date>.jsonl` in the log directory.
+pub const FILE_PREFIX: &str = "mc-gateway";
+
+/// Flushes the log writers when dropped.
+#[must_use = "dropping the guard stops the log writers"]
+pub struct LogGuard {
+    _guards: Vec<WorkerGuard>,
+}
+
+/// Why logging could not be set up.
+#[derive(Debug, thiserror::Error)]
+pub enum LogError {
+    /// The filter does not parse.
+    #[error("invalid log filter {0:?}: {1}")]
+    Filter(String, String),
+    /// The log directory cannot be created or opened.
+    #[error("cannot open a log file in {0}: {1}")]
+    File(String, String),
+    /// A global subscriber is already installed.
+    #[error("logging already initialised: {0}")]
+    Init(String),
+}
+
+/// The filter directives: the configured ones, with the embedded broker's chatter turned down
+/// unless the configuration mentions it.
+fn directives(cfg: &LogConfig) -> String {
+    if cfg.filter.contains("rumqttd") {
+        cfg.filter.clone()
+    } else {
+        format!("{},rumqttd=warn", cfg.filter)
+    }
+}
+
+fn filter(cfg: &LogConfig) -> Result<EnvFilter, LogError> {
+    let d = directives(cfg);
+    EnvFilter::try_new(&d).map_err(|e| LogError::Filter(d, e.to_string()))
+}
+
+/// Installs the global subscriber.
+pub fn init(cfg: &LogConfig) -> Result<LogGuard, LogError> {
+    let mut guards = Vec::new();
+    let (term, g) = tracing_appender::non_blocking(std::io::stderr());
+    guards.push(g);
+    let term_layer = fmt::layer().with_writer(term).with_filter(filter(cfg)?);
+    let file_layer = match &cfg.dir {
+        Some(dir) => {
+            let rotation = match cfg.rotation {
+                Rotation::Minutely => rolling::Rotation::MINUTELY,
+                Rotation::Hourly => rolling::Rotation::HOURLY,
+                Rotation::Daily => rolling::Rotation::DAILY,
+                Rotation::Never => rolling::Rotation::NEVER,
+            };
+            let appender = rolling::Builder::new()
+                .rotation(rotation)
+                .filename_prefix(FILE_PREFIX)
+                .filename_suffix("jsonl")
+                .max_log_files(30)
+                .build(dir)
+                .map_err(|e| LogError::File(dir.display().to_string(), e.to_string()))?;
+            let (file, g) = tracing_appender::non_blocking(appender);
+            guards.push(g);
+            Some(
+                fmt::layer()
+                    .json()
+                    .with_current_span(true)
+                    .with_span_list(false)
+                    .with_writer(file)
+                    .with_filter(filter(cfg)?),
+            )
+        }
+        None => None,
+    };
+    tracing_subscriber::registry()
+        .with(term_layer)
+        .with(file_layer)
+        .try_init()
+        .map_err(|e| LogError::Init(e.to_string()))?;
+    Ok(LogGuard { _guards: guards })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn broker_chatter_is_turned_down_unless_asked_for() {
+        let mut cfg = LogConfig {
+            dir: None,
+            rotation: Rotation::Never,
+            filter: "info".into(),
+        };
+        assert_eq!(directives(&cfg), "info,rumqttd=warn");
+        cfg.filter = "debug,rumqttd=info".into();
+        assert_eq!(directives(&cfg), "debug,rumqttd=info");
+        cfg.filter = "info,[".into();
+        assert!(matches!(filter(&cfg), Err(LogError::Filter(..))));
+    }
+}

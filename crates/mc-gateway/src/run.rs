@@ -1,0 +1,228 @@
+//! Wires the gateway together: embedded broker and simulated island when configured, the CAN tasks,
+//! the MQTT task, and the core loop that owns the [`Bridge`], feeds it inputs and timer ticks and
+//! carries out its [`Action`]s. Every channel is bounded; one [`CancellationToken`] stops everything
+//! and a `JoinSet` awaits every task.
+
+use std::{sync::Arc, time::Instant};
+
+use tokio::{sync::mpsc, task::JoinSet};
+use tokio_util::sync::CancellationToken;
+use tracing::{error, info, warn};
+
+use crate::{
+    bridge::{Action, Bridge},
+    can::{self, CanInput, LinkSpec},
+    config::{Broker, Config, Link},
+    demo,
+    error::GatewayError,
+    mqtt::{self, MqttInput, MqttStats, MqttTask, Publication},
+    topic::Topics,
+};
+
+/// Frames from the CAN tasks waiting for the core.
+const CAN_INPUTS: usize = 1024;
+/// Messages from the MQTT task waiting for the core.
+const MQTT_INPUTS: usize = 256;
+/// Publications from the core waiting for the MQTT task.
+const PUBLICATIONS: usize = 1024;
+
+/// Runs the gateway until `shutdown` is cancelled (then stops every task, publishes `offline` and
+/// returns `Ok`), or until a task fails.
+pub async fn run(config: Config, shutdown: CancellationToken) -> Result<(), GatewayError> {
+    run_with_stats(config, shutdown, Arc::default()).await
+}
+
+/// [`run`], counting MQTT traffic in `stats` (tests and benchmarks read them).
+pub async fn run_with_stats(
+    config: Config,
+    shutdown: CancellationToken,
+    stats: Arc<MqttStats>,
+) -> Result<(), GatewayError> {
+    if config.can.bitrate != ihex_proto::BITRATE {
+        warn!(
+            configured = config.can.bitrate,
+            island = ihex_proto::BITRATE,
+            "bitrate differs from the island's; the interface's own configuration decides"
+        );
+    }
+    if let Broker::Embedded { listen } = &config.mqtt.broker {
+        let listen = *listen;
+        tokio::task::spawn_blocking(move || crate::broker::start(listen))
+            .await
+            .map_err(|e| GatewayError::Task(e.to_string()))??;
+        info!(%listen, "embedded MQTT broker ready");
+    }
+    let (link, sim) = match &config.can.link {
+        Link::SocketCan(iface) => (
+            LinkSpec::SocketCan {
+                iface: iface.clone(),
+                rx_buffer: config.can.rx_buffer,
+            },
+            None,
+        ),
+        Link::Simulated { island_file } => {
+            let s = demo::start(island_file.as_deref())?;
+            (LinkSpec::Mem(s.endpoint), Some(s.handle))
+        }
+    };
+
+    let cancel = shutdown.child_token();
+    let mut tasks = JoinSet::new();
+    let (can_in_tx, can_in) = mpsc::channel(CAN_INPUTS);
+    let (mqtt_in_tx, mqtt_in) = mpsc::channel(MQTT_INPUTS);
+    let (pub_tx, pub_rx) = mpsc::channel(PUBLICATIONS);
+
+    let can_tx = can::spawn(
+        link,
+        config.can.tx_queue,
+        can_in_tx,
+        &mut tasks,
+        cancel.clone(),
+    )?;
+    let mqtt_task = MqttTask {
+        options: mqtt::options(
+            &config.mqtt,
+            &config.topics,
+            config
+                .bridge
+                .max_command_bytes
+                .saturating_mul(4)
+                .max(1 << 20),
+        )?,
+        topics: config.topics.clone(),
+        subscribe_sim: sim.is_some(),
+        queue: config.mqtt.queue,
+        stats,
+    };
+    tasks.spawn(mqtt_task.run(pub_rx, mqtt_in_tx, cancel.clone()));
+
+    if config.is_demo() {
+        if let Broker::Embedded { listen } = &config.mqtt.broker {
+            println!(
+                "{}",
+                demo::banner(&config, &listen.ip().to_string(), listen.port())
+            );
+        }
+    }
+    info!(island = ?config.island, commands = %config.topics.commands, events = %config.topics.events,
+          link = ?config.can.link, "gateway running");
+
+    let core = Core {
+        bridge: Bridge::new(config.bridge.clone(), Instant::now()),
+        can_tx,
+        pub_tx,
+        topics: config.topics.clone(),
+        dropped: 0,
+    };
+    let result = core
+        .run(can_in, mqtt_in, sim.as_ref(), &mut tasks, &cancel)
+        .await;
+
+    cancel.cancel();
+    let mut failure = result.err();
+    while let Some(r) = tasks.join_next().await {
+        if let Err(e) = r {
+            error!(error = %e, "gateway task failed");
+            failure.get_or_insert(GatewayError::Task(e.to_string()));
+        }
+    }
+    if let Some(island) = sim {
+        island.shutdown().await;
+    }
+    info!("gateway stopped");
+    failure.map_or(Ok(()), Err)
+}
+
+/// The task that owns the bridge.
+struct Core {
+    bridge: Bridge,
+    can_tx: mpsc::Sender<ihex_proto::Packet>,
+    pub_tx: mpsc::Sender<Publication>,
+    topics: Topics,
+    dropped: u64,
+}
+
+impl Core {
+    async fn run(
+        mut self,
+        mut can_in: mpsc::Receiver<CanInput>,
+        mut mqtt_in: mpsc::Receiver<MqttInput>,
+        sim: Option<&sim_node::IslandHandle>,
+        tasks: &mut JoinSet<()>,
+        cancel: &CancellationToken,
+    ) -> Result<(), GatewayError> {
+        loop {
+            self.carry_out();
+            let deadline = tokio::time::Instant::from_std(self.bridge.next_deadline());
+            tokio::select! {
+                biased;
+                _ = cancel.cancelled() => return Ok(()),
+                r = tasks.join_next() => {
+                    // No task ends on its own while the gateway runs.
+                    let why = match r {
+                        Some(Err(e)) => e.to_string(),
+                        _ => "a gateway task ended early".to_owned(),
+                    };
+                    error!(%why, "stopping the gateway");
+                    return Err(GatewayError::Task(why));
+                }
+                _ = tokio::time::sleep_until(deadline) => self.bridge.tick(Instant::now()),
+                Some(input) = can_in.recv() => {
+                    let now = Instant::now();
+                    match input {
+                        CanInput::Packet(p) => self.bridge.on_packet(p, now),
+                        CanInput::Undecodable { raw_id, data, err } => self.bridge.on_undecodable(raw_id, &data, err, now),
+                        CanInput::Bus(ev) => self.bridge.on_bus_event(ev, now),
+                        CanInput::SendFailed(p, reason) => self.bridge.on_send_failed(p, &reason, now),
+                    }
+                }
+                Some(input) = mqtt_in.recv() => match input {
+                    MqttInput::Command(payload) => self.bridge.on_command(&payload, Instant::now()),
+                    MqttInput::Connected => self.bridge.on_mqtt_connected(Instant::now()),
+                    MqttInput::Sim(payload) => {
+                        if let Some(island) = sim {
+                            demo::handle(island, &payload).await;
+                        }
+                    }
+                },
+            }
+        }
+    }
+
+    /// Drains the bridge's actions without ever waiting: a full CAN queue is a failed send the bridge
+    /// hears about, a full publication queue a counted drop.
+    fn carry_out(&mut self) {
+        while let Some(action) = self.bridge.poll_action() {
+            match action {
+                Action::Send(packet) => {
+                    let reason = match self.can_tx.try_send(packet) {
+                        Ok(()) => continue,
+                        Err(mpsc::error::TrySendError::Full(_)) => "CAN transmit queue full",
+                        Err(mpsc::error::TrySendError::Closed(_)) => "CAN transmitter stopped",
+                    };
+                    self.bridge.on_send_failed(packet, reason, Instant::now());
+                }
+                Action::Publish {
+                    topic,
+                    payload,
+                    retain,
+                } => {
+                    let p = Publication {
+                        topic: self.topics.resolve(topic),
+                        payload: payload.into_bytes(),
+                        retain,
+                    };
+                    if self.pub_tx.try_send(p).is_err() {
+                        self.dropped += 1;
+                        if self.dropped.is_power_of_two() {
+                            warn!(
+                                dropped_total = self.dropped,
+                                "publication queue full: event dropped"
+                            );
+                        }
+                    }
+                }
+            }
+        }
+    }
+}

@@ -1,0 +1,187 @@
+//! MQTT topic names: the seed's defaults, the island prefix, and the mapping of the bridge's logical
+//! [`Topic`]s to concrete names.
+
+use ihex_proto::NodeId;
+
+use crate::{bridge::Topic, error::ConfigError};
+
+/// Default command topic (the seed's name).
+pub const COMMANDS: &str = "CommandsTopic";
+/// Default event topic (the seed's name).
+pub const EVENTS: &str = "EventsTopic";
+/// Default availability topic (retained `online` / `offline`, the latter as the last will).
+pub const AVAILABILITY: &str = "ihex/gateway/availability";
+/// Default root of the retained per-node state topics: `<root>/<id>/state`.
+pub const NODE_STATE_ROOT: &str = "ihex/node";
+/// Topic of the simulated island's control commands (demo mode only).
+pub const SIM: &str = "ihex/sim";
+
+/// The concrete topic names one gateway uses, every one already under the island prefix.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Topics {
+    /// Subscribed: JSON commands.
+    pub commands: String,
+    /// Published: JSON events (QoS 1, not retained).
+    pub events: String,
+    /// Published retained: `online` / `offline`.
+    pub availability: String,
+    /// Root of `<root>/<id>/state` (retained).
+    pub node_state_root: String,
+    /// Subscribed in demo mode: simulated island control.
+    pub sim: String,
+}
+
+impl Topics {
+    /// Names from the configured bases; `island` (validated) prefixes every one of them as `NAME/`.
+    pub fn new(
+        island: Option<&str>,
+        commands: &str,
+        events: &str,
+        availability: &str,
+        node_state_root: &str,
+    ) -> Topics {
+        let p = |t: &str| match island {
+            Some(name) => format!("{name}/{t}"),
+            None => t.to_owned(),
+        };
+        Topics {
+            commands: p(commands),
+            events: p(events),
+            availability: p(availability),
+            node_state_root: p(node_state_root),
+            sim: p(SIM),
+        }
+    }
+
+    /// The seed's names without an island prefix.
+    pub fn seed() -> Topics {
+        Topics::new(None, COMMANDS, EVENTS, AVAILABILITY, NODE_STATE_ROOT)
+    }
+
+    /// The retained state topic of one node (`<root>/<id>/state`, id in lower-case hex like events).
+    pub fn node_state(&self, id: NodeId) -> String {
+        format!("{}/{}/state", self.node_state_root, id)
+    }
+
+    /// The concrete name of a logical topic.
+    pub fn resolve(&self, topic: Topic) -> String {
+        match topic {
+            Topic::Events => self.events.clone(),
+            Topic::NodeState(id) => self.node_state(id),
+        }
+    }
+}
+
+/// Checks an island name: 1..=64 characters, no MQTT wildcards (`+`, `#`), no NUL, no empty topic
+/// level (leading, trailing or doubled `/`), and no leading `$` (reserved for broker topics).
+pub fn validate_island(name: &str) -> Result<(), ConfigError> {
+    let bad = |why: &str| Err(ConfigError::invalid("island", format!("{name:?}: {why}")));
+    if name.is_empty() || name.chars().count() > 64 {
+        return bad("must be 1 to 64 characters");
+    }
+    if name.contains(['+', '#', '\0']) {
+        return bad("must not contain '+', '#' or NUL");
+    }
+    if name.starts_with('$') {
+        return bad("must not start with '$'");
+    }
+    if name.split('/').any(str::is_empty) {
+        return bad("must not have an empty topic level (leading, trailing or double '/')");
+    }
+    Ok(())
+}
+
+/// Checks a configured topic base (same rules as an island name, up to 256 characters).
+pub fn validate_topic(field: &'static str, name: &str) -> Result<(), ConfigError> {
+    if name.is_empty() || name.len() > 256 {
+        return Err(ConfigError::invalid(
+            field,
+            format!("{name:?}: must be 1 to 256 bytes"),
+        ));
+    }
+    if name.contains(['+', '#', '\0']) {
+        return Err(ConfigError::invalid(
+            field,
+            format!("{name:?}: must not contain '+', '#' or NUL"),
+        ));
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn seed_names_without_island() {
+        let t = Topics::seed();
+        assert_eq!(t.commands, "CommandsTopic");
+        assert_eq!(t.events, "EventsTopic");
+        assert_eq!(t.availability, "ihex/gateway/availability");
+        assert_eq!(
+            t.node_state(NodeId::new(0x111).unwrap()),
+            "ihex/node/111/state"
+        );
+        assert_eq!(t.resolve(Topic::Events), "EventsTopic");
+    }
+
+    #[test]
+    fn island_prefixes_every_topic() {
+        let t = Topics::new(
+            Some("lab-a"),
+            COMMANDS,
+            EVENTS,
+            AVAILABILITY,
+            NODE_STATE_ROOT,
+        );
+        assert_eq!(t.commands, "lab-a/CommandsTopic");
+        assert_eq!(t.events, "lab-a/EventsTopic");
+        assert_eq!(t.availability, "lab-a/ihex/gateway/availability");
+        assert_eq!(t.sim, "lab-a/ihex/sim");
+        let id = NodeId::new(0xabc).unwrap();
+        assert_eq!(t.resolve(Topic::NodeState(id)), "lab-a/ihex/node/abc/state");
+        let b = Topics::new(
+            Some("lab-b"),
+            COMMANDS,
+            EVENTS,
+            AVAILABILITY,
+            NODE_STATE_ROOT,
+        );
+        // Two islands never share a topic.
+        for (x, y) in [
+            (&t.commands, &b.commands),
+            (&t.events, &b.events),
+            (&t.sim, &b.sim),
+        ] {
+            assert_ne!(x, y);
+        }
+    }
+
+    #[test]
+    fn island_names_are_checked() {
+        for good in ["a", "lab1", "bench/2", "Ü-room"] {
+            assert!(validate_island(good).is_ok(), "{good}");
+        }
+        let long = "x".repeat(65);
+        for bad in [
+            "",
+            "a+b",
+            "a#",
+            "/a",
+            "a/",
+            "a//b",
+            "$SYS",
+            "a\0b",
+            long.as_str(),
+        ] {
+            assert!(validate_island(bad).is_err(), "{bad:?}");
+        }
+    }
+
+    #[test]
+    fn topic_bases_are_checked() {
+        assert!(validate_topic("events-topic", "EventsTopic").is_ok());
+        assert!(validate_topic("events-topic", "").is_err());
+        assert!(validate_topic("events-topic", "a/#").is_err());
+    }
+}
