@@ -19,7 +19,7 @@ impl Node {
         let reply = match self.uart.push(byte) {
             None => return,
             Some(Ok(UartRequest::SetId(id))) => {
-                self.take_id(id, true, now);
+                self.take_id(id, true);
                 UartReply::Id(id)
             }
             Some(Ok(UartRequest::Query)) => {
@@ -49,7 +49,7 @@ impl Node {
             self.selected = false;
             return;
         }
-        self.take_id(new_id, false, now);
+        self.take_id(new_id, false);
         let reply = Message::AssignReply {
             seq,
             result: AckResult::Ok,
@@ -63,7 +63,7 @@ impl Node {
 
     /// Puts `id` in force: asks the adapter to store it and to refilter, and remembers whether a
     /// re-announcement is due (it was unconfigured or had another ID).
-    fn take_id(&mut self, id: NodeId, from_uart: bool, _now: Millis) {
+    fn take_id(&mut self, id: NodeId, from_uart: bool) {
         self.announce_due = self.config.node_id != Some(id);
         self.config.node_id = Some(id);
         self.store_from_uart = from_uart;
