@@ -29,16 +29,15 @@ use toml::Spanned;
 #[derive(Debug, thiserror::Error)]
 pub enum DescError {
     /// The file could not be read.
-    #[error("cannot read {path}: {source}")]
+    #[error("cannot read {path}: {error}")]
     Io {
         /// The file.
         path: String,
         /// The OS error.
-        #[source]
-        source: std::io::Error,
+        error: std::io::Error,
     },
     /// Not valid TOML, or a field has the wrong type or value (the message names line and field).
-    #[error("{0}")]
+    #[error(transparent)]
     Toml(#[from] toml::de::Error),
     /// Well-formed, but inconsistent.
     #[error("line {line}, column {column}: {msg}")]
@@ -210,9 +209,9 @@ impl IslandDesc {
     /// Reads and validates an island file.
     pub fn load(path: impl AsRef<Path>) -> Result<Self, DescError> {
         let path = path.as_ref();
-        let text = std::fs::read_to_string(path).map_err(|source| DescError::Io {
+        let text = std::fs::read_to_string(path).map_err(|error| DescError::Io {
             path: path.display().to_string(),
-            source,
+            error,
         })?;
         Self::parse(&text)
     }

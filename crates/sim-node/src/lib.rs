@@ -3,6 +3,7 @@
 //! * [`bus`] — an in-memory CAN bus ([`bus::MemBus`]) for demos and fast tests.
 //! * [`link`] — one endpoint per node on SocketCAN (`vcan0`, `can0`) or a [`bus::MemBus`].
 //! * [`desc`] — the island description file (TOML).
+//! * [`console`] — the binary's control commands and change lines.
 //! * [`island`] — a running island ([`Island::start`] → [`IslandHandle`]): power through dock relays,
 //!   signal loops, docking, power cycles, nodes on and off the bus, UART, actuator state and events.
 //!
@@ -24,6 +25,7 @@
 #![forbid(unsafe_code)]
 
 pub mod bus;
+pub mod console;
 pub mod desc;
 pub mod island;
 pub mod link;

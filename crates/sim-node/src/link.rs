@@ -17,13 +17,13 @@ use crate::bus::{BusError, MemBus, MemEndpoint, MemFilterHandle, MemSender};
 #[derive(Debug, thiserror::Error)]
 pub enum LinkError {
     /// Opening, configuring, reading or writing the SocketCAN socket failed.
-    #[error("SocketCAN interface {iface}: {source}")]
+    // The OS error is in the message rather than `source()`, so that `%err` in a log line says it all.
+    #[error("SocketCAN interface {iface}: {error}")]
     Io {
         /// Interface name.
         iface: String,
         /// The OS error.
-        #[source]
-        source: std::io::Error,
+        error: std::io::Error,
     },
     /// The in-memory bus is gone.
     #[error(transparent)]
@@ -61,9 +61,9 @@ impl Link {
         let filters = Arc::new(Mutex::new(Vec::new()));
         match self {
             Link::SocketCan(iface) => {
-                let io = |source| LinkError::Io {
+                let io = |error| LinkError::Io {
                     iface: iface.clone(),
-                    source,
+                    error,
                 };
                 let sock = Arc::new(socketcan::tokio::CanSocket::open(iface).map_err(io)?);
                 let tx = LinkTx {
@@ -130,9 +130,9 @@ impl LinkTx {
             TxInner::Can { sock, iface } => {
                 sock.write_frame(frame)
                     .await
-                    .map_err(|source| LinkError::Io {
+                    .map_err(|error| LinkError::Io {
                         iface: iface.clone(),
-                        source,
+                        error,
                     })
             }
             TxInner::Mem { tx, .. } => Ok(tx.send(frame).await?),
@@ -145,9 +145,9 @@ impl LinkTx {
         match &self.inner {
             TxInner::Can { sock, iface } => {
                 let plan = filter::to_kernel(filters).map_err(LinkError::Filter)?;
-                let io = |source| LinkError::Io {
+                let io = |error| LinkError::Io {
                     iface: iface.clone(),
-                    source,
+                    error,
                 };
                 let kf: Vec<CanFilter> = plan
                     .filters
@@ -189,9 +189,9 @@ impl LinkRx {
         loop {
             let frame = match &mut self.inner {
                 RxInner::Can { sock, iface } => {
-                    sock.read_frame().await.map_err(|source| LinkError::Io {
+                    sock.read_frame().await.map_err(|error| LinkError::Io {
                         iface: iface.clone(),
-                        source,
+                        error,
                     })?
                 }
                 RxInner::Mem(ep) => ep.recv().await.ok_or(BusError::Closed)?,
