@@ -953,6 +953,18 @@ impl Bridge {
                     self.actions
                         .push_back(Action::Send(Packet::command(node, msg)));
                 }
+                Step::Withdraw { node, port } => {
+                    let seq = self
+                        .alloc_seq(node, Kind::DockRefuse)
+                        .unwrap_or(self.next_seq);
+                    let msg = Message::DockRefuse {
+                        seq,
+                        port,
+                        reason: DockRefuseReason::NotAllowed,
+                    };
+                    self.actions
+                        .push_back(Action::Send(Packet::command(node, msg)));
+                }
                 Step::PowerOff { node } => {
                     let seq = self
                         .alloc_seq(node, Kind::PowerSet)

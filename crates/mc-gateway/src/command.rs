@@ -856,3 +856,46 @@ mod tests {
         ));
     }
 }
+
+#[cfg(test)]
+mod doc_tests {
+    use super::*;
+
+    const API_DOC: &str = include_str!("../../../docs/mqtt-api.md");
+
+    /// Every `mosquitto_pub … -m '<json>'` example in docs/mqtt-api.md is a valid command.
+    #[test]
+    fn every_documented_command_example_parses() {
+        let mut n = 0;
+        for line in API_DOC.lines().filter(|l| l.starts_with("mosquitto_pub")) {
+            let json = line
+                .split("-m '")
+                .nth(1)
+                .and_then(|s| s.strip_suffix('\''))
+                .expect(line);
+            if let Err(r) = parse(json.as_bytes(), 4096) {
+                panic!("documented example rejected: {json}: {}", r.error);
+            }
+            n += 1;
+        }
+        assert!(n >= 10, "found only {n} examples");
+    }
+
+    /// The rejection reasons quoted in docs/mqtt-api.md are the real ones.
+    #[test]
+    fn documented_rejection_reasons_are_real() {
+        let cases: &[&[u8]] = &[
+            br#"{"cmd":"led","node":"2","color":"red","brightness":300,"request_id":"r9"}"#,
+            br#"{"cmd":"led","node""#,
+            br#"{"cmd":"dance"}"#,
+            br#"{"cmd":"led","node":"2","colour":"red"}"#,
+            br#"{"cmd":"buzzer","node":"2","mode":"pattern","on_ms":100}"#,
+        ];
+        let missing: Vec<String> = cases
+            .iter()
+            .map(|input| parse(input, 4096).unwrap_err().error.to_string())
+            .filter(|reason| !API_DOC.contains(reason.as_str()))
+            .collect();
+        assert!(missing.is_empty(), "docs lack the reasons {missing:#?}");
+    }
+}

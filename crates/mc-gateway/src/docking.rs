@@ -26,10 +26,19 @@ pub enum Step {
         /// Its dock port.
         port: Port,
     },
-    /// Send `PowerSet{on: false}` to `node`: its docking failed.
+    /// Send `PowerSet{on: false}` to `node`: its docking failed and nothing else is docked on it.
     PowerOff {
         /// The static element.
         node: NodeId,
+    },
+    /// Send `DockRefuse{port, NotAllowed}` to `node`: its docking on `port` failed, but other
+    /// elements docked on it stay powered (the node switches its relay off only with no confirmed
+    /// port left).
+    Withdraw {
+        /// The static element.
+        node: NodeId,
+        /// Its dock port.
+        port: Port,
     },
     /// Publish `new_connection`.
     Connected(Connection),
@@ -314,7 +323,17 @@ impl Docking {
         let mut out = Vec::new();
         if let Some(p) = self.pending {
             if now >= p.deadline {
-                out.push(Step::PowerOff { node: p.node });
+                // The relay is the element's only one: switching it off would also cut the power of
+                // elements already docked on its other ports.
+                let others = self.connections.keys().any(|&(s, _)| s == p.node);
+                out.push(if others {
+                    Step::Withdraw {
+                        node: p.node,
+                        port: p.port,
+                    }
+                } else {
+                    Step::PowerOff { node: p.node }
+                });
                 out.push(Step::Failed {
                     node: p.node,
                     port: p.port,
@@ -477,6 +496,29 @@ mod tests {
         assert!(
             d.pending().is_some(),
             "still waiting for the real handshake"
+        );
+    }
+
+    #[test]
+    fn timeout_withdraws_only_the_port_when_others_are_docked() {
+        let t0 = Instant::now();
+        let mut d = Docking::new(T, 4);
+        d.on_detected(id(1), port(0), t0);
+        d.on_handshake(id(2), port(0), t0);
+        d.on_detected(id(1), port(1), t0);
+        let steps = d.tick(t0 + T);
+        assert_eq!(
+            steps[0],
+            Step::Withdraw {
+                node: id(1),
+                port: port(1)
+            }
+        );
+        assert!(matches!(steps[1], Step::Failed { .. }));
+        assert_eq!(
+            d.connections().len(),
+            1,
+            "the docked element keeps its connection"
         );
     }
 

@@ -521,6 +521,8 @@ pub struct NodeState {
     pub reported: Option<Reported>,
     /// Milliseconds since the node was last heard, at the time of publication.
     pub last_seen_ms: u64,
+    /// Milliseconds since this gateway first heard the node, at the time of publication.
+    pub first_seen_ms: u64,
 }
 
 #[cfg(test)]

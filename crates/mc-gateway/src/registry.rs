@@ -116,6 +116,7 @@ impl NodeEntry {
                 uptime_s: h.uptime_s,
             }),
             last_seen_ms: millis(now.saturating_duration_since(self.last_seen)),
+            first_seen_ms: millis(now.saturating_duration_since(self.first_seen)),
         }
     }
 }
@@ -128,6 +129,7 @@ pub(crate) fn millis(d: std::time::Duration) -> u64 {
 /// Strips what changes on every health reply, so that only real changes trigger a retained publish.
 fn stable(mut s: NodeState) -> NodeState {
     s.last_seen_ms = 0;
+    s.first_seen_ms = 0;
     if let Some(r) = &mut s.reported {
         r.tec = 0;
         r.rec = 0;
