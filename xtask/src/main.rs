@@ -1,1 +1,266 @@
-fn main() {}
+//! `cargo xtask`: the project's automation. `cargo xtask test` is THE test command: it runs every
+//! stage, streams their output, collects all failures and ends with `xtask: N passed, M failed`.
+
+mod broker;
+mod cmd;
+mod cpio;
+mod fwsize;
+mod setup;
+mod vcan;
+mod vm;
+
+use std::path::PathBuf;
+use std::process::{Command, ExitCode};
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result};
+use clap::{Args, Parser, Subcommand, ValueEnum};
+
+#[derive(Parser)]
+#[command(name = "cargo xtask", about = "iHEX project automation")]
+struct Cli {
+    #[command(subcommand)]
+    command: Task,
+}
+
+#[derive(Subcommand)]
+enum Task {
+    /// Run the test stages (all by default): setup, host, proto-mcu, firmware, vcan, arm64.
+    Test(TestArgs),
+    /// Install the rust targets and system packages the tests need (apt on Debian/Ubuntu).
+    Setup,
+    /// Print flash/RAM use of the release firmware against the 64 KiB / 16 KiB budget.
+    FwSize {
+        /// Folder with the firmware ELFs.
+        #[arg(long)]
+        dir: Option<PathBuf>,
+    },
+    /// Run a static x86_64 (musl) program in the SocketCAN microVM; usable as the musl target's
+    /// cargo runner: CARGO_TARGET_X86_64_UNKNOWN_LINUX_MUSL_RUNNER="cargo xtask vm-run".
+    VmRun {
+        #[command(flatten)]
+        vm: VmArgs,
+        /// The program (a test binary built for x86_64-unknown-linux-musl).
+        binary: PathBuf,
+        /// Its arguments.
+        #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
+        args: Vec<String>,
+    },
+    /// Boot the SocketCAN microVM to an interactive shell (vcan0..15 up).
+    VmShell {
+        #[command(flatten)]
+        vm: VmArgs,
+    },
+}
+
+#[derive(Args, Clone, Copy)]
+struct VmArgs {
+    /// Kill a VM still running after this many seconds.
+    #[arg(long, env = "IHEX_VM_TIMEOUT", default_value_t = 900)]
+    vm_timeout: u64,
+    /// Virtual CPUs (1 for latency measurements).
+    #[arg(long, env = "IHEX_VM_SMP", default_value_t = 2)]
+    smp: u32,
+    /// Guest memory floor in MiB (raised automatically for big initrds).
+    #[arg(long, env = "IHEX_VM_MEMORY", default_value_t = 1024)]
+    memory: u64,
+}
+
+impl VmArgs {
+    fn settings(self) -> vcan::VmSettings {
+        vcan::VmSettings {
+            timeout: Duration::from_secs(self.vm_timeout),
+            smp: self.smp.max(1),
+            memory_mb: self.memory,
+        }
+    }
+}
+
+#[derive(Args)]
+struct TestArgs {
+    /// Run only these stages (repeatable).
+    #[arg(long = "stage", value_enum)]
+    stages: Vec<Stage>,
+    /// Skip these stages (repeatable).
+    #[arg(long, value_enum)]
+    skip: Vec<Stage>,
+    /// Run the SocketCAN tests in the microVM even where native vcan exists (IHEX_VCAN=vm).
+    #[arg(long)]
+    vm: bool,
+    #[command(flatten)]
+    vm_args: VmArgs,
+}
+
+#[derive(Clone, Copy, PartialEq, Eq, Debug, ValueEnum)]
+enum Stage {
+    Setup,
+    Host,
+    ProtoMcu,
+    Firmware,
+    Vcan,
+    Arm64,
+}
+
+const ALL: [Stage; 6] = [
+    Stage::Setup,
+    Stage::Host,
+    Stage::ProtoMcu,
+    Stage::Firmware,
+    Stage::Vcan,
+    Stage::Arm64,
+];
+
+impl Stage {
+    fn name(self) -> &'static str {
+        match self {
+            Stage::Setup => "setup",
+            Stage::Host => "host",
+            Stage::ProtoMcu => "proto-mcu",
+            Stage::Firmware => "firmware",
+            Stage::Vcan => "vcan",
+            Stage::Arm64 => "arm64",
+        }
+    }
+}
+
+/// A stage that ran to the end or decided it had nothing to do.
+enum Done {
+    Ran,
+    Skipped(String),
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Task::Test(args) => return test(args),
+        Task::Setup => setup::run(),
+        Task::FwSize { dir } => fwsize::report(&dir.unwrap_or_else(firmware_release_dir)),
+        Task::VmRun { vm, binary, args } => match vcan::vm_run(vm.settings(), &binary, &args) {
+            Ok(code) => return ExitCode::from(u8::try_from(code).unwrap_or(1)),
+            Err(e) => Err(e),
+        },
+        Task::VmShell { vm } => vcan::vm_shell(vm.settings()),
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("xtask: error: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+fn test(args: TestArgs) -> ExitCode {
+    let selected: Vec<Stage> = ALL
+        .into_iter()
+        .filter(|s| args.stages.is_empty() || args.stages.contains(s))
+        .filter(|s| !args.skip.contains(s))
+        .collect();
+    let mut results = Vec::new();
+    for stage in selected {
+        println!("\n==> xtask: stage {}", stage.name());
+        let start = Instant::now();
+        let r = run_stage(stage, &args);
+        let secs = start.elapsed().as_secs_f64();
+        match &r {
+            Ok(Done::Ran) => println!("==> xtask: stage {} passed ({secs:.1} s)", stage.name()),
+            Ok(Done::Skipped(why)) => println!("==> xtask: stage {} skipped: {why}", stage.name()),
+            Err(e) => println!(
+                "==> xtask: stage {} FAILED ({secs:.1} s): {e:#}",
+                stage.name()
+            ),
+        }
+        results.push((stage, r, secs));
+    }
+    println!("\nxtask: summary");
+    let (mut passed, mut failed) = (0, 0);
+    for (stage, r, secs) in &results {
+        let what = match r {
+            Ok(Done::Ran) => {
+                passed += 1;
+                "passed".to_string()
+            }
+            Ok(Done::Skipped(why)) => format!("skipped ({why})"),
+            Err(e) => {
+                failed += 1;
+                format!(
+                    "FAILED: {}",
+                    format!("{e:#}").lines().next().unwrap_or_default()
+                )
+            }
+        };
+        println!("  {:<10} {:>7.1} s  {what}", stage.name(), secs);
+    }
+    println!("xtask: {passed} passed, {failed} failed");
+    if failed == 0 {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::FAILURE
+    }
+}
+
+fn run_stage(stage: Stage, args: &TestArgs) -> Result<Done> {
+    let root = cmd::root();
+    match stage {
+        Stage::Setup => setup::run().map(|()| Done::Ran),
+        Stage::Host => {
+            cmd::run(
+                cmd::cargo()
+                    .current_dir(&root)
+                    .args(["test", "--workspace"]),
+            )?;
+            Ok(Done::Ran)
+        }
+        Stage::ProtoMcu => {
+            let base = [
+                "build",
+                "-p",
+                "ihex-proto",
+                "--target",
+                "thumbv7em-none-eabihf",
+            ];
+            cmd::run(cmd::cargo().current_dir(&root).args(base))?;
+            cmd::run(
+                cmd::cargo()
+                    .current_dir(&root)
+                    .args(base)
+                    .args(["--features", "defmt"]),
+            )?;
+            Ok(Done::Ran)
+        }
+        Stage::Firmware => {
+            let fw = root.join("crates/sc-fw");
+            if !fw.join("Cargo.toml").exists() {
+                return Ok(Done::Skipped("no crates/sc-fw/Cargo.toml".into()));
+            }
+            // Its own workspace: build from its folder so its .cargo/config.toml (thumb target),
+            // profiles and target/ apply, whatever CARGO_TARGET_DIR the host build uses.
+            cmd::run(
+                cmd::cargo()
+                    .current_dir(&fw)
+                    .env_remove("CARGO_TARGET_DIR")
+                    .env_remove("CARGO_BUILD_TARGET")
+                    .args(["build", "--release"]),
+            )?;
+            fwsize::report(&firmware_release_dir())?;
+            Ok(Done::Ran)
+        }
+        Stage::Vcan => {
+            vcan::stage(vcan::Mode::from_env(args.vm)?, args.vm_args.settings())?;
+            Ok(Done::Ran)
+        }
+        Stage::Arm64 => {
+            let script = root.join("deploy/check-arm64.sh");
+            if !script.exists() {
+                return Ok(Done::Skipped("no deploy/check-arm64.sh".into()));
+            }
+            cmd::run(Command::new("sh").arg(&script).current_dir(&root))
+                .with_context(|| format!("{}", script.display()))?;
+            Ok(Done::Ran)
+        }
+    }
+}
+
+fn firmware_release_dir() -> PathBuf {
+    cmd::root().join("crates/sc-fw/target/thumbv7em-none-eabihf/release")
+}

@@ -1,0 +1,352 @@
+//! The SocketCAN stage: `ihex-tests --features vcan` on native vcan interfaces when the host has
+//! them, otherwise inside the x86_64 microVM; and `vm-run`, the cargo runner of the musl target.
+
+use std::fs;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::Duration;
+
+use anyhow::{anyhow, bail, Context, Result};
+
+use crate::broker::HostBroker;
+use crate::cmd;
+use crate::vm::{Payload, Program, Vm};
+
+/// Number of vcan interfaces the tests get.
+pub const COUNT: usize = 16;
+
+/// The static target the VM runs.
+pub const MUSL: &str = "x86_64-unknown-linux-musl";
+
+/// Modules the VM loads (dependencies are resolved with modinfo).
+const MODULES: [&str; 5] = ["can", "can-raw", "can-dev", "vcan", "e1000"];
+
+/// How the user wants the SocketCAN tests run (`IHEX_VCAN` or `--vm`).
+#[derive(Clone, Copy, PartialEq, Eq, Debug)]
+pub enum Mode {
+    /// Native vcan when possible, else the VM.
+    Auto,
+    /// Always the VM.
+    Vm,
+    /// Native vcan or fail.
+    Native,
+}
+
+impl Mode {
+    /// From `IHEX_VCAN` (`auto`, `vm`, `native`), overridden by `force_vm`.
+    pub fn from_env(force_vm: bool) -> Result<Mode> {
+        if force_vm {
+            return Ok(Mode::Vm);
+        }
+        match std::env::var("IHEX_VCAN").ok().as_deref().map(str::trim) {
+            None | Some("") | Some("auto") => Ok(Mode::Auto),
+            Some("vm") => Ok(Mode::Vm),
+            Some("native") => Ok(Mode::Native),
+            Some(other) => bail!("IHEX_VCAN={other}: expected auto, vm or native"),
+        }
+    }
+}
+
+/// VM knobs from the command line.
+#[derive(Clone, Copy, Debug)]
+pub struct VmSettings {
+    /// Kill the VM after this long.
+    pub timeout: Duration,
+    /// Virtual CPUs.
+    pub smp: u32,
+    /// Guest memory floor in MiB.
+    pub memory_mb: u64,
+}
+
+fn vcan_names() -> Vec<String> {
+    let mut names: Vec<String> = fs::read_dir("/sys/class/net")
+        .map(|rd| {
+            rd.filter_map(|e| e.ok())
+                .map(|e| e.file_name().to_string_lossy().into_owned())
+                .filter(|n| n.starts_with("vcan"))
+                .collect()
+        })
+        .unwrap_or_default();
+    names.sort_by_key(|n| (n.len(), n.clone()));
+    names
+}
+
+fn quiet(mut c: Command) -> bool {
+    c.stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .stderr(Stdio::null());
+    c.status().is_ok_and(|s| s.success())
+}
+
+/// The host's vcan interfaces, creating `vcan0..vcan15` (with sudo when not root) where the kernel
+/// allows; `None` when SocketCAN cannot run natively here.
+pub fn native_interfaces(create: bool) -> Option<Vec<String>> {
+    let existing = vcan_names();
+    if !create && !existing.is_empty() {
+        return Some(existing);
+    }
+    if existing.len() < COUNT {
+        if let Some(mut c) = cmd::privileged("modprobe") {
+            c.arg("vcan");
+            let _ = quiet(c);
+        }
+        for i in 0..COUNT {
+            let name = format!("vcan{i}");
+            if Path::new("/sys/class/net").join(&name).exists() {
+                continue;
+            }
+            let Some(mut c) = cmd::privileged("ip") else {
+                break;
+            };
+            c.args(["link", "add", "dev", &name, "type", "vcan"]);
+            if !quiet(c) {
+                break;
+            }
+        }
+    }
+    let names = vcan_names();
+    for n in &names {
+        if let Some(mut c) = cmd::privileged("ip") {
+            c.args(["link", "set", "up", n]);
+            let _ = quiet(c);
+        }
+    }
+    (!names.is_empty()).then_some(names)
+}
+
+/// The `vcan` stage.
+pub fn stage(mode: Mode, vm: VmSettings) -> Result<()> {
+    let native = match mode {
+        Mode::Vm => None,
+        _ => native_interfaces(true),
+    };
+    match (native, mode) {
+        (Some(ifaces), _) => run_native(&ifaces),
+        (None, Mode::Native) => bail!(
+            "IHEX_VCAN=native but this kernel cannot create vcan interfaces \
+             (try `sudo modprobe vcan`, or unset IHEX_VCAN to use the microVM)"
+        ),
+        (None, _) => {
+            println!(
+                "xtask: no vcan on this kernel: running the SocketCAN tests in a QEMU microVM"
+            );
+            run_in_vm(vm)
+        }
+    }
+}
+
+fn run_native(ifaces: &[String]) -> Result<()> {
+    println!("xtask: native SocketCAN on {}", ifaces.join(","));
+    let broker = HostBroker::start()?;
+    let mut c = cmd::cargo();
+    c.current_dir(cmd::root())
+        .args(["test", "-p", "ihex-tests", "--features", "vcan"])
+        .env("IHEX_TEST_CAN", ifaces.join(","));
+    if let Some(b) = &broker {
+        c.env("IHEX_TEST_MQTT", b.addr.to_string());
+    }
+    cmd::run(&mut c)
+}
+
+/// The x86_64 VM set up for the SocketCAN tests: CAN modules, `vcan0..15` up, big socket buffers,
+/// mosquitto and its libraries inside.
+pub fn test_vm(settings: VmSettings) -> Result<Vm> {
+    let mut vm = Vm::x86_64(&cmd::target_dir().join("vm"))?;
+    vm.modules = MODULES.map(String::from).to_vec();
+    let names: Vec<String> = (0..COUNT).map(|i| format!("vcan{i}")).collect();
+    vm.boot_script = format!(
+        "for i in {seq}; do ip link add dev vcan$i type vcan && ip link set up vcan$i; done\n\
+         echo 16777216 > /proc/sys/net/core/rmem_max\n\
+         echo 16777216 > /proc/sys/net/core/wmem_max\n\
+         export IHEX_TEST_CAN={list}",
+        seq = (0..COUNT)
+            .map(|i| i.to_string())
+            .collect::<Vec<_>>()
+            .join(" "),
+        list = names.join(",")
+    );
+    if let Some(m) = cmd::find("mosquitto") {
+        vm.host_programs.push(m);
+    }
+    vm.timeout = settings.timeout;
+    vm.smp = settings.smp;
+    vm.memory_mb = settings.memory_mb;
+    Ok(vm)
+}
+
+/// Repository files (tracked by git, under 1 MiB) so tests find fixtures at their host paths.
+fn repo_files() -> Vec<PathBuf> {
+    let root = cmd::root();
+    let Some(out) = cmd::output(
+        Command::new("git")
+            .arg("-C")
+            .arg(&root)
+            .args(["ls-files", "-z"]),
+    ) else {
+        return Vec::new();
+    };
+    out.split('\0')
+        .filter(|s| !s.is_empty())
+        .map(|s| root.join(s))
+        .filter(|p| fs::metadata(p).is_ok_and(|m| m.is_file() && m.len() < (1 << 20)))
+        .collect()
+}
+
+/// Variables the programs in the VM see: the test settings plus what cargo and the user set for
+/// tests (`RUST_*`, `IHEX_*`, `CARGO_PKG_*`, `CARGO_MANIFEST_DIR`...).
+fn guest_env(broker: Option<&HostBroker>) -> Vec<(String, String)> {
+    let mut env: Vec<(String, String)> = std::env::vars()
+        .filter(|(k, _)| {
+            (k.starts_with("RUST_") && k != "RUSTUP_HOME")
+                || k.starts_with("IHEX_")
+                || k.starts_with("CARGO_PKG_")
+                || k == "CARGO_MANIFEST_DIR"
+                || k == "CARGO_CRATE_NAME"
+        })
+        .filter(|(k, _)| k != "IHEX_TEST_CAN" && k != "IHEX_TEST_MQTT")
+        .collect();
+    // TCG emulation is many times slower than the host: stretch the tests' deadlines.
+    if !env.iter().any(|(k, _)| k == "IHEX_TEST_TIME_SCALE") {
+        env.push(("IHEX_TEST_TIME_SCALE".into(), "5".into()));
+    }
+    // Slirp maps the guest's 10.0.2.2 to the host's loopback.
+    let mqtt = match broker {
+        Some(b) => Some(format!("10.0.2.2:{}", b.addr.port())),
+        None => std::env::var("IHEX_TEST_MQTT")
+            .ok()
+            .map(|v| match v.rsplit_once(':') {
+                Some((host, port)) if host == "127.0.0.1" || host == "localhost" => {
+                    format!("10.0.2.2:{port}")
+                }
+                _ => v,
+            }),
+    };
+    if let Some(m) = mqtt {
+        env.push(("IHEX_TEST_MQTT".into(), m));
+    }
+    env
+}
+
+/// Builds the SocketCAN test binaries for the musl target and returns them (name, path).
+fn build_musl_tests() -> Result<Vec<(String, PathBuf)>> {
+    let mut c = cmd::cargo();
+    c.current_dir(cmd::root())
+        .args([
+            "test",
+            "-p",
+            "ihex-tests",
+            "--features",
+            "vcan",
+            "--target",
+            MUSL,
+            "--no-run",
+        ])
+        .arg("--message-format=json-render-diagnostics")
+        .stdout(Stdio::piped());
+    println!("$ {}", cmd::display(&c));
+    let out = c.output().context("running cargo")?;
+    if !out.status.success() {
+        bail!("building the musl test binaries failed ({})", out.status);
+    }
+    let mut bins = Vec::new();
+    for line in String::from_utf8_lossy(&out.stdout).lines() {
+        let Ok(msg) = serde_json::from_str::<serde_json::Value>(line) else {
+            continue;
+        };
+        if msg["reason"] != "compiler-artifact" || msg["profile"]["test"] != true {
+            continue;
+        }
+        let Some(exe) = msg["executable"].as_str() else {
+            continue;
+        };
+        let target = &msg["target"];
+        let kind = target["kind"][0].as_str().unwrap_or("?");
+        let name = target["name"].as_str().unwrap_or("?");
+        bins.push((format!("{name} ({kind})"), PathBuf::from(exe)));
+    }
+    if bins.is_empty() {
+        bail!("cargo built no test executables for ihex-tests");
+    }
+    Ok(bins)
+}
+
+fn run_in_vm(settings: VmSettings) -> Result<()> {
+    let bins = build_musl_tests()?;
+    let vm = test_vm(settings)?;
+    let broker = HostBroker::start()?;
+    let payload = Payload {
+        programs: bins
+            .into_iter()
+            .map(|(name, path)| Program {
+                name,
+                path,
+                args: Vec::new(),
+            })
+            .collect(),
+        env: guest_env(broker.as_ref()),
+        cwd: Some(cmd::root().join("tests")),
+        files: repo_files(),
+    };
+    let outcomes = vm.run(&payload)?;
+    let failed: Vec<String> = outcomes
+        .iter()
+        .filter(|o| o.code != 0)
+        .map(|o| format!("{} (exit {})", o.name, o.code))
+        .collect();
+    for o in &outcomes {
+        println!(
+            "vm: {:<32} {}",
+            o.name,
+            if o.code == 0 {
+                "ok".into()
+            } else {
+                format!("FAILED (exit {})", o.code)
+            }
+        );
+    }
+    if !failed.is_empty() {
+        bail!("failed in the VM: {}", failed.join(", "));
+    }
+    Ok(())
+}
+
+/// `vm-run`: runs one program (a musl test binary) in the VM and returns its exit code. Meant as
+/// `CARGO_TARGET_X86_64_UNKNOWN_LINUX_MUSL_RUNNER`, so `cargo test --target x86_64-unknown-linux-musl`
+/// works unchanged.
+pub fn vm_run(settings: VmSettings, binary: &Path, args: &[String]) -> Result<i32> {
+    let path = fs::canonicalize(binary).with_context(|| format!("{}", binary.display()))?;
+    let vm = test_vm(settings)?;
+    // A broker the caller already runs (IHEX_TEST_MQTT) is reused, else one is started for this run.
+    let broker = if std::env::var_os("IHEX_TEST_MQTT").is_some() {
+        None
+    } else {
+        HostBroker::start()?
+    };
+    let name = path
+        .file_name()
+        .unwrap_or_default()
+        .to_string_lossy()
+        .into_owned();
+    let payload = Payload {
+        programs: vec![Program {
+            name,
+            path,
+            args: args.to_vec(),
+        }],
+        env: guest_env(broker.as_ref()),
+        cwd: std::env::current_dir().ok(),
+        files: repo_files(),
+    };
+    let outcome = vm.run(&payload)?;
+    outcome
+        .first()
+        .map(|o| o.code)
+        .ok_or_else(|| anyhow!("the VM reported no exit code"))
+}
+
+/// `vm-shell`: the test VM with an interactive shell.
+pub fn vm_shell(settings: VmSettings) -> Result<()> {
+    let mut s = settings;
+    s.timeout = Duration::MAX;
+    test_vm(s)?.shell()
+}
