@@ -2,7 +2,9 @@
 //! `list` commands, and reading the events that answer them.
 //!
 //! Commands go to the commands topic (`CommandsTopic` by default), answers come back on the events
-//! topic as `{"event": "command_result", "payload": {"request_id": …, …}}` (see docs/mqtt-api.md).
+//! topic: `{"event": "command_result", "payload": {"request_id": …, "result": "ok" | "refused" |
+//! "timeout" | "failed", "reason": …}}`, `command_rejected` for invalid commands, and `node_list`
+//! (`{"request_id": …, "nodes": [{"id": "111", "online": true, …}]}`) for `list` (docs/mqtt-api.md).
 //! The readers are lenient about fields they do not need, so a gateway that adds fields keeps working.
 
 use ihex_proto::{NodeId, Uid};
@@ -174,6 +176,15 @@ pub fn listed_ids(payload: &Value) -> Option<Vec<NodeId>> {
     }
 }
 
+/// If `event` is the gateway's answer to our `list` (`node_list` with our request ID), the IDs it lists.
+/// A `node_list` without a readable `nodes` array yields an empty list rather than a guess.
+pub fn list_answer(event: &Event, request_id: &str) -> Option<Vec<NodeId>> {
+    if event.name != "node_list" || event.request_id() != Some(request_id) {
+        return None;
+    }
+    Some(listed_ids(&event.payload).unwrap_or_default())
+}
+
 /// The node ID in a retained node-state topic name (`<root>/<id>/state`).
 pub fn id_from_state_topic(root: &str, topic: &str) -> Option<NodeId> {
     let id = topic
@@ -264,6 +275,9 @@ mod tests {
         let ids: Vec<u16> = listed_ids(&p).unwrap().iter().map(|i| i.get()).collect();
         assert_eq!(ids, [0x111, 0x2, 0xabc]);
         assert_eq!(listed_ids(&json!({"status":"ok"})), None);
+        let e = Event::parse(br#"{"event":"node_list","payload":{"request_id":"q","nodes":[{"id":"111","online":true}]}}"#).unwrap();
+        assert_eq!(list_answer(&e, "q").unwrap(), [NodeId::new(0x111).unwrap()]);
+        assert_eq!(list_answer(&e, "other"), None);
         let ids: Vec<u16> = listed_ids(&json!({"nodes":{"5":{},"fd":{}}}))
             .unwrap()
             .iter()

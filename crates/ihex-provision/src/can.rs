@@ -133,7 +133,8 @@ async fn run(session: &mut Session, topics: &Topics, a: &Assignment) -> Result<V
     Err(AssignError::NoAnswer(request_id, a.timeout))
 }
 
-/// IDs the gateway knows: its answer to `list`, plus every retained node-state topic seen meanwhile.
+/// IDs the gateway knows — online or lost, both still own their ID: its `node_list` answer to `list`,
+/// plus every retained node-state topic seen meanwhile.
 async fn taken_ids(
     session: &mut Session,
     topics: &Topics,
@@ -156,6 +157,10 @@ async fn taken_ids(
         let Ok(event) = Event::parse(&msg.payload) else {
             continue;
         };
+        if let Some(listed) = api::list_answer(&event, &request_id) {
+            taken.extend(listed);
+            return Ok(taken);
+        }
         match api::outcome(&event, &request_id) {
             Some(Outcome::Ok(payload)) => {
                 let listed = api::listed_ids(&payload).ok_or(AssignError::NoList(timeout))?;
