@@ -1,0 +1,106 @@
+//! The node task: owns the `ihex_sc_core::Node` and the flash, feeds it the events, runs its timers
+//! and carries out its outputs.
+
+use defmt::{info, warn};
+use embassy_futures::select::{select, Either};
+use embassy_stm32::flash::{Blocking, Flash};
+use embassy_time::{Instant, Timer};
+use ihex_proto::BootRole;
+use ihex_sc_core::{Millis, Node, Output};
+
+use super::watchdog::{beat, Beat};
+use crate::config;
+use crate::event::{Event, BUZZER, CAN_TX, EVENTS, FILTERS, LED, RELAY, UART_TX};
+use crate::record::Record;
+
+/// Longest sleep between two passes (keeps the heartbeat going when the core has no timer pending).
+pub const MAX_SLEEP_MS: u64 = 100;
+
+/// Milliseconds since boot, the core's clock.
+pub fn now() -> Millis {
+    Millis(Instant::now().as_millis())
+}
+
+/// Runs the node forever.
+#[embassy_executor::task]
+pub async fn node(mut node: Node, mut flash: Flash<'static, Blocking>, role: BootRole) {
+    let mut dropped_frames = 0u32;
+    // The core starts with the relay off, LED dark and buzzer silent; publish that state once so the
+    // actuator tasks never run on defaults of their own.
+    publish(&mut node, true);
+    drain(&mut node, &mut flash, role, &mut dropped_frames);
+    loop {
+        let t = now();
+        let wake = match node.poll_at() {
+            Some(at) if at.0 <= t.0 + MAX_SLEEP_MS => at,
+            _ => t.add_ms(MAX_SLEEP_MS),
+        };
+        match select(EVENTS.receive(), Timer::at(Instant::from_millis(wake.0))).await {
+            Either::First(ev) => {
+                let t = now();
+                match ev {
+                    Event::Frame(f) => node.handle_frame(
+                        f.raw_id,
+                        f.extended,
+                        f.remote,
+                        &f.data[..f.len as usize],
+                        t,
+                    ),
+                    Event::Loop { port, closed } => node.handle_loop_level(port, closed, t),
+                    Event::UartByte(b) => node.handle_uart_byte(b, t),
+                    Event::CanStatus(s) => node.handle_can_status(s.tec, s.rec, s.bus_off, t),
+                    Event::BuzzerDone => node.handle_buzzer_done(t),
+                }
+            }
+            Either::Second(()) => {}
+        }
+        // Timers due by now run whatever woke us.
+        if node.poll_at().is_some_and(|at| at <= now()) {
+            node.tick(now());
+        }
+        beat(Beat::Node as usize);
+        drain(&mut node, &mut flash, role, &mut dropped_frames);
+        publish(&mut node, false);
+    }
+}
+
+fn publish(node: &mut Node, force: bool) {
+    if node.actuators_changed() || force {
+        let a = node.actuators();
+        LED.signal(a.led);
+        BUZZER.signal(a.buzzer);
+        RELAY.signal(a.relay);
+    }
+}
+
+fn drain(node: &mut Node, flash: &mut Flash<'static, Blocking>, role: BootRole, dropped: &mut u32) {
+    while let Some(out) = node.poll_output() {
+        match out {
+            Output::Frame(p) => {
+                if CAN_TX.try_send(p).is_err() {
+                    *dropped = dropped.wrapping_add(1);
+                    warn!(
+                        "can tx queue full, frame dropped ({} so far): {}",
+                        *dropped, p
+                    );
+                }
+            }
+            Output::Uart(bytes) => {
+                if UART_TX.try_send(bytes).is_err() {
+                    warn!("uart tx queue full, reply dropped");
+                }
+            }
+            Output::StoreId(id) => {
+                let record = Record { node_id: id, role };
+                match config::store(flash, &record) {
+                    Ok(()) => info!("node ID {} stored in flash", id),
+                    Err(e) => {
+                        warn!("storing node ID {} failed: {}", id, e);
+                        node.handle_store_failed(now());
+                    }
+                }
+            }
+            Output::FiltersChanged => FILTERS.signal(node.node_id()),
+        }
+    }
+}
