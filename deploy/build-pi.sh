@@ -1,4 +1,5 @@
 #!/usr/bin/env bash
+[ -n "${BASH_VERSION:-}" ] || exec bash "$0" "$@"   # also when started as `sh script`
 # Cross-compile the iHEX host binaries for the Raspberry Pi (64-bit Raspberry Pi OS) with cargo-zigbuild.
 #
 #   deploy/build-pi.sh                 # gnu (glibc >= 2.29) and static musl builds of every binary
@@ -20,7 +21,7 @@ while [ $# -gt 0 ]; do
         --gnu) MUSL=0 ;;
         --musl) GNU=0 ;;
         -p|--package) PACKAGES+=("$2"); shift ;;
-        -h|--help) sed -n '2,12p' "$0"; exit 0 ;;
+        -h|--help) sed -n '3,13p' "$0"; exit 0 ;;
         *) echo "build-pi.sh: unknown argument $1 (see --help)" >&2; exit 2 ;;
     esac
     shift
@@ -70,7 +71,9 @@ for entry in "${built[@]}"; do
     t="${entry%%:*}"
     for f in target/"$t"/release/*; do
         # Executables produced by this build, not build scripts or deps.
-        [ -f "$f" ] && [ -x "$f" ] && case "$(basename "$f")" in *.d|*.so) ;; *) echo "  $f" ;; esac
+        if [ -f "$f" ] && [ -x "$f" ]; then
+            case "$(basename "$f")" in *.d|*.so) ;; *) echo "  $f" ;; esac
+        fi
     done
 done | sort -u
 if [ ${#failed[@]} -gt 0 ]; then

@@ -1,4 +1,5 @@
 #!/usr/bin/env bash
+[ -n "${BASH_VERSION:-}" ] || exec bash "$0" "$@"   # also when started as `sh script`
 # Prove the Pi binaries work on a real arm64 Linux kernel: boot Debian's arm64 kernel under
 # qemu-system-aarch64 (-M virt -cpu cortex-a72, TCG) with the CAN modules loaded and vcan0 up, then run
 # the static aarch64-musl binaries there:
