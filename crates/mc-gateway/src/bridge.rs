@@ -93,6 +93,9 @@ pub enum BusEvent {
     RxDropped(u32),
 }
 
+/// Shortest accepted health period: a zero period would make the gateway do nothing but health checks.
+pub const MIN_HEALTH_PERIOD: Duration = Duration::from_millis(10);
+
 /// How long the rate limit of error events (`fault`, `bus_error`) holds back repeats of one kind.
 pub const ERROR_EVENT_WINDOW: Duration = Duration::from_secs(1);
 
@@ -148,6 +151,8 @@ pub struct Bridge {
     rx_dropped: u64,
     /// Nodes whose state document may have changed since the last publication.
     dirty: BTreeSet<NodeId>,
+    /// Our own interface is bus-off or down: nodes cannot answer, so nobody is counted as lost.
+    bus_down: bool,
 }
 
 fn ack_name(r: AckResult) -> String {
@@ -225,7 +230,8 @@ fn decode_error_key(e: &DecodeError) -> &'static str {
 
 impl Bridge {
     /// A bridge started at `now`; the first health check is due at once.
-    pub fn new(config: BridgeConfig, now: Instant) -> Self {
+    pub fn new(mut config: BridgeConfig, now: Instant) -> Self {
+        config.health_period = config.health_period.max(MIN_HEALTH_PERIOD);
         let docking = Docking::new(config.dock_timeout, Docking::DEFAULT_QUEUE);
         Bridge {
             config,
@@ -240,6 +246,7 @@ impl Bridge {
             throttle: Throttle::new(ERROR_EVENT_WINDOW),
             rx_dropped: 0,
             dirty: BTreeSet::new(),
+            bus_down: false,
         }
     }
 
@@ -561,6 +568,19 @@ impl Bridge {
                 )
             }
         };
+        match event {
+            BusEvent::BusOff | BusEvent::InterfaceDown => {
+                // The silence that follows is ours, not the nodes': stop health checks (and with
+                // them lost detection) until the interface is back.
+                self.bus_down = true;
+                self.outstanding_health = None;
+            }
+            BusEvent::Recovered if self.bus_down => {
+                self.bus_down = false;
+                self.next_health = now;
+            }
+            _ => {}
+        }
         let Some(suppressed) = self.throttle.admit(&key, now) else {
             return;
         };
@@ -640,8 +660,12 @@ impl Bridge {
         }
         let steps = self.docking.tick(now);
         self.apply(steps, now);
-        if now >= self.next_health {
-            if self.outstanding_health.is_some() {
+        if now >= self.next_health && self.bus_down {
+            self.next_health = now + self.config.health_period;
+        } else if now >= self.next_health {
+            if self.outstanding_health.is_none() {
+                self.registry.start_round();
+            } else {
                 for (id, missed) in self.registry.close_round(self.config.lost_after_misses) {
                     let last_seen_ms = self
                         .registry
@@ -1863,6 +1887,183 @@ mod tests {
         b.on_command(&big, t0);
         let reason = drain(&mut b).one("command_rejected")["reason"].clone();
         assert_eq!(reason, "command is 5000 bytes; the limit is 4096 bytes");
+    }
+
+    #[test]
+    fn own_bus_outage_suspends_lost_detection() {
+        let (mut b, t0) = with_nodes(&[2]);
+        b.on_bus_event(BusEvent::InterfaceDown, t0 + MS);
+        assert_eq!(drain(&mut b).one("bus_error")["error"], "interface_down");
+        for k in 1..=10u32 {
+            b.tick(t0 + S * k);
+            let out = drain(&mut b);
+            assert!(
+                out.sent.is_empty(),
+                "no health checks while down: {:?}",
+                out.sent
+            );
+            assert!(out.named("node_lost").is_empty());
+        }
+        b.on_bus_event(BusEvent::Recovered, t0 + 10 * S + MS);
+        drain(&mut b);
+        assert_eq!(
+            b.next_deadline(),
+            t0 + 10 * S + MS,
+            "a health check at once"
+        );
+        b.tick(t0 + 10 * S + MS);
+        let out = drain(&mut b);
+        assert!(matches!(
+            out.sent[..],
+            [Packet {
+                msg: Message::HealthCheck { .. },
+                ..
+            }]
+        ));
+        // Back to normal: silence now counts again.
+        for k in 1..=3u32 {
+            b.tick(t0 + 10 * S + MS + S * k);
+        }
+        assert_eq!(drain(&mut b).one("node_lost")["missed"], 3);
+    }
+
+    #[test]
+    fn zero_health_period_does_not_spin() {
+        let t0 = Instant::now();
+        let config = BridgeConfig {
+            health_period: Duration::ZERO,
+            ..BridgeConfig::default()
+        };
+        let mut b = Bridge::new(config, t0);
+        b.tick(t0);
+        assert!(b.next_deadline() > t0);
+    }
+
+    #[test]
+    fn undocking_during_a_pending_docking_cancels_it_and_the_queue_moves_on() {
+        let (mut b, t0) = with_nodes(&[1, 9]);
+        b.on_packet(
+            Packet::report(id(1), Message::DockDetected { port: port(0) }),
+            t0,
+        );
+        b.on_packet(
+            Packet::report(id(9), Message::DockDetected { port: port(4) }),
+            t0,
+        );
+        let out = drain(&mut b);
+        assert_eq!(out.sent.len(), 1, "only the first is confirmed");
+        b.on_packet(
+            Packet::report(id(1), Message::DockRemoved { port: port(0) }),
+            t0 + MS,
+        );
+        let out = drain(&mut b);
+        let f = out.one("dock_failed");
+        assert_eq!(
+            (f["node"].as_str(), f["port"].as_u64()),
+            (Some("1"), Some(0))
+        );
+        assert!(f["reason"].as_str().unwrap().starts_with("cancelled"));
+        assert!(matches!(
+            out.sent[..],
+            [Packet { msg: Message::DockConfirm { .. }, dest, .. }] if dest == id(9)
+        ));
+        // The confirm to 9 cannot be sent: that docking fails too.
+        b.on_send_failed(out.sent[0], "CAN transmit queue full", t0 + 2 * MS);
+        let out = drain(&mut b);
+        assert_eq!(
+            out.one("dock_failed")["reason"],
+            "confirm not sent: CAN transmit queue full"
+        );
+        // Idle again: a new report is confirmed at once.
+        b.on_packet(
+            Packet::report(id(1), Message::DockDetected { port: port(0) }),
+            t0 + S,
+        );
+        assert_eq!(drain(&mut b).sent.len(), 1);
+    }
+
+    #[test]
+    fn timeout_with_other_elements_docked_withdraws_only_that_port() {
+        let (mut b, t0) = with_nodes(&[0x111]);
+        b.on_packet(
+            Packet::report(id(0x111), Message::DockDetected { port: port(3) }),
+            t0,
+        );
+        b.on_packet(
+            Packet::report(id(2), Message::Handshake { port: port(0) }),
+            t0,
+        );
+        b.on_packet(
+            Packet::report(id(0x111), Message::DockDetected { port: port(4) }),
+            t0,
+        );
+        drain(&mut b);
+        b.tick(t0 + BridgeConfig::default().dock_timeout);
+        let out = drain(&mut b);
+        assert!(out.sent.iter().any(|p| p.dest == id(0x111)
+            && matches!(
+                p.msg,
+                Message::DockRefuse { reason: DockRefuseReason::NotAllowed, port: p4, .. } if p4 == port(4)
+            )));
+        assert!(!out
+            .sent
+            .iter()
+            .any(|p| matches!(p.msg, Message::PowerSet { .. })));
+        assert_eq!(out.one("dock_failed")["port"], 4);
+    }
+
+    #[test]
+    fn reboot_forgets_acknowledged_actuator_state() {
+        let (mut b, t0) = with_nodes(&[2]);
+        let out = command(
+            &mut b,
+            json!({"cmd": "led", "node": "2", "color": "red"}),
+            t0,
+        );
+        let seq = out.sent[0].msg.ack_seq().unwrap();
+        b.on_packet(
+            Packet::report(id(2), ack(Kind::LedSet, seq, AckResult::Ok)),
+            t0 + MS,
+        );
+        let out = drain(&mut b);
+        assert_eq!(out.states[0].1["led"]["mode"], "steady");
+        let boot = Message::BootUp {
+            version: (1, 0),
+            role: BootRole::Static,
+            ports: 6,
+            reset: ResetReason::PowerOn,
+        };
+        b.on_packet(Packet::report(id(2), boot), t0 + S);
+        let out = drain(&mut b);
+        assert_eq!(out.one("node_rebooted")["reset"], "power_on");
+        assert_eq!(out.states[0].1["led"], Value::Null);
+    }
+
+    #[test]
+    fn broadcast_refusals_are_listed() {
+        let (mut b, t0) = with_nodes(&[2, 0x111]);
+        let out = command(
+            &mut b,
+            json!({"cmd": "power", "node": "all", "on": true}),
+            t0,
+        );
+        let seq = out.sent[0].msg.ack_seq().unwrap();
+        b.on_packet(
+            Packet::report(id(2), ack(Kind::PowerSet, seq, AckResult::Unsupported)),
+            t0 + MS,
+        );
+        b.on_packet(
+            Packet::report(id(0x111), ack(Kind::PowerSet, seq, AckResult::Ok)),
+            t0 + MS,
+        );
+        let out = drain(&mut b);
+        let r = out.one("command_result");
+        assert_eq!(r["result"], "refused");
+        assert_eq!(r["refused"], json!([{"id": "2", "reason": "unsupported"}]));
+        assert_eq!(r["acked"], json!(["111"]));
+        assert_eq!(r["reason"], "1 of 2 answering nodes refused");
+        let (_, st) = out.states.iter().find(|(n, _)| *n == id(0x111)).unwrap();
+        assert_eq!(st["relay"], true);
     }
 
     #[test]

@@ -247,6 +247,14 @@ impl Registry {
         lost
     }
 
+    /// Starts a health round without judging the previous one (after start or a bus outage): every
+    /// node must answer the check that goes out next.
+    pub fn start_round(&mut self) {
+        for e in self.nodes.values_mut() {
+            e.replied = false;
+        }
+    }
+
     /// True when the state document of `id` differs from the last one published (ignoring counters
     /// and ages), and remembers `doc` as published.
     pub fn state_changed(&mut self, id: NodeId, doc: &NodeState) -> bool {
