@@ -581,21 +581,18 @@ impl Message {
                     }
                 }
             }
-            Message::AssignCommit { new_id, .. } | Message::AssignReply { new_id, .. } => {
-                if !new_id.is_sc() && !(kind == Kind::AssignReply && new_id == NodeId::UNCONFIGURED)
-                {
-                    return bad("id", new_id.get() as u32);
-                }
+            // An assignment reply may report "still no ID" (0xFFE) after a failure.
+            Message::AssignCommit { new_id, .. } | Message::AssignReply { new_id, .. }
+                if !(new_id.is_sc()
+                    || (kind == Kind::AssignReply && new_id == NodeId::UNCONFIGURED)) =>
+            {
+                return bad("id", new_id.get() as u32);
             }
-            Message::BootUp { ports, .. } => {
-                if ports > Port::COUNT {
-                    return bad("ports", ports as u32);
-                }
+            Message::BootUp { ports, .. } if ports > Port::COUNT => {
+                return bad("ports", ports as u32);
             }
-            Message::HealthReply(h) => {
-                if h.uptime_s > HealthReply::MAX_UPTIME_S {
-                    return bad("uptime", h.uptime_s);
-                }
+            Message::HealthReply(h) if h.uptime_s > HealthReply::MAX_UPTIME_S => {
+                return bad("uptime", h.uptime_s);
             }
             _ => {}
         }

@@ -123,11 +123,9 @@ impl BitTiming {
 
     /// The bitrate this timing gives from `pclk_hz` (0 for a zero prescaler rather than a panic).
     pub const fn bitrate(&self, pclk_hz: u32) -> u32 {
-        let div = self.prescaler as u32 * self.quanta();
-        if div == 0 {
-            0
-        } else {
-            pclk_hz / div
+        match pclk_hz.checked_div(self.prescaler as u32 * self.quanta()) {
+            Some(rate) => rate,
+            None => 0,
         }
     }
 

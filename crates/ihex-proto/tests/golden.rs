@@ -1002,8 +1002,20 @@ fn docking_sequence_dump() {
         0x0300_0111,
         &[0x03],
     );
-    // Priority: the docking report beats the LED command a concurrent operator might send.
-    assert!(0x0200_0111 < 0x0D11_1000);
+    // Priority: the docking report beats an LED command sent at the same moment.
+    let dock = Packet::report(s, Message::DockDetected { port: port(3) })
+        .encode()
+        .0;
+    let led = Packet::command(
+        s,
+        Message::LedSet {
+            seq: 1,
+            cmd: LedCommand::Off,
+        },
+    )
+    .encode()
+    .0;
+    assert!(dock < led);
 }
 
 #[test]
