@@ -1,5 +1,5 @@
 //! The channels and signals between the tasks: one event channel into the node task, latest-value
-//! signals out of it to the actuator tasks, bounded queues to the CAN and UART transmitters.
+//! signals out of it to the LED and buzzer tasks, bounded queues to the CAN and UART transmitters.
 
 use embassy_sync::blocking_mutex::raw::CriticalSectionRawMutex;
 use embassy_sync::channel::Channel;
@@ -67,5 +67,5 @@ pub static FILTERS: Signal<Mutex, Option<NodeId>> = Signal::new();
 pub static LED: Signal<Mutex, LedOutput> = Signal::new();
 /// Buzzer setting.
 pub static BUZZER: Signal<Mutex, BuzzerOutput> = Signal::new();
-/// Relay setting (true = dock powered).
-pub static RELAY: Signal<Mutex, bool> = Signal::new();
+/// The CAN receive task installed the filters asked for through [`FILTERS`].
+pub static FILTERS_DONE: Signal<Mutex, ()> = Signal::new();

@@ -162,7 +162,6 @@ async fn main(spawner: Spawner) {
 
     let status_led = Output::new(b.status_led, Level::Low, Speed::Low);
     spawner.spawn(unwrap!(tasks::watchdog::watchdog(p.IWDG, status_led)));
-    spawner.spawn(unwrap!(tasks::relay::relay(relay, board::RELAY_ACTIVE_LOW)));
     spawner.spawn(unwrap!(tasks::led::led(rgb, gate)));
     spawner.spawn(unwrap!(tasks::buzzer::buzzer(buzzer)));
     spawner.spawn(unwrap!(tasks::can::can_rx(can_rx)));
@@ -176,5 +175,6 @@ async fn main(spawner: Spawner) {
             port, pin, active_low
         )));
     }
-    spawner.spawn(unwrap!(tasks::node::node(node, flash, role)));
+    let relay = tasks::relay::Relay::new(relay, board::RELAY_ACTIVE_LOW);
+    spawner.spawn(unwrap!(tasks::node::node(node, flash, relay, role)));
 }

@@ -12,7 +12,7 @@ use embassy_time::Timer;
 
 use super::watchdog::{beat, Beat};
 use crate::can::{apply_filters, banks_for, rx_frame, status, verify_filters};
-use crate::event::{Event, CAN_TX, EVENTS, FILTERS};
+use crate::event::{Event, CAN_TX, EVENTS, FILTERS, FILTERS_DONE};
 
 /// Error counter poll period.
 pub const STATUS_POLL_MS: u64 = 100;
@@ -29,6 +29,7 @@ pub async fn can_rx(mut rx: CanRx<'static>) {
                     Ok(n) => {
                         info!("CAN filters for {}: {} bank(s)", own, n);
                         verify_filters(&banks);
+                        FILTERS_DONE.signal(());
                     }
                     Err(e) => warn!("can filters not applied: {}", e),
                 },

@@ -4,17 +4,20 @@
 use defmt::{info, warn};
 use embassy_futures::select::{select, Either};
 use embassy_stm32::flash::{Blocking, Flash};
-use embassy_time::{Instant, Timer};
+use embassy_time::{with_timeout, Duration, Instant, Timer};
 use ihex_proto::BootRole;
 use ihex_sc_core::{Millis, Node, Output};
 
+use super::relay::Relay;
 use super::watchdog::{beat, Beat};
 use crate::config;
-use crate::event::{Event, BUZZER, CAN_TX, EVENTS, FILTERS, LED, RELAY, UART_TX};
+use crate::event::{Event, BUZZER, CAN_TX, EVENTS, FILTERS, FILTERS_DONE, LED, UART_TX};
 use crate::record::Record;
 
 /// Longest sleep between two passes (keeps the heartbeat going when the core has no timer pending).
 pub const MAX_SLEEP_MS: u64 = 100;
+/// How long to wait for the CAN receive task to reinstall the filters before sending on.
+pub const FILTER_WAIT_MS: u64 = 100;
 
 /// Milliseconds since boot, the core's clock.
 pub fn now() -> Millis {
@@ -23,12 +26,16 @@ pub fn now() -> Millis {
 
 /// Runs the node forever.
 #[embassy_executor::task]
-pub async fn node(mut node: Node, mut flash: Flash<'static, Blocking>, role: BootRole) {
+pub async fn node(
+    mut node: Node,
+    mut flash: Flash<'static, Blocking>,
+    mut relay: Relay,
+    role: BootRole,
+) {
     let mut dropped_frames = 0u32;
-    // The core starts with the relay off, LED dark and buzzer silent; publish that state once so the
-    // actuator tasks never run on defaults of their own.
-    publish(&mut node, true);
-    drain(&mut node, &mut flash, role, &mut dropped_frames);
+    // The core reports its actuators as changed on the first call after `Node::new`.
+    publish(&mut node, &mut relay);
+    drain(&mut node, &mut flash, role, &mut dropped_frames).await;
     loop {
         let t = now();
         let wake = match node.poll_at() {
@@ -59,21 +66,27 @@ pub async fn node(mut node: Node, mut flash: Flash<'static, Blocking>, role: Boo
             node.tick(now());
         }
         beat(Beat::Node as usize);
-        drain(&mut node, &mut flash, role, &mut dropped_frames);
-        publish(&mut node, false);
+        // Actuators first: the relay must be off before the DockRemoved that goes with it leaves.
+        publish(&mut node, &mut relay);
+        drain(&mut node, &mut flash, role, &mut dropped_frames).await;
     }
 }
 
-fn publish(node: &mut Node, force: bool) {
-    if node.actuators_changed() || force {
+fn publish(node: &mut Node, relay: &mut Relay) {
+    if node.actuators_changed() {
         let a = node.actuators();
+        relay.set(a.relay);
         LED.signal(a.led);
         BUZZER.signal(a.buzzer);
-        RELAY.signal(a.relay);
     }
 }
 
-fn drain(node: &mut Node, flash: &mut Flash<'static, Blocking>, role: BootRole, dropped: &mut u32) {
+async fn drain(
+    node: &mut Node,
+    flash: &mut Flash<'static, Blocking>,
+    role: BootRole,
+    dropped: &mut u32,
+) {
     while let Some(out) = node.poll_output() {
         match out {
             Output::Frame(p) => {
@@ -100,7 +113,18 @@ fn drain(node: &mut Node, flash: &mut Flash<'static, Blocking>, role: BootRole, 
                     }
                 }
             }
-            Output::FiltersChanged => FILTERS.signal(node.node_id()),
+            Output::FiltersChanged => {
+                // The frames queued after this one are sent from the new ID: install its filters
+                // first so that the answers to them are not filtered out.
+                FILTERS_DONE.reset();
+                FILTERS.signal(node.node_id());
+                if with_timeout(Duration::from_millis(FILTER_WAIT_MS), FILTERS_DONE.wait())
+                    .await
+                    .is_err()
+                {
+                    warn!("CAN filters not confirmed within {} ms", FILTER_WAIT_MS);
+                }
+            }
         }
     }
 }
