@@ -182,9 +182,9 @@ fn check(map: &PinMap) -> Vec<String> {
         if let Some(line) = s.exti {
             if pin_number(&s.pin) != Some(line) {
                 errors.push(format!(
-                    "`{n}`: EXTI line of {} is {:?}, not {line}",
+                    "`{n}`: the EXTI line of {} is {}, not {line}",
                     s.pin,
-                    pin_number(&s.pin)
+                    pin_number(&s.pin).map_or("-".to_string(), |l| l.to_string())
                 ));
             }
             if let Some(other) = exti_used.insert(line, n) {
@@ -205,9 +205,9 @@ fn check(map: &PinMap) -> Vec<String> {
 
     for &(name, periph, func, dir, exti) in EXPECTED {
         let Some(s) = map.signal.iter().find(|s| s.name == name) else {
+            let what = func.map_or(periph.to_string(), |f| format!("{periph}_{f}"));
             errors.push(format!(
-                "signal `{name}` ({periph} {}) is missing; sc-fw needs it",
-                func.unwrap_or("GPIO")
+                "signal `{name}` ({what}) is missing; sc-fw needs it"
             ));
             continue;
         };
@@ -255,8 +255,8 @@ fn check_af(errors: &mut Vec<String>, name: &str, pin: &str, periph: &str, func:
     match here {
         Some(pp) if pp.af == Some(af) => {}
         Some(pp) => errors.push(format!(
-            "`{name}`: {periph}_{func} on {pin} is AF{:?}, not AF{af}",
-            pp.af
+            "`{name}`: {periph}_{func} on {pin} is AF{}, not AF{af}",
+            pp.af.map_or("-".to_string(), |a| a.to_string())
         )),
         None => {
             let alts: Vec<String> = p

@@ -16,10 +16,10 @@ echo "ok   hw/pinmap.toml builds"
 
 # name | python expression turning the text `s` into the broken variant | expected message
 cases=(
-  "wrong AF|s.replace('pin = \"PB15\"\nperipheral = \"TIM15\"\nfunction = \"CH2\"\naf = 1', 'pin = \"PB15\"\nperipheral = \"TIM15\"\nfunction = \"CH2\"\naf = 2')|TIM15_CH2 on PB15 is AF"
+  "wrong AF|s.replace('pin = \"PB15\"\nperipheral = \"TIM15\"\nfunction = \"CH2\"\naf = 1', 'pin = \"PB15\"\nperipheral = \"TIM15\"\nfunction = \"CH2\"\naf = 2')|TIM15_CH2 on PB15 is AF1, not AF2"
   "pin without that function|s.replace('pin = \"PA6\"', 'pin = \"PB5\"', 1)|cannot be TIM3_CH1"
   "pin used twice|s.replace('pin = \"PB15\"', 'pin = \"PA3\"').replace('function = \"CH2\"\naf = 1', 'function = \"CH2\"\naf = 9')|is already used by"
-  "missing signal|s.replace('name = \"relay\"', 'name = \"relay_old\"')|signal \`relay\` (GPIO GPIO) is missing"
+  "missing signal|s.replace('name = \"relay\"', 'name = \"relay_old\"')|signal \`relay\` (GPIO) is missing"
   "EXTI line mismatch|s.replace('exti = 5', 'exti = 4')|EXTI line"
   "wrong peripheral for a signal|s.replace('peripheral = \"TIM3\"\nfunction = \"CH1\"\naf = 2', 'peripheral = \"TIM16\"\nfunction = \"CH1\"\naf = 1')|but sc-fw drives it as TIM3 CH1"
 )
