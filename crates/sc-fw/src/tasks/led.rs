@@ -43,10 +43,10 @@ fn apply(rgb: &mut SimplePwm<'static, TIM1>, gate: &mut SimplePwm<'static, TIM3>
         Some((period_ms, on_pct)) => {
             gate.set_period_ms(period_ms.clamp(MIN_BLINK_MS, MAX_BLINK_MS) as u32);
             gate.ch1().set_duty_cycle_percent(on_pct.min(100));
-            // Reload and compare registers are preloaded: the update event loads the new period and
-            // duty at once, instead of after the old period ran out (up to a minute).
-            embassy_stm32::pac::TIM3.egr().write(|w| w.set_ug(true));
         }
     }
+    // Reload and compare registers are preloaded: the update event loads the new period and duty at
+    // once, instead of after the old blink period ran out (up to a minute).
+    embassy_stm32::pac::TIM3.egr().write(|w| w.set_ug(true));
     gate.ch1().enable();
 }
