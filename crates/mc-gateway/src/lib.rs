@@ -35,3 +35,5 @@ pub mod topic;
 pub use config::Config;
 pub use error::GatewayError;
 pub use run::{run, run_with_stats};
+/// The shutdown signal [`run`] takes (re-exported so callers need no direct `tokio-util` dependency).
+pub use tokio_util::sync::CancellationToken;

@@ -31,13 +31,14 @@ pub enum LogError {
     Init(String),
 }
 
-/// The filter directives: the configured ones, with the embedded broker's chatter turned down
-/// unless the configuration mentions it.
+/// The filter directives: the configured ones, with the embedded broker silenced unless the
+/// configuration mentions it (rumqttd logs every client disconnect, our readiness probe included,
+/// as an error).
 fn directives(cfg: &LogConfig) -> String {
     if cfg.filter.contains("rumqttd") {
         cfg.filter.clone()
     } else {
-        format!("{},rumqttd=warn", cfg.filter)
+        format!("{},rumqttd=off", cfg.filter)
     }
 }
 
@@ -99,7 +100,7 @@ mod tests {
             rotation: Rotation::Never,
             filter: "info".into(),
         };
-        assert_eq!(directives(&cfg), "info,rumqttd=warn");
+        assert_eq!(directives(&cfg), "info,rumqttd=off");
         cfg.filter = "debug,rumqttd=info".into();
         assert_eq!(directives(&cfg), "debug,rumqttd=info");
         cfg.filter = "info,[".into();

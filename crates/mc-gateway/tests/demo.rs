@@ -1,0 +1,175 @@
+//! The embedded demo in-process: embedded rumqttd broker + simulated island on the in-memory bus,
+//! driven by a real MQTT client. (The SocketCAN end-to-end tests are in `tests/tests/gateway_*.rs`.)
+#![cfg(feature = "embedded-broker")]
+
+use std::{net::TcpListener, time::Duration};
+
+use mc_gateway::{
+    config::{Cli, FileConfig},
+    error::BrokerError,
+    CancellationToken, Config, GatewayError,
+};
+use rumqttc::{AsyncClient, Event, Incoming, MqttOptions, QoS};
+use serde_json::Value;
+use tokio::sync::mpsc;
+
+const WAIT: Duration = Duration::from_secs(20);
+
+fn free_port() -> u16 {
+    TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+fn demo_config(port: u16) -> Config {
+    let cli = Cli {
+        broker_listen: Some(format!("127.0.0.1:{port}")),
+        health_period_ms: Some(200),
+        log_dir: Some("-".into()),
+        ..Cli::default()
+    };
+    let c = Config::resolve(cli, FileConfig::default()).unwrap();
+    assert!(c.is_demo());
+    c
+}
+
+/// A client subscribed to everything, forwarding (topic, payload).
+fn client(port: u16, name: &str) -> (AsyncClient, mpsc::UnboundedReceiver<(String, Vec<u8>)>) {
+    let mut o = MqttOptions::new(name, "127.0.0.1", port);
+    o.set_keep_alive(Duration::from_secs(5));
+    let (c, mut el) = AsyncClient::new(o, 32);
+    let (tx, rx) = mpsc::unbounded_channel();
+    let sub = c.clone();
+    tokio::spawn(async move {
+        loop {
+            match el.poll().await {
+                Ok(Event::Incoming(Incoming::ConnAck(_))) => {
+                    let _ = sub.try_subscribe("#", QoS::AtLeastOnce);
+                }
+                Ok(Event::Incoming(Incoming::Publish(p))) => {
+                    if tx.send((p.topic, p.payload.to_vec())).is_err() {
+                        return;
+                    }
+                }
+                Ok(_) => {}
+                Err(_) => tokio::time::sleep(Duration::from_millis(50)).await,
+            }
+        }
+    });
+    (c, rx)
+}
+
+async fn expect(
+    rx: &mut mpsc::UnboundedReceiver<(String, Vec<u8>)>,
+    what: &str,
+    pred: impl Fn(&str, &[u8]) -> bool,
+) -> Vec<u8> {
+    let fut = async {
+        while let Some((t, p)) = rx.recv().await {
+            if pred(&t, &p) {
+                return p;
+            }
+        }
+        panic!("client stopped");
+    };
+    tokio::time::timeout(WAIT, fut)
+        .await
+        .unwrap_or_else(|_| panic!("timed out waiting for {what}"))
+}
+
+fn event(p: &[u8]) -> Value {
+    serde_json::from_slice(p).unwrap_or(Value::Null)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_demo_answers_commands_docks_and_says_goodbye() {
+    let port = free_port();
+    let stop = CancellationToken::new();
+    let gw = tokio::spawn(mc_gateway::run(demo_config(port), stop.clone()));
+    // run() returns only after the broker accepts connections; the client retries until then.
+    let (c, mut rx) = client(port, "demo-test");
+    expect(&mut rx, "online", |t, p| {
+        t == "ihex/gateway/availability" && p == b"online"
+    })
+    .await;
+    // The island booted before this client connected: its retained state tells.
+    expect(&mut rx, "node 111 online", |t, p| {
+        t == "ihex/node/111/state" && event(p)["online"] == true
+    })
+    .await;
+
+    c.publish(
+        "CommandsTopic",
+        QoS::AtLeastOnce,
+        false,
+        r#"{"cmd":"led","node":"111","color":"red","request_id":"r1"}"#,
+    )
+    .await
+    .unwrap();
+    let r = expect(&mut rx, "command_result", |t, p| {
+        t == "EventsTopic" && event(p)["payload"]["request_id"] == "r1"
+    })
+    .await;
+    assert_eq!(
+        event(&r)["payload"]["result"],
+        "ok",
+        "{}",
+        String::from_utf8_lossy(&r)
+    );
+    expect(&mut rx, "111's retained state turns red", |t, p| {
+        t == "ihex/node/111/state" && event(p)["led"]["color"] == "#ff0000"
+    })
+    .await;
+
+    c.publish(
+        "ihex/sim",
+        QoS::AtLeastOnce,
+        false,
+        r#"{"sim":"dock","mobile":"3","static":"112","port":2}"#,
+    )
+    .await
+    .unwrap();
+    let d = expect(&mut rx, "new_connection", |t, p| {
+        t == "EventsTopic"
+            && event(p)["event"] == "new_connection"
+            && event(p)["payload"]["n"]["id"] == "3"
+    })
+    .await;
+    let want: Value = serde_json::from_str(
+        r#"{"event": "new_connection", "payload": {"n": {"id": "3", "port": 1}, "n-1": {"id": "112", "port": 2}}}"#,
+    )
+    .unwrap();
+    assert_eq!(event(&d), want);
+
+    c.publish("CommandsTopic", QoS::AtLeastOnce, false, "{not json")
+        .await
+        .unwrap();
+    expect(&mut rx, "command_rejected", |t, p| {
+        t == "EventsTopic" && event(p)["event"] == "command_rejected"
+    })
+    .await;
+
+    stop.cancel();
+    tokio::time::timeout(WAIT, gw)
+        .await
+        .expect("gateway stops")
+        .unwrap()
+        .expect("clean exit");
+    expect(&mut rx, "offline", |t, p| {
+        t == "ihex/gateway/availability" && p == b"offline"
+    })
+    .await;
+}
+
+#[tokio::test]
+async fn a_taken_broker_port_is_a_clear_error() {
+    let taken = TcpListener::bind("127.0.0.1:0").unwrap();
+    let port = taken.local_addr().unwrap().port();
+    let r = mc_gateway::run(demo_config(port), CancellationToken::new()).await;
+    match r {
+        Err(GatewayError::Broker(BrokerError::Bind { addr, .. })) => assert_eq!(addr.port(), port),
+        other => panic!("expected a bind error, got {other:?}"),
+    }
+}
