@@ -1,0 +1,6 @@
+#!/usr/bin/env bash
+# Builds the Cortex-M4 test binary and runs it in QEMU mps2-an386; exits with its status.
+# Needs qemu-system-arm (Debian: qemu-system-arm). Usage: crates/sc-fw/mcu-tests/run.sh
+set -euo pipefail
+cd "$(dirname "$0")"
+exec timeout 300 "${CARGO:-cargo}" run --release

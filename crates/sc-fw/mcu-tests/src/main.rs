@@ -1,0 +1,301 @@
+//! The SC core's behaviour and the firmware's pure modules, executed on the Cortex-M4 instruction set
+//! (QEMU mps2-an386, `thumbv7em-none-eabihf`, hard float, overflow checks on).
+//!
+//! The host tests prove the logic; this binary proves that the same code, compiled exactly as for the
+//! firmware's target, behaves the same on the real instruction set (32-bit `usize`, Thumb-2 codegen,
+//! u64 arithmetic on a 32-bit core). Each check prints `ok`/`FAIL` over semihosting; the exit status
+//! is the verdict.
+#![no_std]
+#![no_main]
+
+#[path = "../../src/bank.rs"]
+mod bank;
+#[path = "../../src/record.rs"]
+mod record;
+
+use cortex_m_rt::entry;
+use cortex_m_semihosting::{debug, hprintln};
+use ihex_proto::filter::{sc_filters, to_bxcan};
+use ihex_proto::{AckResult, BootRole, Kind, Message, NodeId, Packet, Port, ResetReason, Uid};
+use ihex_sc_core::{Config, Millis, Node, Output, DEBOUNCE_MS};
+
+struct Suite {
+    passed: u32,
+    failed: u32,
+}
+
+impl Suite {
+    fn check(&mut self, name: &str, ok: bool) {
+        if ok {
+            self.passed += 1;
+            hprintln!("ok   {}", name);
+        } else {
+            self.failed += 1;
+            hprintln!("FAIL {}", name);
+        }
+    }
+}
+
+fn id(raw: u16) -> NodeId {
+    NodeId::new_sc(raw).expect("valid SC id")
+}
+
+fn port(raw: u8) -> Port {
+    Port::new(raw).expect("valid port")
+}
+
+fn config(node_id: Option<NodeId>, role: BootRole) -> Config {
+    Config {
+        role,
+        ports: 6,
+        uid: Uid([1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12]),
+        node_id,
+        reset: ResetReason::PowerOn,
+    }
+}
+
+type Outs = heapless::Vec<Output, 32>;
+
+fn drain(n: &mut Node) -> Outs {
+    let mut v = Outs::new();
+    while let Some(o) = n.poll_output() {
+        let _ = v.push(o);
+    }
+    v
+}
+
+/// Delivers a packet as the CAN receive task would (encoded, then raw id + data).
+fn deliver(n: &mut Node, p: Packet, t: u64) -> Outs {
+    let (raw_id, data) = p.encode();
+    n.handle_frame(raw_id, true, false, &data, Millis(t));
+    drain(n)
+}
+
+fn has_frame(outs: &Outs, want: &Packet) -> bool {
+    outs.iter()
+        .any(|o| matches!(o, Output::Frame(p) if p == want))
+}
+
+/// Runs timers up to `t` as the node task does (tick whenever the core's deadline is due).
+fn run_until(n: &mut Node, t: u64) -> Outs {
+    let mut all = Outs::new();
+    while let Some(at) = n.poll_at() {
+        if at.0 > t {
+            break;
+        }
+        n.tick(at);
+        for o in drain(n) {
+            let _ = all.push(o);
+        }
+    }
+    n.tick(Millis(t));
+    for o in drain(n) {
+        let _ = all.push(o);
+    }
+    all
+}
+
+fn static_node(s: &mut Suite) {
+    let own = id(0x111);
+    let mut n = Node::new(config(Some(own), BootRole::Static), Millis(0));
+    s.check("first actuators_changed after new", n.actuators_changed());
+    s.check("relay off at boot", !n.actuators().relay);
+    let boot = Packet::report(
+        own,
+        Message::BootUp {
+            version: ihex_proto::PROTOCOL_VERSION,
+            role: BootRole::Static,
+            ports: 6,
+            reset: ResetReason::PowerOn,
+        },
+    );
+    let outs = drain(&mut n);
+    s.check(
+        "BootUp announced from the stored ID",
+        has_frame(&outs, &boot),
+    );
+
+    let outs = deliver(
+        &mut n,
+        Packet::command(own, Message::HealthCheck { seq: 7 }),
+        10,
+    );
+    let health = outs.iter().any(|o| {
+        matches!(o, Output::Frame(Packet { src, dest, msg: Message::HealthReply(h) })
+            if *src == own && *dest == NodeId::GATEWAY && h.seq == 7)
+    });
+    s.check("HealthCheck answered with HealthReply seq 7", health);
+
+    let outs = deliver(
+        &mut n,
+        Packet::command(id(0x112), Message::HealthCheck { seq: 8 }),
+        20,
+    );
+    s.check("a command for another node is ignored", outs.is_empty());
+
+    // Docking on port 3: debounced detect, confirm -> relay on, debounced open -> relay off + removed.
+    n.handle_loop_level(port(3), true, Millis(1_000));
+    let early = drain(&mut n);
+    s.check("no DockDetected before the debounce time", early.is_empty());
+    let outs = run_until(&mut n, 1_000 + DEBOUNCE_MS);
+    let detected = Packet::report(own, Message::DockDetected { port: port(3) });
+    s.check(
+        "DockDetected after DEBOUNCE_MS",
+        has_frame(&outs, &detected),
+    );
+    s.check("relay still off after detection", !n.actuators().relay);
+
+    let outs = deliver(
+        &mut n,
+        Packet::command(
+            own,
+            Message::DockConfirm {
+                seq: 9,
+                port: port(3),
+            },
+        ),
+        1_100,
+    );
+    let acked = outs.iter().any(|o| {
+        matches!(
+            o,
+            Output::Frame(Packet {
+                msg: Message::Ack {
+                    kind: Kind::DockConfirm,
+                    seq: 9,
+                    result: AckResult::Ok,
+                    ..
+                },
+                ..
+            })
+        )
+    });
+    s.check("DockConfirm acknowledged Ok", acked);
+    s.check("relay on after DockConfirm", n.actuators().relay);
+
+    n.handle_loop_level(port(3), false, Millis(2_000));
+    let _ = drain(&mut n);
+    s.check(
+        "relay stays on until the open loop is debounced",
+        n.actuators().relay,
+    );
+    let outs = run_until(&mut n, 2_000 + DEBOUNCE_MS);
+    let removed = Packet::report(own, Message::DockRemoved { port: port(3) });
+    s.check(
+        "DockRemoved after the debounced open",
+        has_frame(&outs, &removed),
+    );
+    s.check("relay off after undocking", !n.actuators().relay);
+}
+
+fn unconfigured_node_gets_id_over_uart(s: &mut Suite) {
+    let mut n = Node::new(config(None, BootRole::Static), Millis(0));
+    let outs = run_until(&mut n, 500);
+    s.check(
+        "unconfigured node stays silent",
+        !outs.iter().any(|o| matches!(o, Output::Frame(_))),
+    );
+    s.check("unconfigured node has no ID", n.node_id().is_none());
+
+    n.handle_uart_byte(0xA1, Millis(600));
+    n.handle_uart_byte(0x22, Millis(601));
+    let outs = drain(&mut n);
+    let new = id(0x122);
+    s.check(
+        "UART set-ID asks to store it",
+        outs.iter().any(|o| *o == Output::StoreId(new)),
+    );
+    s.check(
+        "UART set-ID asks for new filters",
+        outs.iter().any(|o| *o == Output::FiltersChanged),
+    );
+    s.check(
+        "UART set-ID replies 51 22",
+        outs.iter().any(|o| *o == Output::Uart([0x51, 0x22])),
+    );
+    s.check(
+        "BootUp from the new ID",
+        outs.iter().any(|o| matches!(o, Output::Frame(Packet { src, msg: Message::BootUp { .. }, .. }) if *src == new)),
+    );
+    s.check("the new ID is in force at once", n.node_id() == Some(new));
+
+    n.handle_uart_byte(0x00, Millis(700));
+    let outs = drain(&mut n);
+    s.check(
+        "a stray byte is answered Malformed (E0 02)",
+        outs.iter().any(|o| *o == Output::Uart([0xE0, 0x02])),
+    );
+}
+
+fn firmware_modules(s: &mut Suite) {
+    s.check(
+        "CRC-32 check value",
+        record::crc32(b"123456789") == 0xCBF4_3926,
+    );
+    let mut all = true;
+    for raw in (0x001..=0xFFD).step_by(7) {
+        let r = record::Record {
+            node_id: id(raw),
+            role: BootRole::Mobile,
+        };
+        all &= record::Record::decode(&r.encode()) == Ok(r);
+    }
+    s.check("flash record round trip", all);
+    s.check(
+        "erased flash page reads as factory-fresh",
+        record::Record::decode(&[0xFF; record::LEN]) == Err(record::RecordError::Erased),
+    );
+
+    let mut all = true;
+    for raw in 0x001..=0xFFD {
+        for b in to_bxcan(&sc_filters(Some(id(raw))))
+            .expect("sc filters fit bxCAN")
+            .iter()
+        {
+            all &= bank::plan(b).map(|p| bank::registers(&p)) == Ok(bank::bank_registers(b));
+        }
+    }
+    s.check("filter bank plan round trip for every node ID", all);
+
+    let p = Packet::command(
+        id(0x123),
+        Message::DockConfirm {
+            seq: 200,
+            port: port(5),
+        },
+    );
+    let (raw, data) = p.encode();
+    s.check(
+        "packet encode/decode round trip",
+        Packet::decode(raw, &data) == Ok(p),
+    );
+}
+
+#[entry]
+fn main() -> ! {
+    let mut s = Suite {
+        passed: 0,
+        failed: 0,
+    };
+    static_node(&mut s);
+    unconfigured_node_gets_id_over_uart(&mut s);
+    firmware_modules(&mut s);
+    hprintln!(
+        "{} passed, {} failed (Cortex-M4, QEMU mps2-an386)",
+        s.passed,
+        s.failed
+    );
+    debug::exit(if s.failed == 0 {
+        debug::EXIT_SUCCESS
+    } else {
+        debug::EXIT_FAILURE
+    });
+    loop {}
+}
+
+#[panic_handler]
+fn panic(info: &core::panic::PanicInfo) -> ! {
+    hprintln!("PANIC {}", info);
+    debug::exit(debug::EXIT_FAILURE);
+    loop {}
+}
