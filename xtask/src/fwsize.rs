@@ -151,3 +151,140 @@ pub fn report(dir: &Path) -> Result<()> {
     }
     Ok(())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const PROGBITS: u32 = 1;
+    const STRTAB: u32 = 3;
+    const NOBITS: u32 = 8;
+
+    /// A minimal little-endian ELF32 ARM file with the given `(name, type, flags, size)` sections.
+    fn elf(e_type: u16, sections: &[(&str, u32, u32, u32)]) -> Vec<u8> {
+        let mut names = vec![0u8];
+        let mut name_off = Vec::new();
+        for (n, ..) in sections {
+            name_off.push(names.len() as u32);
+            names.extend_from_slice(n.as_bytes());
+            names.push(0);
+        }
+        let shstrtab_name = names.len() as u32;
+        names.extend_from_slice(b".shstrtab\0");
+        // Contents follow the 52-byte header; NOBITS sections take no file space.
+        let mut body = Vec::new();
+        let mut offsets = Vec::new();
+        for (_, ty, _, size) in sections {
+            offsets.push(52 + body.len() as u32);
+            if *ty != NOBITS {
+                body.resize(body.len() + *size as usize, 0);
+            }
+        }
+        let names_off = 52 + body.len() as u32;
+        body.extend_from_slice(&names);
+        while body.len() % 4 != 0 {
+            body.push(0);
+        }
+        let shoff = 52 + body.len() as u32;
+        let shnum = sections.len() as u16 + 2;
+        let mut f = vec![0x7f, b'E', b'L', b'F', 1, 1, 1];
+        f.resize(16, 0);
+        for v in [e_type, 40] {
+            f.extend_from_slice(&v.to_le_bytes());
+        }
+        for v in [1u32, 0x0800_0000, 0, shoff, 0] {
+            f.extend_from_slice(&v.to_le_bytes());
+        }
+        for v in [52u16, 32, 0, 40, shnum, shnum - 1] {
+            f.extend_from_slice(&v.to_le_bytes());
+        }
+        f.extend_from_slice(&body);
+        let mut sh = |words: [u32; 10]| {
+            words
+                .iter()
+                .for_each(|w| f.extend_from_slice(&w.to_le_bytes()))
+        };
+        sh([0; 10]);
+        for (i, (_, ty, flags, size)) in sections.iter().enumerate() {
+            sh([name_off[i], *ty, *flags, 0, offsets[i], *size, 0, 0, 4, 0]);
+        }
+        sh([
+            shstrtab_name,
+            STRTAB,
+            0,
+            0,
+            names_off,
+            names.len() as u32,
+            0,
+            0,
+            1,
+            0,
+        ]);
+        f
+    }
+
+    fn firmware(text: u32, bss: u32) -> Vec<u8> {
+        let ax = (SHF_ALLOC | SHF_EXECINSTR) as u32;
+        let wa = (SHF_ALLOC | SHF_WRITE) as u32;
+        elf(
+            2,
+            &[
+                (".vector_table", PROGBITS, SHF_ALLOC as u32, 404),
+                (".text", PROGBITS, ax, text),
+                (".rodata", PROGBITS, SHF_ALLOC as u32, 100),
+                (".data", PROGBITS, wa, 24),
+                (".bss", NOBITS, wa, bss),
+                (".uninit", NOBITS, wa, 1024),
+                (".defmt", PROGBITS, 0, 77),
+                (".debug_info", PROGBITS, 0, 999),
+            ],
+        )
+    }
+
+    #[test]
+    fn sections_are_summed_by_flags() {
+        let s = sizes(&firmware(1000, 300)).unwrap().expect("an executable");
+        assert_eq!(
+            s,
+            Sizes {
+                text: 1000,
+                rodata: 504,
+                data: 24,
+                bss: 1324
+            }
+        );
+        assert_eq!(s.flash(), 1528);
+        assert_eq!(s.ram(), 1348);
+    }
+
+    #[test]
+    fn relocatable_objects_are_not_firmware() {
+        assert_eq!(sizes(&elf(1, &[(".text", PROGBITS, 6, 10)])).unwrap(), None);
+    }
+
+    #[test]
+    fn report_fails_over_budget_and_on_an_empty_folder() {
+        let dir = std::env::temp_dir().join(format!("xtask-fwsize-{}", std::process::id()));
+        let _ = fs::remove_dir_all(&dir);
+        fs::create_dir_all(&dir).unwrap();
+        assert!(report(&dir)
+            .unwrap_err()
+            .to_string()
+            .contains("no firmware ELF"));
+        fs::write(dir.join("fits"), firmware(30_000, 4_000)).unwrap();
+        fs::write(dir.join("fits.d"), "not an ELF").unwrap();
+        report(&dir).unwrap();
+        fs::write(dir.join("too-big"), firmware(70_000, 4_000)).unwrap();
+        let err = report(&dir).unwrap_err().to_string();
+        assert!(
+            err.contains("too-big: flash") && !err.contains("fits:"),
+            "{err}"
+        );
+        fs::write(dir.join("too-big"), firmware(30_000, 16_000)).unwrap();
+        assert!(report(&dir)
+            .unwrap_err()
+            .to_string()
+            .contains("too-big: static RAM"));
+        fs::remove_dir_all(&dir).unwrap();
+    }
+}

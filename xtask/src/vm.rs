@@ -253,7 +253,8 @@ mount -t proc proc /proc
 mount -t sysfs sysfs /sys
 mount -t devtmpfs devtmpfs /dev 2>/dev/null
 mkdir -p /dev/pts /dev/shm /tmp /run
-mount -t tmpfs tmpfs /tmp
+# No tmpfs over /tmp: the rootfs is already in RAM and payload programs may live under /tmp.
+chmod 1777 /tmp
 mount -t tmpfs tmpfs /dev/shm
 ip link set lo up
 while read -r m; do
@@ -430,7 +431,7 @@ poweroff -f
             .with_context(|| format!("starting {}", self.qemu.display()))?;
         let stdout = child.stdout.take().expect("piped");
         let (tx, rx) = mpsc::channel();
-        let reader = std::thread::spawn(move || console(stdout, tx));
+        let reader = std::thread::spawn(move || console(stdout, std::io::stdout(), tx));
         let deadline = start + self.timeout;
         let mut codes: Vec<Option<i32>> = vec![None; expected];
         let mut booted = false;
@@ -489,9 +490,8 @@ enum Event {
     Exit(usize, i32),
 }
 
-/// Copies the console to stdout as it comes and reports the markers.
-fn console(mut from: impl Read, tx: mpsc::Sender<Event>) {
-    let mut out = std::io::stdout();
+/// Copies the console to `out` as it comes and reports the markers.
+fn console(mut from: impl Read, mut out: impl Write, tx: mpsc::Sender<Event>) {
     let mut line = Vec::new();
     let mut buf = [0u8; 8192];
     loop {
@@ -667,13 +667,19 @@ mod tests {
             }
         }
         let (tx, rx) = mpsc::channel();
+        let mut shown = Vec::new();
         console(
             Chunks(vec![
                 b"boot\r\n@@ihex-vm re",
                 b"ady\r\n@@ihex-vm exit 1 1",
                 b"01\r\n",
             ]),
+            &mut shown,
             tx,
+        );
+        assert_eq!(
+            shown, b"boot\n@@ihex-vm ready\n@@ihex-vm exit 1 101\n",
+            "console is shown without CRs"
         );
         let events: Vec<Event> = rx.iter().collect();
         assert!(matches!(
