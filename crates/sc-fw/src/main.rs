@@ -82,6 +82,9 @@ async fn main(spawner: Spawner) {
         .set_loopback(false)
         .set_silent(false)
         .set_automatic_retransmit(true);
+    // Mailboxes leave in the order the core queued the frames (its order is part of its contract),
+    // not re-sorted by identifier.
+    can.set_tx_fifo_scheduling(true);
     let banks = unwrap!(sc_can::banks_for(node_id));
     unwrap!(sc_can::apply_filters(&mut can.modify_filters(), &banks));
     can.enable().await;
