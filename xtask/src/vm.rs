@@ -338,6 +338,14 @@ poweroff -f
         c.bytes("init", 0o755, init.as_bytes())?;
         c.finish()?;
         fs::rename(&tmp, &path)?;
+        // Older bases (another kernel, changed modules or init) are dead weight now.
+        for entry in fs::read_dir(&self.cache_dir)?.flatten() {
+            let p = entry.path();
+            let name = entry.file_name().to_string_lossy().into_owned();
+            if p != path && name.starts_with("base-") && name.ends_with(".cpio") {
+                let _ = fs::remove_file(p);
+            }
+        }
         println!("vm: built {} base initramfs {}", self.arch, path.display());
         Ok(path)
     }
@@ -346,7 +354,8 @@ poweroff -f
     /// their exit codes. Fails when the VM hangs past [`Vm::timeout`] or stops before the end.
     pub fn run(&self, payload: &Payload) -> Result<Vec<Outcome>> {
         let initrd = self.initrd(Some(payload))?;
-        let result = self.boot(&initrd, payload.programs.len(), false);
+        let names: Vec<&str> = payload.programs.iter().map(|p| p.name.as_str()).collect();
+        let result = self.boot(&initrd, &names, false);
         let _ = fs::remove_file(&initrd);
         let codes = result?;
         Ok(payload
@@ -363,7 +372,7 @@ poweroff -f
     /// Boots to an interactive shell on this terminal (`poweroff -f` or Ctrl-D leaves).
     pub fn shell(&self) -> Result<()> {
         let initrd = self.initrd(None)?;
-        let result = self.boot(&initrd, 0, true);
+        let result = self.boot(&initrd, &[], true);
         let _ = fs::remove_file(&initrd);
         result.map(|_| ())
     }
@@ -393,7 +402,8 @@ poweroff -f
         Ok(path)
     }
 
-    fn boot(&self, initrd: &Path, expected: usize, interactive: bool) -> Result<Vec<i32>> {
+    fn boot(&self, initrd: &Path, names: &[&str], interactive: bool) -> Result<Vec<i32>> {
+        let expected = names.len();
         let size_mb = fs::metadata(initrd)?.len() >> 20;
         // The initrd is held in memory twice while the kernel unpacks it into its tmpfs.
         let memory = self.memory_mb.max(size_mb * 2 + 512);
@@ -435,6 +445,7 @@ poweroff -f
         let deadline = start + self.timeout;
         let mut codes: Vec<Option<i32>> = vec![None; expected];
         let mut booted = false;
+        let mut running: Option<usize> = None;
         loop {
             let left = deadline.saturating_duration_since(Instant::now());
             match rx.recv_timeout(left) {
@@ -442,7 +453,9 @@ poweroff -f
                     booted = true;
                     println!("vm: booted in {:.1} s", start.elapsed().as_secs_f64());
                 }
+                Ok(Event::Start(i)) => running = Some(i),
                 Ok(Event::Exit(i, code)) => {
+                    running = None;
                     if let Some(slot) = codes.get_mut(i) {
                         *slot = Some(code);
                     }
@@ -453,9 +466,14 @@ poweroff -f
                     let _ = child.wait();
                     let _ = reader.join();
                     let done = codes.iter().filter(|c| c.is_some()).count();
+                    let during = match running.and_then(|i| names.get(i)) {
+                        Some(name) => format!("while running {name}"),
+                        None if booted => "between programs".to_string(),
+                        None => "before /init was ready".to_string(),
+                    };
                     bail!(
-                        "VM timed out after {} s and was killed ({done} of {expected} programs finished); \
-                         raise the limit with --vm-timeout SECS or IHEX_VM_TIMEOUT",
+                        "VM timed out after {} s {during} and was killed ({done} of {expected} programs \
+                         finished); raise the limit with --vm-timeout SECS or IHEX_VM_TIMEOUT",
                         self.timeout.as_secs()
                     );
                 }
@@ -487,6 +505,7 @@ poweroff -f
 
 enum Event {
     Ready,
+    Start(usize),
     Exit(usize, i32),
 }
 
@@ -512,6 +531,7 @@ fn console(mut from: impl Read, mut out: impl Write, tx: mpsc::Sender<Event>) {
                 let words: Vec<&str> = rest.split_whitespace().collect();
                 let event = match words.as_slice() {
                     ["ready"] => Some(Event::Ready),
+                    ["start", i, ..] => i.parse().ok().map(Event::Start),
                     ["exit", i, code] => i
                         .parse()
                         .ok()
@@ -671,20 +691,20 @@ mod tests {
         console(
             Chunks(vec![
                 b"boot\r\n@@ihex-vm re",
-                b"ady\r\n@@ihex-vm exit 1 1",
+                b"ady\r\n@@ihex-vm start 1 some test\r\n@@ihex-vm exit 1 1",
                 b"01\r\n",
             ]),
             &mut shown,
             tx,
         );
         assert_eq!(
-            shown, b"boot\n@@ihex-vm ready\n@@ihex-vm exit 1 101\n",
+            shown, b"boot\n@@ihex-vm ready\n@@ihex-vm start 1 some test\n@@ihex-vm exit 1 101\n",
             "console is shown without CRs"
         );
         let events: Vec<Event> = rx.iter().collect();
         assert!(matches!(
             events.as_slice(),
-            [Event::Ready, Event::Exit(1, 101)]
+            [Event::Ready, Event::Start(1), Event::Exit(1, 101)]
         ));
     }
 
