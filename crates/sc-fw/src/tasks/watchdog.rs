@@ -46,7 +46,9 @@ pub fn beat(slot: usize) {
 #[embassy_executor::task]
 pub async fn watchdog(iwdg: Peri<'static, IWDG>, mut status_led: Output<'static>) {
     // Freeze the IWDG while a debugger halts the core, so stepping through code does not reset it.
-    embassy_stm32::pac::DBGMCU.apb1fzr().modify(|w| w.set_iwdg(true));
+    embassy_stm32::pac::DBGMCU
+        .apb1fzr()
+        .modify(|w| w.set_iwdg(true));
     let mut wdg = IndependentWatchdog::new(iwdg, TIMEOUT_MS * 1_000);
     wdg.unleash();
     let mut last = [0u32; SLOTS];
