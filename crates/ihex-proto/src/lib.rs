@@ -18,7 +18,10 @@
 //! * [`timing`] — bxCAN bit timing from a peripheral clock and a bitrate.
 //! * [`uart`] — the 2-byte node-ID configuration message spoken over the ST-Link virtual COM port.
 //!
-//! The full byte layout of every message is in `docs/protocol.md`.
+//! The full byte layout of every message, the kind table, the address rules, the filter and bit-timing
+//! worked examples and the UART exchange are in `docs/protocol.md` (repository root); every byte
+//! value there is a test in `tests/golden.rs`. Property tests are in `tests/prop.rs`, and a
+//! cargo-fuzz target in `fuzz/` (`cargo +nightly fuzz run decode`).
 #![cfg_attr(not(test), no_std)]
 #![warn(missing_docs)]
 #![forbid(unsafe_code)]

@@ -7,7 +7,7 @@ use ihex_proto::timing::{BitTiming, TimingError};
 use ihex_proto::uart::{UartDecoder, UartError, UartReply, UartRequest};
 use ihex_proto::{
     AckResult, BootRole, BuzzerCommand, DecodeError, DockRefuseReason, FaultCode, HealthFlags,
-    HealthReply, Kind, LedCommand, Message, NodeId, Packet, Port, ResetReason, Rgb,
+    HealthReply, Kind, LedCommand, Message, NodeId, Packet, Port, ResetReason, Rgb, Uid,
 };
 
 /// A minimal `embedded_can::Frame`, standing in for socketcan's and embassy's frame types.
@@ -1016,6 +1016,76 @@ fn docking_sequence_dump() {
     .encode()
     .0;
     assert!(dock < led);
+}
+
+/// The refusal in the docking section of `docs/protocol.md`.
+#[test]
+fn dock_refuse_dump() {
+    let m = Message::DockRefuse {
+        seq: 0x2B,
+        port: port(4),
+        reason: DockRefuseReason::Busy,
+    };
+    golden(
+        Packet::command(node(0x111), m),
+        0x0511_1000,
+        &[0x2B, 0x04, 0x01],
+    );
+}
+
+/// The node-ID assignment example of `docs/protocol.md`.
+#[test]
+fn assignment_sequence_dump() {
+    let uid = Uid([
+        0x30, 0x00, 0x47, 0x00, 0x12, 0x51, 0x33, 0x39, 0x33, 0x38, 0x34, 0x37,
+    ]);
+    let id = node(0x111);
+    golden(
+        Packet::command(
+            ALL,
+            Message::AssignSelect {
+                uid_head: uid.head(),
+            },
+        ),
+        0x08FF_F000,
+        &[0x30, 0x00, 0x47, 0x00, 0x12, 0x51, 0x33, 0x39],
+    );
+    golden(
+        Packet::command(
+            ALL,
+            Message::AssignCommit {
+                uid_tail: uid.tail(),
+                new_id: id,
+                seq: 5,
+            },
+        ),
+        0x09FF_F000,
+        &[0x33, 0x38, 0x34, 0x37, 0x11, 0x01, 0x05],
+    );
+    golden(
+        Packet::report(
+            id,
+            Message::AssignReply {
+                seq: 5,
+                result: AckResult::Ok,
+                new_id: id,
+                uid_tail: uid.tail(),
+            },
+        ),
+        0x0A00_0111,
+        &[0x05, 0x00, 0x11, 0x01, 0x33, 0x38, 0x34, 0x37],
+    );
+    let boot = Message::BootUp {
+        version: ihex_proto::PROTOCOL_VERSION,
+        role: BootRole::Static,
+        ports: 6,
+        reset: ResetReason::PowerOn,
+    };
+    golden(
+        Packet::report(id, boot),
+        0x0B00_0111,
+        &[0x01, 0x00, 0x00, 0x06, 0x00],
+    );
 }
 
 #[test]
