@@ -1,0 +1,135 @@
+//! The physical limit of a classic CAN bus: bit lengths of extended data frames (with and without
+//! worst-case bit stuffing) and the frame rates they allow at a given bitrate.
+//!
+//! An extended data frame with `n` data bytes is, field by field: SOF 1, base ID 11, SRR 1, IDE 1,
+//! extended ID 18, RTR 1, r1 + r0 2, DLC 4, data 8n, CRC 15, CRC delimiter 1, ACK slot 1, ACK
+//! delimiter 1, EOF 7 — 64 + 8n bits — plus the 3-bit interframe space before the next frame can
+//! start: **67 + 8n** bits. Stuffing covers SOF through the CRC (54 + 8n bits); after the first
+//! five equal bits every further four can force one stuff bit, so the worst case adds
+//! **floor((54 + 8n − 1) / 4)** bits. 8 data bytes: 131 bits plain, 160 worst case.
+
+/// Bits from SOF to the end of the CRC sequence (the stuffed region) of an extended frame.
+pub const fn stuffed_region_bits(data_len: u8) -> u32 {
+    54 + 8 * data_len as u32
+}
+
+/// Bits of an extended data frame including the 3-bit interframe space, without stuff bits.
+pub const fn frame_bits(data_len: u8) -> u32 {
+    67 + 8 * data_len as u32
+}
+
+/// The most stuff bits an extended frame with `data_len` bytes can carry.
+pub const fn worst_stuff_bits(data_len: u8) -> u32 {
+    (stuffed_region_bits(data_len) - 1) / 4
+}
+
+/// Bits of an extended data frame with worst-case stuffing, interframe space included.
+pub const fn frame_bits_worst(data_len: u8) -> u32 {
+    frame_bits(data_len) + worst_stuff_bits(data_len)
+}
+
+/// Back-to-back frames per second at `bitrate` for frames of `bits` bits.
+pub fn frames_per_second(bitrate: u32, bits: u32) -> f64 {
+    f64::from(bitrate) / f64::from(bits)
+}
+
+/// The bus's frame-rate limits for one frame size.
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Limit {
+    /// Data bytes per frame.
+    pub data_len: u8,
+    /// Bits per frame without stuffing.
+    pub bits: u32,
+    /// Bits per frame with worst-case stuffing.
+    pub bits_worst: u32,
+    /// Frames per second without stuffing (the best case).
+    pub fps_best: f64,
+    /// Frames per second with worst-case stuffing (what a full bus is guaranteed to carry).
+    pub fps_worst: f64,
+}
+
+impl Limit {
+    /// The limits of frames with `data_len` data bytes at `bitrate`.
+    pub fn new(bitrate: u32, data_len: u8) -> Limit {
+        Limit {
+            data_len,
+            bits: frame_bits(data_len),
+            bits_worst: frame_bits_worst(data_len),
+            fps_best: frames_per_second(bitrate, frame_bits(data_len)),
+            fps_worst: frames_per_second(bitrate, frame_bits_worst(data_len)),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn eight_byte_frame_is_131_bits_plain_and_160_worst() {
+        assert_eq!(frame_bits(8), 131);
+        assert_eq!(worst_stuff_bits(8), 29);
+        assert_eq!(frame_bits_worst(8), 160);
+    }
+
+    #[test]
+    fn empty_frame() {
+        // 53 stuffed-region bits -> 13 stuff bits at most.
+        assert_eq!(frame_bits(0), 67);
+        assert_eq!(frame_bits_worst(0), 80);
+    }
+
+    /// Counts stuff bits of a concrete bit sequence the way a transmitter inserts them.
+    fn stuff_count(bits: &[bool]) -> u32 {
+        let (mut run, mut last, mut stuffed) = (0, None, 0);
+        for &b in bits {
+            if Some(b) == last {
+                run += 1;
+            } else {
+                run = 1;
+                last = Some(b);
+            }
+            if run == 5 {
+                stuffed += 1;
+                // The stuff bit is the complement and starts the next run.
+                last = Some(!b);
+                run = 1;
+            }
+        }
+        stuffed
+    }
+
+    #[test]
+    fn worst_case_formula_matches_the_worst_pattern() {
+        // Worst pattern: 5 equal bits, then runs of 4 that each equal the previous stuff bit.
+        for n in 0..=8u8 {
+            let len = stuffed_region_bits(n) as usize;
+            let mut bits = vec![false; 5];
+            let mut level = true;
+            while bits.len() < len {
+                bits.extend(std::iter::repeat_n(level, 4));
+                level = !level;
+            }
+            bits.truncate(len);
+            assert_eq!(stuff_count(&bits), worst_stuff_bits(n), "n = {n}");
+        }
+    }
+
+    #[test]
+    fn no_pattern_of_a_short_region_beats_the_formula() {
+        // Exhaustive over every 13-bit region: the formula's bound holds for that length.
+        let len = 13;
+        let bound = (len - 1) / 4;
+        for v in 0u32..(1 << len) {
+            let bits: Vec<bool> = (0..len).map(|i| v >> i & 1 == 1).collect();
+            assert!(stuff_count(&bits) <= bound, "{v:013b}");
+        }
+    }
+
+    #[test]
+    fn rates_at_500_kbit() {
+        let l = Limit::new(500_000, 8);
+        assert!((l.fps_best - 3816.79).abs() < 0.01);
+        assert!((l.fps_worst - 3125.0).abs() < 1e-9);
+    }
+}

@@ -1,0 +1,86 @@
+//! Instruction counts of the sans-IO workload under `valgrind --tool=callgrind`: run `n` and `2n`
+//! iterations of each path in child processes of this same binary and take the difference, so
+//! start-up, set-up and exit cancel out.
+
+use std::path::Path;
+use std::process::{Command, Stdio};
+
+use anyhow::{anyhow, bail, Context, Result};
+
+use crate::report::{Callgrind, PathCost};
+
+/// Total instructions (`Ir`) of a callgrind output file (its `summary:` or `totals:` line).
+pub fn total_instructions(out: &str) -> Option<u64> {
+    out.lines()
+        .find_map(|l| {
+            l.strip_prefix("summary:")
+                .or_else(|| l.strip_prefix("totals:"))
+        })
+        .and_then(|v| v.split_whitespace().next()?.parse().ok())
+}
+
+fn measure(exe: &Path, path: &str, n: u64, dir: &Path) -> Result<u64> {
+    let out = dir.join(format!("callgrind.{path}.{n}.{}", std::process::id()));
+    let status = Command::new("valgrind")
+        .args(["--tool=callgrind", "--quiet"])
+        .arg(format!("--callgrind-out-file={}", out.display()))
+        .arg(exe)
+        .args(["workload", "--path", path, "--n", &n.to_string()])
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .status()
+        .context("running valgrind (Debian: apt-get install valgrind)")?;
+    if !status.success() {
+        bail!("valgrind on the {path} workload (n = {n}) failed: {status}");
+    }
+    let text = std::fs::read_to_string(&out).with_context(|| format!("{}", out.display()))?;
+    let _ = std::fs::remove_file(&out);
+    total_instructions(&text).ok_or_else(|| anyhow!("no instruction total in {}", out.display()))
+}
+
+fn path_cost(exe: &Path, path: &str, n: u64, dir: &Path) -> Result<PathCost> {
+    let a = measure(exe, path, n, dir)?;
+    let b = measure(exe, path, 2 * n, dir)?;
+    Ok(PathCost {
+        n,
+        instructions_n: a,
+        instructions_2n: b,
+        per_frame: (b as f64 - a as f64) / n as f64,
+    })
+}
+
+/// Measures both paths with this executable.
+pub fn run(n: u64) -> Result<Callgrind> {
+    let exe = std::env::current_exe()?;
+    let dir = std::env::temp_dir();
+    let can_to_event = path_cost(&exe, "can", n, &dir)?;
+    let again = measure(&exe, "can", n, &dir)?;
+    let command_to_frame = path_cost(&exe, "command", n, &dir)?;
+    Ok(Callgrind {
+        repeatable: again == can_to_event.instructions_n,
+        can_to_event,
+        command_to_frame,
+        binary: format!(
+            "{} ({})",
+            exe.file_name().unwrap_or_default().to_string_lossy(),
+            if cfg!(debug_assertions) {
+                "debug"
+            } else {
+                "release"
+            }
+        ),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn reads_the_summary_line() {
+        let out = "version: 1\ncreator: callgrind-3.19.0\nevents: Ir\nsummary: 1234567\n";
+        assert_eq!(total_instructions(out), Some(1234567));
+        assert_eq!(total_instructions("totals: 42 7\n"), Some(42));
+        assert_eq!(total_instructions("events: Ir\n"), None);
+    }
+}

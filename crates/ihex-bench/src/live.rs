@@ -1,0 +1,1064 @@
+//! The live benchmark: the real `mc-gateway` process between a real SocketCAN interface and a real
+//! Mosquitto broker, driven and observed from outside (a CAN writer/reader and an MQTT client), plus
+//! a bare SocketCAN writer/reader pair measured in the same run as the kernel's own ceiling.
+//!
+//! Everything runs in one place (the microVM, or a host with native vcan) so that all processes
+//! share the same CPUs and clock. Timestamps are taken with [`Instant`] right after a read returns or
+//! right before a write/publish, in this process; the bare pair is timed the same way.
+
+use std::collections::HashSet;
+use std::io::{BufRead, BufReader, Write};
+use std::net::{Ipv4Addr, SocketAddr, TcpListener, TcpStream};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::mpsc::{self, Receiver, SyncSender};
+use std::sync::Arc;
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+
+use anyhow::{anyhow, bail, Context, Result};
+use ihex_proto::{
+    BootRole, HealthFlags, HealthReply, LedCommand, Message, NodeId, Packet, ResetReason,
+};
+use rumqttc::{Client, Event as MqttEvent, MqttOptions, Packet as MqttPacket, QoS};
+use serde::{Deserialize, Serialize};
+use socketcan::{CanFilter, CanFrame, CanSocket, EmbeddedFrame, Socket, SocketOptions};
+
+use crate::bus::Limit;
+use crate::stats::Summary;
+
+/// Bitrate of the island bus.
+pub const BITRATE: u32 = 500_000;
+/// Nodes the benchmark makes known to the gateway (ids 1..=NODES).
+pub const NODES: u16 = 64;
+/// Distinct report indices: node × reset code (`other_4` .. `other_253`).
+const INDEX_SPACE: u32 = NODES as u32 * 250;
+const EFF: u32 = 0x8000_0000;
+const KIND_MASK: u32 = 0x1f << 24;
+const SO_RCVBUFFORCE: i32 = 33;
+const SO_RCVBUF: i32 = 8;
+const SOL_SOCKET: i32 = 1;
+/// Clock ticks per second of `/proc/PID/stat` (USER_HZ, 100 on every Linux architecture we target).
+const USER_HZ: f64 = 100.0;
+
+/// Settings of one live run.
+#[derive(Clone, Debug)]
+pub struct Settings {
+    /// SocketCAN interface (vcan0).
+    pub iface: String,
+    /// The `mc-gateway` binary.
+    pub gateway: PathBuf,
+    /// The `mosquitto` binary (started on a free loopback port).
+    pub mosquitto: PathBuf,
+    /// Latency probes per series.
+    pub probes: usize,
+    /// Seconds of traffic per rate trial.
+    pub trial_secs: f64,
+    /// Commands in the MQTT → CAN rate run.
+    pub commands: usize,
+}
+
+/// One CAN → MQTT rate trial.
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+pub struct Trial {
+    /// Rate asked for, frames/s.
+    pub offered_fps: f64,
+    /// Rate the writer achieved, frames/s.
+    pub sent_fps: f64,
+    /// Frames sent.
+    pub sent: usize,
+    /// Distinct matching events received.
+    pub received: usize,
+    /// Fraction lost (0–1).
+    pub loss: f64,
+    /// Last event after the last frame, ms (a growing backlog shows here before loss does).
+    pub lag_ms: f64,
+    /// Gateway CPU time during the trial, ms.
+    pub gateway_cpu_ms: f64,
+}
+
+impl Trial {
+    /// No loss and no backlog left behind.
+    pub fn sustained(&self) -> bool {
+        self.received == self.sent && self.lag_ms <= 250.0
+    }
+}
+
+/// Bare SocketCAN pair figures.
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+pub struct Bare {
+    /// Writer → reader rate of a burst, frames/s.
+    pub rate_fps: f64,
+    /// Frames of the burst.
+    pub sent: usize,
+    /// Frames the reader got.
+    pub received: usize,
+    /// Round trip writer → echo thread → writer.
+    pub rtt: Summary,
+}
+
+/// Everything the live run measures.
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+pub struct LiveResults {
+    /// Kernel, CPU count and model as seen where the run happened.
+    pub environment: String,
+    /// CPUs online where the run happened.
+    pub cpus: usize,
+    /// The bare SocketCAN pair.
+    pub bare: Bare,
+    /// Every CAN → MQTT trial, in the order run.
+    pub trials: Vec<Trial>,
+    /// Highest sustained CAN → MQTT rate found, frames/s.
+    pub can_to_mqtt_fps: f64,
+    /// The trial at twice that rate.
+    pub at_double: Trial,
+    /// MQTT → CAN: commands published in the burst.
+    pub commands_sent: usize,
+    /// MQTT → CAN: frames seen on the bus.
+    pub commands_delivered: usize,
+    /// MQTT → CAN: delivered commands per second.
+    pub mqtt_to_can_cps: f64,
+    /// Command → frame latency, idle bus.
+    pub cmd_to_frame_idle: Summary,
+    /// Frame → event latency, idle bus.
+    pub frame_to_event_idle: Summary,
+    /// Command → frame latency with the bus at its physical frame rate.
+    pub cmd_to_frame_load: Summary,
+    /// Frame → event latency with the bus at its physical frame rate.
+    pub frame_to_event_load: Summary,
+    /// Background frames per second asked for / achieved during the loaded series.
+    pub load_offered_fps: f64,
+    /// Background frames per second achieved.
+    pub load_sent_fps: f64,
+    /// MQTT publish → own delivery round through the broker (baseline for the added latency).
+    pub mqtt_loop: Summary,
+    /// Gateway CPU ms per 1,000 CAN → event frames.
+    pub cpu_ms_per_1k_reports: f64,
+    /// Gateway CPU ms per 1,000 commands → frames.
+    pub cpu_ms_per_1k_commands: f64,
+    /// Gateway CPU ms per 1,000 background frames it reads and drops or records (no event).
+    pub cpu_ms_per_1k_background: f64,
+    /// Gateway peak resident memory, KiB (VmHWM).
+    pub gateway_vmhwm_kib: u64,
+    /// Gateway resident memory at the end, KiB (VmRSS).
+    pub gateway_vmrss_kib: u64,
+    /// Bus limits of the report frame (BootUp) and of the background frame (HealthReply).
+    pub limit_report: Limit,
+    /// Bus limit of the background frame.
+    pub limit_background: Limit,
+    /// Bus limit of the command frame (LedSet).
+    pub limit_command: Limit,
+    /// Notes about the run (fallbacks taken, anomalies).
+    pub notes: Vec<String>,
+}
+
+// ---------------------------------------------------------------------------------------------
+// CAN side
+
+fn open_can(iface: &str, notes: &mut Vec<String>) -> Result<CanSocket> {
+    let s =
+        CanSocket::open(iface).with_context(|| format!("opening SocketCAN interface {iface}"))?;
+    let size: i32 = 8 << 20;
+    if s.set_socket_option_int(SOL_SOCKET, SO_RCVBUFFORCE, size)
+        .is_err()
+    {
+        let _ = s.set_socket_option_int(SOL_SOCKET, SO_RCVBUF, size);
+        let note = "bench sockets: SO_RCVBUFFORCE refused (not root), used SO_RCVBUF".to_string();
+        if !notes.contains(&note) {
+            notes.push(note);
+        }
+    }
+    Ok(s)
+}
+
+fn kind_filter(kind_of: &Packet) -> CanFilter {
+    let (id, _) = kind_of.encode();
+    CanFilter::new(EFF | (id & KIND_MASK), EFF | KIND_MASK)
+}
+
+fn frame(p: &Packet) -> Result<CanFrame> {
+    p.to_frame::<CanFrame>()
+        .ok_or_else(|| anyhow!("packet {p:?} does not fit a frame"))
+}
+
+fn write(s: &CanSocket, f: &CanFrame) -> Result<()> {
+    loop {
+        match s.write_frame(f) {
+            Ok(()) => return Ok(()),
+            // ENOBUFS: the queue is full for a moment; vcan drains it at once.
+            Err(e) if e.raw_os_error() == Some(105) => {
+                std::thread::sleep(Duration::from_micros(50))
+            }
+            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+            Err(e) => return Err(e).context("writing a CAN frame"),
+        }
+    }
+}
+
+fn node(i: u32) -> NodeId {
+    NodeId::new(1 + (i % u32::from(NODES)) as u16).expect("1..=NODES are SC ids")
+}
+
+/// The `BootUp` report of index `i` (node and reset code carry the index).
+fn report(i: u32) -> Packet {
+    let i = i % INDEX_SPACE;
+    Packet::report(
+        node(i),
+        Message::BootUp {
+            version: (1, 0),
+            role: BootRole::Static,
+            ports: 6,
+            reset: ResetReason::Other(4 + (i / u32::from(NODES)) as u8),
+        },
+    )
+}
+
+/// Index of a `node_rebooted` event, or `None` for other events.
+fn report_index(event: &serde_json::Value) -> Option<u32> {
+    if event["event"] != "node_rebooted" {
+        return None;
+    }
+    let p = &event["payload"];
+    let id = u32::from_str_radix(p["id"].as_str()?, 16).ok()?;
+    let code: u32 = p["reset"].as_str()?.strip_prefix("other_")?.parse().ok()?;
+    (1..=u32::from(NODES)).contains(&id).then_some(())?;
+    Some((code.checked_sub(4)?) * u32::from(NODES) + (id - 1))
+}
+
+fn background(i: u32) -> Packet {
+    Packet::report(
+        node(i),
+        Message::HealthReply(HealthReply {
+            seq: 0,
+            flags: HealthFlags(0),
+            loops: 0,
+            tec: 0,
+            rec: 0,
+            uptime_s: 100,
+        }),
+    )
+}
+
+/// The LedSet frame of command `i`'s colour, as an index.
+fn led_index(p: &Packet) -> Option<u32> {
+    match p.msg {
+        Message::LedSet {
+            cmd: LedCommand::Steady { color, .. },
+            ..
+        } => Some(u32::from(color.r) | u32::from(color.g) << 8),
+        _ => None,
+    }
+}
+
+fn led_command(i: u32) -> String {
+    format!(
+        r#"{{"cmd":"led","node":"{}","color":[{},{},0]}}"#,
+        node(i),
+        i & 0xff,
+        i >> 8 & 0xff
+    )
+}
+
+/// Sends `count` frames made by `make` at `rate` frames/s; returns (sent, seconds taken).
+fn paced(
+    s: &CanSocket,
+    count: usize,
+    rate: f64,
+    stop: Option<&AtomicBool>,
+    mut make: impl FnMut(u32) -> Result<CanFrame>,
+) -> Result<(usize, f64)> {
+    let t0 = Instant::now();
+    let mut sent = 0usize;
+    while sent < count {
+        if stop.is_some_and(|s| s.load(Ordering::Relaxed)) {
+            break;
+        }
+        let due = t0 + Duration::from_secs_f64(sent as f64 / rate);
+        let now = Instant::now();
+        if due > now {
+            // Sleep, never spin: the gateway may share this CPU.
+            std::thread::sleep(due - now);
+        }
+        // Catch up with every frame already due (timer granularity makes small bursts).
+        let due_now = ((t0.elapsed().as_secs_f64() * rate) as usize + 1).min(count);
+        while sent < due_now {
+            write(s, &make(sent as u32)?)?;
+            sent += 1;
+        }
+    }
+    Ok((sent, t0.elapsed().as_secs_f64()))
+}
+
+fn bare_pair(iface: &str, n: usize, rounds: usize, notes: &mut Vec<String>) -> Result<Bare> {
+    let probe = report(0);
+    let rx = open_can(iface, notes)?;
+    rx.set_filters(&[kind_filter(&probe)])?;
+    let tx = open_can(iface, notes)?;
+    let f = frame(&probe)?;
+    let reader = std::thread::spawn(move || -> (usize, Option<Instant>) {
+        let mut got = 0;
+        let mut last = None;
+        while got < n {
+            match rx.read_frame_timeout(Duration::from_secs(2)) {
+                Ok(_) => {
+                    got += 1;
+                    last = Some(Instant::now());
+                }
+                Err(_) => break,
+            }
+        }
+        (got, last)
+    });
+    let t0 = Instant::now();
+    for _ in 0..n {
+        write(&tx, &f)?;
+    }
+    let (received, last) = reader.join().map_err(|_| anyhow!("bare reader panicked"))?;
+    let secs = last.map_or(f64::INFINITY, |l| (l - t0).as_secs_f64());
+    let rate_fps = received as f64 / secs;
+
+    // Round trip: writer -> echo thread (other kind) -> writer.
+    let echo_in = frame(&background(0))?;
+    let echo_out = frame(&report(1))?;
+    let a = open_can(iface, notes)?;
+    a.set_filters(&[kind_filter(&report(1))])?;
+    let b = open_can(iface, notes)?;
+    b.set_filters(&[kind_filter(&background(0))])?;
+    let echo = std::thread::spawn(move || {
+        for _ in 0..rounds {
+            if b.read_frame_timeout(Duration::from_secs(2)).is_err() {
+                return;
+            }
+            let _ = b.write_frame(&echo_out);
+        }
+    });
+    let mut rtt = Vec::with_capacity(rounds);
+    for _ in 0..rounds {
+        let t = Instant::now();
+        write(&a, &echo_in)?;
+        if a.read_frame_timeout(Duration::from_secs(2)).is_err() {
+            notes.push("bare RTT: an echo did not come back within 2 s".into());
+            break;
+        }
+        rtt.push(t.elapsed().as_secs_f64() * 1e6);
+    }
+    let _ = echo.join();
+    Ok(Bare {
+        rate_fps,
+        sent: n,
+        received,
+        rtt: Summary::of(rtt),
+    })
+}
+
+// ---------------------------------------------------------------------------------------------
+// MQTT side
+
+struct Mqtt {
+    client: Client,
+    rx: Receiver<(Instant, String, Vec<u8>)>,
+    overflow: Arc<AtomicU64>,
+    _thread: JoinHandle<()>,
+}
+
+impl Mqtt {
+    fn connect(addr: SocketAddr, topics: &[&str]) -> Result<Mqtt> {
+        let mut o = MqttOptions::new(
+            format!("ihex-bench-{}", std::process::id()),
+            addr.ip().to_string(),
+            addr.port(),
+        );
+        o.set_keep_alive(Duration::from_secs(30))
+            .set_clean_session(true)
+            .set_inflight(1000)
+            .set_max_packet_size(1 << 20, 1 << 20);
+        let (client, mut conn) = Client::new(o, 4096);
+        let mut net = conn.eventloop.network_options();
+        net.set_tcp_nodelay(true);
+        conn.eventloop.set_network_options(net);
+        for t in topics {
+            client.subscribe(*t, QoS::AtLeastOnce)?;
+        }
+        let (tx, rx): (SyncSender<_>, _) = mpsc::sync_channel(1 << 18);
+        let overflow = Arc::new(AtomicU64::new(0));
+        let of = overflow.clone();
+        let thread = std::thread::spawn(move || {
+            for ev in conn.iter() {
+                match ev {
+                    Ok(MqttEvent::Incoming(MqttPacket::Publish(p))) => {
+                        let item = (Instant::now(), p.topic.clone(), p.payload.to_vec());
+                        if let Err(mpsc::TrySendError::Full(_)) = tx.try_send(item) {
+                            of.fetch_add(1, Ordering::Relaxed);
+                        }
+                    }
+                    Ok(_) => {}
+                    Err(_) => std::thread::sleep(Duration::from_millis(100)),
+                }
+            }
+        });
+        Ok(Mqtt {
+            client,
+            rx,
+            overflow,
+            _thread: thread,
+        })
+    }
+
+    fn drain(&self) {
+        while self.rx.try_recv().is_ok() {}
+    }
+
+    /// The next event on `EventsTopic`, parsed.
+    fn next_event(&self, timeout: Duration) -> Option<(Instant, serde_json::Value)> {
+        let deadline = Instant::now() + timeout;
+        loop {
+            let left = deadline.checked_duration_since(Instant::now())?;
+            let (t, topic, payload) = self.rx.recv_timeout(left).ok()?;
+            if topic == "EventsTopic" {
+                if let Ok(v) = serde_json::from_slice(&payload) {
+                    return Some((t, v));
+                }
+            }
+        }
+    }
+
+    fn wait_topic(&self, topic: &str, payload: &[u8], timeout: Duration) -> bool {
+        let deadline = Instant::now() + timeout;
+        loop {
+            let Some(left) = deadline.checked_duration_since(Instant::now()) else {
+                return false;
+            };
+            match self.rx.recv_timeout(left) {
+                Ok((_, t, p)) if t == topic && p == payload => return true,
+                Ok(_) => {}
+                Err(_) => return false,
+            }
+        }
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Processes
+
+struct Proc {
+    child: Child,
+    name: &'static str,
+}
+
+impl Drop for Proc {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+impl Proc {
+    fn pid(&self) -> u32 {
+        self.child.id()
+    }
+
+    fn check_alive(&mut self) -> Result<()> {
+        if let Some(status) = self.child.try_wait()? {
+            bail!("{} exited during the benchmark ({status})", self.name);
+        }
+        Ok(())
+    }
+}
+
+fn free_port() -> Result<u16> {
+    Ok(TcpListener::bind((Ipv4Addr::LOCALHOST, 0))?
+        .local_addr()?
+        .port())
+}
+
+fn start_mosquitto(bin: &Path, dir: &Path) -> Result<(Proc, SocketAddr)> {
+    let port = free_port()?;
+    let addr = SocketAddr::from((Ipv4Addr::LOCALHOST, port));
+    let conf = dir.join("mosquitto.conf");
+    // Unlimited queues: a slow subscriber must not turn into broker-side loss we would blame on
+    // the gateway.
+    std::fs::write(
+        &conf,
+        format!(
+            "listener {port} 127.0.0.1\nallow_anonymous true\npersistence false\nuser root\n\
+             max_queued_messages 0\nmax_inflight_messages 0\nlog_dest stderr\nlog_type error\n"
+        ),
+    )?;
+    let child = Command::new(bin)
+        .arg("-c")
+        .arg(&conf)
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .spawn()
+        .with_context(|| format!("starting {}", bin.display()))?;
+    let mut p = Proc {
+        child,
+        name: "mosquitto",
+    };
+    let deadline = Instant::now() + Duration::from_secs(20);
+    while TcpStream::connect_timeout(&addr, Duration::from_millis(200)).is_err() {
+        p.check_alive()?;
+        if Instant::now() > deadline {
+            bail!("mosquitto did not listen on {addr} within 20 s");
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    Ok((p, addr))
+}
+
+fn start_gateway(bin: &Path, iface: &str, broker: SocketAddr, dir: &Path) -> Result<Proc> {
+    let log = std::fs::File::create(dir.join("gateway.log"))?;
+    let child = Command::new(bin)
+        .args(["--can", iface, "--broker", &broker.to_string()])
+        // No health checks during the run: silent nodes would be declared lost, and a lost node's
+        // BootUp is `node_online`, not `node_rebooted`. No command timeouts either (no acks here).
+        .args([
+            "--health-period-ms",
+            "3600000",
+            "--command-timeout-ms",
+            "3600000",
+        ])
+        .args(["--log-dir", "-", "--log", "warn"])
+        .stdin(Stdio::null())
+        .stdout(log.try_clone()?)
+        .stderr(log)
+        .spawn()
+        .with_context(|| format!("starting {}", bin.display()))?;
+    Ok(Proc {
+        child,
+        name: "mc-gateway",
+    })
+}
+
+/// utime + stime of `pid`, ms.
+fn cpu_ms(pid: u32) -> Result<f64> {
+    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat"))?;
+    // Fields after the parenthesised command name; utime and stime are fields 14 and 15.
+    let rest = stat
+        .rsplit_once(')')
+        .map(|(_, r)| r)
+        .ok_or_else(|| anyhow!("odd /proc/{pid}/stat"))?;
+    let f: Vec<&str> = rest.split_whitespace().collect();
+    let ticks: f64 = f[11].parse::<f64>()? + f[12].parse::<f64>()?;
+    Ok(ticks * 1000.0 / USER_HZ)
+}
+
+/// `VmHWM` and `VmRSS` of `pid`, KiB.
+fn memory_kib(pid: u32) -> Result<(u64, u64)> {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status"))?;
+    let field = |name: &str| -> u64 {
+        status
+            .lines()
+            .find_map(|l| l.strip_prefix(name))
+            .and_then(|v| v.split_whitespace().next()?.parse().ok())
+            .unwrap_or(0)
+    };
+    Ok((field("VmHWM:"), field("VmRSS:")))
+}
+
+// ---------------------------------------------------------------------------------------------
+// The run
+
+struct Bench {
+    s: Settings,
+    can: CanSocket,
+    mqtt: Mqtt,
+    gw: Proc,
+    next_index: u32,
+    notes: Vec<String>,
+}
+
+impl Bench {
+    /// Collects distinct report indices in `want` until all came or nothing came for `quiet`.
+    fn collect(&self, want: &HashSet<u32>, quiet: Duration) -> (usize, Option<Instant>) {
+        let mut got = HashSet::new();
+        let mut last = None;
+        while got.len() < want.len() {
+            let Some((t, v)) = self.mqtt.next_event(quiet) else {
+                break;
+            };
+            if let Some(i) = report_index(&v) {
+                if want.contains(&i) && got.insert(i) {
+                    last = Some(t);
+                }
+            }
+        }
+        (got.len(), last)
+    }
+
+    fn trial(&mut self, rate: f64) -> Result<Trial> {
+        let count = ((rate * self.s.trial_secs) as usize).clamp(200, INDEX_SPACE as usize - 1);
+        self.mqtt.drain();
+        let base = self.next_index;
+        self.next_index = (self.next_index + count as u32) % INDEX_SPACE;
+        let want: HashSet<u32> = (0..count as u32)
+            .map(|k| (base + k) % INDEX_SPACE)
+            .collect();
+        let cpu0 = cpu_ms(self.gw.pid())?;
+        let (sent, secs) = paced(&self.can, count, rate, None, |k| frame(&report(base + k)))?;
+        let t_end = Instant::now();
+        let (received, last) = self.collect(&want, Duration::from_secs(2));
+        let cpu1 = cpu_ms(self.gw.pid())?;
+        self.gw.check_alive()?;
+        let t = Trial {
+            offered_fps: rate,
+            sent_fps: sent as f64 / secs,
+            sent,
+            received,
+            loss: 1.0 - received as f64 / sent as f64,
+            lag_ms: last.map_or(f64::NAN, |l| {
+                l.saturating_duration_since(t_end).as_secs_f64() * 1e3
+            }),
+            gateway_cpu_ms: cpu1 - cpu0,
+        };
+        println!(
+            "bench: CAN->MQTT {:>8.0} fps offered, {:>8.0} sent, {}/{} events, lag {:.0} ms{}",
+            t.offered_fps,
+            t.sent_fps,
+            t.received,
+            t.sent,
+            t.lag_ms,
+            if t.sustained() {
+                ""
+            } else {
+                "  (not sustained)"
+            }
+        );
+        // Let any backlog clear before the next trial.
+        std::thread::sleep(Duration::from_millis(300));
+        Ok(t)
+    }
+
+    /// Steps the rate up by doubling, then bisects between the last sustained and the first failed.
+    fn search(&mut self, start: f64, ceiling: f64) -> Result<(f64, Vec<Trial>)> {
+        let mut trials = Vec::new();
+        let (mut good, mut bad) = (0.0f64, f64::NAN);
+        let mut r = start;
+        while r <= ceiling * 2.0 {
+            let t = self.trial(r)?;
+            let ok = t.sustained();
+            trials.push(t);
+            if ok {
+                good = r;
+                r *= 2.0;
+            } else {
+                bad = r;
+                break;
+            }
+        }
+        if bad.is_finite() {
+            for _ in 0..4 {
+                let mid = (good + bad) / 2.0;
+                if good > 0.0 && (bad - good) / good < 0.1 {
+                    break;
+                }
+                let t = self.trial(mid)?;
+                let ok = t.sustained();
+                trials.push(t);
+                if ok {
+                    good = mid;
+                } else {
+                    bad = mid;
+                }
+            }
+        }
+        Ok((good, trials))
+    }
+
+    fn frame_to_event(&mut self, probes: usize) -> Result<Summary> {
+        let mut lat = Vec::with_capacity(probes);
+        let mut missed = 0;
+        for _ in 0..probes {
+            self.mqtt.drain();
+            let i = self.next_index;
+            self.next_index = (self.next_index + 1) % INDEX_SPACE;
+            let f = frame(&report(i))?;
+            let t0 = Instant::now();
+            write(&self.can, &f)?;
+            let deadline = t0 + Duration::from_secs(2);
+            loop {
+                let left = deadline.saturating_duration_since(Instant::now());
+                match self.mqtt.next_event(left) {
+                    Some((t, v)) if report_index(&v) == Some(i) => {
+                        lat.push((t - t0).as_secs_f64() * 1e6);
+                        break;
+                    }
+                    Some(_) => {}
+                    None => {
+                        missed += 1;
+                        break;
+                    }
+                }
+            }
+            std::thread::sleep(Duration::from_millis(3));
+        }
+        if missed > 0 {
+            self.notes.push(format!(
+                "frame->event: {missed} of {probes} probes got no event in 2 s"
+            ));
+        }
+        Ok(Summary::of(lat))
+    }
+
+    fn cmd_to_frame(&mut self, probes: usize) -> Result<Summary> {
+        let rx = open_can(&self.s.iface, &mut self.notes)?;
+        rx.set_filters(&[kind_filter(&Packet::command(
+            node(0),
+            Message::LedSet {
+                seq: 0,
+                cmd: LedCommand::Off,
+            },
+        ))])?;
+        let mut lat = Vec::with_capacity(probes);
+        let mut missed = 0;
+        for k in 0..probes as u32 {
+            // Colour indices 0..probes; different from the rate run's, which are all taken by now.
+            let payload = led_command(k);
+            let t0 = Instant::now();
+            self.mqtt
+                .client
+                .publish("CommandsTopic", QoS::AtLeastOnce, false, payload)?;
+            let deadline = t0 + Duration::from_secs(2);
+            loop {
+                let left = deadline.saturating_duration_since(Instant::now());
+                if left.is_zero() {
+                    missed += 1;
+                    break;
+                }
+                match rx.read_frame_timeout(left) {
+                    Ok(f) => {
+                        let t = Instant::now();
+                        if Packet::from_frame(&f).ok().as_ref().and_then(led_index) == Some(k) {
+                            lat.push((t - t0).as_secs_f64() * 1e6);
+                            break;
+                        }
+                    }
+                    Err(_) => {
+                        missed += 1;
+                        break;
+                    }
+                }
+            }
+            std::thread::sleep(Duration::from_millis(3));
+        }
+        if missed > 0 {
+            self.notes.push(format!(
+                "cmd->frame: {missed} of {probes} probes got no frame in 2 s"
+            ));
+        }
+        Ok(Summary::of(lat))
+    }
+
+    fn command_rate(&mut self, n: usize) -> Result<(usize, f64, f64)> {
+        let rx = open_can(&self.s.iface, &mut self.notes)?;
+        rx.set_filters(&[kind_filter(&Packet::command(
+            node(0),
+            Message::LedSet {
+                seq: 0,
+                cmd: LedCommand::Off,
+            },
+        ))])?;
+        let reader = std::thread::spawn(move || -> (usize, Option<Instant>) {
+            let (mut got, mut last) = (0, None);
+            while got < n {
+                match rx.read_frame_timeout(Duration::from_secs(3)) {
+                    Ok(_) => {
+                        got += 1;
+                        last = Some(Instant::now());
+                    }
+                    Err(_) => break,
+                }
+            }
+            (got, last)
+        });
+        let cpu0 = cpu_ms(self.gw.pid())?;
+        let t0 = Instant::now();
+        for k in 0..n as u32 {
+            // Indices above the latency probes' range.
+            self.mqtt.client.publish(
+                "CommandsTopic",
+                QoS::AtLeastOnce,
+                false,
+                led_command(20_000 + k),
+            )?;
+        }
+        let (got, last) = reader
+            .join()
+            .map_err(|_| anyhow!("command reader panicked"))?;
+        let cpu1 = cpu_ms(self.gw.pid())?;
+        let secs = last.map_or(f64::INFINITY, |l| (l - t0).as_secs_f64());
+        println!("bench: MQTT->CAN {got}/{n} commands as frames in {secs:.2} s");
+        Ok((
+            got,
+            got as f64 / secs,
+            (cpu1 - cpu0) * 1000.0 / got.max(1) as f64,
+        ))
+    }
+
+    /// Runs `f` while a background thread fills the bus with `HealthReply` frames at `rate`.
+    fn under_load<T>(
+        &mut self,
+        rate: f64,
+        f: impl FnOnce(&mut Self) -> Result<T>,
+    ) -> Result<(T, f64, f64)> {
+        let stop = Arc::new(AtomicBool::new(false));
+        let s = open_can(&self.s.iface, &mut self.notes)?;
+        let st = stop.clone();
+        let gen = std::thread::spawn(move || {
+            paced(&s, usize::MAX, rate, Some(&st), |k| frame(&background(k)))
+        });
+        // Let the load settle before measuring.
+        std::thread::sleep(Duration::from_millis(500));
+        let cpu0 = cpu_ms(self.gw.pid())?;
+        let t0 = Instant::now();
+        let out = f(self);
+        stop.store(true, Ordering::Relaxed);
+        let (sent, secs) = gen
+            .join()
+            .map_err(|_| anyhow!("load generator panicked"))??;
+        let cpu = cpu_ms(self.gw.pid())? - cpu0;
+        let during = t0.elapsed().as_secs_f64();
+        let sent_fps = sent as f64 / secs;
+        let bg_frames = sent_fps * during;
+        Ok((out?, sent_fps, cpu * 1000.0 / bg_frames.max(1.0)))
+    }
+
+    fn mqtt_loop(&mut self, probes: usize) -> Result<Summary> {
+        let mut lat = Vec::with_capacity(probes);
+        for k in 0..probes {
+            self.mqtt.drain();
+            let payload = format!("loop-{k}");
+            let t0 = Instant::now();
+            self.mqtt.client.publish(
+                "ihex-bench/loop",
+                QoS::AtLeastOnce,
+                false,
+                payload.clone(),
+            )?;
+            if self.mqtt.wait_topic(
+                "ihex-bench/loop",
+                payload.as_bytes(),
+                Duration::from_secs(2),
+            ) {
+                lat.push(t0.elapsed().as_secs_f64() * 1e6);
+            }
+            std::thread::sleep(Duration::from_millis(2));
+        }
+        Ok(Summary::of(lat))
+    }
+}
+
+fn environment() -> (String, usize) {
+    let kernel = std::fs::read_to_string("/proc/sys/kernel/osrelease").unwrap_or_default();
+    let cpuinfo = std::fs::read_to_string("/proc/cpuinfo").unwrap_or_default();
+    let model = cpuinfo
+        .lines()
+        .find_map(|l| l.strip_prefix("model name"))
+        .map(|m| m.trim_start_matches([' ', '\t', ':']).to_string())
+        .unwrap_or_else(|| "unknown CPU".into());
+    let cpus = std::thread::available_parallelism().map_or(1, |n| n.get());
+    (
+        format!("Linux {}, {cpus} CPU(s), {model}", kernel.trim()),
+        cpus,
+    )
+}
+
+/// Runs the whole live benchmark.
+pub fn run(s: Settings) -> Result<LiveResults> {
+    let (environment, cpus) = environment();
+    println!("bench: {environment}");
+    let mut notes = Vec::new();
+    let dir = std::env::temp_dir().join(format!("ihex-bench-{}", std::process::id()));
+    std::fs::create_dir_all(&dir)?;
+
+    println!("bench: bare SocketCAN pair on {}", s.iface);
+    let bare = bare_pair(&s.iface, 20_000, s.probes.max(200), &mut notes)?;
+    println!(
+        "bench: bare pair {:.0} fps ({}/{}), RTT p50 {:.0} us",
+        bare.rate_fps, bare.received, bare.sent, bare.rtt.p50_us
+    );
+
+    let (_broker, addr) = start_mosquitto(&s.mosquitto, &dir)?;
+    let mqtt = Mqtt::connect(
+        addr,
+        &[
+            "EventsTopic",
+            "ihex/gateway/availability",
+            "ihex-bench/loop",
+        ],
+    )?;
+    let gw = start_gateway(&s.gateway, &s.iface, addr, &dir)?;
+    if !mqtt.wait_topic(
+        "ihex/gateway/availability",
+        b"online",
+        Duration::from_secs(60),
+    ) {
+        bail!(
+            "the gateway did not come online within 60 s; its log: {}",
+            std::fs::read_to_string(dir.join("gateway.log")).unwrap_or_default()
+        );
+    }
+    let can = open_can(&s.iface, &mut notes)?;
+    let mut b = Bench {
+        s: s.clone(),
+        can,
+        mqtt,
+        gw,
+        next_index: 0,
+        notes,
+    };
+
+    // Make the nodes known: their first BootUp is `node_online`, every later one `node_rebooted`.
+    for i in 0..u32::from(NODES) {
+        write(&b.can, &frame(&report(i))?)?;
+    }
+    let mut online = 0;
+    while online < NODES {
+        match b.mqtt.next_event(Duration::from_secs(10)) {
+            Some((_, v)) if v["event"] == "node_online" => online += 1,
+            Some(_) => {}
+            None => bail!("only {online} of {NODES} nodes came online at the gateway"),
+        }
+    }
+    std::thread::sleep(Duration::from_millis(500));
+    b.next_index = u32::from(NODES);
+
+    println!("bench: latency at idle");
+    let mqtt_loop = b.mqtt_loop(s.probes)?;
+    let frame_to_event_idle = b.frame_to_event(s.probes)?;
+    let cmd_to_frame_idle = b.cmd_to_frame(s.probes)?;
+
+    println!("bench: CAN->MQTT rate search");
+    let ceiling = bare.rate_fps.max(1000.0);
+    let (best, mut trials) = b.search(250.0, ceiling)?;
+    let at_double = if best > 0.0 {
+        b.trial(best * 2.0)?
+    } else {
+        Trial::default()
+    };
+    // Cost: a dedicated run at 80 % of the sustained rate.
+    let cost_rate = (best * 0.8).max(100.0);
+    let cost = b.trial(cost_rate)?;
+    let cpu_ms_per_1k_reports = cost.gateway_cpu_ms * 1000.0 / cost.received.max(1) as f64;
+    trials.push(cost);
+
+    println!("bench: MQTT->CAN rate");
+    let (delivered, cps, cpu_ms_per_1k_commands) = b.command_rate(s.commands)?;
+
+    let limit_background = Limit::new(BITRATE, frame(&background(0))?.data().len() as u8);
+    let load_rate = limit_background.fps_worst;
+    println!("bench: latency with the bus at {load_rate:.0} background frames/s");
+    let ((frame_to_event_load, cmd_to_frame_load), load_sent_fps, cpu_ms_per_1k_background) = b
+        .under_load(load_rate, |b| {
+            let f = b.frame_to_event(s.probes)?;
+            let c = b.cmd_to_frame(s.probes)?;
+            Ok((f, c))
+        })?;
+
+    b.gw.check_alive()?;
+    let (hwm, rss) = memory_kib(b.gw.pid())?;
+    let overflow = b.mqtt.overflow.load(Ordering::Relaxed);
+    if overflow > 0 {
+        b.notes.push(format!(
+            "bench MQTT receive queue overflowed {overflow} times"
+        ));
+    }
+    let r = LiveResults {
+        environment,
+        cpus,
+        bare,
+        trials,
+        can_to_mqtt_fps: best,
+        at_double,
+        commands_sent: s.commands,
+        commands_delivered: delivered,
+        mqtt_to_can_cps: cps,
+        cmd_to_frame_idle,
+        frame_to_event_idle,
+        cmd_to_frame_load,
+        frame_to_event_load,
+        load_offered_fps: load_rate,
+        load_sent_fps,
+        mqtt_loop,
+        cpu_ms_per_1k_reports,
+        cpu_ms_per_1k_commands,
+        cpu_ms_per_1k_background,
+        gateway_vmhwm_kib: hwm,
+        gateway_vmrss_kib: rss,
+        limit_report: Limit::new(BITRATE, frame(&report(0))?.data().len() as u8),
+        limit_background,
+        limit_command: Limit::new(BITRATE, 8),
+        notes: b.notes.clone(),
+    };
+    let _ = std::fs::remove_dir_all(&dir);
+    Ok(r)
+}
+
+/// Sends the results as one JSON line to `addr` (the host's `cargo xtask bench` listening).
+pub fn send(results: &LiveResults, addr: &str) -> Result<()> {
+    let mut s = TcpStream::connect(addr).with_context(|| format!("connecting to {addr}"))?;
+    let mut line = serde_json::to_vec(results)?;
+    line.push(b'\n');
+    s.write_all(&line)?;
+    s.flush()?;
+    Ok(())
+}
+
+/// Reads one JSON line of results from an accepted connection.
+pub fn receive(stream: TcpStream) -> Result<LiveResults> {
+    let mut line = String::new();
+    BufReader::new(stream).read_line(&mut line)?;
+    serde_json::from_str(&line).context("parsing the live results")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn report_index_round_trips_through_the_event_json() {
+        for i in [0, 1, 63, 64, 1000, INDEX_SPACE - 1] {
+            let p = report(i);
+            let Message::BootUp { reset, .. } = p.msg else {
+                unreachable!()
+            };
+            let ResetReason::Other(code) = reset else {
+                panic!("index {i} must use an unknown reset code")
+            };
+            let ev = serde_json::json!({"event": "node_rebooted", "payload": {
+                "id": p.src.to_string(), "reset": format!("other_{code}"), "version": "1.0", "role": "static"}});
+            assert_eq!(report_index(&ev), Some(i));
+        }
+        let other = serde_json::json!({"event": "node_online", "payload": {"id": "1"}});
+        assert_eq!(report_index(&other), None);
+    }
+
+    #[test]
+    fn led_index_matches_the_command_colour() {
+        let p = Packet::command(
+            node(3),
+            Message::LedSet {
+                seq: 0,
+                cmd: LedCommand::Steady {
+                    color: ihex_proto::Rgb {
+                        r: 0x34,
+                        g: 0x12,
+                        b: 0,
+                    },
+                    brightness: 255,
+                },
+            },
+        );
+        assert_eq!(led_index(&p), Some(0x1234));
+        assert!(led_command(0x1234).contains("[52,18,0]"));
+    }
+
+    #[test]
+    fn cpu_and_memory_of_this_process_are_readable() {
+        let pid = std::process::id();
+        assert!(cpu_ms(pid).unwrap() >= 0.0);
+        let (hwm, rss) = memory_kib(pid).unwrap();
+        assert!(hwm >= rss && rss > 0);
+    }
+}

@@ -1,0 +1,171 @@
+//! `ihex-bench`: the benchmark programs `cargo xtask bench` runs (live over SocketCAN + Mosquitto,
+//! the callgrind workload) and the report it prints. See docs/benchmarks.md.
+
+use std::path::PathBuf;
+
+use anyhow::{Context, Result};
+use clap::{Parser, Subcommand, ValueEnum};
+use ihex_bench::{callgrind, live, report, workload};
+
+#[derive(Parser)]
+#[command(
+    name = "ihex-bench",
+    about = "iHEX gateway benchmarks (run through `cargo xtask bench`)"
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Cmd,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum WorkPath {
+    /// CAN report -> event JSON.
+    Can,
+    /// JSON command -> frame.
+    Command,
+}
+
+#[derive(Subcommand)]
+enum Cmd {
+    /// The live benchmark: mc-gateway between SocketCAN and a Mosquitto it starts.
+    Live {
+        /// SocketCAN interface.
+        #[arg(long, default_value = "vcan0")]
+        iface: String,
+        /// The mc-gateway binary.
+        #[arg(long)]
+        gateway: PathBuf,
+        /// The mosquitto binary.
+        #[arg(long, default_value = "/usr/sbin/mosquitto")]
+        mosquitto: PathBuf,
+        /// Latency probes per series.
+        #[arg(long, default_value_t = 300)]
+        probes: usize,
+        /// Seconds of traffic per rate trial.
+        #[arg(long, default_value_t = 2.0)]
+        trial_secs: f64,
+        /// Commands in the MQTT -> CAN rate run.
+        #[arg(long, default_value_t = 4000)]
+        commands: usize,
+        /// Send the results as a JSON line to this TCP address (the host's xtask).
+        #[arg(long)]
+        report: Option<String>,
+        /// Write the results to this file.
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
+    /// Drive the sans-IO bridge over a fixed workload (run under callgrind).
+    Workload {
+        /// Which path.
+        #[arg(long, value_enum)]
+        path: WorkPath,
+        /// Iterations.
+        #[arg(long)]
+        n: u32,
+    },
+    /// Instruction counts of both workload paths under valgrind: (I(2n) - I(n)) / n.
+    Callgrind {
+        /// Iterations of the short run.
+        #[arg(long, default_value_t = 2000)]
+        n: u64,
+        /// Write the figures (JSON) here.
+        #[arg(long)]
+        out: PathBuf,
+    },
+    /// Combine live.json, callgrind.json and firmware.json of DIR into results.json, the plots and
+    /// the table.
+    Report {
+        /// Folder with the parts (target/bench).
+        #[arg(long)]
+        dir: PathBuf,
+        /// Where the live part ran.
+        #[arg(long, default_value = "unknown machine")]
+        machine: String,
+    },
+}
+
+fn main() -> Result<()> {
+    match Cli::parse().command {
+        Cmd::Live {
+            iface,
+            gateway,
+            mosquitto,
+            probes,
+            trial_secs,
+            commands,
+            report,
+            out,
+        } => {
+            let r = live::run(live::Settings {
+                iface,
+                gateway,
+                mosquitto,
+                probes,
+                trial_secs,
+                commands,
+            })?;
+            if let Some(out) = out {
+                std::fs::write(&out, serde_json::to_vec_pretty(&r)?)?;
+            }
+            if let Some(addr) = report {
+                live::send(&r, &addr)?;
+            }
+            println!(
+                "{}",
+                report::table(&report::Results {
+                    machine: "this machine".into(),
+                    live: Some(r),
+                    ..Default::default()
+                })
+            );
+        }
+        Cmd::Workload { path, n } => {
+            let p = match path {
+                WorkPath::Can => workload::Path::CanToEvent,
+                WorkPath::Command => workload::Path::CommandToFrame,
+            };
+            let out = workload::run(p, n);
+            println!("{out:?}");
+        }
+        Cmd::Callgrind { n, out } => {
+            let c = callgrind::run(n)?;
+            std::fs::write(&out, serde_json::to_vec_pretty(&c)?)?;
+        }
+        Cmd::Report { dir, machine } => {
+            let read = |name: &str| -> Option<Vec<u8>> { std::fs::read(dir.join(name)).ok() };
+            let mut r = report::Results {
+                machine,
+                ..Default::default()
+            };
+            match read("live.json") {
+                Some(b) => r.live = Some(serde_json::from_slice(&b).context("live.json")?),
+                None => r.missing.push("live benchmark (no live.json)".into()),
+            }
+            match read("callgrind.json") {
+                Some(b) => {
+                    r.callgrind = Some(serde_json::from_slice(&b).context("callgrind.json")?)
+                }
+                None => r
+                    .missing
+                    .push("instruction counts (no callgrind.json)".into()),
+            }
+            match read("firmware.json") {
+                Some(b) => r.firmware = Some(serde_json::from_slice(&b).context("firmware.json")?),
+                None => r.missing.push("firmware sizes (no firmware.json)".into()),
+            }
+            if let Some(b) = read("missing.json") {
+                let more: Vec<String> = serde_json::from_slice(&b).context("missing.json")?;
+                r.missing.extend(more);
+            }
+            if let Some(l) = &r.live {
+                std::fs::write(dir.join("latency.svg"), report::latency_svg(l))?;
+                std::fs::write(dir.join("rate.svg"), report::rate_svg(l))?;
+            }
+            std::fs::write(dir.join("results.json"), serde_json::to_vec_pretty(&r)?)?;
+            let t = report::table(&r);
+            std::fs::write(dir.join("table.txt"), &t)?;
+            println!("{t}");
+        }
+    }
+    Ok(())
+}

@@ -1,0 +1,505 @@
+//! The combined results file (`results.json`), the short table printed at the end of a run, and
+//! two hand-written SVG plots (latency distribution, offered rate vs loss).
+
+use std::fmt::Write as _;
+
+use serde::{Deserialize, Serialize};
+
+use crate::live::{LiveResults, Trial};
+use crate::stats::Summary;
+
+/// Instructions per bridged frame on one path.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct PathCost {
+    /// Frames (or commands) of the short run.
+    pub n: u64,
+    /// Instructions of the run with `n`.
+    pub instructions_n: u64,
+    /// Instructions of the run with `2n`.
+    pub instructions_2n: u64,
+    /// (I(2n) − I(n)) / n.
+    pub per_frame: f64,
+}
+
+/// Callgrind figures of the sans-IO workload.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Callgrind {
+    /// CAN report → event JSON.
+    pub can_to_event: PathCost,
+    /// JSON command → frame.
+    pub command_to_frame: PathCost,
+    /// A second run of the CAN → event `n` workload gave the same count.
+    pub repeatable: bool,
+    /// The binary that was measured (build profile and target).
+    pub binary: String,
+}
+
+/// Flash and RAM of one firmware image.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Firmware {
+    /// ELF name.
+    pub name: String,
+    /// text + rodata + data, bytes.
+    pub flash: u64,
+    /// data + bss, bytes.
+    pub ram: u64,
+    /// Flash budget, bytes.
+    pub flash_budget: u64,
+    /// RAM budget, bytes.
+    pub ram_budget: u64,
+}
+
+/// Everything `cargo xtask bench` produces, as written to `target/bench/results.json`.
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+pub struct Results {
+    /// Where the live part ran (host, or the microVM with its vCPU count).
+    pub machine: String,
+    /// The live benchmark, if it ran.
+    pub live: Option<LiveResults>,
+    /// Instruction counts, if valgrind was available.
+    pub callgrind: Option<Callgrind>,
+    /// Firmware images, if a release build was found.
+    pub firmware: Option<Vec<Firmware>>,
+    /// Why a part is missing.
+    pub missing: Vec<String>,
+}
+
+fn pass(ok: bool) -> &'static str {
+    if ok {
+        "pass"
+    } else {
+        "FAIL"
+    }
+}
+
+fn lat(s: &Summary) -> String {
+    format!("{:>8.0} {:>8.0} {:>8.0}", s.p50_us, s.p99_us, s.max_us)
+}
+
+/// Gateway-added latency estimate: end-to-end percentile minus the baseline paths' medians (the
+/// broker round trip and one bare CAN hop, RTT/2) measured in the same run. An estimate: percentiles
+/// do not subtract exactly, so it errs towards charging the gateway.
+pub fn added_us(e2e: &Summary, live: &LiveResults, p99: bool) -> f64 {
+    let base = live.mqtt_loop.p50_us + live.bare.rtt.p50_us / 2.0;
+    (if p99 { e2e.p99_us } else { e2e.p50_us } - base).max(0.0)
+}
+
+/// The short table.
+pub fn table(r: &Results) -> String {
+    let mut o = String::new();
+    let _ = writeln!(o, "iHEX benchmark — {}", r.machine);
+    if let Some(l) = &r.live {
+        let _ = writeln!(o, "environment: {}", l.environment);
+        let _ = writeln!(
+            o,
+            "\nthroughput                                 value      ratio"
+        );
+        let bare = l.bare.rate_fps;
+        let lim = &l.limit_report;
+        let _ = writeln!(
+            o,
+            "  bare SocketCAN pair (burst)          {:>9.0} fps   ({}/{} frames)",
+            bare, l.bare.received, l.bare.sent
+        );
+        let _ = writeln!(
+            o,
+            "  CAN->MQTT sustained, zero loss       {:>9.0} fps   {:.2}x bare, {:.2}x bus ({:.0} fps worst-stuffed {}-byte), {:.2}x best case ({:.0})",
+            l.can_to_mqtt_fps,
+            l.can_to_mqtt_fps / bare,
+            l.can_to_mqtt_fps / lim.fps_worst,
+            lim.fps_worst,
+            lim.data_len,
+            l.can_to_mqtt_fps / lim.fps_best,
+            lim.fps_best
+        );
+        let _ = writeln!(
+            o,
+            "  CAN->MQTT at 2x ({:.0} fps offered)  loss {:>5.1} %, lag {:.0} ms",
+            l.at_double.offered_fps,
+            l.at_double.loss * 100.0,
+            l.at_double.lag_ms
+        );
+        let _ = writeln!(
+            o,
+            "  MQTT->CAN commands as frames         {:>9.0} cmd/s ({}/{} delivered), {:.2}x bus ({:.0} fps 8-byte worst)",
+            l.mqtt_to_can_cps,
+            l.commands_delivered,
+            l.commands_sent,
+            l.mqtt_to_can_cps / l.limit_command.fps_worst,
+            l.limit_command.fps_worst
+        );
+        let _ = writeln!(
+            o,
+            "\nlatency, us                                 p50      p99      max"
+        );
+        let _ = writeln!(
+            o,
+            "  bare CAN RTT (2 hops)                {}",
+            lat(&l.bare.rtt)
+        );
+        let _ = writeln!(
+            o,
+            "  MQTT publish->delivery (broker loop) {}",
+            lat(&l.mqtt_loop)
+        );
+        let _ = writeln!(
+            o,
+            "  command->frame, idle                 {}",
+            lat(&l.cmd_to_frame_idle)
+        );
+        let _ = writeln!(
+            o,
+            "  frame->event, idle                   {}",
+            lat(&l.frame_to_event_idle)
+        );
+        let _ = writeln!(
+            o,
+            "  command->frame, bus full ({:.0} fps)  {}",
+            l.load_sent_fps,
+            lat(&l.cmd_to_frame_load)
+        );
+        let _ = writeln!(
+            o,
+            "  frame->event, bus full               {}",
+            lat(&l.frame_to_event_load)
+        );
+        let _ = writeln!(o, "\ncost (gateway process)");
+        let _ = writeln!(
+            o,
+            "  CPU per 1,000 reports->events        {:>8.1} ms",
+            l.cpu_ms_per_1k_reports
+        );
+        let _ = writeln!(
+            o,
+            "  CPU per 1,000 commands->frames       {:>8.1} ms",
+            l.cpu_ms_per_1k_commands
+        );
+        let _ = writeln!(
+            o,
+            "  CPU per 1,000 background frames      {:>8.1} ms",
+            l.cpu_ms_per_1k_background
+        );
+        let _ = writeln!(
+            o,
+            "  peak RSS (VmHWM)                     {:>8.1} MiB (now {:.1} MiB)",
+            l.gateway_vmhwm_kib as f64 / 1024.0,
+            l.gateway_vmrss_kib as f64 / 1024.0
+        );
+    }
+    if let Some(c) = &r.callgrind {
+        let _ = writeln!(
+            o,
+            "\ninstructions per bridged frame (callgrind, {})",
+            c.binary
+        );
+        let _ = writeln!(
+            o,
+            "  CAN->event        {:>9.0}   (n={}: {} / 2n: {})",
+            c.can_to_event.per_frame,
+            c.can_to_event.n,
+            c.can_to_event.instructions_n,
+            c.can_to_event.instructions_2n
+        );
+        let _ = writeln!(
+            o,
+            "  command->frame    {:>9.0}   (n={}: {} / 2n: {})",
+            c.command_to_frame.per_frame,
+            c.command_to_frame.n,
+            c.command_to_frame.instructions_n,
+            c.command_to_frame.instructions_2n
+        );
+        let _ = writeln!(
+            o,
+            "  repeatable: {}",
+            if c.repeatable {
+                "yes (identical count on a second run)"
+            } else {
+                "NO"
+            }
+        );
+    }
+    if let Some(fw) = &r.firmware {
+        let _ = writeln!(o, "\nfirmware (release)");
+        for f in fw {
+            let _ = writeln!(
+                o,
+                "  {:<20} flash {:>6}/{} ({:>4.1} %)  RAM {:>6}/{} ({:>4.1} %)  {}",
+                f.name,
+                f.flash,
+                f.flash_budget,
+                f.flash as f64 * 100.0 / f.flash_budget as f64,
+                f.ram,
+                f.ram_budget,
+                f.ram as f64 * 100.0 / f.ram_budget as f64,
+                pass(f.flash <= f.flash_budget && f.ram <= f.ram_budget)
+            );
+        }
+    }
+    if let Some(l) = &r.live {
+        let _ = writeln!(o, "\ngoals (informative; never fail the command)");
+        let half = l.can_to_mqtt_fps >= 0.5 * l.bare.rate_fps;
+        let _ = writeln!(
+            o,
+            "  bridge >= 1/2 bare pair rate, no loss   {}  ({:.0} vs {:.0} fps)",
+            pass(half),
+            l.can_to_mqtt_fps,
+            0.5 * l.bare.rate_fps
+        );
+        let worst = [
+            added_us(&l.cmd_to_frame_idle, l, true),
+            added_us(&l.frame_to_event_idle, l, true),
+            added_us(&l.cmd_to_frame_load, l, true),
+            added_us(&l.frame_to_event_load, l, true),
+        ]
+        .into_iter()
+        .fold(0.0, f64::max);
+        let _ = writeln!(
+            o,
+            "  gateway-added p99 < 1 ms                {}  ({:.0} us worst series; estimate, see docs{})",
+            pass(worst < 1000.0),
+            worst,
+            if r.machine.contains("TCG") { "; TCG is not desktop-class" } else { "" }
+        );
+        let _ = writeln!(
+            o,
+            "  peak RSS < 10 MiB                       {}  ({:.1} MiB)",
+            pass(l.gateway_vmhwm_kib < 10 * 1024),
+            l.gateway_vmhwm_kib as f64 / 1024.0
+        );
+        for n in &l.notes {
+            let _ = writeln!(o, "note: {n}");
+        }
+    }
+    for m in &r.missing {
+        let _ = writeln!(o, "missing: {m}");
+    }
+    o
+}
+
+const W: f64 = 640.0;
+const H: f64 = 360.0;
+const L: f64 = 60.0;
+const B: f64 = 40.0;
+const COLORS: [&str; 4] = ["#1f77b4", "#ff7f0e", "#2ca02c", "#d62728"];
+
+fn svg_open(title: &str) -> String {
+    format!(
+        "<svg xmlns=\"http://www.w3.org/2000/svg\" width=\"{W}\" height=\"{H}\" font-family=\"sans-serif\" font-size=\"11\">\n\
+         <rect width=\"100%\" height=\"100%\" fill=\"white\"/>\n\
+         <text x=\"{}\" y=\"16\" text-anchor=\"middle\" font-size=\"13\">{title}</text>\n\
+         <line x1=\"{L}\" y1=\"{}\" x2=\"{}\" y2=\"{}\" stroke=\"black\"/>\n\
+         <line x1=\"{L}\" y1=\"24\" x2=\"{L}\" y2=\"{}\" stroke=\"black\"/>\n",
+        W / 2.0,
+        H - B,
+        W - 10.0,
+        H - B,
+        H - B
+    )
+}
+
+/// Latency distribution: the cumulative share of probes (y) under a latency (x, log scale).
+pub fn latency_svg(l: &LiveResults) -> String {
+    let series: [(&str, &Summary); 4] = [
+        ("command->frame idle", &l.cmd_to_frame_idle),
+        ("frame->event idle", &l.frame_to_event_idle),
+        ("command->frame bus full", &l.cmd_to_frame_load),
+        ("frame->event bus full", &l.frame_to_event_load),
+    ];
+    let all = series
+        .iter()
+        .flat_map(|(_, s)| s.samples_us.iter().copied());
+    let (lo, hi) = all.fold((f64::MAX, 0.0f64), |(a, b), v| (a.min(v), b.max(v)));
+    let (lo, hi) = if hi <= 0.0 {
+        (1.0, 10.0)
+    } else {
+        (lo.max(1.0), hi.max(lo * 1.01))
+    };
+    let (llo, lhi) = (lo.log10().floor(), hi.log10().ceil());
+    let x = |v: f64| L + (v.max(lo).log10() - llo) / (lhi - llo) * (W - L - 10.0);
+    let y = |f: f64| (H - B) - f * (H - B - 24.0);
+    let mut s = svg_open("Latency distribution (cumulative share of probes)");
+    let mut d = llo;
+    while d <= lhi {
+        let v = 10f64.powf(d);
+        let _ = writeln!(
+            s,
+            "<line x1=\"{0:.1}\" y1=\"24\" x2=\"{0:.1}\" y2=\"{1}\" stroke=\"#ddd\"/><text x=\"{0:.1}\" y=\"{2}\" text-anchor=\"middle\">{3}</text>",
+            x(v), H - B, H - B + 14.0, if v >= 1000.0 { format!("{} ms", v / 1000.0) } else { format!("{v} us") }
+        );
+        d += 1.0;
+    }
+    for f in [0.0, 0.5, 0.99, 1.0] {
+        let _ = writeln!(
+            s,
+            "<line x1=\"{L}\" y1=\"{0:.1}\" x2=\"{1}\" y2=\"{0:.1}\" stroke=\"#ddd\"/><text x=\"{2}\" y=\"{3:.1}\" text-anchor=\"end\">{4}%</text>",
+            y(f), W - 10.0, L - 4.0, y(f) + 4.0, f * 100.0
+        );
+    }
+    for (k, (name, sum)) in series.iter().enumerate() {
+        let n = sum.samples_us.len();
+        let mut pts = String::new();
+        for (i, v) in sum.samples_us.iter().enumerate() {
+            let _ = write!(pts, "{:.1},{:.1} ", x(*v), y((i + 1) as f64 / n as f64));
+        }
+        let _ = writeln!(
+            s,
+            "<polyline fill=\"none\" stroke=\"{c}\" stroke-width=\"1.5\" points=\"{pts}\"/>\n<text x=\"{tx}\" y=\"{ty}\" fill=\"{c}\">{name} (p99 {p99:.0} us)</text>",
+            c = COLORS[k],
+            tx = L + 10.0,
+            ty = 40.0 + 14.0 * k as f64,
+            p99 = sum.p99_us
+        );
+    }
+    let _ = writeln!(
+        s,
+        "<text x=\"{}\" y=\"{}\" text-anchor=\"middle\">latency (log scale)</text>\n</svg>",
+        W / 2.0,
+        H - 6.0
+    );
+    s
+}
+
+/// Offered CAN → MQTT rate (x) against loss (y), with the bare pair's rate and the bus limit.
+pub fn rate_svg(l: &LiveResults) -> String {
+    let mut trials: Vec<&Trial> = l
+        .trials
+        .iter()
+        .chain([&l.at_double])
+        .filter(|t| t.sent > 0)
+        .collect();
+    trials.sort_by(|a, b| a.offered_fps.total_cmp(&b.offered_fps));
+    let xmax = trials
+        .iter()
+        .map(|t| t.offered_fps)
+        .chain([l.bare.rate_fps, l.limit_report.fps_best])
+        .fold(1.0f64, f64::max)
+        * 1.1;
+    let x = |v: f64| L + v / xmax * (W - L - 10.0);
+    let y = |loss: f64| (H - B) - loss * (H - B - 24.0);
+    let mut s = svg_open("CAN -> MQTT: offered report rate vs loss");
+    for f in [0.0, 0.25, 0.5, 0.75, 1.0] {
+        let _ = writeln!(
+            s,
+            "<line x1=\"{L}\" y1=\"{0:.1}\" x2=\"{1}\" y2=\"{0:.1}\" stroke=\"#ddd\"/><text x=\"{2}\" y=\"{3:.1}\" text-anchor=\"end\">{4}%</text>",
+            y(f), W - 10.0, L - 4.0, y(f) + 4.0, f * 100.0
+        );
+    }
+    for (v, name, c) in [
+        (
+            l.limit_report.fps_worst,
+            "bus limit (worst stuffing)",
+            "#888",
+        ),
+        (l.bare.rate_fps, "bare SocketCAN pair", "#d62728"),
+        (l.can_to_mqtt_fps, "sustained (zero loss)", "#2ca02c"),
+    ] {
+        let _ = writeln!(
+            s,
+            "<line x1=\"{0:.1}\" y1=\"24\" x2=\"{0:.1}\" y2=\"{1}\" stroke=\"{c}\" stroke-dasharray=\"4 3\"/><text x=\"{2:.1}\" y=\"{3}\" fill=\"{c}\" transform=\"rotate(-90 {2:.1} {3})\">{name} {v:.0}/s</text>",
+            x(v), H - B, x(v) - 3.0, H - B - 4.0
+        );
+    }
+    let mut pts = String::new();
+    for t in &trials {
+        let _ = write!(pts, "{:.1},{:.1} ", x(t.offered_fps), y(t.loss));
+        let _ = writeln!(
+            s,
+            "<circle cx=\"{:.1}\" cy=\"{:.1}\" r=\"3\" fill=\"{}\"/>",
+            x(t.offered_fps),
+            y(t.loss),
+            if t.sustained() { COLORS[0] } else { COLORS[3] }
+        );
+    }
+    let _ = writeln!(
+        s,
+        "<polyline fill=\"none\" stroke=\"{}\" points=\"{pts}\"/>",
+        COLORS[0]
+    );
+    let _ = writeln!(
+        s,
+        "<text x=\"{}\" y=\"{}\" text-anchor=\"middle\">offered frames/s (0 to {:.0})</text>\n</svg>",
+        W / 2.0,
+        H - 6.0,
+        xmax
+    );
+    s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn sample() -> LiveResults {
+        LiveResults {
+            trials: vec![
+                Trial {
+                    offered_fps: 500.0,
+                    sent: 500,
+                    received: 500,
+                    sent_fps: 500.0,
+                    ..Default::default()
+                },
+                Trial {
+                    offered_fps: 1000.0,
+                    sent: 1000,
+                    received: 900,
+                    loss: 0.1,
+                    sent_fps: 1000.0,
+                    ..Default::default()
+                },
+            ],
+            can_to_mqtt_fps: 500.0,
+            cmd_to_frame_idle: Summary::of(vec![100.0, 200.0, 300.0]),
+            gateway_vmhwm_kib: 5000,
+            ..Default::default()
+        }
+    }
+
+    #[test]
+    fn svgs_are_well_formed_enough() {
+        let l = sample();
+        for svg in [latency_svg(&l), rate_svg(&l)] {
+            assert!(svg.starts_with("<svg") && svg.trim_end().ends_with("</svg>"));
+            assert!(!svg.contains("NaN") && !svg.contains("inf"), "{svg}");
+            assert_eq!(
+                svg.matches("<polyline").count(),
+                svg.matches("points=").count()
+            );
+        }
+        assert_eq!(
+            rate_svg(&l).matches("<circle").count(),
+            2,
+            "one dot per trial that ran"
+        );
+    }
+
+    #[test]
+    fn table_reports_goals() {
+        let mut l = sample();
+        l.bare.rate_fps = 800.0;
+        let r = Results {
+            machine: "test".into(),
+            live: Some(l),
+            ..Default::default()
+        };
+        let t = table(&r);
+        assert!(
+            t.contains("bridge >= 1/2 bare pair rate, no loss   pass"),
+            "{t}"
+        );
+        assert!(
+            t.contains("peak RSS < 10 MiB                       pass"),
+            "{t}"
+        );
+    }
+
+    #[test]
+    fn added_latency_subtracts_the_baselines() {
+        let mut l = sample();
+        l.mqtt_loop = Summary::of(vec![50.0]);
+        l.bare.rtt = Summary::of(vec![40.0]);
+        let e2e = Summary::of(vec![100.0, 1000.0]);
+        assert_eq!(added_us(&e2e, &l, false), 30.0);
+        assert_eq!(added_us(&e2e, &l, true), 930.0);
+    }
+}

@@ -1,0 +1,205 @@
+//! A fixed, deterministic workload for the gateway's sans-IO [`Bridge`]: the work the gateway does
+//! per bridged frame without any I/O, for instruction counting (callgrind).
+//!
+//! * CAN → event: raw frame (id + bytes) → [`Packet::decode`] → [`Bridge::on_packet`] → the
+//!   `node_rebooted` event serialised to JSON by the bridge → topic name resolved as the MQTT
+//!   adapter does. `BootUp` from a known node is used because it maps 1:1 to an event and is not
+//!   rate-limited (`Fault` is: one event per node and code per second).
+//! * command → frame: JSON `led` command bytes → [`Bridge::on_command`] (parse, validate, track the
+//!   pending ack) → [`Packet::encode`] to the frame's id and bytes.
+//!
+//! Inputs are prepared once, before the measured loop, and reused round-robin, so that running
+//! `n` and `2n` iterations differs only by `n` iterations of the loop: (I(2n) − I(n)) / n is the
+//! cost of one bridged frame, exactly repeatable.
+
+use std::hint::black_box;
+use std::time::{Duration, Instant};
+
+use ihex_proto::{BootRole, Message, NodeId, Packet, ResetReason};
+use mc_gateway::bridge::{Action, Bridge, BridgeConfig};
+use mc_gateway::topic::Topics;
+
+/// Nodes made known before the loop (commands and reports rotate over them).
+pub const NODES: u16 = 64;
+
+/// Which path the workload drives.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Path {
+    /// CAN report → published event.
+    CanToEvent,
+    /// MQTT command → CAN frame.
+    CommandToFrame,
+}
+
+/// What one run produced (so that nothing is optimised away, and so it can be checked).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Output {
+    /// Events/state documents published.
+    pub publications: usize,
+    /// Frames sent.
+    pub frames: usize,
+    /// Bytes of JSON and topic names produced.
+    pub bytes: usize,
+}
+
+fn node(i: u16) -> NodeId {
+    NodeId::new(1 + i % NODES).expect("1..=64 are SC ids")
+}
+
+/// The `BootUp` report of workload item `i` (varies the node and the reset code).
+pub fn boot_up(i: u32) -> Packet {
+    Packet::report(
+        node(i as u16),
+        Message::BootUp {
+            version: (1, 0),
+            role: BootRole::Static,
+            ports: 6,
+            reset: ResetReason::Other(4 + (i / u32::from(NODES) % 200) as u8),
+        },
+    )
+}
+
+/// The JSON `led` command of workload item `i`.
+pub fn led_command(i: u32) -> String {
+    format!(
+        r#"{{"cmd":"led","node":"{}","color":[{},{},{}],"brightness":200}}"#,
+        node(i as u16),
+        i & 0xff,
+        i >> 8 & 0xff,
+        (i * 7) & 0xff
+    )
+}
+
+fn drain(bridge: &mut Bridge, topics: &Topics, out: &mut Output) {
+    while let Some(a) = bridge.poll_action() {
+        match a {
+            Action::Send(p) => {
+                let (id, data) = p.encode();
+                black_box((id, &data));
+                out.frames += 1;
+            }
+            Action::Publish { topic, payload, .. } => {
+                let name = topics.resolve(topic);
+                out.bytes += black_box(name.len() + payload.len());
+                out.publications += 1;
+            }
+        }
+    }
+}
+
+/// A bridge with [`NODES`] known nodes and every output of that set-up drained.
+pub fn prepared_bridge(now: Instant) -> (Bridge, Topics) {
+    let config = BridgeConfig {
+        // No health checks and no command timeouts inside the measured loop.
+        health_period: Duration::from_secs(3600),
+        command_timeout: Duration::from_secs(3600),
+        ..BridgeConfig::default()
+    };
+    let mut bridge = Bridge::new(config, now);
+    let topics = Topics::seed();
+    let mut sink = Output::default();
+    for i in 0..u32::from(NODES) {
+        bridge.on_packet(boot_up(i), now);
+    }
+    // A first reboot of each node settles its state document (actuators reset).
+    for i in 0..u32::from(NODES) {
+        bridge.on_packet(boot_up(i), now);
+    }
+    drain(&mut bridge, &topics, &mut sink);
+    (bridge, topics)
+}
+
+/// Runs `n` iterations of `path` and returns what they produced.
+pub fn run(path: Path, n: u32) -> Output {
+    let now = Instant::now();
+    let (mut bridge, topics) = prepared_bridge(now);
+    let mut out = Output::default();
+    // Prepared inputs, reused round-robin: constant set-up cost whatever n is.
+    const DISTINCT: u32 = 256;
+    match path {
+        Path::CanToEvent => {
+            let frames: Vec<(u32, heapless_bytes::Bytes)> = (0..DISTINCT)
+                .map(|i| {
+                    let (id, data) = boot_up(i).encode();
+                    (id, heapless_bytes::Bytes::from(&data[..]))
+                })
+                .collect();
+            for i in 0..n {
+                let (id, data) = &frames[(i % DISTINCT) as usize];
+                match Packet::decode(*id, data.as_slice()) {
+                    Ok(p) => bridge.on_packet(p, now),
+                    Err(e) => bridge.on_undecodable(*id, data.as_slice(), e, now),
+                }
+                drain(&mut bridge, &topics, &mut out);
+            }
+        }
+        Path::CommandToFrame => {
+            let commands: Vec<String> = (0..DISTINCT).map(led_command).collect();
+            for i in 0..n {
+                bridge.on_command(commands[(i % DISTINCT) as usize].as_bytes(), now);
+                drain(&mut bridge, &topics, &mut out);
+            }
+        }
+    }
+    out
+}
+
+/// A frame's data bytes, owned, without pulling `heapless` in as a dependency.
+mod heapless_bytes {
+    /// Up to 8 bytes.
+    #[derive(Clone, Copy, Debug)]
+    pub struct Bytes {
+        len: usize,
+        buf: [u8; 8],
+    }
+
+    impl Bytes {
+        /// The bytes.
+        pub fn as_slice(&self) -> &[u8] {
+            &self.buf[..self.len]
+        }
+    }
+
+    impl From<&[u8]> for Bytes {
+        fn from(s: &[u8]) -> Self {
+            let mut buf = [0; 8];
+            let len = s.len().min(8);
+            buf[..len].copy_from_slice(&s[..len]);
+            Bytes { len, buf }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_report_becomes_exactly_one_event() {
+        let out = run(Path::CanToEvent, 1000);
+        assert_eq!(
+            out.publications, 1000,
+            "one node_rebooted per BootUp, no state churn"
+        );
+        assert_eq!(out.frames, 0);
+    }
+
+    #[test]
+    fn every_command_becomes_exactly_one_frame() {
+        let out = run(Path::CommandToFrame, 1000);
+        assert_eq!(out.frames, 1000);
+        assert_eq!(
+            out.publications, 0,
+            "no rejection, no result before the ack"
+        );
+    }
+
+    #[test]
+    fn led_command_is_accepted_json() {
+        let (mut bridge, topics) = prepared_bridge(Instant::now());
+        bridge.on_command(led_command(300).as_bytes(), Instant::now());
+        let mut out = Output::default();
+        drain(&mut bridge, &topics, &mut out);
+        assert_eq!((out.frames, out.publications), (1, 0));
+    }
+}
