@@ -8,8 +8,9 @@
 #   3. the gateway under test on vcan0 (--can vcan0 --broker 127.0.0.1:1883, island prefix "arm64",
 #      so the demo instance's own events cannot be mistaken for it);
 #   4. ihex-provision wait-event, subscribed before 2 and 3 start, waiting for the first node_online
-#      event of the arm64 island (optionally more checks, see CHECKS below).
-# Exit code 0 only if the event arrived; the VM is killed after a bounded time (IHEX_ARM64_TIMEOUT s).
+#      event of the arm64 island; then an LED command to the island's first node whose command_result must be "ok"
+#      (MQTT -> CAN frame -> virtual SC -> ack frame -> MQTT).
+# Exit code 0 only if both arrived; the VM is killed after a bounded time (IHEX_ARM64_TIMEOUT s).
 #
 #   deploy/check-arm64.sh              # builds with deploy/build-pi.sh --musl, then boots
 #   IHEX_ARM64_NO_BUILD=1 deploy/check-arm64.sh   # use the binaries already in target/
@@ -76,6 +77,9 @@ for b in mc-gateway sim-node ihex-provision; do
     [ "$(od -An -tx1 -j18 -N1 "$BIN/$b" | tr -d ' ')" = b7 ] || die "$BIN/$b is not an aarch64 binary"
 done
 [ -f "$ISLAND" ] || die "island file $ISLAND missing"
+# The node the LED command goes to: the island's first element (`id = "111"`).
+NODE="$(sed -n 's/^id *= *"\([0-9a-fA-F]*\)".*/\1/p' "$ISLAND" | head -1)"
+[ -n "$NODE" ] || die "no element id found in $ISLAND"
 
 # --- initramfs ---------------------------------------------------------------------------------
 IR="$WORK/initramfs"
@@ -116,15 +120,25 @@ i=0; while [ ! -f /tmp/ready ] && [ $i -lt 600 ]; do sleep 0.2; i=$((i+1)); done
 ./sim-node --iface vcan0 --island island.toml > /tmp/sim.out 2>&1 &
 ./mc-gateway --config gateway.toml --can vcan0 --broker $B --island arm64 --log-dir /tmp/gw-log > /tmp/gw.out 2>&1 &
 wait $WAIT; rc=$?
-if [ $rc = 0 ]; then echo "ihex-vm: event: $(cat /tmp/event.json)"; else
+if [ $rc = 0 ]; then
+    echo "ihex-vm: event: $(cat /tmp/event.json)"
+    # 5. the other direction: a command over MQTT -> frame on vcan0 -> the node acks -> command_result ok
+    ./ihex-provision wait-event --broker $B --island arm64 --event command_result \
+        --match request_id=arm64-led --match result=ok --timeout-secs 60 \
+        --send '{"cmd":"led","node":"@NODE@","color":"green","request_id":"arm64-led"}' \
+        > /tmp/result.json 2> /tmp/wait.err; rc=$?
+    [ $rc = 0 ] && echo "ihex-vm: event: $(cat /tmp/result.json)"
+fi
+if [ $rc != 0 ]; then
     for f in /tmp/wait.err /tmp/gw.out /tmp/sim.out /tmp/demo.out; do
         echo "---- $f"; tail -n 25 $f
     done
 fi
-echo "---- candump-ish: vcan0 statistics"; ip -s link show vcan0 | tail -n 4
+echo "ihex-vm: vcan0 frames: rx $(cat /sys/class/net/vcan0/statistics/rx_packets) tx $(cat /sys/class/net/vcan0/statistics/tx_packets)"
 echo "IHEX-ARM64-RESULT rc=$rc"
 poweroff -f
 INIT
+sed -i "s/@NODE@/$NODE/" "$IR/init"
 chmod +x "$IR/init"
 (cd "$IR" && find . | cpio -o -H newc --quiet | gzip -1) > "$WORK/initrd.gz"
 
@@ -140,4 +154,4 @@ qrc=${PIPESTATUS[0]}
 set -e
 [ "$qrc" = 137 ] && die "VM did not finish within ${TIMEOUT}s (console: $LOG)"
 grep -q "IHEX-ARM64-RESULT rc=0" "$LOG" || die "no event from the aarch64 gateway (console: $LOG)"
-say "OK: aarch64 gateway on vcan0 published node_online on a real arm64 kernel"
+say "OK: on a real arm64 kernel the aarch64 gateway reported node_online from vcan0 and got an LED command acknowledged"
