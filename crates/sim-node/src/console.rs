@@ -5,7 +5,7 @@ use std::fmt::Write as _;
 use ihex_proto::NodeId;
 use ihex_sc_core::{Actuators, BuzzerOutput};
 
-use crate::{desc::parse_node_id, island::NodeView, IslandEvent};
+use crate::{desc::parse_node_id, island::NodeView, IslandError, IslandEvent, IslandHandle};
 
 /// Help text for the console commands.
 pub const HELP: &str = "\
@@ -17,6 +17,7 @@ commands (node ids in hex, as in the island file):
   uart NODE BYTE...         write bytes (hex) to its configuration UART, print the reply
                             e.g. `uart 111 b0 00` (query), `uart 111 a1 23` (set id 123)
   show                      every element's state
+  sleep MS                  pause reading commands (for scripts piped into stdin)
   help                      this text
   quit                      stop the island and exit";
 
@@ -42,6 +43,8 @@ pub enum Command {
     Uart(NodeId, Vec<u8>),
     /// `show`.
     Show,
+    /// `sleep MS`: wait before the next command (scripts).
+    Sleep(u64),
     /// `help`.
     Help,
     /// `quit` / `exit`.
@@ -109,11 +112,51 @@ pub fn parse(line: &str) -> Result<Option<Command>, String> {
             Command::Uart(node(0)?, bytes)
         }
         "show" => arity(0).map(|_| Command::Show)?,
+        "sleep" => {
+            arity(1)?;
+            let ms = args[0]
+                .parse::<u64>()
+                .map_err(|_| format!("{:?} is not milliseconds", args[0]))?;
+            Command::Sleep(ms)
+        }
         "help" | "?" => Command::Help,
         "quit" | "exit" => Command::Quit,
         other => return Err(format!("unknown command `{other}` (try `help`)")),
     };
     Ok(Some(cmd))
+}
+
+/// Carries out a command on the island; returns the lines to print. `Quit` does nothing here (the
+/// caller stops reading).
+pub async fn execute(island: &IslandHandle, cmd: Command) -> Result<Vec<String>, IslandError> {
+    let none = |r: Result<(), IslandError>| r.map(|_| Vec::new());
+    match cmd {
+        Command::Dock {
+            mobile,
+            static_id,
+            port,
+        } => none(island.dock(mobile, static_id, port).await),
+        Command::Undock(m) => none(island.undock(m).await),
+        Command::Cycle(n) => none(island.power_cycle(n).await),
+        Command::Bus(n, on) => none(island.set_on_bus(n, on).await),
+        Command::Uart(n, bytes) => {
+            let reply = island.uart(n, &bytes).await?;
+            let hex: Vec<String> = reply.iter().map(|b| format!("{b:02x}")).collect();
+            let hex = if hex.is_empty() {
+                "(none)".to_string()
+            } else {
+                hex.join(" ")
+            };
+            Ok(vec![format!("{:>3}  uart reply: {hex}", name(n))])
+        }
+        Command::Show => Ok(island.snapshot().await?.iter().map(view_line).collect()),
+        Command::Sleep(ms) => {
+            tokio::time::sleep(std::time::Duration::from_millis(ms)).await;
+            Ok(Vec::new())
+        }
+        Command::Help => Ok(HELP.lines().map(String::from).collect()),
+        Command::Quit => Ok(Vec::new()),
+    }
 }
 
 /// Actuators as a person reads them: `LED #ff0000 blink 500ms/50%  buzzer off  relay ON`.
@@ -158,28 +201,45 @@ pub fn describe(a: &Actuators) -> String {
 pub fn event_line(e: &IslandEvent) -> String {
     match *e {
         IslandEvent::Actuators { node, actuators } => {
-            format!("{node:>3}  {}", describe(&actuators))
+            format!("{:>3}  {}", name(node), describe(&actuators))
         }
         IslandEvent::Power { node, on } => {
-            format!("{node:>3}  power {}", if on { "ON (boot)" } else { "off" })
+            format!(
+                "{:>3}  power {}",
+                name(node),
+                if on { "ON (boot)" } else { "off" }
+            )
         }
         IslandEvent::Bus { node, on } => {
-            format!("{node:>3}  {} the bus", if on { "back on" } else { "off" })
+            format!(
+                "{:>3}  {} the bus",
+                name(node),
+                if on { "back on" } else { "off" }
+            )
         }
         IslandEvent::Docked {
             mobile,
             static_id,
             port,
-        } => format!("{mobile:>3}  docked on {static_id} port {port}"),
+        } => {
+            format!("{:>3}  docked on {static_id} port {port}", name(mobile))
+        }
         IslandEvent::Undocked {
             mobile,
             static_id,
             port,
         } => {
-            format!("{mobile:>3}  undocked from {static_id} port {port}")
+            format!("{:>3}  undocked from {static_id} port {port}", name(mobile))
         }
-        IslandEvent::IdStored { node, id } => format!("{node:>3}  stored node id {id}"),
+        IslandEvent::IdStored { node, id } => {
+            format!("{:>3}  stored node id {id}", name(node))
+        }
     }
+}
+
+/// A node ID as text (`NodeId`'s `Display` ignores widths).
+fn name(id: NodeId) -> String {
+    id.to_string()
 }
 
 /// One line of `show` for an element.
@@ -189,7 +249,7 @@ pub fn view_line(v: &NodeView) -> String {
         ihex_proto::BootRole::Mobile => "mobile",
     };
     let id = v.node_id.map_or("unset".to_string(), |i| i.to_string());
-    let mut s = format!("{:>3}  {role} id={id}", v.name);
+    let mut s = format!("{:>3}  {role} id={id}", name(v.name));
     if !v.powered {
         s.push_str("  unpowered");
     } else {
@@ -242,6 +302,7 @@ mod tests {
             Some(Command::Uart(id(0x111), vec![0xa1, 0x23]))
         );
         assert_eq!(parse("show").unwrap(), Some(Command::Show));
+        assert_eq!(parse("sleep 250").unwrap(), Some(Command::Sleep(250)));
         assert_eq!(parse("help").unwrap(), Some(Command::Help));
         assert_eq!(parse("quit").unwrap(), Some(Command::Quit));
         assert_eq!(parse("").unwrap(), None);
@@ -259,6 +320,7 @@ mod tests {
             ("uart 111 1ff", "not a hex byte"),
             ("fly 111", "unknown command"),
             ("show 1", "takes 0"),
+            ("sleep soon", "not milliseconds"),
         ] {
             let err = parse(line).unwrap_err();
             assert!(err.contains(needle), "{line:?}: {err}");
@@ -301,5 +363,43 @@ mod tests {
             event_line(&e),
             "111  LED #ff0000 blink 500ms/50%  buzzer off  relay ON"
         );
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn a_script_drives_an_island() {
+        use crate::{bus::MemBus, Island, IslandDesc, Link};
+        let desc = IslandDesc::parse(
+            "[[static]]\nid = \"111\"\nports = 4\n[[static]]\nid = \"120\"\nunconfigured = true\n\
+             [[mobile]]\nid = \"2\"\n",
+        )
+        .unwrap();
+        let island = Island::start(&desc, Link::Mem(MemBus::new())).unwrap();
+        let mut out = Vec::new();
+        for line in [
+            "dock 2 111 3",
+            "sleep 100",
+            "off 111",
+            "uart 120 a1 23",
+            "uart 120 b0 00",
+            "show",
+        ] {
+            let cmd = parse(line).unwrap().unwrap();
+            out.extend(execute(&island, cmd).await.unwrap());
+        }
+        assert_eq!(
+            out,
+            [
+                "120  uart reply: 51 23",
+                "120  uart reply: 51 23",
+                "111  static id=111  LED off  buzzer off  relay off  OFF-BUS  loops=00001000",
+                "120  static id=123  LED off  buzzer off  relay off",
+                "  2  mobile id=2  unpowered  loops=00000001  docked on 111 port 3",
+            ]
+        );
+        let err = execute(&island, parse("undock 111").unwrap().unwrap())
+            .await
+            .unwrap_err();
+        assert_eq!(err.to_string(), "\"111\" is not a mobile element");
+        island.shutdown().await;
     }
 }

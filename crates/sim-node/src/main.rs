@@ -58,6 +58,10 @@ async fn run(args: Args) -> anyhow::Result<()> {
     );
 
     let mut events = island.subscribe();
+    // Boot events may precede the subscription: start from a full picture.
+    for v in island.snapshot().await? {
+        println!("{}", console::view_line(&v));
+    }
     let printer = tokio::spawn(async move {
         loop {
             match events.recv().await {
@@ -93,47 +97,19 @@ async fn run(args: Args) -> anyhow::Result<()> {
 
 /// Runs one console line; false when the user asked to quit.
 async fn run_line(island: &IslandHandle, line: &str) -> bool {
-    let cmd = match console::parse(line) {
-        Ok(Some(c)) => c,
-        Ok(None) => return true,
+    match console::parse(line) {
+        Ok(None) => true,
+        Ok(Some(Command::Quit)) => false,
+        Ok(Some(cmd)) => {
+            match console::execute(island, cmd).await {
+                Ok(lines) => lines.iter().for_each(|l| println!("{l}")),
+                Err(e) => println!("error: {e}"),
+            }
+            true
+        }
         Err(e) => {
             println!("error: {e}");
-            return true;
+            true
         }
-    };
-    let result = match cmd {
-        Command::Dock {
-            mobile,
-            static_id,
-            port,
-        } => island.dock(mobile, static_id, port).await,
-        Command::Undock(m) => island.undock(m).await,
-        Command::Cycle(n) => island.power_cycle(n).await,
-        Command::Bus(n, on) => island.set_on_bus(n, on).await,
-        Command::Uart(n, bytes) => island.uart(n, &bytes).await.map(|reply| {
-            let hex: Vec<String> = reply.iter().map(|b| format!("{b:02x}")).collect();
-            println!(
-                "{n:>3}  uart reply: {}",
-                if hex.is_empty() {
-                    "(none)".into()
-                } else {
-                    hex.join(" ")
-                }
-            );
-        }),
-        Command::Show => island.snapshot().await.map(|all| {
-            for v in &all {
-                println!("{}", console::view_line(v));
-            }
-        }),
-        Command::Help => {
-            println!("{}", console::HELP);
-            Ok(())
-        }
-        Command::Quit => return false,
-    };
-    if let Err(e) = result {
-        println!("error: {e}");
     }
-    true
 }
