@@ -4,7 +4,7 @@ use core::fmt;
 
 /// A 12-bit node address. Valid sub-controller IDs are `0x001..=0xFFD`; the rest are reserved.
 #[derive(Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Debug)]
-#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
+#[cfg_attr(feature = "serde", derive(serde::Serialize))]
 pub struct NodeId(u16);
 
 impl NodeId {
@@ -50,6 +50,21 @@ impl NodeId {
     }
 }
 
+/// Deserialises the raw number, refusing values above 12 bits (a derived impl would let them
+/// through and corrupt the neighbouring identifier fields when encoded).
+#[cfg(feature = "serde")]
+impl<'de> serde::Deserialize<'de> for NodeId {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        let raw = u16::deserialize(d)?;
+        NodeId::new(raw).ok_or_else(|| {
+            serde::de::Error::invalid_value(
+                serde::de::Unexpected::Unsigned(raw.into()),
+                &"a 12-bit node ID (0..=0xFFF)",
+            )
+        })
+    }
+}
+
 impl fmt::Display for NodeId {
     /// Lower-case hex without prefix, the form the MQTT API uses (`"111"`).
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
@@ -66,7 +81,7 @@ impl defmt::Format for NodeId {
 
 /// A dock port on an element (`0..=7`; a hexagon uses `0..=5`).
 #[derive(Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Debug)]
-#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
+#[cfg_attr(feature = "serde", derive(serde::Serialize))]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub struct Port(u8);
 
@@ -91,6 +106,20 @@ impl Port {
     /// This port's bit in a port bitmap.
     pub const fn mask(self) -> u8 {
         1 << self.0
+    }
+}
+
+/// Deserialises the raw number, refusing ports above 7.
+#[cfg(feature = "serde")]
+impl<'de> serde::Deserialize<'de> for Port {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        let raw = u8::deserialize(d)?;
+        Port::new(raw).ok_or_else(|| {
+            serde::de::Error::invalid_value(
+                serde::de::Unexpected::Unsigned(raw.into()),
+                &"a dock port (0..=7)",
+            )
+        })
     }
 }
 
