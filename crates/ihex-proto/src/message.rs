@@ -940,8 +940,9 @@ impl Packet {
         }
         let h = Header::from_id(frame.id())?;
         h.check_addresses()?;
-        let data = frame.data();
-        let msg = Message::decode(h.kind, &data[..data.len().min(8)])?;
+        // No truncation: a frame type with longer payloads (CAN FD) must fail the length check,
+        // not have its first 8 bytes taken for a classic frame.
+        let msg = Message::decode(h.kind, frame.data())?;
         Ok(Packet {
             src: h.src,
             dest: h.dest,

@@ -910,6 +910,48 @@ fn standard_and_remote_frames_are_refused() {
     assert_eq!(Packet::from_frame(&rtr_std), Err(DecodeError::Remote));
 }
 
+/// A frame type whose payload may exceed 8 bytes (like a CAN FD frame behind `embedded_can::Frame`).
+#[derive(Debug)]
+struct LongFrame(Vec<u8>);
+
+impl Frame for LongFrame {
+    fn new(_: impl Into<Id>, data: &[u8]) -> Option<Self> {
+        Some(LongFrame(data.to_vec()))
+    }
+    fn new_remote(_: impl Into<Id>, _: usize) -> Option<Self> {
+        None
+    }
+    fn is_extended(&self) -> bool {
+        true
+    }
+    fn is_remote_frame(&self) -> bool {
+        false
+    }
+    fn id(&self) -> Id {
+        Id::Extended(ExtendedId::new(0x1000_0111).unwrap())
+    }
+    fn dlc(&self) -> usize {
+        self.0.len()
+    }
+    fn data(&self) -> &[u8] {
+        &self.0
+    }
+}
+
+/// Regression: from_frame cut the payload to 8 bytes, so a 12-byte frame passed as a HealthReply.
+#[test]
+fn payloads_longer_than_8_bytes_are_refused() {
+    let ok = LongFrame(vec![0x80, 0, 0, 0, 0, 0, 0, 0]);
+    assert!(Packet::from_frame(&ok).is_ok());
+    let long = LongFrame(vec![0x80, 0, 0, 0, 0, 0, 0, 0, 1, 2, 3, 4]);
+    let err = DecodeError::Length {
+        kind: Kind::HealthReply,
+        expected: 8,
+        got: 12,
+    };
+    assert_eq!(Packet::from_frame(&long), Err(err));
+}
+
 #[test]
 fn raw_identifier_bits_above_28_are_ignored() {
     // SocketCAN's can_id carries CAN_EFF_FLAG in bit 31: decoding it as is gives the same packet.
