@@ -52,3 +52,13 @@ async fn bounce() {
 async fn uart_id() {
     scenario::uart_id(vcan()).await;
 }
+
+#[tokio::test]
+async fn docked_at_start() {
+    scenario::docked_at_start(vcan()).await;
+}
+
+#[tokio::test]
+async fn can_assignment() {
+    scenario::can_assignment(vcan()).await;
+}

@@ -403,8 +403,14 @@ impl Island {
     ) {
         // Start-up may already have powered mobiles' static relays: settle once before serving.
         self.settle().await;
+        let mut last_timer: Option<Instant> = None;
         loop {
-            let deadline = self.next_deadline();
+            // A deadline that is still due right after its timers ran (a core that does not move
+            // it on) is retried 1 ms later rather than in a busy loop.
+            let deadline = self.next_deadline().map(|d| match last_timer {
+                Some(t) if d <= t => t + Duration::from_millis(1),
+                _ => d,
+            });
             tokio::select! {
                 cmd = cmd_rx.recv() => match cmd {
                     None => break,
@@ -418,6 +424,7 @@ impl Island {
                 Some((name, epoch, frame)) = frames_rx.recv() => self.frame(name, epoch, frame),
                 _ = tokio::time::sleep_until(deadline.unwrap_or_else(Instant::now)), if deadline.is_some() => {
                     self.timers();
+                    last_timer = Some(Instant::now());
                 }
             }
             self.settle().await;

@@ -49,6 +49,16 @@ async fn uart_id() {
     scenario::uart_id(mem()).await;
 }
 
+#[tokio::test(start_paused = true)]
+async fn docked_at_start() {
+    scenario::docked_at_start(mem()).await;
+}
+
+#[tokio::test(start_paused = true)]
+async fn can_assignment() {
+    scenario::can_assignment(mem()).await;
+}
+
 /// The island also runs on a real multi-threaded runtime with a running clock.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn dock_and_undock_in_real_time() {

@@ -536,3 +536,85 @@ pub async fn uart_id(link: Link) {
     );
     island.shutdown().await;
 }
+
+/// A mobile docked in the island file: its static element reports the closed loop after booting,
+/// and the mobile powers up once the gateway confirms.
+pub async fn docked_at_start(link: Link) {
+    let text = ISLAND.replace(
+        "id = \"2\"\nport = 1",
+        "id = \"2\"\nport = 1\ndock = { static = \"112\", port = 0 }",
+    );
+    assert_ne!(text, ISLAND, "the island text changed");
+    let (mut gw, island) = start(&link, &text).await;
+    gw.expect_from(id(0x112), Message::DockDetected { port: port(0) })
+        .await;
+    assert!(!island.view(id(2)).await.unwrap().powered);
+    gw.send(
+        id(0x112),
+        Message::DockConfirm {
+            seq: 3,
+            port: port(0),
+        },
+    )
+    .await;
+    gw.expect_from(id(0x112), ack(Kind::DockConfirm, 3)).await;
+    gw.expect_from(id(2), boot_up(BootRole::Mobile, 6)).await;
+    gw.expect_from(id(2), Message::Handshake { port: port(1) })
+        .await;
+    island.shutdown().await;
+}
+
+/// CAN node-ID assignment by unique ID reaches a factory-fresh board, which then answers under
+/// its new ID (its acceptance filters followed the change).
+pub async fn can_assignment(link: Link) {
+    let (mut gw, island) = start(&link, ISLAND).await;
+    let fresh = island.view(id(0x120)).await.unwrap();
+    assert_eq!(fresh.node_id, None);
+    // A UID no board of this island has selects nobody.
+    let other = ihex_proto::Uid([0xEE; 12]);
+    gw.send(
+        NodeId::BROADCAST,
+        Message::AssignSelect {
+            uid_head: other.head(),
+        },
+    )
+    .await;
+    let commit = |uid: ihex_proto::Uid, seq| Message::AssignCommit {
+        uid_tail: uid.tail(),
+        new_id: id(0x456),
+        seq,
+    };
+    gw.send(NodeId::BROADCAST, commit(other, 1)).await;
+    gw.expect_none("an assignment reply to a foreign UID", |p| {
+        matches!(p.msg, Message::AssignReply { .. })
+    })
+    .await;
+
+    gw.send(
+        NodeId::BROADCAST,
+        Message::AssignSelect {
+            uid_head: fresh.uid.head(),
+        },
+    )
+    .await;
+    gw.send(NodeId::BROADCAST, commit(fresh.uid, 2)).await;
+    let reply = Message::AssignReply {
+        seq: 2,
+        result: AckResult::Ok,
+        new_id: id(0x456),
+        uid_tail: fresh.uid.tail(),
+    };
+    gw.expect_from(id(0x456), reply).await;
+    gw.expect_from(id(0x456), boot_up(BootRole::Static, 6))
+        .await;
+    gw.send(id(0x456), Message::HealthCheck { seq: 4 }).await;
+    gw.expect("health reply from 456", |p| {
+        p.src == id(0x456) && matches!(p.msg, Message::HealthReply(h) if h.seq == 4)
+    })
+    .await;
+    assert_eq!(
+        island.view(id(0x120)).await.unwrap().node_id,
+        Some(id(0x456))
+    );
+    island.shutdown().await;
+}
