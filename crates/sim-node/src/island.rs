@@ -460,7 +460,17 @@ impl Island {
             }
         });
         due.sort_by_key(|l| l.0);
+        // Several toggles of one contact due at once mean this task was late (a loaded machine):
+        // they all reach the node at the same `now`, so only the last one matters. Feeding the
+        // others would make a glitch look like a level held for the whole delay, i.e. a real edge.
+        let mut last: Vec<(NodeId, Port, bool)> = Vec::new();
         for (_, name, port, closed) in due {
+            match last.iter_mut().find(|l| l.0 == name && l.1 == port) {
+                Some(l) => l.2 = closed,
+                None => last.push((name, port, closed)),
+            }
+        }
+        for (name, port, closed) in last {
             self.set_level(name, port, closed, now);
         }
         for e in self.elements.values_mut() {
