@@ -385,13 +385,19 @@ unconfigured = true
     }
 
     #[test]
-    fn the_example_island_file_is_valid() {
-        let path = concat!(
-            env!("CARGO_MANIFEST_DIR"),
-            "/../../examples/islands/demo.toml"
-        );
-        let d = IslandDesc::load(path).unwrap();
-        assert!(!d.statics.is_empty() && !d.mobiles.is_empty());
+    fn every_example_island_file_is_valid() {
+        let dir = concat!(env!("CARGO_MANIFEST_DIR"), "/../../examples/islands");
+        let mut n = 0;
+        for entry in std::fs::read_dir(dir).unwrap() {
+            let path = entry.unwrap().path();
+            if path.extension().is_some_and(|e| e == "toml") {
+                let d =
+                    IslandDesc::load(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+                assert!(!d.statics.is_empty(), "{}", path.display());
+                n += 1;
+            }
+        }
+        assert!(n >= 2, "found {n} example islands");
     }
 
     #[test]

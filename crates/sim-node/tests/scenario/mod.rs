@@ -88,13 +88,11 @@ impl Gateway {
     }
 
     async fn next(&mut self, until: tokio::time::Instant) -> Option<Packet> {
-        loop {
-            let frame = tokio::time::timeout_at(until, self.rx.recv()).await.ok()?;
-            let frame = frame.expect("gateway receive");
-            match Packet::from_frame(&frame) {
-                Ok(p) => return Some(p),
-                Err(e) => panic!("a virtual node sent an undecodable frame: {e:?} ({frame:?})"),
-            }
+        let frame = tokio::time::timeout_at(until, self.rx.recv()).await.ok()?;
+        let frame = frame.expect("gateway receive");
+        match Packet::from_frame(&frame) {
+            Ok(p) => Some(p),
+            Err(e) => panic!("a virtual node sent an undecodable frame: {e:?} ({frame:?})"),
         }
     }
 
