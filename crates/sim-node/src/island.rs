@@ -9,7 +9,9 @@
 //!   on; power-up is a fresh `Node` (reset `PowerOn`, the ID it last stored), power loss drops it;
 //! - docking closes the static element's signal loop on that port and the mobile's own loop on its
 //!   port; undocking opens both (with optional contact bounce);
-//! - a node taken off the bus keeps running but neither sends nor receives frames.
+//! - a node taken off the bus keeps running but neither sends nor receives frames; a frame it tries
+//!   to send goes unacknowledged, so its controller turns error passive (TEC 128, reported to the
+//!   core) and recovers one count per frame sent once it is back.
 //!
 //! Time is tokio's clock, so tests may run with a paused clock.
 
@@ -33,6 +35,9 @@ use crate::{
 /// Offsets (ms) and levels (relative to the final level) of a bouncing contact: four short glitches,
 /// all well inside the core's debounce window.
 const BOUNCE: [(u64, bool); 5] = [(0, true), (2, false), (4, true), (6, false), (9, true)];
+
+/// Transmit error count at which a CAN controller turns error passive.
+const ERROR_PASSIVE_TEC: u8 = 128;
 
 /// Capacity of the event stream ([`IslandHandle::subscribe`]).
 pub const EVENT_CAPACITY: usize = 256;
@@ -272,6 +277,8 @@ struct Live {
     epoch: u64,
     actuators: Actuators,
     buzzer_done_at: Option<Millis>,
+    /// Simulated transmit error counter of the node's CAN controller.
+    tec: u8,
 }
 
 impl Drop for Live {
@@ -597,6 +604,7 @@ impl Island {
             epoch,
             actuators: Actuators::default(),
             buzzer_done_at: None,
+            tec: 0,
         });
         tracing::info!(node = %name, role = ?e.role, id = ?e.stored_id, "power on");
         // The core flags its initial actuators as changed: the next drain reports them.
@@ -860,14 +868,26 @@ async fn drain(
         match out {
             Output::Frame(p) => {
                 if !e.on_bus {
+                    // Alone on its cable, nobody acknowledges: the controller retransmits until
+                    // it is error passive (TEC 128). The frame itself is dropped here.
                     tracing::trace!(node = %e.name, packet = ?p, "off the bus: frame lost");
+                    if l.tec < ERROR_PASSIVE_TEC {
+                        l.tec = ERROR_PASSIVE_TEC;
+                        l.node.handle_can_status(l.tec, 0, false, now);
+                    }
                     continue;
                 }
                 let Some(frame) = p.to_frame::<CanFrame>() else {
                     continue;
                 };
-                if let Err(err) = l.tx.send(frame).await {
-                    tracing::warn!(node = %e.name, %err, "send failed");
+                match l.tx.send(frame).await {
+                    // A successful transmission lowers the counter by one (ISO 11898-1).
+                    Ok(()) if l.tec > 0 => {
+                        l.tec -= 1;
+                        l.node.handle_can_status(l.tec, 0, false, now);
+                    }
+                    Ok(()) => {}
+                    Err(err) => tracing::warn!(node = %e.name, %err, "send failed"),
                 }
             }
             Output::Uart(b) => match uart.as_deref_mut() {

@@ -402,6 +402,17 @@ pub async fn off_bus(link: Link) {
         LedOutput::default()
     );
 
+    // Something to say while nobody listens: the dock report goes unacknowledged.
+    island.dock(id(3), id(0x112), 1).await.unwrap();
+    wait_view(&island, id(0x112), "the dock noticed", |v| {
+        v.loops == port(1).mask()
+    })
+    .await;
+    gw.expect_none("a dock report from 112 while off the bus", |p| {
+        p.src == id(0x112)
+    })
+    .await;
+
     island.set_on_bus(id(0x112), true).await.unwrap();
     gw.send(NodeId::BROADCAST, Message::HealthCheck { seq: 3 })
         .await;
@@ -413,7 +424,26 @@ pub async fn off_bus(link: Link) {
     let Message::HealthReply(h) = p.msg else {
         unreachable!()
     };
-    assert_eq!(h.loops, 0);
+    assert_eq!(
+        h.loops,
+        port(1).mask(),
+        "the debounced dock is in the health reply"
+    );
+    assert_eq!(
+        h.tec, 128,
+        "the unacknowledged report made its controller error passive"
+    );
+    assert!(h.flags.contains(ihex_proto::HealthFlags::ERROR_PASSIVE));
+    // Every frame sent since lowers the counter: the next reply shows fewer errors.
+    gw.send(id(0x112), Message::HealthCheck { seq: 5 }).await;
+    let p = gw
+        .expect("health reply 5 from 112", reply_from(id(0x112), 5))
+        .await;
+    let Message::HealthReply(h) = p.msg else {
+        unreachable!()
+    };
+    assert_eq!(h.tec, 127);
+    assert!(!h.flags.contains(ihex_proto::HealthFlags::ERROR_PASSIVE));
     island.shutdown().await;
 }
 
