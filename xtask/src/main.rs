@@ -1,6 +1,7 @@
 //! `cargo xtask`: the project's automation. `cargo xtask test` is THE test command: it runs every
 //! stage, streams their output, collects all failures and ends with `xtask: N passed, M failed`.
 
+mod bench;
 mod broker;
 mod cmd;
 mod cpio;
@@ -46,6 +47,9 @@ enum Task {
         #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
         args: Vec<String>,
     },
+    /// Benchmarks (not a test): gateway rates, latency, CPU, RSS, instructions per frame, firmware
+    /// size; writes target/bench/results.json (docs/benchmarks.md).
+    Bench(bench::BenchArgs),
     /// Boot the SocketCAN microVM to an interactive shell (vcan0..15 up).
     VmShell {
         #[command(flatten)]
@@ -140,6 +144,7 @@ fn main() -> ExitCode {
             Err(e) => Err(e),
         },
         Task::VmShell { vm } => vcan::vm_shell(vm.settings()),
+        Task::Bench(args) => bench::run(args, &firmware_release_dir()),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
