@@ -28,6 +28,7 @@
 
 mod addr;
 mod error;
+pub mod field;
 pub mod filter;
 mod header;
 mod message;

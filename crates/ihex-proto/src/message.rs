@@ -2,6 +2,10 @@
 
 use embedded_can::Frame;
 
+use crate::field::{
+    ack, assign_commit, assign_reply, assign_select, boot_up, buzzer_set, dock, dock_confirm,
+    dock_refuse, fault, health_check, health_reply, identify, led_set, power_set, Field,
+};
 use crate::{DecodeError, Header, Kind, NodeId, Port, Seq};
 
 /// An 8-bit-per-channel colour.
@@ -599,37 +603,54 @@ impl Message {
         Ok(())
     }
 
-    /// Encodes the payload bytes (no validation: see [`Message::validate`]).
+    /// Encodes the payload bytes (no validation: see [`Message::validate`]). Bytes a mode does not
+    /// use are zero.
     pub fn encode(&self) -> heapless::Vec<u8, 8> {
-        let mut d = Data::new();
+        let mut b = [0u8; 8];
         match *self {
-            Message::PowerSet { seq, on } => push_all(&mut d, &[seq, on as u8]),
+            Message::PowerSet { seq, on } => {
+                b[power_set::SEQ] = seq;
+                b[power_set::ON] = on as u8;
+            }
             Message::Fault { code, arg, detail } => {
-                push_all(&mut d, &[code.to_raw(), arg]);
-                push_all(&mut d, &detail.to_le_bytes());
+                b[fault::CODE] = code.to_raw();
+                b[fault::ARG] = arg;
+                b[fault::DETAIL].copy_from_slice(&detail.to_le_bytes());
             }
             Message::DockDetected { port }
             | Message::DockRemoved { port }
-            | Message::Handshake { port } => push_all(&mut d, &[port.get()]),
-            Message::DockConfirm { seq, port } => push_all(&mut d, &[seq, port.get()]),
+            | Message::Handshake { port } => b[dock::PORT] = port.get(),
+            Message::DockConfirm { seq, port } => {
+                b[dock_confirm::SEQ] = seq;
+                b[dock_confirm::PORT] = port.get();
+            }
             Message::DockRefuse { seq, port, reason } => {
-                push_all(&mut d, &[seq, port.get(), reason.to_raw()])
+                b[dock_refuse::SEQ] = seq;
+                b[dock_refuse::PORT] = port.get();
+                b[dock_refuse::REASON] = reason.to_raw();
             }
             Message::Ack {
                 kind,
                 seq,
                 result,
                 detail,
-            } => push_all(&mut d, &[kind as u8, seq, result.to_raw(), detail]),
-            Message::AssignSelect { uid_head } => push_all(&mut d, &uid_head),
+            } => {
+                b[ack::KIND] = kind as u8;
+                b[ack::SEQ] = seq;
+                b[ack::RESULT] = result.to_raw();
+                b[ack::DETAIL] = detail;
+            }
+            Message::AssignSelect { uid_head } => {
+                b[assign_select::UID_HEAD].copy_from_slice(&uid_head)
+            }
             Message::AssignCommit {
                 uid_tail,
                 new_id,
                 seq,
             } => {
-                push_all(&mut d, &uid_tail);
-                push_all(&mut d, &new_id.get().to_le_bytes());
-                push_all(&mut d, &[seq]);
+                b[assign_commit::UID_TAIL].copy_from_slice(&uid_tail);
+                b[assign_commit::ID].copy_from_slice(&new_id.get().to_le_bytes());
+                b[assign_commit::SEQ] = seq;
             }
             Message::AssignReply {
                 seq,
@@ -637,62 +658,92 @@ impl Message {
                 new_id,
                 uid_tail,
             } => {
-                push_all(&mut d, &[seq, result.to_raw()]);
-                push_all(&mut d, &new_id.get().to_le_bytes());
-                push_all(&mut d, &uid_tail);
+                b[assign_reply::SEQ] = seq;
+                b[assign_reply::RESULT] = result.to_raw();
+                b[assign_reply::ID].copy_from_slice(&new_id.get().to_le_bytes());
+                b[assign_reply::UID_TAIL].copy_from_slice(&uid_tail);
             }
             Message::BootUp {
                 version,
                 role,
                 ports,
                 reset,
-            } => push_all(
-                &mut d,
-                &[
-                    version.0,
-                    version.1,
-                    matches!(role, BootRole::Mobile) as u8,
-                    ports,
-                    reset.to_raw(),
-                ],
-            ),
+            } => {
+                b[boot_up::MAJOR] = version.0;
+                b[boot_up::MINOR] = version.1;
+                b[boot_up::ROLE] = matches!(role, BootRole::Mobile) as u8;
+                b[boot_up::PORTS] = ports;
+                b[boot_up::RESET] = reset.to_raw();
+            }
             Message::BuzzerSet { seq, cmd } => {
-                let (mode, f, on, off, count) = match cmd {
-                    BuzzerCommand::Off => (0, 0, 0, 0, 0),
-                    BuzzerCommand::Continuous { freq_hz } => (1, freq_hz, 0, 0, 0),
+                b[buzzer_set::SEQ] = seq;
+                let freq = match cmd {
+                    BuzzerCommand::Off => None,
+                    BuzzerCommand::Continuous { freq_hz } => {
+                        b[buzzer_set::MODE] = 1;
+                        Some(freq_hz)
+                    }
                     BuzzerCommand::Pattern {
                         freq_hz,
                         on_10ms,
                         off_10ms,
                         count,
-                    } => (2, freq_hz, on_10ms, off_10ms, count),
+                    } => {
+                        b[buzzer_set::MODE] = 2;
+                        b[buzzer_set::ON] = on_10ms;
+                        b[buzzer_set::OFF] = off_10ms;
+                        b[buzzer_set::COUNT] = count;
+                        Some(freq_hz)
+                    }
                 };
-                let f = f.to_le_bytes();
-                push_all(&mut d, &[seq, mode, f[0], f[1], on, off, count]);
+                if let Some(f) = freq {
+                    b[buzzer_set::FREQ].copy_from_slice(&f.to_le_bytes());
+                }
             }
             Message::LedSet { seq, cmd } => {
-                let (mode, c, br, p, duty) = match cmd {
-                    LedCommand::Off => (0, Rgb::default(), 0, 0, 0),
-                    LedCommand::Steady { color, brightness } => (1, color, brightness, 0, 0),
+                b[led_set::SEQ] = seq;
+                let (color, brightness) = match cmd {
+                    LedCommand::Off => (None, 0),
+                    LedCommand::Steady { color, brightness } => {
+                        b[led_set::MODE] = 1;
+                        (Some(color), brightness)
+                    }
                     LedCommand::Blink {
                         color,
                         brightness,
                         period_10ms,
                         duty_pct,
-                    } => (2, color, brightness, period_10ms, duty_pct),
+                    } => {
+                        b[led_set::MODE] = 2;
+                        b[led_set::PERIOD] = period_10ms;
+                        b[led_set::DUTY] = duty_pct;
+                        (Some(color), brightness)
+                    }
                 };
-                push_all(&mut d, &[seq, mode, c.r, c.g, c.b, br, p, duty]);
+                if let Some(c) = color {
+                    b[led_set::R] = c.r;
+                    b[led_set::G] = c.g;
+                    b[led_set::B] = c.b;
+                    b[led_set::BRIGHTNESS] = brightness;
+                }
             }
-            Message::Identify { seq, seconds } => push_all(&mut d, &[seq, seconds]),
-            Message::HealthCheck { seq } => push_all(&mut d, &[seq]),
+            Message::Identify { seq, seconds } => {
+                b[identify::SEQ] = seq;
+                b[identify::SECONDS] = seconds;
+            }
+            Message::HealthCheck { seq } => b[health_check::SEQ] = seq,
             Message::HealthReply(h) => {
+                b[health_reply::SEQ] = h.seq;
+                b[health_reply::FLAGS] = h.flags.0;
+                b[health_reply::LOOPS] = h.loops;
+                b[health_reply::TEC] = h.tec;
+                b[health_reply::REC] = h.rec;
                 let up = h.uptime_s.min(HealthReply::MAX_UPTIME_S).to_le_bytes();
-                push_all(
-                    &mut d,
-                    &[h.seq, h.flags.0, h.loops, h.tec, h.rec, up[0], up[1], up[2]],
-                );
+                b[health_reply::UPTIME].copy_from_slice(&up[..3]);
             }
         }
+        let mut d = Data::new();
+        push_all(&mut d, &b[..Self::len_of(self.kind()) as usize]);
         d
     }
 
@@ -734,139 +785,156 @@ impl Message {
             raw: raw as u32,
         };
         let port = |raw: u8| Port::new(raw).ok_or(bad("port", raw));
-        let node_id = |raw: u16| {
+        let node_id = |f: Field| {
+            let raw = u16::from_le_bytes([d[f.start], d[f.start + 1]]);
             NodeId::new(raw).ok_or(DecodeError::Value {
                 kind,
                 field: "id",
                 raw: raw as u32,
             })
         };
+        let bytes4 = |f: Field| [d[f.start], d[f.start + 1], d[f.start + 2], d[f.start + 3]];
         // Bytes a mode does not use must be zero, so that every accepted payload has exactly one
         // encoding (decode then encode gives the same bytes) and a future use of them is detectable.
-        let reserved = |bytes: &[u8]| match bytes.iter().find(|b| **b != 0) {
+        let reserved = |from: usize| match d[from..].iter().find(|b| **b != 0) {
             Some(b) => Err(bad("reserved", *b)),
             None => Ok(()),
         };
         let msg = match kind {
             Kind::PowerSet => Message::PowerSet {
-                seq: d[0],
-                on: match d[1] {
+                seq: d[power_set::SEQ],
+                on: match d[power_set::ON] {
                     0 => false,
                     1 => true,
                     v => return Err(bad("on", v)),
                 },
             },
             Kind::Fault => Message::Fault {
-                code: FaultCode::from_raw(d[0]),
-                arg: d[1],
-                detail: u32::from_le_bytes([d[2], d[3], d[4], d[5]]),
+                code: FaultCode::from_raw(d[fault::CODE]),
+                arg: d[fault::ARG],
+                detail: u32::from_le_bytes(bytes4(fault::DETAIL)),
             },
-            Kind::DockDetected => Message::DockDetected { port: port(d[0])? },
-            Kind::DockRemoved => Message::DockRemoved { port: port(d[0])? },
-            Kind::Handshake => Message::Handshake { port: port(d[0])? },
+            Kind::DockDetected => Message::DockDetected {
+                port: port(d[dock::PORT])?,
+            },
+            Kind::DockRemoved => Message::DockRemoved {
+                port: port(d[dock::PORT])?,
+            },
+            Kind::Handshake => Message::Handshake {
+                port: port(d[dock::PORT])?,
+            },
             Kind::DockConfirm => Message::DockConfirm {
-                seq: d[0],
-                port: port(d[1])?,
+                seq: d[dock_confirm::SEQ],
+                port: port(d[dock_confirm::PORT])?,
             },
             Kind::DockRefuse => Message::DockRefuse {
-                seq: d[0],
-                port: port(d[1])?,
-                reason: DockRefuseReason::from_raw(d[2]),
+                seq: d[dock_refuse::SEQ],
+                port: port(d[dock_refuse::PORT])?,
+                reason: DockRefuseReason::from_raw(d[dock_refuse::REASON]),
             },
             Kind::Ack => Message::Ack {
-                kind: Kind::from_raw(d[0]).ok_or(bad("kind", d[0]))?,
-                seq: d[1],
-                result: AckResult::from_raw(d[2]),
-                detail: d[3],
+                kind: Kind::from_raw(d[ack::KIND]).ok_or(bad("kind", d[ack::KIND]))?,
+                seq: d[ack::SEQ],
+                result: AckResult::from_raw(d[ack::RESULT]),
+                detail: d[ack::DETAIL],
             },
             Kind::AssignSelect => {
                 let mut uid_head = [0; 8];
-                uid_head.copy_from_slice(d);
+                uid_head.copy_from_slice(&d[assign_select::UID_HEAD]);
                 Message::AssignSelect { uid_head }
             }
             Kind::AssignCommit => Message::AssignCommit {
-                uid_tail: [d[0], d[1], d[2], d[3]],
-                new_id: node_id(u16::from_le_bytes([d[4], d[5]]))?,
-                seq: d[6],
+                uid_tail: bytes4(assign_commit::UID_TAIL),
+                new_id: node_id(assign_commit::ID)?,
+                seq: d[assign_commit::SEQ],
             },
             Kind::AssignReply => Message::AssignReply {
-                seq: d[0],
-                result: AckResult::from_raw(d[1]),
-                new_id: node_id(u16::from_le_bytes([d[2], d[3]]))?,
-                uid_tail: [d[4], d[5], d[6], d[7]],
+                seq: d[assign_reply::SEQ],
+                result: AckResult::from_raw(d[assign_reply::RESULT]),
+                new_id: node_id(assign_reply::ID)?,
+                uid_tail: bytes4(assign_reply::UID_TAIL),
             },
             Kind::BootUp => Message::BootUp {
-                version: (d[0], d[1]),
-                role: match d[2] {
+                version: (d[boot_up::MAJOR], d[boot_up::MINOR]),
+                role: match d[boot_up::ROLE] {
                     0 => BootRole::Static,
                     1 => BootRole::Mobile,
                     v => return Err(bad("role", v)),
                 },
-                ports: d[3],
-                reset: ResetReason::from_raw(d[4]),
+                ports: d[boot_up::PORTS],
+                reset: ResetReason::from_raw(d[boot_up::RESET]),
             },
             Kind::BuzzerSet => {
-                let freq_hz = u16::from_le_bytes([d[2], d[3]]);
+                let f = buzzer_set::FREQ;
+                let freq_hz = u16::from_le_bytes([d[f.start], d[f.start + 1]]);
                 Message::BuzzerSet {
-                    seq: d[0],
-                    cmd: match d[1] {
+                    seq: d[buzzer_set::SEQ],
+                    cmd: match d[buzzer_set::MODE] {
                         0 => {
-                            reserved(&d[2..])?;
+                            reserved(f.start)?;
                             BuzzerCommand::Off
                         }
                         1 => {
-                            reserved(&d[4..])?;
+                            reserved(buzzer_set::ON)?;
                             BuzzerCommand::Continuous { freq_hz }
                         }
                         2 => BuzzerCommand::Pattern {
                             freq_hz,
-                            on_10ms: d[4],
-                            off_10ms: d[5],
-                            count: d[6],
+                            on_10ms: d[buzzer_set::ON],
+                            off_10ms: d[buzzer_set::OFF],
+                            count: d[buzzer_set::COUNT],
                         },
                         v => return Err(bad("mode", v)),
                     },
                 }
             }
             Kind::LedSet => {
-                let color = Rgb::new(d[2], d[3], d[4]);
+                let color = Rgb::new(d[led_set::R], d[led_set::G], d[led_set::B]);
+                let brightness = d[led_set::BRIGHTNESS];
                 Message::LedSet {
-                    seq: d[0],
-                    cmd: match d[1] {
+                    seq: d[led_set::SEQ],
+                    cmd: match d[led_set::MODE] {
                         0 => {
-                            reserved(&d[2..])?;
+                            reserved(led_set::R)?;
                             LedCommand::Off
                         }
                         1 => {
-                            reserved(&d[6..])?;
-                            LedCommand::Steady {
-                                color,
-                                brightness: d[5],
-                            }
+                            reserved(led_set::PERIOD)?;
+                            LedCommand::Steady { color, brightness }
                         }
                         2 => LedCommand::Blink {
                             color,
-                            brightness: d[5],
-                            period_10ms: d[6],
-                            duty_pct: d[7],
+                            brightness,
+                            period_10ms: d[led_set::PERIOD],
+                            duty_pct: d[led_set::DUTY],
                         },
                         v => return Err(bad("mode", v)),
                     },
                 }
             }
             Kind::Identify => Message::Identify {
-                seq: d[0],
-                seconds: d[1],
+                seq: d[identify::SEQ],
+                seconds: d[identify::SECONDS],
             },
-            Kind::HealthCheck => Message::HealthCheck { seq: d[0] },
-            Kind::HealthReply => Message::HealthReply(HealthReply {
-                seq: d[0],
-                flags: HealthFlags(d[1]),
-                loops: d[2],
-                tec: d[3],
-                rec: d[4],
-                uptime_s: u32::from_le_bytes([d[5], d[6], d[7], 0]),
-            }),
+            Kind::HealthCheck => Message::HealthCheck {
+                seq: d[health_check::SEQ],
+            },
+            Kind::HealthReply => {
+                let up = health_reply::UPTIME;
+                Message::HealthReply(HealthReply {
+                    seq: d[health_reply::SEQ],
+                    flags: HealthFlags(d[health_reply::FLAGS]),
+                    loops: d[health_reply::LOOPS],
+                    tec: d[health_reply::TEC],
+                    rec: d[health_reply::REC],
+                    uptime_s: u32::from_le_bytes([
+                        d[up.start],
+                        d[up.start + 1],
+                        d[up.start + 2],
+                        0,
+                    ]),
+                })
+            }
         };
         msg.validate()?;
         Ok(msg)

@@ -152,6 +152,37 @@ fn kind_values_priorities_and_directions() {
     }
 }
 
+/// The public field offsets end exactly at each kind's length (no gap, nothing past the end).
+#[test]
+fn field_offsets_fill_each_layout() {
+    use ihex_proto::field::*;
+    let ends = [
+        (Kind::PowerSet, power_set::ON + 1),
+        (Kind::Fault, fault::DETAIL.end),
+        (Kind::DockDetected, dock::PORT + 1),
+        (Kind::DockRemoved, dock::PORT + 1),
+        (Kind::DockConfirm, dock_confirm::PORT + 1),
+        (Kind::DockRefuse, dock_refuse::REASON + 1),
+        (Kind::Handshake, dock::PORT + 1),
+        (Kind::Ack, ack::DETAIL + 1),
+        (Kind::AssignSelect, assign_select::UID_HEAD.end),
+        (Kind::AssignCommit, assign_commit::SEQ + 1),
+        (Kind::AssignReply, assign_reply::UID_TAIL.end),
+        (Kind::BootUp, boot_up::RESET + 1),
+        (Kind::BuzzerSet, buzzer_set::COUNT + 1),
+        (Kind::LedSet, led_set::DUTY + 1),
+        (Kind::Identify, identify::SECONDS + 1),
+        (Kind::HealthCheck, health_check::SEQ + 1),
+        (Kind::HealthReply, health_reply::UPTIME.end),
+    ];
+    for (i, (kind, end)) in ends.into_iter().enumerate() {
+        assert_eq!(kind, Kind::ALL[i]);
+        assert_eq!(end, Message::len_of(kind) as usize, "{kind:?}");
+    }
+    // An Ack's detail names the offending byte: the port of a DockConfirm is byte 1.
+    assert_eq!(dock_confirm::PORT, 1);
+}
+
 #[test]
 fn node_ids_and_ports() {
     assert_eq!(NodeId::GATEWAY.get(), 0x000);

@@ -1,0 +1,176 @@
+//! Byte offsets of every field in the data of each message (smoltcp-style), as tabled in
+//! `docs/protocol.md`. Single bytes are `usize` offsets, multi-byte little-endian fields ranges.
+//!
+//! The codec in [`crate::Message`] reads and writes through these constants, so they are the
+//! layout; an [`crate::Message::Ack`]'s `detail` for `InvalidValue`/`InvalidState` is one of them.
+
+/// A multi-byte field: its byte range.
+pub type Field = core::ops::Range<usize>;
+
+/// [`crate::Message::PowerSet`].
+pub mod power_set {
+    /// Sequence number.
+    pub const SEQ: usize = 0;
+    /// Relay state, `0`/`1`.
+    pub const ON: usize = 1;
+}
+
+/// [`crate::Message::Fault`].
+pub mod fault {
+    use super::Field;
+    /// Fault code.
+    pub const CODE: usize = 0;
+    /// Code-specific argument.
+    pub const ARG: usize = 1;
+    /// Code-specific detail, `u32` LE.
+    pub const DETAIL: Field = 2..6;
+}
+
+/// [`crate::Message::DockDetected`], [`crate::Message::DockRemoved`], [`crate::Message::Handshake`].
+pub mod dock {
+    /// Dock port.
+    pub const PORT: usize = 0;
+}
+
+/// [`crate::Message::DockConfirm`].
+pub mod dock_confirm {
+    /// Sequence number.
+    pub const SEQ: usize = 0;
+    /// Dock port.
+    pub const PORT: usize = 1;
+}
+
+/// [`crate::Message::DockRefuse`].
+pub mod dock_refuse {
+    /// Sequence number.
+    pub const SEQ: usize = 0;
+    /// Dock port.
+    pub const PORT: usize = 1;
+    /// Refusal reason.
+    pub const REASON: usize = 2;
+}
+
+/// [`crate::Message::Ack`].
+pub mod ack {
+    /// Kind of the command answered.
+    pub const KIND: usize = 0;
+    /// Its sequence number.
+    pub const SEQ: usize = 1;
+    /// Result code.
+    pub const RESULT: usize = 2;
+    /// Result-specific detail.
+    pub const DETAIL: usize = 3;
+}
+
+/// [`crate::Message::AssignSelect`].
+pub mod assign_select {
+    use super::Field;
+    /// Unique-ID bytes 0–7.
+    pub const UID_HEAD: Field = 0..8;
+}
+
+/// [`crate::Message::AssignCommit`].
+pub mod assign_commit {
+    use super::Field;
+    /// Unique-ID bytes 8–11.
+    pub const UID_TAIL: Field = 0..4;
+    /// New node ID, `u16` LE.
+    pub const ID: Field = 4..6;
+    /// Sequence number.
+    pub const SEQ: usize = 6;
+}
+
+/// [`crate::Message::AssignReply`].
+pub mod assign_reply {
+    use super::Field;
+    /// Sequence number of the commit.
+    pub const SEQ: usize = 0;
+    /// Result code.
+    pub const RESULT: usize = 1;
+    /// The node's ID now, `u16` LE.
+    pub const ID: Field = 2..4;
+    /// Unique-ID bytes 8–11.
+    pub const UID_TAIL: Field = 4..8;
+}
+
+/// [`crate::Message::BootUp`].
+pub mod boot_up {
+    /// Protocol major version.
+    pub const MAJOR: usize = 0;
+    /// Protocol minor version.
+    pub const MINOR: usize = 1;
+    /// Role, `0` static / `1` mobile.
+    pub const ROLE: usize = 2;
+    /// Number of dock ports.
+    pub const PORTS: usize = 3;
+    /// Reset reason.
+    pub const RESET: usize = 4;
+}
+
+/// [`crate::Message::BuzzerSet`].
+pub mod buzzer_set {
+    use super::Field;
+    /// Sequence number.
+    pub const SEQ: usize = 0;
+    /// Mode: `0` off, `1` continuous, `2` pattern.
+    pub const MODE: usize = 1;
+    /// Tone frequency in Hz, `u16` LE.
+    pub const FREQ: Field = 2..4;
+    /// Beep length × 10 ms.
+    pub const ON: usize = 4;
+    /// Pause length × 10 ms.
+    pub const OFF: usize = 5;
+    /// Number of beeps.
+    pub const COUNT: usize = 6;
+}
+
+/// [`crate::Message::LedSet`].
+pub mod led_set {
+    /// Sequence number.
+    pub const SEQ: usize = 0;
+    /// Mode: `0` off, `1` steady, `2` blink.
+    pub const MODE: usize = 1;
+    /// Red.
+    pub const R: usize = 2;
+    /// Green.
+    pub const G: usize = 3;
+    /// Blue.
+    pub const B: usize = 4;
+    /// Overall brightness.
+    pub const BRIGHTNESS: usize = 5;
+    /// Blink period × 10 ms.
+    pub const PERIOD: usize = 6;
+    /// Blink duty, %.
+    pub const DUTY: usize = 7;
+}
+
+/// [`crate::Message::Identify`].
+pub mod identify {
+    /// Sequence number.
+    pub const SEQ: usize = 0;
+    /// Duration in seconds.
+    pub const SECONDS: usize = 1;
+}
+
+/// [`crate::Message::HealthCheck`].
+pub mod health_check {
+    /// Sequence number.
+    pub const SEQ: usize = 0;
+}
+
+/// [`crate::Message::HealthReply`].
+pub mod health_reply {
+    use super::Field;
+    /// Sequence number of the check answered.
+    pub const SEQ: usize = 0;
+    /// State flags.
+    pub const FLAGS: usize = 1;
+    /// Signal-loop bitmap.
+    pub const LOOPS: usize = 2;
+    /// CAN transmit error counter.
+    pub const TEC: usize = 3;
+    /// CAN receive error counter.
+    pub const REC: usize = 4;
+    /// Uptime in seconds, 24-bit LE.
+    pub const UPTIME: Field = 5..8;
+}
