@@ -91,6 +91,9 @@ pub enum IslandError {
     /// The bus could not be opened or configured.
     #[error(transparent)]
     Link(#[from] LinkError),
+    /// A hand-built [`IslandDesc`] is inconsistent ([`IslandDesc::parse`] never yields one).
+    #[error("invalid island description: {0}")]
+    InvalidDesc(String),
     /// The island task has stopped.
     #[error("the island is not running")]
     Stopped,
@@ -327,6 +330,7 @@ impl Island {
     pub fn start(desc: &IslandDesc, link: Link) -> Result<IslandHandle, IslandError> {
         let (events, _) = broadcast::channel(EVENT_CAPACITY);
         let (frames_tx, frames_rx) = mpsc::channel(256);
+        check(desc)?;
         let (cmd_tx, cmd_rx) = mpsc::channel(32);
         let mut island = Island {
             link,
@@ -408,7 +412,7 @@ impl Island {
         mut cmd_rx: mpsc::Receiver<Command>,
         mut frames_rx: mpsc::Receiver<Received>,
     ) {
-        // Start-up may already have powered mobiles' static relays: settle once before serving.
+        // Send the boot announcements queued by `start` before serving anything.
         self.settle().await;
         let mut last_timer: Option<Instant> = None;
         loop {
@@ -854,6 +858,43 @@ impl Island {
             })
             .collect()
     }
+}
+
+/// The consistency [`IslandDesc::parse`] guarantees, for descriptions built by hand.
+fn check(desc: &IslandDesc) -> Result<(), IslandError> {
+    let bad = |m: String| Err(IslandError::InvalidDesc(m));
+    let mut names: Vec<NodeId> = desc.statics.iter().map(|s| s.id).collect();
+    names.extend(desc.mobiles.iter().map(|m| m.id));
+    let mut sorted = names.clone();
+    sorted.sort();
+    sorted.dedup();
+    if sorted.len() != names.len() {
+        return bad("an element ID is used twice".into());
+    }
+    let mut taken = Vec::new();
+    for m in &desc.mobiles {
+        if m.port.get() >= m.ports.max(1) {
+            return bad(format!(
+                "\"{}\" docks by port {} of {}",
+                m.id, m.port, m.ports
+            ));
+        }
+        let Some((s, p)) = m.dock else { continue };
+        match desc.statics.iter().find(|st| st.id == s) {
+            Some(st) if p.get() < st.ports => {}
+            _ => {
+                return bad(format!(
+                    "\"{}\" is docked on a missing static element or port",
+                    m.id
+                ))
+            }
+        }
+        if taken.contains(&(s, p)) {
+            return bad(format!("two mobiles are docked on \"{s}\" port {p}"));
+        }
+        taken.push((s, p));
+    }
+    Ok(())
 }
 
 /// Carries out one node's queued outputs; UART bytes go to `uart` when given (else they are logged).

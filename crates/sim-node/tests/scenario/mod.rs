@@ -326,6 +326,13 @@ pub async fn bad_requests(link: Link) {
         island.uart(id(3), &[0xB0, 0]).await.is_err(),
         "3 has no power"
     );
+    // A hand-built description is checked like a parsed one.
+    let mut desc = IslandDesc::parse(ISLAND).unwrap();
+    desc.mobiles[0].dock = Some((id(0x999), port(0)));
+    assert!(
+        Island::start(&desc, link.clone()).is_err(),
+        "dock on a missing element"
+    );
     island.shutdown().await;
 }
 
