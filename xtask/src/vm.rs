@@ -62,6 +62,9 @@ pub struct Vm {
     pub timeout: Duration,
     /// Where base archives are cached.
     pub cache_dir: PathBuf,
+    /// Strip debug info from payload programs (with `strip`, when installed) to keep the initrd
+    /// small; panics still name file and line.
+    pub strip: bool,
 }
 
 /// A program to run in the VM.
@@ -177,6 +180,7 @@ impl Vm {
             smp: 2,
             timeout: Duration::from_secs(15 * 60),
             cache_dir: cache_root.join("x86_64"),
+            strip: std::env::var_os("IHEX_VM_KEEP_DEBUG").is_none(),
         })
     }
 
@@ -267,10 +271,12 @@ if [ -e /sys/class/net/eth0 ]; then
 fi
 {boot}
 echo "{MARK} ready"
-if [ -x /payload/run.sh ]; then
+if grep -q ihex.shell /proc/cmdline; then
+  setsid cttyhack sh
+elif [ -x /payload/run.sh ]; then
   /payload/run.sh
 else
-  setsid cttyhack sh
+  echo "{MARK} error: /payload/run.sh missing (initramfs unpacking failed? more memory: --memory MIB)"
 fi
 echo "{MARK} done"
 sync
@@ -393,9 +399,33 @@ poweroff -f
             for f in &payload.files {
                 c.file(&f.to_string_lossy(), f)?;
             }
-            for p in &payload.programs {
-                c.file(&p.path.to_string_lossy(), &p.path)?;
+            let strip = if self.strip { cmd::find("strip") } else { None };
+            let stripped = self
+                .cache_dir
+                .join(format!("stripped-{}", std::process::id()));
+            for (i, p) in payload.programs.iter().enumerate() {
+                let src = match &strip {
+                    Some(strip) => {
+                        fs::create_dir_all(&stripped)?;
+                        let out = stripped.join(i.to_string());
+                        let ok = Command::new(strip)
+                            .arg("--strip-debug")
+                            .arg("-o")
+                            .arg(&out)
+                            .arg(&p.path)
+                            .status()
+                            .is_ok_and(|s| s.success());
+                        if ok {
+                            out
+                        } else {
+                            p.path.clone()
+                        }
+                    }
+                    None => p.path.clone(),
+                };
+                c.file(&p.path.to_string_lossy(), &src)?;
             }
+            let _ = fs::remove_dir_all(&stripped);
             c.bytes("payload/run.sh", 0o755, run_script(payload).as_bytes())?;
             c.finish()?;
         }
@@ -405,8 +435,9 @@ poweroff -f
     fn boot(&self, initrd: &Path, names: &[&str], interactive: bool) -> Result<Vec<i32>> {
         let expected = names.len();
         let size_mb = fs::metadata(initrd)?.len() >> 20;
-        // The initrd is held in memory twice while the kernel unpacks it into its tmpfs.
-        let memory = self.memory_mb.max(size_mb * 2 + 512);
+        // The initrd is held in memory while the kernel unpacks it into a tmpfs that may use only
+        // half of the RAM.
+        let memory = self.memory_mb.max(size_mb * 3 + 512);
         let mut q = Command::new(&self.qemu);
         q.args(&self.machine_args)
             .args(["-m", &memory.to_string(), "-smp", &self.smp.to_string()])
@@ -416,7 +447,11 @@ poweroff -f
             .arg(initrd)
             .args([
                 "-append",
-                &format!("console={} quiet loglevel=3 panic=-1", self.console),
+                &format!(
+                    "console={} quiet loglevel=3 panic=-1{}",
+                    self.console,
+                    if interactive { " ihex.shell" } else { "" }
+                ),
             ])
             .args(["-no-reboot", "-display", "none", "-monitor", "none"]);
         if let Some(dev) = &self.net_device {
@@ -495,7 +530,9 @@ poweroff -f
             .map(|(i, c)| {
                 c.ok_or_else(|| {
                     anyhow!(
-                        "VM stopped before program #{i} finished (kernel panic? out of memory?)"
+                        "VM stopped before {} finished (kernel panic? initramfs too big for \
+                         the memory? try --memory MIB); see the console output above",
+                        names.get(i).unwrap_or(&"a program")
                     )
                 })
             })
