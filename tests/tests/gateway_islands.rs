@@ -6,6 +6,7 @@ mod gateway_support;
 
 use gateway_support::{id, Rig};
 use ihex_proto::Rgb;
+use ihex_sc_core::BuzzerOutput;
 use ihex_tests::broker::Mosquitto;
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -15,9 +16,8 @@ async fn two_islands_share_one_broker_without_crosstalk() {
     let mut a = Rig::start_on(broker, "island-a").await;
     let mut b = Rig::start_at(addr, "island-b").await;
 
+    let off = Rgb::new(0, 0, 0);
     a.command_ok(r#"{"cmd":"led","node":"111","color":"red""#, "a1")
-        .await;
-    b.command_ok(r#"{"cmd":"led","node":"111","color":"blue""#, "b1")
         .await;
     assert_eq!(
         a.island.actuators(id("111")).await.unwrap().led.duty,
@@ -25,7 +25,26 @@ async fn two_islands_share_one_broker_without_crosstalk() {
     );
     assert_eq!(
         b.island.actuators(id("111")).await.unwrap().led.duty,
-        Rgb::new(0, 0, 255)
+        off,
+        "b acted on a's command"
+    );
+    b.command_ok(r#"{"cmd":"buzzer","node":"111","mode":"on""#, "b1")
+        .await;
+    assert_ne!(
+        b.island.actuators(id("111")).await.unwrap().buzzer,
+        BuzzerOutput::Off
+    );
+    assert_eq!(
+        a.island.actuators(id("111")).await.unwrap().buzzer,
+        BuzzerOutput::Off,
+        "a acted on b's command"
+    );
+    // Commands to "all" stay on their island too.
+    b.command_ok(r#"{"cmd":"led","node":"all","color":"blue""#, "b2")
+        .await;
+    assert_eq!(
+        a.island.actuators(id("111")).await.unwrap().led.duty,
+        Rgb::new(255, 0, 0)
     );
 
     // Each client subscribed to its own island's `#` only saw its own island.
@@ -40,7 +59,11 @@ async fn two_islands_share_one_broker_without_crosstalk() {
         );
         let answered_other = seen.iter().any(|m| {
             let r = &m.json()["payload"]["request_id"];
-            r == if own == "island-a/" { "b1" } else { "a1" }
+            if own == "island-a/" {
+                r == "b1" || r == "b2"
+            } else {
+                r == "a1"
+            }
         });
         assert!(!answered_other, "{own} answered a command of {other}");
     }

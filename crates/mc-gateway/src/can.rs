@@ -17,7 +17,7 @@ use ihex_proto::{
 };
 use sim_node::bus::{MemEndpoint, MemSender};
 use socketcan::{CanFilter, CanFrame, SocketOptions};
-use tokio::sync::{mpsc, watch};
+use tokio::sync::{mpsc, watch, Notify};
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, info, warn};
 
@@ -33,6 +33,8 @@ pub const REOPEN_MIN: Duration = Duration::from_millis(100);
 pub const REOPEN_MAX: Duration = Duration::from_secs(5);
 /// A write that cannot get into the kernel's queue within this time fails (the bus is stuck).
 const WRITE_TIMEOUT: Duration = Duration::from_millis(200);
+/// How often the receive task looks at the interface's flags while the socket is quiet.
+const LINK_CHECK: Duration = Duration::from_secs(1);
 
 /// What the CAN tasks report to the bridge.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -88,18 +90,27 @@ pub fn spawn(
     let plan = filter::to_kernel(&filters)?;
     let (tx_packets, rx_packets) = mpsc::channel(tx_queue);
     let (link_tx, link_rx) = watch::channel(None);
+    let failed = Arc::new(Notify::new());
     match link {
         LinkSpec::SocketCan { iface, rx_buffer } => {
-            let opts = SocketSetup {
+            let setup = SocketSetup {
                 iface,
                 rx_buffer,
                 plan,
                 filters: filters.to_vec(),
             };
+            // The first attempt happens here so the bridge's first frames find a socket; when the
+            // interface is not there yet the receive task keeps trying.
+            let first = setup.open()?.map(Arc::new);
+            if let Some(sock) = &first {
+                link_tx.send_replace(Some(TxLink::Socket(sock.clone())));
+            }
             tasks.spawn(receive_socket(
-                opts,
+                setup,
+                first,
                 inputs.clone(),
                 link_tx,
+                failed.clone(),
                 cancel.clone(),
             ));
         }
@@ -109,7 +120,7 @@ pub fn spawn(
             tasks.spawn(receive_mem(ep, inputs.clone(), link_tx, cancel.clone()));
         }
     }
-    tasks.spawn(transmit(rx_packets, link_rx, inputs, cancel));
+    tasks.spawn(transmit(rx_packets, link_rx, inputs, failed, cancel));
     Ok(tx_packets)
 }
 
@@ -190,19 +201,26 @@ fn interface_up(iface: &str) -> bool {
 #[tracing::instrument(name = "can_rx", skip_all, fields(iface = %setup.iface))]
 async fn receive_socket(
     setup: SocketSetup,
+    mut first: Option<Arc<socketcan::tokio::CanSocket>>,
     inputs: mpsc::Sender<CanInput>,
     link: watch::Sender<Option<TxLink>>,
+    failed: Arc<Notify>,
     cancel: CancellationToken,
 ) {
     let mut delay = REOPEN_MIN;
     let mut down = false;
     loop {
-        let sock = match setup.open() {
-            Ok(Some(s)) => Arc::new(s),
+        let opened = match first.take() {
+            Some(s) => Ok(Some(s)),
+            None => setup.open().map(|o| o.map(Arc::new)),
+        };
+        let sock = match opened {
+            Ok(Some(s)) => s,
             Ok(None) => {
                 if !down {
                     warn!("CAN interface missing or down; retrying");
                     down = true;
+                    link.send_replace(None);
                     let _ = inputs.send(CanInput::Bus(BusEvent::InterfaceDown)).await;
                 }
                 tokio::select! {
@@ -225,13 +243,25 @@ async fn receive_socket(
         };
         if down {
             info!("CAN interface back");
+            link.send_replace(Some(TxLink::Socket(sock.clone())));
             let _ = inputs.send(CanInput::Bus(BusEvent::Recovered)).await;
         }
         delay = REOPEN_MIN;
-        link.send_replace(Some(TxLink::Socket(sock.clone())));
-        loop {
+        let mut check = tokio::time::interval(LINK_CHECK);
+        check.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+        // The socket's pending error (ENETDOWN on link down) goes to whichever call sees it
+        // first, often a write in the transmit task: so a failed write, a failed read and a
+        // periodic look at the interface flags all lead here.
+        let why = loop {
             let frame = tokio::select! {
                 _ = cancel.cancelled() => return,
+                _ = failed.notified() => break "a write failed with a link error".to_owned(),
+                _ = check.tick() => {
+                    if interface_up(&setup.iface) {
+                        continue;
+                    }
+                    break "interface down".to_owned();
+                }
                 r = sock.read_frame() => r,
             };
             match frame {
@@ -244,15 +274,14 @@ async fn receive_socket(
                         return;
                     }
                 }
-                Err(e) => {
-                    warn!(error = %e, "CAN read failed; interface down?");
-                    link.send_replace(None);
-                    down = true;
-                    let _ = inputs.send(CanInput::Bus(BusEvent::InterfaceDown)).await;
-                    break;
-                }
+                Err(e) => break e.to_string(),
             }
-        }
+        };
+        warn!(%why, "CAN interface lost; reopening");
+        link.send_replace(None);
+        // Reported here, so the reopen loop must not report it again.
+        down = true;
+        let _ = inputs.send(CanInput::Bus(BusEvent::InterfaceDown)).await;
     }
 }
 
@@ -321,6 +350,7 @@ async fn transmit(
     mut packets: mpsc::Receiver<Packet>,
     link: watch::Receiver<Option<TxLink>>,
     inputs: mpsc::Sender<CanInput>,
+    failed: Arc<Notify>,
     cancel: CancellationToken,
 ) {
     loop {
@@ -329,8 +359,11 @@ async fn transmit(
             p = packets.recv() => match p { Some(p) => p, None => return },
         };
         let current = link.borrow().clone();
-        if let Err(reason) = write(current, &packet).await {
+        if let Err((reason, link_error)) = write(current, &packet).await {
             debug!(?packet, %reason, "send failed");
+            if link_error {
+                failed.notify_one();
+            }
             if inputs
                 .send(CanInput::SendFailed(packet, reason))
                 .await
@@ -342,13 +375,14 @@ async fn transmit(
     }
 }
 
-async fn write(link: Option<TxLink>, packet: &Packet) -> Result<(), String> {
+/// Writes one packet; on failure the reason and whether it means the link itself is gone.
+async fn write(link: Option<TxLink>, packet: &Packet) -> Result<(), (String, bool)> {
     let frame: CanFrame = packet
         .to_frame()
-        .ok_or_else(|| "packet cannot be encoded".to_owned())?;
+        .ok_or_else(|| ("packet cannot be encoded".to_owned(), false))?;
     match link {
-        None => Err("CAN interface down".into()),
-        Some(TxLink::Mem(tx)) => tx.send(frame).await.map_err(|e| e.to_string()),
+        None => Err(("CAN interface down".into(), false)),
+        Some(TxLink::Mem(tx)) => tx.send(frame).await.map_err(|e| (e.to_string(), true)),
         Some(TxLink::Socket(sock)) => {
             // ENOBUFS means the interface's queue is full (the socket does not wait for room on its
             // own): retry briefly, then give up so one stuck bus cannot stall the gateway.
@@ -358,12 +392,18 @@ async fn write(link: Option<TxLink>, packet: &Packet) -> Result<(), String> {
                     Ok(Ok(())) => return Ok(()),
                     Ok(Err(e)) if e.raw_os_error() == Some(libc::ENOBUFS) => {
                         if tokio::time::Instant::now() >= deadline {
-                            return Err("transmit queue full (ENOBUFS)".into());
+                            return Err(("transmit queue full (ENOBUFS)".into(), false));
                         }
                         tokio::time::sleep(Duration::from_millis(2)).await;
                     }
-                    Ok(Err(e)) => return Err(e.to_string()),
-                    Err(_) => return Err("transmit timed out".into()),
+                    Ok(Err(e)) => {
+                        let link_error = matches!(
+                            e.raw_os_error(),
+                            Some(libc::ENETDOWN | libc::ENODEV | libc::ENXIO | libc::EBADF)
+                        );
+                        return Err((e.to_string(), link_error));
+                    }
+                    Err(_) => return Err(("transmit timed out".into(), false)),
                 }
             }
         }
