@@ -4,7 +4,7 @@
 //! until a TCP connect succeeds.
 
 use std::{
-    net::{SocketAddr, TcpListener, TcpStream},
+    net::{SocketAddr, TcpStream},
     time::{Duration, Instant},
 };
 
@@ -18,6 +18,8 @@ const READY_TIMEOUT: Duration = Duration::from_secs(10);
 #[cfg(feature = "embedded-broker")]
 pub fn start(listen: SocketAddr) -> Result<(), BrokerError> {
     use std::collections::HashMap;
+
+    use std::net::TcpListener;
 
     use rumqttd::{Config, ConnectionSettings, RouterConfig, ServerSettings};
 
@@ -94,6 +96,7 @@ pub fn wait_ready(addr: SocketAddr) -> Result<(), BrokerError> {
 #[cfg(all(test, feature = "embedded-broker"))]
 mod tests {
     use super::*;
+    use std::net::TcpListener;
 
     #[test]
     fn a_taken_port_is_a_clear_error() {
