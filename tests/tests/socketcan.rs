@@ -193,7 +193,7 @@ async fn inverted_reject_filter_keeps_the_rest() {
         },
         Filter::reject(
             filter::EFF | 0x333,
-            filter::EFF | filter::RTR | u32::from(Header::NODE_MASK),
+            filter::EFF | filter::RTR | Header::NODE_MASK,
         ),
     ];
     let plan = install(&rx, &filters);
@@ -243,7 +243,7 @@ async fn mixed_set_needs_and_gets_a_software_check() {
     // Two accepts and a reject: the kernel cannot express it and lets a superset through.
     let bad_src = Filter::reject(
         filter::EFF | 0x333,
-        filter::EFF | filter::RTR | u32::from(Header::NODE_MASK),
+        filter::EFF | filter::RTR | Header::NODE_MASK,
     );
     let mut filters: Vec<Filter> = filter::sc_filters(Some(node(0x111))).into_iter().collect();
     filters.push(bad_src);

@@ -384,11 +384,16 @@ poweroff -f
     }
 
     fn initrd(&self, payload: Option<&Payload>) -> Result<PathBuf> {
-        let base = self.base()?;
         let path = self
             .cache_dir
             .join(format!("run-{}.cpio", std::process::id()));
-        fs::copy(&base, &path).with_context(|| format!("copying {}", base.display()))?;
+        // A concurrent run with another configuration may prune our base between its check and
+        // the copy: build it again once.
+        let base = self.base()?;
+        if fs::copy(&base, &path).is_err() {
+            let base = self.base()?;
+            fs::copy(&base, &path).with_context(|| format!("copying {}", base.display()))?;
+        }
         if let Some(payload) = payload {
             let file = fs::OpenOptions::new().append(true).open(&path)?;
             let mut c = Cpio::new(std::io::BufWriter::with_capacity(1 << 20, file));
