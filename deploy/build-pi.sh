@@ -8,8 +8,8 @@
 #
 # Installs what is missing: the two rustup targets, cargo-zigbuild (cargo install --locked) and zig
 # (pip install ziglang). Binaries land in target/<triple>/release/ and are listed at the end.
-# Each package is built on its own so one that does not build yet does not hide the others; the exit
-# code is non-zero if any failed.
+# All packages build in one cargo run; if that fails, each is retried alone so one that does not build
+# does not hide the others. The exit code is non-zero if any failed.
 set -euo pipefail
 
 cd "$(dirname "$0")/.."
@@ -56,8 +56,17 @@ for t in "${targets[@]}"; do
     # is still target/aarch64-unknown-linux-gnu.
     zt="$t"
     [ "$t" = aarch64-unknown-linux-gnu ] && zt="$t.$GLIBC"
+    # One cargo invocation for all packages (shared dependencies are built once, with the same
+    # features); only if that fails, one by one, so what does build is still produced and named.
+    pkg_args=()
+    for p in "${PACKAGES[@]}"; do pkg_args+=(-p "$p"); done
+    say "building ${PACKAGES[*]} for $zt"
+    if "$CARGO" zigbuild --release --target "$zt" "${pkg_args[@]}" --bins; then
+        built+=("$t:all")
+        continue
+    fi
     for p in "${PACKAGES[@]}"; do
-        say "building $p for $zt"
+        say "building $p alone for $zt"
         if "$CARGO" zigbuild --release --target "$zt" -p "$p" --bins; then
             built+=("$t:$p")
         else

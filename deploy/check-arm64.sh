@@ -14,6 +14,10 @@
 #
 #   deploy/check-arm64.sh              # builds with deploy/build-pi.sh --musl, then boots
 #   IHEX_ARM64_NO_BUILD=1 deploy/check-arm64.sh   # use the binaries already in target/
+#   IHEX_ARM64_GNU=1 deploy/check-arm64.sh        # also build the glibc (Raspberry Pi OS) binaries and
+#                                                 # run sim-node from that build, on Debian's arm64 glibc
+# With IHEX_ARM64_GNU unset, glibc binaries already in target/aarch64-unknown-linux-gnu are used when
+# present; IHEX_ARM64_GNU=0 never uses them.
 #
 # Needs (installed when missing, Debian/Ubuntu): qemu-system-arm, cpio, xz-utils; the arm64 kernel and
 # busybox-static come from Debian's arm64 archive via `apt-get download` (after
@@ -68,8 +72,28 @@ KVER="$(basename "$KERNEL" | sed 's/^vmlinuz-//')"
 MODDIR="$WORK/rootfs/lib/modules/$KVER/kernel"
 
 # --- binaries ----------------------------------------------------------------------------------
+GNU_MODE="${IHEX_ARM64_GNU:-auto}"
+GNU_BIN="$ROOT/target/aarch64-unknown-linux-gnu/release"
 if [ "${IHEX_ARM64_NO_BUILD:-0}" != 1 ]; then
     deploy/build-pi.sh --musl || say "some packages did not build (see above); using what exists"
+    if [ "$GNU_MODE" = 1 ]; then
+        deploy/build-pi.sh --gnu -p sim-node -p mc-gateway -p ihex-provision || die "glibc build failed"
+    fi
+fi
+USE_GNU=0
+if [ "$GNU_MODE" = 1 ] || { [ "$GNU_MODE" = auto ] && [ -x "$GNU_BIN/sim-node" ]; }; then
+    for b in mc-gateway sim-node ihex-provision; do
+        [ -x "$GNU_BIN/$b" ] || die "$GNU_BIN/$b missing (deploy/build-pi.sh --gnu)"
+    done
+    USE_GNU=1
+    if [ ! -f "$WORK/rootfs/.complete-glibc" ]; then
+        say "downloading Debian's arm64 glibc (libc6, libgcc-s1) for the glibc binaries"
+        dl="$(mktemp -d)"; chmod 777 "$dl"
+        (cd "$dl" && apt-get download -qq libc6:arm64 libgcc-s1:arm64)
+        for d in "$dl"/*.deb; do dpkg-deb -x "$d" "$WORK/rootfs"; done
+        rm -rf "$dl"
+        touch "$WORK/rootfs/.complete-glibc"
+    fi
 fi
 for b in mc-gateway sim-node ihex-provision; do
     [ -x "$BIN/$b" ] || die "$BIN/$b missing (deploy/build-pi.sh --musl)"
@@ -93,6 +117,12 @@ for m in net/can/can.ko net/can/can-raw.ko drivers/net/can/dev/can-dev.ko driver
     else die "kernel module $m not in $KVER"; fi
 done
 cp "$BIN/mc-gateway" "$BIN/sim-node" "$BIN/ihex-provision" "$IR/ihex/"
+if [ "$USE_GNU" = 1 ]; then
+    mkdir -p "$IR/ihex/gnu" "$IR/lib/aarch64-linux-gnu"
+    cp "$GNU_BIN/mc-gateway" "$GNU_BIN/sim-node" "$GNU_BIN/ihex-provision" "$IR/ihex/gnu/"
+    cp -a "$WORK"/rootfs/lib/aarch64-linux-gnu/. "$IR/lib/aarch64-linux-gnu/"
+    ln -sf aarch64-linux-gnu/ld-linux-aarch64.so.1 "$IR/lib/ld-linux-aarch64.so.1"
+fi
 cp "$ISLAND" "$IR/ihex/island.toml"
 # The Pi's configuration file, so the check also proves the shipped file parses; flags override it.
 cp deploy/etc/gateway.toml "$IR/ihex/gateway.toml"
@@ -116,8 +146,18 @@ B=127.0.0.1:1883
 WAIT=$!
 i=0; while [ ! -f /tmp/ready ] && [ $i -lt 600 ]; do sleep 0.2; i=$((i+1)); done
 [ -f /tmp/ready ] && echo "ihex-vm: client subscribed" || echo "ihex-vm: client never subscribed"
-# 2. + 3. the island on vcan0 and the gateway under test
-./sim-node --iface vcan0 --island island.toml > /tmp/sim.out 2>&1 &
+# 2. + 3. the island on vcan0 and the gateway under test; the island from the glibc build when there is one
+SIM=./sim-node
+if [ -d gnu ]; then
+    export LD_LIBRARY_PATH=/lib/aarch64-linux-gnu
+    echo "ihex-vm: glibc $(/lib/ld-linux-aarch64.so.1 --version | head -n 1)"
+    for b in mc-gateway sim-node ihex-provision; do
+        echo "ihex-vm: glibc build: $(./gnu/$b --version 2>&1 | head -n 1)"
+    done
+    SIM=./gnu/sim-node
+fi
+echo "ihex-vm: island: $SIM"
+$SIM --iface vcan0 --island island.toml > /tmp/sim.out 2>&1 &
 ./mc-gateway --config gateway.toml --can vcan0 --broker $B --island arm64 --log-dir /tmp/gw-log > /tmp/gw.out 2>&1 &
 wait $WAIT; rc=$?
 if [ $rc = 0 ]; then
@@ -154,4 +194,6 @@ qrc=${PIPESTATUS[0]}
 set -e
 [ "$qrc" = 137 ] && die "VM did not finish within ${TIMEOUT}s (console: $LOG)"
 grep -q "IHEX-ARM64-RESULT rc=0" "$LOG" || die "no event from the aarch64 gateway (console: $LOG)"
-say "OK: on a real arm64 kernel the aarch64 gateway reported node_online from vcan0 and got an LED command acknowledged"
+how="static musl binaries"
+[ "$USE_GNU" = 1 ] && how="musl gateway, glibc sim-node ($(grep -o 'GLIBC [0-9.]*' "$LOG" | head -1))"
+say "OK ($how): on a real arm64 kernel the aarch64 gateway reported node_online from vcan0 and got an LED command acknowledged"
