@@ -101,7 +101,9 @@ impl Event {
         filters.iter().all(|(k, want)| {
             self.payload.get(k).is_some_and(|v| match v {
                 Value::String(s) => s == want,
-                Value::Number(_) | Value::Bool(_) => v.to_string() == *want,
+                Value::Number(_) | Value::Bool(_) => {
+                    serde_json::from_str::<Value>(want).ok().as_ref() == Some(v)
+                }
                 _ => false,
             })
         })
