@@ -31,8 +31,10 @@ use crate::stats::Summary;
 /// Bitrate of the island bus.
 pub const BITRATE: u32 = 500_000;
 /// Nodes the benchmark makes known to the gateway (ids 1..=NODES).
-pub const NODES: u16 = 64;
-/// Distinct report indices: node × reset code (`other_4` .. `other_253`).
+pub const NODES: u16 = 256;
+/// Distinct report indices: node × reset code (`other_4` .. `other_253`). With 256 nodes the
+/// gateway can also hold 256 × 256 unanswered commands (one per sequence number and node) before
+/// it answers `busy`, enough for every command of a run (nothing acks them).
 const INDEX_SPACE: u32 = NODES as u32 * 250;
 const EFF: u32 = 0x8000_0000;
 const KIND_MASK: u32 = 0x1f << 24;
@@ -76,6 +78,9 @@ pub struct Trial {
     pub lag_ms: f64,
     /// Gateway CPU time during the trial, ms.
     pub gateway_cpu_ms: f64,
+    /// What the gateway said about lost commands (`command_result` failures, rejections).
+    #[serde(default)]
+    pub note: Option<String>,
 }
 
 impl Trial {
@@ -113,12 +118,21 @@ pub struct LiveResults {
     pub can_to_mqtt_fps: f64,
     /// The trial at twice that rate.
     pub at_double: Trial,
-    /// MQTT → CAN: commands published in the burst.
-    pub commands_sent: usize,
-    /// MQTT → CAN: frames seen on the bus.
-    pub commands_delivered: usize,
-    /// MQTT → CAN: delivered commands per second.
+    /// Every MQTT → CAN trial (commands paced at a rate), in the order run.
+    #[serde(default)]
+    pub command_trials: Vec<Trial>,
+    /// MQTT → CAN: highest command rate delivered as frames with zero loss, commands/s.
     pub mqtt_to_can_cps: f64,
+    /// MQTT → CAN burst: commands published back to back.
+    pub commands_sent: usize,
+    /// MQTT → CAN burst: frames seen on the bus.
+    pub commands_delivered: usize,
+    /// MQTT → CAN burst: delivered frames per second.
+    #[serde(default)]
+    pub burst_cps: f64,
+    /// MQTT → CAN burst: what the gateway said about the commands it did not send.
+    #[serde(default)]
+    pub burst_note: Option<String>,
     /// Command → frame latency, idle bus.
     pub cmd_to_frame_idle: Summary,
     /// Frame → event latency, idle bus.
@@ -251,6 +265,7 @@ fn led_index(p: &Packet) -> Option<u32> {
     }
 }
 
+/// The JSON `led` command of command index `i` (node `i % NODES`, colour `i & 0xffff`).
 fn led_command(i: u32) -> String {
     format!(
         r#"{{"cmd":"led","node":"{}","color":[{},{},0]}}"#,
@@ -260,13 +275,44 @@ fn led_command(i: u32) -> String {
     )
 }
 
+fn led_filter() -> CanFilter {
+    kind_filter(&Packet::command(
+        node(0),
+        Message::LedSet {
+            seq: 0,
+            cmd: LedCommand::Off,
+        },
+    ))
+}
+
+/// Counts `command_result` failures and `command_rejected` events; the first reason seen.
+fn failures(mqtt: &Mqtt, quiet: Duration) -> Option<String> {
+    let (mut n, mut first) = (0usize, None);
+    while let Some((_, v)) = mqtt.next_event(quiet) {
+        let p = &v["payload"];
+        let reason = match v["event"].as_str() {
+            Some("command_result") if p["result"] != "ok" => {
+                format!(
+                    "{}: {}",
+                    p["result"].as_str().unwrap_or("?"),
+                    p["reason"].as_str().unwrap_or("")
+                )
+            }
+            Some("command_rejected") => format!("rejected: {}", p["reason"].as_str().unwrap_or("")),
+            _ => continue,
+        };
+        n += 1;
+        first.get_or_insert(reason);
+    }
+    first.map(|r| format!("{n} commands failed or rejected, e.g. {r}"))
+}
+
 /// Sends `count` frames made by `make` at `rate` frames/s; returns (sent, seconds taken).
 fn paced(
-    s: &CanSocket,
     count: usize,
     rate: f64,
     stop: Option<&AtomicBool>,
-    mut make: impl FnMut(u32) -> Result<CanFrame>,
+    mut send: impl FnMut(u32) -> Result<()>,
 ) -> Result<(usize, f64)> {
     let t0 = Instant::now();
     let mut sent = 0usize;
@@ -283,7 +329,7 @@ fn paced(
         // Catch up with every frame already due (timer granularity makes small bursts).
         let due_now = ((t0.elapsed().as_secs_f64() * rate) as usize + 1).min(count);
         while sent < due_now {
-            write(s, &make(sent as u32)?)?;
+            send(sent as u32)?;
             sent += 1;
         }
     }
@@ -512,12 +558,13 @@ fn start_gateway(bin: &Path, iface: &str, broker: SocketAddr, dir: &Path) -> Res
     let child = Command::new(bin)
         .args(["--can", iface, "--broker", &broker.to_string()])
         // No health checks during the run: silent nodes would be declared lost, and a lost node's
-        // BootUp is `node_online`, not `node_rebooted`. No command timeouts either (no acks here).
+        // BootUp is `node_online`, not `node_rebooted`. No command timeouts either
+        // (nothing acks here): 600 s is the longest the gateway accepts.
         .args([
             "--health-period-ms",
             "3600000",
             "--command-timeout-ms",
-            "3600000",
+            "600000",
         ])
         .args(["--log-dir", "-", "--log", "warn"])
         .stdin(Stdio::null())
@@ -566,6 +613,8 @@ struct Bench {
     mqtt: Mqtt,
     gw: Proc,
     next_index: u32,
+    /// Next command index (never reused: every command stays pending at the gateway).
+    next_cmd: u32,
     notes: Vec<String>,
 }
 
@@ -596,7 +645,9 @@ impl Bench {
             .map(|k| (base + k) % INDEX_SPACE)
             .collect();
         let cpu0 = cpu_ms(self.gw.pid())?;
-        let (sent, secs) = paced(&self.can, count, rate, None, |k| frame(&report(base + k)))?;
+        let (sent, secs) = paced(count, rate, None, |k| {
+            write(&self.can, &frame(&report(base + k))?)
+        })?;
         let t_end = Instant::now();
         let (received, last) = self.collect(&want, Duration::from_secs(2));
         let cpu1 = cpu_ms(self.gw.pid())?;
@@ -611,6 +662,7 @@ impl Bench {
                 l.saturating_duration_since(t_end).as_secs_f64() * 1e3
             }),
             gateway_cpu_ms: cpu1 - cpu0,
+            note: None,
         };
         println!(
             "bench: CAN->MQTT {:>8.0} fps offered, {:>8.0} sent, {}/{} events, lag {:.0} ms{}",
@@ -631,12 +683,17 @@ impl Bench {
     }
 
     /// Steps the rate up by doubling, then bisects between the last sustained and the first failed.
-    fn search(&mut self, start: f64, ceiling: f64) -> Result<(f64, Vec<Trial>)> {
+    fn search(
+        &mut self,
+        start: f64,
+        ceiling: f64,
+        trial: fn(&mut Self, f64) -> Result<Trial>,
+    ) -> Result<(f64, Vec<Trial>)> {
         let mut trials = Vec::new();
         let (mut good, mut bad) = (0.0f64, f64::NAN);
         let mut r = start;
         while r <= ceiling * 2.0 {
-            let t = self.trial(r)?;
+            let t = trial(self, r)?;
             let ok = t.sustained();
             trials.push(t);
             if ok {
@@ -653,7 +710,7 @@ impl Bench {
                 if good > 0.0 && (bad - good) / good < 0.1 {
                     break;
                 }
-                let t = self.trial(mid)?;
+                let t = trial(self, mid)?;
                 let ok = t.sustained();
                 trials.push(t);
                 if ok {
@@ -703,17 +760,12 @@ impl Bench {
 
     fn cmd_to_frame(&mut self, probes: usize) -> Result<Summary> {
         let rx = open_can(&self.s.iface, &mut self.notes)?;
-        rx.set_filters(&[kind_filter(&Packet::command(
-            node(0),
-            Message::LedSet {
-                seq: 0,
-                cmd: LedCommand::Off,
-            },
-        ))])?;
+        rx.set_filters(&[led_filter()])?;
         let mut lat = Vec::with_capacity(probes);
         let mut missed = 0;
-        for k in 0..probes as u32 {
-            // Colour indices 0..probes; different from the rate run's, which are all taken by now.
+        for _ in 0..probes {
+            let k = self.next_cmd;
+            self.next_cmd += 1;
             let payload = led_command(k);
             let t0 = Instant::now();
             self.mqtt
@@ -729,7 +781,9 @@ impl Bench {
                 match rx.read_frame_timeout(left) {
                     Ok(f) => {
                         let t = Instant::now();
-                        if Packet::from_frame(&f).ok().as_ref().and_then(led_index) == Some(k) {
+                        if Packet::from_frame(&f).ok().as_ref().and_then(led_index)
+                            == Some(k & 0xffff)
+                        {
                             lat.push((t - t0).as_secs_f64() * 1e6);
                             break;
                         }
@@ -750,50 +804,101 @@ impl Bench {
         Ok(Summary::of(lat))
     }
 
-    fn command_rate(&mut self, n: usize) -> Result<(usize, f64, f64)> {
+    /// Publishes `count` commands at `rate` (or back to back when `rate` is infinite) and counts
+    /// the distinct LedSet frames that reach the bus.
+    fn command_trial(&mut self, rate: f64) -> Result<Trial> {
+        let count = if rate.is_finite() {
+            ((rate * self.s.trial_secs) as usize).clamp(200, 6000)
+        } else {
+            self.s.commands
+        };
+        self.command_run(count, rate)
+    }
+
+    fn command_run(&mut self, count: usize, rate: f64) -> Result<Trial> {
         let rx = open_can(&self.s.iface, &mut self.notes)?;
-        rx.set_filters(&[kind_filter(&Packet::command(
-            node(0),
-            Message::LedSet {
-                seq: 0,
-                cmd: LedCommand::Off,
-            },
-        ))])?;
+        rx.set_filters(&[led_filter()])?;
+        let base = self.next_cmd;
+        self.next_cmd += count as u32;
+        let want: HashSet<u32> = (0..count as u32).map(|k| (base + k) & 0xffff).collect();
         let reader = std::thread::spawn(move || -> (usize, Option<Instant>) {
-            let (mut got, mut last) = (0, None);
-            while got < n {
-                match rx.read_frame_timeout(Duration::from_secs(3)) {
-                    Ok(_) => {
-                        got += 1;
-                        last = Some(Instant::now());
+            let mut got = HashSet::new();
+            let mut last = None;
+            while got.len() < want.len() {
+                match rx.read_frame_timeout(Duration::from_secs(2)) {
+                    Ok(f) => {
+                        let t = Instant::now();
+                        let i = Packet::from_frame(&f).ok().as_ref().and_then(led_index);
+                        if i.is_some_and(|i| want.contains(&i) && got.insert(i)) {
+                            last = Some(t);
+                        }
                     }
                     Err(_) => break,
                 }
             }
-            (got, last)
+            (got.len(), last)
         });
+        self.mqtt.drain();
         let cpu0 = cpu_ms(self.gw.pid())?;
-        let t0 = Instant::now();
-        for k in 0..n as u32 {
-            // Indices above the latency probes' range.
-            self.mqtt.client.publish(
+        let client = self.mqtt.client.clone();
+        let publish = |k: u32| -> Result<()> {
+            client.publish(
                 "CommandsTopic",
                 QoS::AtLeastOnce,
                 false,
-                led_command(20_000 + k),
+                led_command(base + k),
             )?;
-        }
-        let (got, last) = reader
+            Ok(())
+        };
+        let (sent, secs) = if rate.is_finite() {
+            paced(count, rate, None, publish)?
+        } else {
+            let t0 = Instant::now();
+            (0..count as u32).try_for_each(publish)?;
+            (count, t0.elapsed().as_secs_f64())
+        };
+        let t_end = Instant::now();
+        let (received, last) = reader
             .join()
             .map_err(|_| anyhow!("command reader panicked"))?;
         let cpu1 = cpu_ms(self.gw.pid())?;
-        let secs = last.map_or(f64::INFINITY, |l| (l - t0).as_secs_f64());
-        println!("bench: MQTT->CAN {got}/{n} commands as frames in {secs:.2} s");
-        Ok((
-            got,
-            got as f64 / secs,
-            (cpu1 - cpu0) * 1000.0 / got.max(1) as f64,
-        ))
+        self.gw.check_alive()?;
+        let note = if received < sent {
+            failures(&self.mqtt, Duration::from_millis(500))
+        } else {
+            None
+        };
+        let t = Trial {
+            offered_fps: rate,
+            sent_fps: sent as f64 / secs,
+            sent,
+            received,
+            loss: 1.0 - received as f64 / sent as f64,
+            lag_ms: last.map_or(f64::NAN, |l| {
+                l.saturating_duration_since(t_end).as_secs_f64() * 1e3
+            }),
+            gateway_cpu_ms: cpu1 - cpu0,
+            note,
+        };
+        println!(
+            "bench: MQTT->CAN {:>8.0} cmd/s offered, {:>8.0} sent, {}/{} frames, lag {:.0} ms{}{}",
+            t.offered_fps,
+            t.sent_fps,
+            t.received,
+            t.sent,
+            t.lag_ms,
+            if t.sustained() {
+                ""
+            } else {
+                "  (not sustained)"
+            },
+            t.note
+                .as_deref()
+                .map(|n| format!(" — {n}"))
+                .unwrap_or_default()
+        );
+        std::thread::sleep(Duration::from_millis(300));
+        Ok(t)
     }
 
     /// Runs `f` while a background thread fills the bus with `HealthReply` frames at `rate`.
@@ -806,7 +911,9 @@ impl Bench {
         let s = open_can(&self.s.iface, &mut self.notes)?;
         let st = stop.clone();
         let gen = std::thread::spawn(move || {
-            paced(&s, usize::MAX, rate, Some(&st), |k| frame(&background(k)))
+            paced(usize::MAX, rate, Some(&st), |k| {
+                write(&s, &frame(&background(k))?)
+            })
         });
         // Let the load settle before measuring.
         std::thread::sleep(Duration::from_millis(500));
@@ -888,16 +995,24 @@ pub fn run(s: Settings) -> Result<LiveResults> {
             "ihex-bench/loop",
         ],
     )?;
-    let gw = start_gateway(&s.gateway, &s.iface, addr, &dir)?;
-    if !mqtt.wait_topic(
+    let mut gw = start_gateway(&s.gateway, &s.iface, addr, &dir)?;
+    let gw_log = || std::fs::read_to_string(dir.join("gateway.log")).unwrap_or_default();
+    let mut waited = 0;
+    while !mqtt.wait_topic(
         "ihex/gateway/availability",
         b"online",
-        Duration::from_secs(60),
+        Duration::from_secs(1),
     ) {
-        bail!(
-            "the gateway did not come online within 60 s; its log: {}",
-            std::fs::read_to_string(dir.join("gateway.log")).unwrap_or_default()
-        );
+        if let Err(e) = gw.check_alive() {
+            bail!("{e}; its log: {}", gw_log());
+        }
+        waited += 1;
+        if waited == 60 {
+            bail!(
+                "the gateway did not come online within 60 s; its log: {}",
+                gw_log()
+            );
+        }
     }
     let can = open_can(&s.iface, &mut notes)?;
     let mut b = Bench {
@@ -906,6 +1021,7 @@ pub fn run(s: Settings) -> Result<LiveResults> {
         mqtt,
         gw,
         next_index: 0,
+        next_cmd: 0,
         notes,
     };
 
@@ -931,7 +1047,7 @@ pub fn run(s: Settings) -> Result<LiveResults> {
 
     println!("bench: CAN->MQTT rate search");
     let ceiling = bare.rate_fps.max(1000.0);
-    let (best, mut trials) = b.search(250.0, ceiling)?;
+    let (best, mut trials) = b.search(250.0, ceiling, Bench::trial)?;
     let at_double = if best > 0.0 {
         b.trial(best * 2.0)?
     } else {
@@ -944,7 +1060,13 @@ pub fn run(s: Settings) -> Result<LiveResults> {
     trials.push(cost);
 
     println!("bench: MQTT->CAN rate");
-    let (delivered, cps, cpu_ms_per_1k_commands) = b.command_rate(s.commands)?;
+    let (cps, mut command_trials) = b.search(250.0, ceiling, Bench::command_trial)?;
+    let cost = b.command_trial((cps * 0.8).max(100.0))?;
+    let cpu_ms_per_1k_commands = cost.gateway_cpu_ms * 1000.0 / cost.received.max(1) as f64;
+    command_trials.push(cost);
+    println!("bench: MQTT->CAN burst of {} commands", s.commands);
+    let burst = b.command_trial(f64::INFINITY)?;
+    let burst_secs = burst.sent as f64 / burst.sent_fps + burst.lag_ms.max(0.0) / 1e3;
 
     let limit_background = Limit::new(BITRATE, frame(&background(0))?.data().len() as u8);
     let load_rate = limit_background.fps_worst;
@@ -971,9 +1093,12 @@ pub fn run(s: Settings) -> Result<LiveResults> {
         trials,
         can_to_mqtt_fps: best,
         at_double,
-        commands_sent: s.commands,
-        commands_delivered: delivered,
+        command_trials,
         mqtt_to_can_cps: cps,
+        commands_sent: burst.sent,
+        commands_delivered: burst.received,
+        burst_cps: burst.received as f64 / burst_secs,
+        burst_note: burst.note.clone(),
         cmd_to_frame_idle,
         frame_to_event_idle,
         cmd_to_frame_load,
