@@ -9,7 +9,8 @@
 #      so the demo instance's own events cannot be mistaken for it);
 #   4. ihex-provision wait-event, subscribed before 2 and 3 start, waiting for the first node_online
 #      event of the arm64 island; then an LED command to the island's first node whose command_result must be "ok"
-#      (MQTT -> CAN frame -> virtual SC -> ack frame -> MQTT).
+#      (MQTT -> CAN frame -> virtual SC -> ack frame -> MQTT); then `ihex-provision can` gives the
+#      island's factory-fresh board its ID by UID (a taken ID refused first) and its node_online follows.
 # Exit code 0 only if both arrived; the VM is killed after a bounded time (IHEX_ARM64_TIMEOUT s).
 #
 #   deploy/check-arm64.sh              # builds with deploy/build-pi.sh --musl, then boots
@@ -29,7 +30,7 @@ ROOT="$PWD"
 TIMEOUT="${IHEX_ARM64_TIMEOUT:-240}"
 WORK="$ROOT/target/arm64-vm"
 BIN="$ROOT/target/aarch64-unknown-linux-musl/release"
-ISLAND="${IHEX_ARM64_ISLAND:-$ROOT/examples/islands/demo.toml}"
+ISLAND="${IHEX_ARM64_ISLAND:-$ROOT/deploy/arm64-island.toml}"
 mkdir -p "$WORK"
 
 say() { echo "check-arm64: $*" >&2; }
@@ -104,6 +105,11 @@ done
 # The node the LED command goes to: the island's first element (`id = "111"`).
 NODE="$(sed -n 's/^id *= *"\([0-9a-fA-F]*\)".*/\1/p' "$ISLAND" | head -1)"
 [ -n "$NODE" ] || die "no element id found in $ISLAND"
+# A factory-fresh element (`unconfigured = true` with a `uid`), if any: it is given its `id` over CAN.
+read -r NEWID UID_HEX <<<"$(awk -F'"' '
+    /^\[\[/ { if (un && uid != "") { print id, uid; found = 1; exit } id = ""; uid = ""; un = 0 }
+    /^id *=/ { id = $2 } /^uid *=/ { uid = $2 } /^unconfigured *= *true/ { un = 1 }
+    END { if (!found && un && uid != "") print id, uid }' "$ISLAND")" || true
 
 # --- initramfs ---------------------------------------------------------------------------------
 IR="$WORK/initramfs"
@@ -169,6 +175,29 @@ if [ $rc = 0 ]; then
         > /tmp/result.json 2> /tmp/wait.err; rc=$?
     [ $rc = 0 ] && echo "ihex-vm: event: $(cat /tmp/result.json)"
 fi
+# 6. CAN ID assignment by UID through the gateway (only if the island has a factory-fresh board)
+if [ $rc = 0 ] && [ -n "@UID@" ]; then
+    ./ihex-provision wait-event --broker $B --island arm64 --event node_online --match id=@NEWID@ \
+        --ready-file /tmp/ready2 --timeout-secs 60 > /tmp/online2.json 2> /tmp/wait.err &
+    WAIT=$!
+    i=0; while [ ! -f /tmp/ready2 ] && [ $i -lt 300 ]; do sleep 0.2; i=$((i+1)); done
+    if ./ihex-provision can --broker $B --island arm64 --uid @UID@ --id @NODE@ > /tmp/dup.out 2>&1; then
+        echo "ihex-vm: FAIL: assigning the taken ID @NODE@ was not refused"; rc=1
+    else
+        echo "ihex-vm: duplicate refused: $(tail -n 1 /tmp/dup.out)"
+    fi
+    if [ $rc = 0 ]; then
+        ./ihex-provision can --broker $B --island arm64 --uid @UID@ --id @NEWID@ --timeout-secs 30 \
+            > /tmp/assign.out 2>&1; rc=$?
+        echo "ihex-vm: assign: $(tail -n 1 /tmp/assign.out)"
+    fi
+    if [ $rc = 0 ]; then
+        wait $WAIT; rc=$?
+        [ $rc = 0 ] && echo "ihex-vm: event: $(cat /tmp/online2.json)"
+    else
+        kill $WAIT 2>/dev/null
+    fi
+fi
 if [ $rc != 0 ]; then
     for f in /tmp/wait.err /tmp/gw.out /tmp/sim.out /tmp/demo.out; do
         echo "---- $f"; tail -n 25 $f
@@ -178,7 +207,7 @@ echo "ihex-vm: vcan0 frames: rx $(cat /sys/class/net/vcan0/statistics/rx_packets
 echo "IHEX-ARM64-RESULT rc=$rc"
 poweroff -f
 INIT
-sed -i "s/@NODE@/$NODE/" "$IR/init"
+sed -i "s/@NODE@/$NODE/g; s/@NEWID@/${NEWID:-}/g; s/@UID@/${UID_HEX:-}/g" "$IR/init"
 chmod +x "$IR/init"
 (cd "$IR" && find . | cpio -o -H newc --quiet | gzip -1) > "$WORK/initrd.gz"
 
@@ -196,4 +225,6 @@ set -e
 grep -q "IHEX-ARM64-RESULT rc=0" "$LOG" || die "no event from the aarch64 gateway (console: $LOG)"
 how="static musl binaries"
 [ "$USE_GNU" = 1 ] && how="musl gateway, glibc sim-node ($(grep -o 'GLIBC [0-9.]*' "$LOG" | head -1))"
-say "OK ($how): on a real arm64 kernel the aarch64 gateway reported node_online from vcan0 and got an LED command acknowledged"
+what="node_online from vcan0, LED command acknowledged"
+[ -n "${UID_HEX:-}" ] && what="$what, node $NEWID assigned by UID over CAN"
+say "OK ($how): on a real arm64 kernel the aarch64 gateway did it all: $what"
