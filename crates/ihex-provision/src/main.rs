@@ -112,6 +112,9 @@ struct CanArgs {
     /// Do not ask the gateway which IDs are taken.
     #[arg(long)]
     skip_duplicate_check: bool,
+    /// CSV of IDs already handed out (as for `serial`): a duplicate is refused, a success appended.
+    #[arg(long)]
+    registry: Option<PathBuf>,
     /// How long to wait for each answer, in seconds.
     #[arg(long, default_value_t = 5)]
     timeout_secs: u64,
@@ -216,6 +219,10 @@ fn show(id: NodeId) -> String {
 async fn run_can(a: CanArgs) -> Result<()> {
     let new_id = id::parse_sc_id(&a.id)?;
     let uid = api::parse_uid(&a.uid)?;
+    let mut registry = a.registry.as_deref().map(Registry::load).transpose()?;
+    if let Some(reg) = &registry {
+        reg.check_free(new_id)?;
+    }
     let broker = a.broker.broker()?;
     let assignment = Assignment {
         uid,
@@ -228,6 +235,14 @@ async fn run_can(a: CanArgs) -> Result<()> {
         "node {} assigned ID {new_id}: {payload}",
         api::uid_hex(&uid)
     );
+    if let Some(reg) = registry.as_mut() {
+        reg.record(
+            new_id,
+            &api::uid_hex(&uid),
+            &a.broker.broker,
+            "assigned over CAN",
+        )?;
+    }
     Ok(())
 }
 

@@ -359,15 +359,58 @@ fn cli_end_to_end() {
         let text = |b: &[u8]| String::from_utf8_lossy(b).into_owned();
         (out.status.success(), text(&out.stdout), text(&out.stderr))
     };
+    let registry =
+        std::env::temp_dir().join(format!("ihex-provision-can-{}.csv", std::process::id()));
+    let _ = std::fs::remove_file(&registry);
+    let reg = registry.to_str().unwrap();
     let (ok, out, err) = run(&[
-        "can", "--broker", &broker, "--island", "bench", "--uid", UID, "--id", "42",
+        "can",
+        "--broker",
+        &broker,
+        "--island",
+        "bench",
+        "--uid",
+        UID,
+        "--id",
+        "42",
+        "--registry",
+        reg,
     ]);
     assert!(ok, "{err}");
     assert!(out.contains("assigned ID 42"), "{out}");
+    let csv = std::fs::read_to_string(&registry).unwrap();
+    assert!(csv.contains(&format!("042,{UID},")), "{csv}");
     let (ok, _, err) = run(&[
         "can", "--broker", &broker, "--island", "bench", "--uid", UID, "--id", "111",
     ]);
     assert!(!ok && err.contains("already assigned"), "{err}");
+    // The registry refuses 42 before the gateway is even asked.
+    let (ok, _, err) = run(&[
+        "can",
+        "--broker",
+        &broker,
+        "--island",
+        "bench",
+        "--uid",
+        UID,
+        "--id",
+        "42",
+        "--registry",
+        reg,
+    ]);
+    assert!(
+        !ok && err.contains("already assigned") && err.contains("line 2"),
+        "{err}"
+    );
     assert_eq!(assigns(&seen).len(), 1);
+    assert_eq!(
+        seen.lock()
+            .unwrap()
+            .iter()
+            .filter(|c| c["cmd"] == "list")
+            .count(),
+        2
+    );
+    std::fs::remove_file(&registry).unwrap();
     drop(rt);
 }
