@@ -162,66 +162,83 @@ impl MqttTask {
         let mut connected = false;
         let mut delay = RECONNECT_MIN;
         let mut inputs_open = true;
-        loop {
-            if connected {
-                self.flush(&client, &mut backlog);
-            }
-            tokio::select! {
-                _ = cancel.cancelled() => break,
-                p = publications.recv(), if inputs_open => match p {
-                    Some(p) => self.enqueue(&mut backlog, p),
-                    None => inputs_open = false,
-                },
-                ev = el.poll() => match ev {
-                    Ok(Event::Incoming(Incoming::ConnAck(ack))) => {
-                        if ack.code != ConnectReturnCode::Success {
-                            warn!(code = ?ack.code, "broker refused the connection");
-                            continue;
-                        }
-                        connected = true;
-                        delay = RECONNECT_MIN;
-                        let n = self.stats.connects.fetch_add(1, Ordering::Relaxed) + 1;
-                        info!(connects = n, backlog = backlog.len(), "connected to the broker");
-                        self.on_connack(&client);
-                        if inputs.send(MqttInput::Connected).await.is_err() {
-                            break;
-                        }
+        'run: loop {
+            // `poll()` is not cancel-safe (dropping it mid-connect or mid-write loses the
+            // connection or part of a packet), so one poll future lives until it completes while
+            // publications keep arriving beside it.
+            let ev = {
+                let poll = el.poll();
+                tokio::pin!(poll);
+                loop {
+                    if connected {
+                        self.flush(&client, &mut backlog);
                     }
-                    Ok(Event::Incoming(Incoming::Publish(p))) => {
-                        let input = if p.topic == self.topics.commands {
-                            self.stats.commands.fetch_add(1, Ordering::Relaxed);
-                            MqttInput::Command(p.payload.to_vec())
-                        } else if self.subscribe_sim && p.topic == self.topics.sim {
-                            MqttInput::Sim(p.payload.to_vec())
-                        } else {
-                            debug!(topic = %p.topic, "message on an unexpected topic ignored");
-                            continue;
-                        };
-                        if inputs.send(input).await.is_err() {
-                            break;
-                        }
+                    tokio::select! {
+                        _ = cancel.cancelled() => break 'run,
+                        p = publications.recv(), if inputs_open => match p {
+                            Some(p) => self.enqueue(&mut backlog, p),
+                            None => inputs_open = false,
+                        },
+                        ev = &mut poll => break ev,
                     }
-                    Ok(Event::Incoming(Incoming::SubAck(s))) => {
-                        if s.return_codes.iter().any(|c| matches!(c, SubscribeReasonCode::Failure)) {
-                            warn!(?s, "broker refused a subscription");
-                        }
+                }
+            };
+            match ev {
+                Ok(Event::Incoming(Incoming::ConnAck(ack))) => {
+                    if ack.code != ConnectReturnCode::Success {
+                        warn!(code = ?ack.code, "broker refused the connection");
+                        continue;
                     }
-                    Ok(_) => {}
-                    Err(e) => {
-                        if connected {
-                            warn!(error = %e, "connection to the broker lost");
-                        } else {
-                            debug!(error = %e, retry_in = ?delay, "cannot reach the broker");
-                        }
-                        connected = false;
-                        self.take_back(&mut el, &mut backlog);
-                        tokio::select! {
-                            _ = cancel.cancelled() => break,
-                            _ = tokio::time::sleep(delay) => {}
-                        }
-                        delay = (delay * 2).min(RECONNECT_MAX);
+                    connected = true;
+                    delay = RECONNECT_MIN;
+                    let n = self.stats.connects.fetch_add(1, Ordering::Relaxed) + 1;
+                    info!(
+                        connects = n,
+                        backlog = backlog.len(),
+                        "connected to the broker"
+                    );
+                    self.on_connack(&client);
+                    if inputs.send(MqttInput::Connected).await.is_err() {
+                        break;
                     }
-                },
+                }
+                Ok(Event::Incoming(Incoming::Publish(p))) => {
+                    let input = if p.topic == self.topics.commands {
+                        self.stats.commands.fetch_add(1, Ordering::Relaxed);
+                        MqttInput::Command(p.payload.to_vec())
+                    } else if self.subscribe_sim && p.topic == self.topics.sim {
+                        MqttInput::Sim(p.payload.to_vec())
+                    } else {
+                        debug!(topic = %p.topic, "message on an unexpected topic ignored");
+                        continue;
+                    };
+                    if inputs.send(input).await.is_err() {
+                        break;
+                    }
+                }
+                Ok(Event::Incoming(Incoming::SubAck(s))) => {
+                    if s.return_codes
+                        .iter()
+                        .any(|c| matches!(c, SubscribeReasonCode::Failure))
+                    {
+                        warn!(?s, "broker refused a subscription");
+                    }
+                }
+                Ok(_) => {}
+                Err(e) => {
+                    if connected {
+                        warn!(error = %e, "connection to the broker lost");
+                    } else {
+                        debug!(error = %e, retry_in = ?delay, "cannot reach the broker");
+                    }
+                    connected = false;
+                    self.take_back(&mut el, &mut backlog);
+                    tokio::select! {
+                        _ = cancel.cancelled() => break,
+                        _ = tokio::time::sleep(delay) => {}
+                    }
+                    delay = (delay * 2).min(RECONNECT_MAX);
+                }
             }
         }
         if connected {
@@ -438,6 +455,56 @@ mod tests {
         let kept: Vec<u8> = q.iter().map(|p| p.payload[0]).collect();
         assert_eq!(kept, vec![2, 3, 4]);
         assert_eq!(t.stats.dropped.load(Ordering::Relaxed), 2);
+    }
+
+    /// A broker that answers CONNECT only after `delay` and counts connections: publications that
+    /// arrive meanwhile must not abort the attempt (rumqttc's `poll()` is not cancel-safe).
+    #[tokio::test]
+    async fn publications_during_a_slow_connect_do_not_restart_it() {
+        use tokio::io::{AsyncReadExt, AsyncWriteExt};
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let port = listener.local_addr().unwrap().port();
+        let accepted = Arc::new(AtomicU64::new(0));
+        let count = accepted.clone();
+        tokio::spawn(async move {
+            loop {
+                let (mut s, _) = listener.accept().await.unwrap();
+                count.fetch_add(1, Ordering::Relaxed);
+                tokio::spawn(async move {
+                    let mut buf = [0u8; 4096];
+                    let _ = s.read(&mut buf).await; // CONNECT
+                    tokio::time::sleep(Duration::from_millis(300)).await;
+                    let _ = s.write_all(&[0x20, 0x02, 0x00, 0x00]).await; // CONNACK accepted
+                                                                          // Swallow whatever follows (SUBSCRIBE, PUBLISH) without answering.
+                    while let Ok(n) = s.read(&mut buf).await {
+                        if n == 0 {
+                            break;
+                        }
+                    }
+                });
+            }
+        });
+        let mut t = task(100);
+        t.options = MqttOptions::new("slow", "127.0.0.1", port);
+        let stats = t.stats.clone();
+        let (pub_tx, pub_rx) = mpsc::channel(100);
+        let (in_tx, mut in_rx) = mpsc::channel(10);
+        let cancel = CancellationToken::new();
+        let run = tokio::spawn(t.run(pub_rx, in_tx, cancel.clone()));
+        for n in 0..40 {
+            pub_tx.send(publication(n)).await.unwrap();
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        }
+        let connected = tokio::time::timeout(Duration::from_secs(10), in_rx.recv()).await;
+        assert_eq!(connected.unwrap(), Some(MqttInput::Connected));
+        assert_eq!(
+            accepted.load(Ordering::Relaxed),
+            1,
+            "the connect attempt was restarted"
+        );
+        assert_eq!(stats.connects.load(Ordering::Relaxed), 1);
+        cancel.cancel();
+        run.await.unwrap();
     }
 
     #[tokio::test]

@@ -87,7 +87,12 @@ fn event(p: &[u8]) -> Value {
 async fn the_demo_answers_commands_docks_and_says_goodbye() {
     let port = free_port();
     let stop = CancellationToken::new();
-    let gw = tokio::spawn(mc_gateway::run(demo_config(port), stop.clone()));
+    let stats = std::sync::Arc::new(mc_gateway::mqtt::MqttStats::default());
+    let gw = tokio::spawn(mc_gateway::run_with_stats(
+        demo_config(port),
+        stop.clone(),
+        stats.clone(),
+    ));
     // run() returns only after the broker accepts connections; the client retries until then.
     let (c, mut rx) = client(port, "demo-test");
     expect(&mut rx, "online", |t, p| {
