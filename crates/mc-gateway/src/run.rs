@@ -45,13 +45,7 @@ pub async fn run_with_stats(
             "bitrate differs from the island's; the interface's own configuration decides"
         );
     }
-    if let Broker::Embedded { listen } = &config.mqtt.broker {
-        let listen = *listen;
-        tokio::task::spawn_blocking(move || crate::broker::start(listen))
-            .await
-            .map_err(|e| GatewayError::Task(e.to_string()))??;
-        info!(%listen, "embedded MQTT broker ready");
-    }
+    // The island file is checked before the broker starts, so a typo fails fast.
     let (link, sim) = match &config.can.link {
         Link::SocketCan(iface) => (
             LinkSpec::SocketCan {
@@ -66,6 +60,13 @@ pub async fn run_with_stats(
         }
     };
 
+    if let Broker::Embedded { listen } = &config.mqtt.broker {
+        let listen = *listen;
+        tokio::task::spawn_blocking(move || crate::broker::start(listen))
+            .await
+            .map_err(|e| GatewayError::Task(e.to_string()))??;
+        info!(%listen, "embedded MQTT broker ready");
+    }
     let cancel = shutdown.child_token();
     let mut tasks = JoinSet::new();
     let (can_in_tx, can_in) = mpsc::channel(CAN_INPUTS);
