@@ -198,6 +198,19 @@ fn interface_up(iface: &str) -> bool {
     }
 }
 
+/// Frames the interface (driver/controller) lost on reception so far: `rx_dropped` +
+/// `rx_over_errors` + `rx_fifo_errors` from sysfs (an MCP2515 overflowing counts here); 0 without
+/// sysfs. Drops in our own socket's buffer are not visible this way (that needs `SO_RXQ_OVFL`).
+fn interface_drops(iface: &str) -> u64 {
+    ["rx_dropped", "rx_over_errors", "rx_fifo_errors"]
+        .iter()
+        .filter_map(|c| {
+            std::fs::read_to_string(format!("/sys/class/net/{iface}/statistics/{c}")).ok()
+        })
+        .filter_map(|s| s.trim().parse::<u64>().ok())
+        .sum()
+}
+
 #[tracing::instrument(name = "can_rx", skip_all, fields(iface = %setup.iface))]
 async fn receive_socket(
     setup: SocketSetup,
@@ -249,6 +262,7 @@ async fn receive_socket(
         delay = REOPEN_MIN;
         let mut check = tokio::time::interval(LINK_CHECK);
         check.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+        let mut drops = interface_drops(&setup.iface);
         // The socket's pending error (ENETDOWN on link down) goes to whichever call sees it
         // first, often a write in the transmit task: so a failed write, a failed read and a
         // periodic look at the interface flags all lead here.
@@ -257,10 +271,19 @@ async fn receive_socket(
                 _ = cancel.cancelled() => return,
                 _ = failed.notified() => break "a write failed with a link error".to_owned(),
                 _ = check.tick() => {
-                    if interface_up(&setup.iface) {
-                        continue;
+                    if !interface_up(&setup.iface) {
+                        break "interface down".to_owned();
                     }
-                    break "interface down".to_owned();
+                    let now = interface_drops(&setup.iface);
+                    let lost = now.saturating_sub(drops);
+                    drops = now;
+                    if lost > 0 {
+                        let n = u32::try_from(lost).unwrap_or(u32::MAX);
+                        if inputs.send(CanInput::Bus(BusEvent::RxDropped(n))).await.is_err() {
+                            return;
+                        }
+                    }
+                    continue;
                 }
                 r = sock.read_frame() => r,
             };
@@ -473,6 +496,15 @@ mod tests {
             "test premise"
         );
         assert_eq!(classify(&frame, &filters, true), None);
+    }
+
+    #[test]
+    fn drop_counters_are_read_from_sysfs() {
+        assert_eq!(interface_drops("ihexnone0"), 0);
+        if let Ok(s) = std::fs::read_to_string("/sys/class/net/lo/statistics/rx_dropped") {
+            let dropped: u64 = s.trim().parse().unwrap();
+            assert!(interface_drops("lo") >= dropped);
+        }
     }
 
     #[test]
