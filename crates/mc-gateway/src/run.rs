@@ -155,8 +155,9 @@ impl Core {
         loop {
             self.carry_out();
             let deadline = tokio::time::Instant::from_std(self.bridge.next_deadline());
+            // Unbiased on purpose: a timer that is always due must not starve the inputs, nor a
+            // flood of frames the timers.
             tokio::select! {
-                biased;
                 _ = cancel.cancelled() => return Ok(()),
                 r = tasks.join_next() => {
                     // No task ends on its own while the gateway runs.
