@@ -259,11 +259,23 @@ fn run_stage(stage: Stage, args: &TestArgs) -> Result<Done> {
             if !script.exists() {
                 return Ok(Done::Skipped("no deploy/check-arm64.sh".into()));
             }
-            cmd::run(Command::new("sh").arg(&script).current_dir(&root))
-                .with_context(|| format!("{}", script.display()))?;
+            // Its shebang picks the shell; a copy that lost its execute bit still runs through sh.
+            let mut c = if is_executable(&script) {
+                Command::new(&script)
+            } else {
+                let mut c = Command::new("sh");
+                c.arg(&script);
+                c
+            };
+            cmd::run(c.current_dir(&root)).with_context(|| format!("{}", script.display()))?;
             Ok(Done::Ran)
         }
     }
+}
+
+fn is_executable(path: &std::path::Path) -> bool {
+    use std::os::unix::fs::PermissionsExt;
+    std::fs::metadata(path).is_ok_and(|m| m.permissions().mode() & 0o111 != 0)
 }
 
 fn firmware_release_dir() -> PathBuf {
