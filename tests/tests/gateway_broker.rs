@@ -59,7 +59,11 @@ async fn the_gateway_survives_a_broker_restart() {
     // Clean shutdown leaves `offline` retained.
     let broker = rig.addr;
     rig.gateway.shutdown().await;
-    let mut late = Client::connect(broker, "after-shutdown", &[topics.availability.clone()]);
+    let mut late = Client::connect(
+        broker,
+        "after-shutdown",
+        std::slice::from_ref(&topics.availability),
+    );
     late.expect("offline retained", |m| {
         m.topic == topics.availability && m.payload == b"offline"
     })
