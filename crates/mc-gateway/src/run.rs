@@ -160,6 +160,10 @@ impl Core {
             tokio::select! {
                 _ = cancel.cancelled() => return Ok(()),
                 r = tasks.join_next() => {
+                    if cancel.is_cancelled() {
+                        // Tasks end on cancellation; the caller joins the rest.
+                        return Ok(());
+                    }
                     // No task ends on its own while the gateway runs.
                     let why = match r {
                         Some(Err(e)) => e.to_string(),

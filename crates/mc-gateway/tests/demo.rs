@@ -178,3 +178,77 @@ async fn a_taken_broker_port_is_a_clear_error() {
         other => panic!("expected a bind error, got {other:?}"),
     }
 }
+
+/// The MQTT task started before its broker exists: it retries with back-off, and what it was asked to
+/// publish meanwhile (held in its queue) reaches the broker once it appears.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn publications_queued_before_the_broker_exists_are_delivered() {
+    use mc_gateway::{
+        config::{Broker, MqttConfig},
+        mqtt::{self, MqttInput, MqttStats, MqttTask, Publication},
+        topic::Topics,
+    };
+    let port = free_port();
+    let cfg = MqttConfig {
+        broker: Broker::External {
+            host: "127.0.0.1".into(),
+            port,
+        },
+        client_id: "early-gateway".into(),
+        credentials: None,
+        tls: None,
+        keep_alive: Duration::from_secs(20),
+        queue: 16,
+    };
+    let topics = Topics::seed();
+    let stats = std::sync::Arc::new(MqttStats::default());
+    let task = MqttTask {
+        options: mqtt::options(&cfg, &topics, 1 << 20).unwrap(),
+        topics,
+        subscribe_sim: false,
+        queue: cfg.queue,
+        stats: stats.clone(),
+    };
+    let (pub_tx, pub_rx) = mpsc::channel(16);
+    let (in_tx, mut in_rx) = mpsc::channel(16);
+    let stop = CancellationToken::new();
+    let run = tokio::spawn(task.run(pub_rx, in_tx, stop.clone()));
+    for n in 0..5 {
+        let p = Publication {
+            topic: format!("early/{n}"),
+            payload: format!("{n}").into_bytes(),
+            retain: true,
+        };
+        pub_tx.send(p).await.unwrap();
+    }
+    // Let a few connection attempts fail.
+    tokio::time::sleep(Duration::from_millis(700)).await;
+    assert_eq!(stats.connects.load(std::sync::atomic::Ordering::Relaxed), 0);
+    let addr = format!("127.0.0.1:{port}").parse().unwrap();
+    tokio::task::spawn_blocking(move || mc_gateway::broker::start(addr))
+        .await
+        .unwrap()
+        .expect("embedded broker");
+    let connected = tokio::time::timeout(WAIT, in_rx.recv())
+        .await
+        .expect("connects");
+    assert_eq!(connected, Some(MqttInput::Connected));
+
+    // A client arriving later finds every queued (retained) publication.
+    let (_c, mut rx) = client(port, "late-reader");
+    let mut seen = std::collections::BTreeSet::new();
+    while seen.len() < 5 {
+        let p = expect(&mut rx, "the queued publications", |t, _| {
+            t.starts_with("early/")
+        })
+        .await;
+        seen.insert(String::from_utf8(p).unwrap());
+    }
+    assert_eq!(
+        seen.into_iter().collect::<Vec<_>>(),
+        vec!["0", "1", "2", "3", "4"]
+    );
+    assert_eq!(stats.dropped.load(std::sync::atomic::Ordering::Relaxed), 0);
+    stop.cancel();
+    run.await.unwrap();
+}
