@@ -47,6 +47,9 @@ pub struct BenchArgs {
     /// Skip the live part (callgrind, firmware and the report only).
     #[arg(long)]
     no_live: bool,
+    /// Keep Mosquitto's default Nagle algorithm on its sockets (to compare; see docs/benchmarks.md).
+    #[arg(long)]
+    mosquitto_nagle: bool,
 }
 
 fn musl_release(name: &str) -> PathBuf {
@@ -120,7 +123,7 @@ fn host_cpu() -> String {
 }
 
 fn live_args(gateway: &Path, args: &BenchArgs) -> Vec<String> {
-    vec![
+    let mut v = vec![
         "live".into(),
         "--iface".into(),
         "vcan0".into(),
@@ -130,7 +133,11 @@ fn live_args(gateway: &Path, args: &BenchArgs) -> Vec<String> {
         args.probes.to_string(),
         "--trial-secs".into(),
         args.trial_secs.to_string(),
-    ]
+    ];
+    if args.mosquitto_nagle {
+        v.push("--mosquitto-nagle".into());
+    }
+    v
 }
 
 /// Runs the live part; returns the machine description.
@@ -209,7 +216,12 @@ fn live(gateway: &Path, bench: &Path, args: &BenchArgs, out: &Path) -> Result<St
 pub fn run(args: BenchArgs, firmware_dir: &Path) -> Result<()> {
     let dir = cmd::target_dir().join("bench");
     fs::create_dir_all(&dir)?;
-    for f in ["live.json", "callgrind.json", "firmware.json", "missing.json"] {
+    for f in [
+        "live.json",
+        "callgrind.json",
+        "firmware.json",
+        "missing.json",
+    ] {
         let _ = fs::remove_file(dir.join(f));
     }
     let (gateway, bench) = build()?;
@@ -228,7 +240,11 @@ pub fn run(args: BenchArgs, firmware_dir: &Path) -> Result<()> {
     }
 
     println!("\n==> xtask bench: firmware size");
-    if let Err(e) = firmware(firmware_dir, args.build_firmware, &dir.join("firmware.json")) {
+    if let Err(e) = firmware(
+        firmware_dir,
+        args.build_firmware,
+        &dir.join("firmware.json"),
+    ) {
         missing.push(format!("firmware: {e:#}"));
     }
 

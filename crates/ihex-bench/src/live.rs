@@ -58,8 +58,11 @@ pub struct Settings {
     pub probes: usize,
     /// Seconds of traffic per rate trial.
     pub trial_secs: f64,
-    /// Commands in the MQTT → CAN rate run.
+    /// Commands in the MQTT → CAN burst.
     pub commands: usize,
+    /// Leave Mosquitto's default `set_tcp_nodelay false` (Nagle on its sockets) instead of turning
+    /// it off; with Nagle, command → frame takes a delayed-ACK period (~40 ms) once commands are acked.
+    pub mosquitto_nagle: bool,
 }
 
 /// One CAN → MQTT rate trial.
@@ -567,7 +570,7 @@ fn free_port() -> Result<u16> {
         .port())
 }
 
-fn start_mosquitto(bin: &Path, dir: &Path) -> Result<(Proc, SocketAddr)> {
+fn start_mosquitto(bin: &Path, dir: &Path, nagle: bool) -> Result<(Proc, SocketAddr)> {
     let port = free_port()?;
     let addr = SocketAddr::from((Ipv4Addr::LOCALHOST, port));
     let conf = dir.join("mosquitto.conf");
@@ -577,7 +580,9 @@ fn start_mosquitto(bin: &Path, dir: &Path) -> Result<(Proc, SocketAddr)> {
         &conf,
         format!(
             "listener {port} 127.0.0.1\nallow_anonymous true\npersistence false\nuser root\n\
-             max_queued_messages 0\nmax_inflight_messages 0\nlog_dest stderr\nlog_type error\n"
+             max_queued_messages 0\nmax_inflight_messages 0\nset_tcp_nodelay {}\n\
+             log_dest stderr\nlog_type error\n",
+            !nagle
         ),
     )?;
     let child = Command::new(bin)
@@ -1045,6 +1050,9 @@ pub fn run(s: Settings) -> Result<LiveResults> {
     let (environment, cpus) = environment();
     println!("bench: {environment}");
     let mut notes = Vec::new();
+    if s.mosquitto_nagle {
+        notes.push("Mosquitto ran with its default set_tcp_nodelay false (Nagle)".into());
+    }
     let dir = std::env::temp_dir().join(format!("ihex-bench-{}", std::process::id()));
     std::fs::create_dir_all(&dir)?;
 
@@ -1055,7 +1063,7 @@ pub fn run(s: Settings) -> Result<LiveResults> {
         bare.rate_fps, bare.received, bare.sent, bare.rtt.p50_us
     );
 
-    let (_broker, addr) = start_mosquitto(&s.mosquitto, &dir)?;
+    let (_broker, addr) = start_mosquitto(&s.mosquitto, &dir, s.mosquitto_nagle)?;
     let mqtt = Mqtt::connect(
         addr,
         &[

@@ -44,9 +44,12 @@ enum Cmd {
         /// Seconds of traffic per rate trial.
         #[arg(long, default_value_t = 2.0)]
         trial_secs: f64,
-        /// Commands in the MQTT -> CAN rate run.
+        /// Commands in the MQTT -> CAN burst.
         #[arg(long, default_value_t = 4000)]
         commands: usize,
+        /// Keep Mosquitto's default Nagle algorithm (set_tcp_nodelay false) on its sockets.
+        #[arg(long)]
+        mosquitto_nagle: bool,
         /// Send the results as a JSON line to this TCP address (the host's xtask).
         #[arg(long)]
         report: Option<String>,
@@ -93,6 +96,7 @@ fn main() -> Result<()> {
             probes,
             trial_secs,
             commands,
+            mosquitto_nagle,
             report,
             out,
         } => {
@@ -103,6 +107,7 @@ fn main() -> Result<()> {
                 probes,
                 trial_secs,
                 commands,
+                mosquitto_nagle,
             })?;
             if let Some(out) = out {
                 std::fs::write(&out, serde_json::to_vec_pretty(&r)?)?;
