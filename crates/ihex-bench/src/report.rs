@@ -379,15 +379,25 @@ pub fn rate_svg(l: &LiveResults) -> String {
         .filter(|t| t.sent > 0)
         .collect();
     trials.sort_by(|a, b| a.offered_fps.total_cmp(&b.offered_fps));
+    // Log scale: the trials, the bus limit and the bare pair's rate span two or three decades.
     let xmax = trials
         .iter()
         .map(|t| t.offered_fps)
         .chain([l.bare.rate_fps, l.limit_report.fps_best])
-        .fold(1.0f64, f64::max)
-        * 1.1;
-    let x = |v: f64| L + v / xmax * (W - L - 10.0);
+        .fold(1000.0f64, f64::max);
+    let (llo, lhi) = (2.0, xmax.log10().ceil());
+    let x = |v: f64| L + (v.max(100.0).log10() - llo) / (lhi - llo) * (W - L - 10.0);
     let y = |loss: f64| (H - B) - loss * (H - B - 24.0);
     let mut s = svg_open("CAN -> MQTT: offered report rate vs loss");
+    let mut d = llo;
+    while d <= lhi {
+        let _ = writeln!(
+            s,
+            "<line x1=\"{0:.1}\" y1=\"24\" x2=\"{0:.1}\" y2=\"{1}\" stroke=\"#eee\"/><text x=\"{0:.1}\" y=\"{2}\" text-anchor=\"middle\">{3}</text>",
+            x(10f64.powf(d)), H - B, H - B + 14.0, 10f64.powf(d)
+        );
+        d += 1.0;
+    }
     for f in [0.0, 0.25, 0.5, 0.75, 1.0] {
         let _ = writeln!(
             s,
@@ -428,10 +438,9 @@ pub fn rate_svg(l: &LiveResults) -> String {
     );
     let _ = writeln!(
         s,
-        "<text x=\"{}\" y=\"{}\" text-anchor=\"middle\">offered frames/s (0 to {:.0})</text>\n</svg>",
+        "<text x=\"{}\" y=\"{}\" text-anchor=\"middle\">offered frames/s (log scale)</text>\n</svg>",
         W / 2.0,
-        H - 6.0,
-        xmax
+        H - 6.0
     );
     s
 }
