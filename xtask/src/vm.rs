@@ -480,7 +480,7 @@ poweroff -f
             .spawn()
             .with_context(|| format!("starting {}", self.qemu.display()))?;
         let stdout = child.stdout.take().expect("piped");
-        let (tx, rx) = mpsc::channel();
+        let (tx, rx) = mpsc::sync_channel(16);
         let reader = std::thread::spawn(move || console(stdout, std::io::stdout(), tx));
         let deadline = start + self.timeout;
         let mut codes: Vec<Option<i32>> = vec![None; expected];
@@ -504,6 +504,8 @@ poweroff -f
                 Err(mpsc::RecvTimeoutError::Timeout) => {
                     let _ = child.kill();
                     let _ = child.wait();
+                    // Unblock the reader should it wait on a full channel.
+                    drop(rx);
                     let _ = reader.join();
                     let done = codes.iter().filter(|c| c.is_some()).count();
                     let during = match running.and_then(|i| names.get(i)) {
@@ -552,7 +554,7 @@ enum Event {
 }
 
 /// Copies the console to `out` as it comes and reports the markers.
-fn console(mut from: impl Read, mut out: impl Write, tx: mpsc::Sender<Event>) {
+fn console(mut from: impl Read, mut out: impl Write, tx: mpsc::SyncSender<Event>) {
     let mut line = Vec::new();
     let mut buf = [0u8; 8192];
     loop {
@@ -728,7 +730,7 @@ mod tests {
                 Ok(c.len())
             }
         }
-        let (tx, rx) = mpsc::channel();
+        let (tx, rx) = mpsc::sync_channel(16);
         let mut shown = Vec::new();
         console(
             Chunks(vec![
