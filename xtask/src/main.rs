@@ -82,11 +82,11 @@ impl VmArgs {
 
 #[derive(Args)]
 struct TestArgs {
-    /// Run only these stages (repeatable).
-    #[arg(long = "stage", value_enum)]
+    /// Run only these stages (`--stage host vcan`, `--stage host,vcan` or repeated).
+    #[arg(long = "stage", value_enum, num_args = 1.., value_delimiter = ',')]
     stages: Vec<Stage>,
-    /// Skip these stages (repeatable).
-    #[arg(long, value_enum)]
+    /// Skip these stages (same forms as --stage).
+    #[arg(long, value_enum, num_args = 1.., value_delimiter = ',')]
     skip: Vec<Stage>,
     /// Run the SocketCAN tests in the microVM even where native vcan exists (IHEX_VCAN=vm).
     #[arg(long)]
