@@ -7,7 +7,7 @@ use std::process::{Command, Stdio};
 
 use anyhow::{anyhow, bail, Context, Result};
 
-use crate::report::{Callgrind, PathCost};
+use ihex_bench::report::{Callgrind, PathCost};
 
 /// Total instructions (`Ir`) of a callgrind output file (its `summary:` or `totals:` line).
 pub fn total_instructions(out: &str) -> Option<u64> {

@@ -2,15 +2,17 @@
 //! gateway is. Run through `cargo xtask bench`; see docs/benchmarks.md.
 //!
 //! * [`bus`] — frame bit lengths and the frame-rate limit of a 500 kbit/s bus;
-//! * [`live`] — the real gateway process over SocketCAN and Mosquitto (rates, latency, CPU, RSS);
 //! * [`workload`] — the sans-IO bridge on a fixed workload, for instruction counts (callgrind);
-//! * [`callgrind`] — runs that workload under valgrind and derives instructions per frame;
-//! * [`stats`], [`report`] — percentiles, the results file, the table and the SVG plots.
+//! * [`results`], [`stats`], [`report`] — what the live run measured, percentiles, the results
+//!   file, the table and the SVG plots.
+//!
+//! The I/O-heavy parts live in the `ihex-bench` binary (`src/main.rs` and its modules `live`: the
+//! real gateway process over SocketCAN and Mosquitto; `callgrind`: the workload under valgrind),
+//! which use `anyhow` like the other tools; this library has no I/O and no error type.
 #![warn(missing_docs)]
 
 pub mod bus;
-pub mod callgrind;
-pub mod live;
 pub mod report;
+pub mod results;
 pub mod stats;
 pub mod workload;

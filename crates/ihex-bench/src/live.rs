@@ -7,7 +7,7 @@
 //! right before a write/publish, in this process; the bare pair is timed the same way.
 
 use std::collections::HashSet;
-use std::io::{BufRead, BufReader, Write};
+use std::io::Write;
 use std::net::{Ipv4Addr, SocketAddr, TcpListener, TcpStream};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
@@ -23,11 +23,11 @@ use ihex_proto::{
     ResetReason,
 };
 use rumqttc::{Client, Event as MqttEvent, MqttOptions, Packet as MqttPacket, QoS};
-use serde::{Deserialize, Serialize};
 use socketcan::{CanFilter, CanFrame, CanSocket, EmbeddedFrame, Socket, SocketOptions};
 
-use crate::bus::Limit;
-use crate::stats::Summary;
+use ihex_bench::bus::Limit;
+use ihex_bench::results::{Bare, LiveResults, Trial};
+use ihex_bench::stats::Summary;
 
 /// Bitrate of the island bus.
 pub const BITRATE: u32 = 500_000;
@@ -63,112 +63,6 @@ pub struct Settings {
     /// Leave Mosquitto's default `set_tcp_nodelay false` (Nagle on its sockets) instead of turning
     /// it off; with Nagle, command → frame takes a delayed-ACK period (~40 ms) once commands are acked.
     pub mosquitto_nagle: bool,
-}
-
-/// One CAN → MQTT rate trial.
-#[derive(Clone, Debug, Default, Serialize, Deserialize)]
-pub struct Trial {
-    /// Rate asked for, frames/s.
-    pub offered_fps: f64,
-    /// Rate the writer achieved, frames/s.
-    pub sent_fps: f64,
-    /// Frames sent.
-    pub sent: usize,
-    /// Distinct matching events received.
-    pub received: usize,
-    /// Fraction lost (0–1).
-    pub loss: f64,
-    /// Last event after the last frame, ms (a growing backlog shows here before loss does).
-    pub lag_ms: f64,
-    /// Gateway CPU time during the trial, ms.
-    pub gateway_cpu_ms: f64,
-    /// What the gateway said about lost commands (`command_result` failures, rejections).
-    #[serde(default)]
-    pub note: Option<String>,
-}
-
-impl Trial {
-    /// No loss and no backlog left behind.
-    pub fn sustained(&self) -> bool {
-        self.received == self.sent && self.lag_ms <= 250.0
-    }
-}
-
-/// Bare SocketCAN pair figures.
-#[derive(Clone, Debug, Default, Serialize, Deserialize)]
-pub struct Bare {
-    /// Writer → reader rate of a burst, frames/s.
-    pub rate_fps: f64,
-    /// Frames of the burst.
-    pub sent: usize,
-    /// Frames the reader got.
-    pub received: usize,
-    /// Round trip writer → echo thread → writer.
-    pub rtt: Summary,
-}
-
-/// Everything the live run measures.
-#[derive(Clone, Debug, Default, Serialize, Deserialize)]
-pub struct LiveResults {
-    /// Kernel, CPU count and model as seen where the run happened.
-    pub environment: String,
-    /// CPUs online where the run happened.
-    pub cpus: usize,
-    /// The bare SocketCAN pair.
-    pub bare: Bare,
-    /// Every CAN → MQTT trial, in the order run.
-    pub trials: Vec<Trial>,
-    /// Highest sustained CAN → MQTT rate found, frames/s.
-    pub can_to_mqtt_fps: f64,
-    /// The trial at twice that rate.
-    pub at_double: Trial,
-    /// Every MQTT → CAN trial (commands paced at a rate), in the order run.
-    #[serde(default)]
-    pub command_trials: Vec<Trial>,
-    /// MQTT → CAN: highest command rate delivered as frames with zero loss, commands/s.
-    pub mqtt_to_can_cps: f64,
-    /// MQTT → CAN burst: commands published back to back.
-    pub commands_sent: usize,
-    /// MQTT → CAN burst: frames seen on the bus.
-    pub commands_delivered: usize,
-    /// MQTT → CAN burst: delivered frames per second.
-    #[serde(default)]
-    pub burst_cps: f64,
-    /// MQTT → CAN burst: what the gateway said about the commands it did not send.
-    #[serde(default)]
-    pub burst_note: Option<String>,
-    /// Command → frame latency, idle bus.
-    pub cmd_to_frame_idle: Summary,
-    /// Frame → event latency, idle bus.
-    pub frame_to_event_idle: Summary,
-    /// Command → frame latency with the bus at its physical frame rate.
-    pub cmd_to_frame_load: Summary,
-    /// Frame → event latency with the bus at its physical frame rate.
-    pub frame_to_event_load: Summary,
-    /// Background frames per second asked for / achieved during the loaded series.
-    pub load_offered_fps: f64,
-    /// Background frames per second achieved.
-    pub load_sent_fps: f64,
-    /// MQTT publish → own delivery round through the broker (baseline for the added latency).
-    pub mqtt_loop: Summary,
-    /// Gateway CPU ms per 1,000 CAN → event frames.
-    pub cpu_ms_per_1k_reports: f64,
-    /// Gateway CPU ms per 1,000 commands → frames.
-    pub cpu_ms_per_1k_commands: f64,
-    /// Gateway CPU ms per 1,000 background frames it reads and drops or records (no event).
-    pub cpu_ms_per_1k_background: f64,
-    /// Gateway peak resident memory, KiB (VmHWM).
-    pub gateway_vmhwm_kib: u64,
-    /// Gateway resident memory at the end, KiB (VmRSS).
-    pub gateway_vmrss_kib: u64,
-    /// Bus limits of the report frame (BootUp) and of the background frame (HealthReply).
-    pub limit_report: Limit,
-    /// Bus limit of the background frame.
-    pub limit_background: Limit,
-    /// Bus limit of the command frame (LedSet).
-    pub limit_command: Limit,
-    /// Notes about the run (fallbacks taken, anomalies).
-    pub notes: Vec<String>,
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -1210,13 +1104,6 @@ pub fn send(results: &LiveResults, addr: &str) -> Result<()> {
     s.write_all(&line)?;
     s.flush()?;
     Ok(())
-}
-
-/// Reads one JSON line of results from an accepted connection.
-pub fn receive(stream: TcpStream) -> Result<LiveResults> {
-    let mut line = String::new();
-    BufReader::new(stream).read_line(&mut line)?;
-    serde_json::from_str(&line).context("parsing the live results")
 }
 
 #[cfg(test)]

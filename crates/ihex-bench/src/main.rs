@@ -5,7 +5,10 @@ use std::path::PathBuf;
 
 use anyhow::{Context, Result};
 use clap::{Parser, Subcommand, ValueEnum};
-use ihex_bench::{callgrind, live, report, workload};
+use ihex_bench::{report, workload};
+
+mod callgrind;
+mod live;
 
 #[derive(Parser)]
 #[command(

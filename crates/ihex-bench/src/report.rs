@@ -5,7 +5,7 @@ use std::fmt::Write as _;
 
 use serde::{Deserialize, Serialize};
 
-use crate::live::{LiveResults, Trial};
+use crate::results::{LiveResults, Trial};
 use crate::stats::Summary;
 
 /// Instructions per bridged frame on one path.
