@@ -248,6 +248,32 @@ fn run_stage(stage: Stage, args: &TestArgs) -> Result<Done> {
                     .args(["build", "--release"]),
             )?;
             fwsize::report(&firmware_release_dir())?;
+            // The firmware's own checks: the pin map cannot disagree with the code (broken copies
+            // must fail the build), its pure modules on the host, and the SC core on Cortex-M4
+            // instructions in QEMU mps2-an386. Each is its own workspace, so it runs from its folder.
+            let mut failures = Vec::new();
+            for (what, dir, prog, args) in [
+                ("pin map check", fw.clone(), "./check-pinmap.sh", &[][..]),
+                ("host tests", fw.join("host-tests"), "cargo", &["test"][..]),
+                ("Cortex-M4 tests", fw.join("mcu-tests"), "./run.sh", &[][..]),
+            ] {
+                println!("==> xtask: firmware: {what}");
+                let mut c = if prog == "cargo" {
+                    cmd::cargo()
+                } else {
+                    Command::new(prog)
+                };
+                c.current_dir(&dir)
+                    .env_remove("CARGO_TARGET_DIR")
+                    .env_remove("CARGO_BUILD_TARGET")
+                    .args(args);
+                if let Err(e) = cmd::run(&mut c) {
+                    failures.push(format!("{what}: {e:#}"));
+                }
+            }
+            if !failures.is_empty() {
+                anyhow::bail!("{}", failures.join("; "));
+            }
             Ok(Done::Ran)
         }
         Stage::Vcan => {

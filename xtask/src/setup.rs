@@ -25,6 +25,8 @@ const VM_PACKAGES: [&str; 4] = [
     "cpio",
 ];
 const BROKER_PACKAGE: &str = "mosquitto";
+/// Runs the SC core's tests on Cortex-M4 instructions (the firmware stage).
+const MCU_EMULATOR_PACKAGE: &str = "qemu-system-arm";
 
 /// Installs what is missing; fails with instructions when it cannot.
 pub fn run() -> Result<()> {
@@ -73,6 +75,7 @@ fn wanted() -> Vec<&'static str> {
         v.extend(VM_PACKAGES);
     }
     v.push(BROKER_PACKAGE);
+    v.push(MCU_EMULATOR_PACKAGE);
     v
 }
 
@@ -128,6 +131,7 @@ fn check_without_apt(wanted: &[&str]) -> Result<()> {
             ),
             "busybox-static" => (crate::vm::static_busybox().is_some(), "a statically linked busybox (package busybox-static / busybox; or set IHEX_VM_BUSYBOX)"),
             "cpio" => (true, ""),
+            "qemu-system-arm" => (cmd::exists("qemu-system-arm"), "qemu-system-arm (package qemu-system-arm / qemu)"),
             _ => (cmd::exists("mosquitto"), "mosquitto (package mosquitto)"),
         };
         if !ok {
