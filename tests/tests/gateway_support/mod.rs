@@ -170,6 +170,10 @@ pub struct Gateway {
     pub task: JoinHandle<Result<(), mc_gateway::GatewayError>>,
 }
 
+fn scaled_ms(ms: u64) -> u64 {
+    ihex_tests::time::scaled(Duration::from_millis(ms)).as_millis() as u64
+}
+
 impl Gateway {
     /// Starts a gateway on `iface` against `broker`, island name `island`, with a fast health check.
     pub fn start(broker: std::net::SocketAddr, iface: &str, island: &str) -> Gateway {
@@ -179,8 +183,11 @@ impl Gateway {
             island: Some(island.into()),
             health_period_ms: Some(200),
             lost_after: Some(3),
-            command_timeout_ms: Some(1000),
-            dock_timeout_ms: Some(3000),
+            // Under emulation (the microVM) a node's ack can take longer than on hardware: stretch the
+            // gateway's own deadlines like the tests' (IHEX_TEST_TIME_SCALE), so they only fail on a
+            // missing answer, never on a slow one.
+            command_timeout_ms: Some(scaled_ms(1000)),
+            dock_timeout_ms: Some(scaled_ms(3000)),
             log_dir: Some("-".into()),
             ..Cli::default()
         };
