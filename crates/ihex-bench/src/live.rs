@@ -985,6 +985,7 @@ pub fn run(s: Settings) -> Result<LiveResults> {
             );
         }
     }
+    let (_, rss_start) = memory_kib(gw.pid())?;
     let can = open_can(&s.iface, &mut notes)?;
     let mut b = Bench {
         s: s.clone(),
@@ -1087,6 +1088,7 @@ pub fn run(s: Settings) -> Result<LiveResults> {
         cpu_ms_per_1k_background,
         gateway_vmhwm_kib: hwm,
         gateway_vmrss_kib: rss,
+        gateway_vmrss_start_kib: rss_start,
         limit_report: Limit::new(BITRATE, frame(&report(0))?.data().len() as u8),
         limit_background,
         limit_command: Limit::new(BITRATE, 8),

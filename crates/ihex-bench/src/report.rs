@@ -192,8 +192,9 @@ pub fn table(r: &Results) -> String {
         );
         let _ = writeln!(
             o,
-            "  peak RSS (VmHWM)                     {:>8.1} MiB (now {:.1} MiB)",
+            "  peak RSS (VmHWM)                     {:>8.1} MiB (RSS {:.1} MiB once online, {:.1} MiB at the end)",
             l.gateway_vmhwm_kib as f64 / 1024.0,
+            l.gateway_vmrss_start_kib as f64 / 1024.0,
             l.gateway_vmrss_kib as f64 / 1024.0
         );
     }

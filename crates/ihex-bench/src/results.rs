@@ -101,6 +101,9 @@ pub struct LiveResults {
     pub gateway_vmhwm_kib: u64,
     /// Gateway resident memory at the end, KiB (VmRSS).
     pub gateway_vmrss_kib: u64,
+    /// Gateway resident memory once online, before any traffic, KiB (VmRSS).
+    #[serde(default)]
+    pub gateway_vmrss_start_kib: u64,
     /// Bus limits of the report frame (BootUp) and of the background frame (HealthReply).
     pub limit_report: Limit,
     /// Bus limit of the background frame.
