@@ -13,53 +13,9 @@ use ihex_proto::uart::{UartDecoder, UartReply, UartRequest};
 use ihex_proto::Packet;
 use libfuzzer_sys::fuzz_target;
 
-/// A minimal `embedded_can::Frame`.
-#[derive(Clone, Debug, PartialEq)]
-struct FuzzFrame {
-    id: Id,
-    remote: bool,
-    dlc: usize,
-    data: [u8; 8],
-}
-
-impl Frame for FuzzFrame {
-    fn new(id: impl Into<Id>, data: &[u8]) -> Option<Self> {
-        if data.len() > 8 {
-            return None;
-        }
-        let mut d = [0; 8];
-        d[..data.len()].copy_from_slice(data);
-        Some(FuzzFrame { id: id.into(), remote: false, dlc: data.len(), data: d })
-    }
-
-    fn new_remote(id: impl Into<Id>, dlc: usize) -> Option<Self> {
-        (dlc <= 8).then(|| FuzzFrame { id: id.into(), remote: true, dlc, data: [0; 8] })
-    }
-
-    fn is_extended(&self) -> bool {
-        matches!(self.id, Id::Extended(_))
-    }
-
-    fn is_remote_frame(&self) -> bool {
-        self.remote
-    }
-
-    fn id(&self) -> Id {
-        self.id
-    }
-
-    fn dlc(&self) -> usize {
-        self.dlc
-    }
-
-    fn data(&self) -> &[u8] {
-        if self.remote {
-            &[]
-        } else {
-            &self.data[..self.dlc]
-        }
-    }
-}
+#[path = "../../tests/common/mod.rs"]
+mod common;
+use common::TestFrame as FuzzFrame;
 
 fuzz_target!(|input: &[u8]| {
     uart(input);
