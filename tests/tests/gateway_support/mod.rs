@@ -19,25 +19,9 @@ use tokio::{sync::mpsc, task::JoinHandle};
 /// Generous deadline for one expected message (scaled in the VM by `IHEX_TEST_TIME_SCALE`).
 pub const WAIT: Duration = Duration::from_secs(10);
 
-/// Two static elements (111, 112), mobile 2 docked on 111 port 3, mobile 3 free.
-pub const ISLAND: &str = r#"
-[[static]]
-id = "111"
-ports = 6
-
-[[static]]
-id = "112"
-ports = 6
-
-[[mobile]]
-id = "2"
-port = 0
-dock = { static = "111", port = 3 }
-
-[[mobile]]
-id = "3"
-port = 1
-"#;
+/// The demo's island, so the tests exercise what a user sees: static 111 and 112, mobile 2 docked on
+/// 111 port 3 (its own port 0), mobile 3 free (its own port 1).
+pub const ISLAND: &str = mc_gateway::demo::BUILTIN_ISLAND;
 
 pub fn id(hex: &str) -> NodeId {
     sim_node::desc::parse_node_id(hex).expect("node id")
