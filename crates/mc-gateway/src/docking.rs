@@ -265,18 +265,7 @@ impl Docking {
         reason: &str,
         now: Instant,
     ) -> Vec<Step> {
-        let mut out = Vec::new();
-        if let Some(p) = self.pending {
-            if p.node == node && p.confirm_seq == Some(seq) {
-                out.push(Step::Failed {
-                    node,
-                    port: p.port,
-                    reason: format!("confirm refused: {reason}"),
-                });
-                self.next(now, &mut out);
-            }
-        }
-        out
+        self.fail_confirm(node, seq, format!("confirm refused: {reason}"), now)
     }
 
     /// The confirm for the pending docking could not be sent.
@@ -287,13 +276,18 @@ impl Docking {
         reason: &str,
         now: Instant,
     ) -> Vec<Step> {
+        self.fail_confirm(node, seq, format!("confirm not sent: {reason}"), now)
+    }
+
+    /// Ends the pending docking if `seq` is its confirm to `node`, and moves on to the next report.
+    fn fail_confirm(&mut self, node: NodeId, seq: u8, reason: String, now: Instant) -> Vec<Step> {
         let mut out = Vec::new();
         if let Some(p) = self.pending {
             if p.node == node && p.confirm_seq == Some(seq) {
                 out.push(Step::Failed {
                     node,
                     port: p.port,
-                    reason: format!("confirm not sent: {reason}"),
+                    reason,
                 });
                 self.next(now, &mut out);
             }
