@@ -132,6 +132,68 @@ impl What {
     }
 }
 
+/// Key of a pending command: (destination, command kind, seq).
+type PendingKey = (NodeId, Kind, Seq);
+
+/// The pending commands, also indexed by deadline: the core loop asks for the next deadline on every
+/// turn, and a scan of thousands of unanswered commands (a node that never acks, a flood of commands)
+/// made that turn quadratic.
+#[derive(Debug, Default)]
+struct Pending {
+    by_key: BTreeMap<PendingKey, PendingCommand>,
+    by_deadline: BTreeSet<(Instant, PendingKey)>,
+}
+
+impl Pending {
+    fn insert(&mut self, key: PendingKey, p: PendingCommand) {
+        self.by_deadline.insert((p.deadline, key));
+        if let Some(old) = self.by_key.insert(key, p) {
+            self.by_deadline.remove(&(old.deadline, key));
+        }
+    }
+
+    fn remove(&mut self, key: &PendingKey) -> Option<PendingCommand> {
+        let p = self.by_key.remove(key)?;
+        self.by_deadline.remove(&(p.deadline, *key));
+        Some(p)
+    }
+
+    fn get(&self, key: &PendingKey) -> Option<&PendingCommand> {
+        self.by_key.get(key)
+    }
+
+    /// Mutable access for progress (acks of a broadcast); the deadline must not change.
+    fn get_mut(&mut self, key: &PendingKey) -> Option<&mut PendingCommand> {
+        self.by_key.get_mut(key)
+    }
+
+    fn contains_key(&self, key: &PendingKey) -> bool {
+        self.by_key.contains_key(key)
+    }
+
+    fn iter(&self) -> impl Iterator<Item = (&PendingKey, &PendingCommand)> {
+        self.by_key.iter()
+    }
+
+    #[cfg(test)]
+    fn is_empty(&self) -> bool {
+        self.by_key.is_empty()
+    }
+
+    fn next_deadline(&self) -> Option<Instant> {
+        self.by_deadline.first().map(|(d, _)| *d)
+    }
+
+    /// Keys whose deadline is at or before `now`, earliest first.
+    fn overdue(&self, now: Instant) -> Vec<PendingKey> {
+        self.by_deadline
+            .iter()
+            .take_while(|(d, _)| *d <= now)
+            .map(|(_, k)| *k)
+            .collect()
+    }
+}
+
 /// The gateway state machine.
 #[derive(Debug)]
 pub struct Bridge {
@@ -140,7 +202,7 @@ pub struct Bridge {
     registry: Registry,
     docking: Docking,
     /// Keyed by (destination, command kind, seq); broadcasts use [`NodeId::BROADCAST`].
-    pending: BTreeMap<(NodeId, Kind, Seq), PendingCommand>,
+    pending: Pending,
     next_seq: Seq,
     health_seq: Seq,
     /// Sequence number of the health check whose replies are being collected.
@@ -238,7 +300,7 @@ impl Bridge {
             actions: VecDeque::new(),
             registry: Registry::new(),
             docking,
-            pending: BTreeMap::new(),
+            pending: Pending::default(),
             next_seq: 0,
             health_seq: 0,
             outstanding_health: None,
@@ -647,13 +709,7 @@ impl Bridge {
 
     /// Advances timers: health broadcast, lost nodes, ack and docking timeouts.
     pub fn tick(&mut self, now: Instant) {
-        let overdue: Vec<_> = self
-            .pending
-            .iter()
-            .filter(|(_, p)| p.deadline <= now)
-            .map(|(k, _)| *k)
-            .collect();
-        for k in overdue {
+        for k in self.pending.overdue(now) {
             if let Some(p) = self.pending.remove(&k) {
                 self.finish_timed_out(p);
             }
@@ -700,8 +756,8 @@ impl Bridge {
     /// When [`Bridge::tick`] must run next.
     pub fn next_deadline(&self) -> Instant {
         let mut next = self.next_health;
-        for p in self.pending.values() {
-            next = next.min(p.deadline);
+        if let Some(d) = self.pending.next_deadline() {
+            next = next.min(d);
         }
         if let Some(d) = self.docking.deadline() {
             next = next.min(d);
