@@ -61,6 +61,10 @@ pub fn init(cfg: &LogConfig) -> Result<LogGuard, LogError> {
                 Rotation::Daily => rolling::Rotation::DAILY,
                 Rotation::Never => rolling::Rotation::NEVER,
             };
+            // Created here, before the appender: its pruning of old files reads the directory first
+            // and would print a confusing "No such file or directory" for a fresh --log-dir.
+            std::fs::create_dir_all(dir)
+                .map_err(|e| LogError::File(dir.display().to_string(), e.to_string()))?;
             let appender = rolling::Builder::new()
                 .rotation(rotation)
                 .filename_prefix(FILE_PREFIX)
