@@ -610,7 +610,9 @@ impl Island {
             buzzer_done_at: None,
             tec: 0,
         });
-        tracing::info!(node = %name, role = ?e.role, id = ?e.stored_id, "power on");
+        // The stored ID in the API's hex form, "none" for a factory-fresh board.
+        let id = e.stored_id.map_or_else(|| "none".to_string(), |id| id.to_string());
+        tracing::info!(node = %name, role = ?e.role, %id, "power on");
         // The core flags its initial actuators as changed: the next drain reports them.
         self.emit(IslandEvent::Power {
             node: name,
