@@ -611,7 +611,9 @@ impl Island {
             tec: 0,
         });
         // The stored ID in the API's hex form, "none" for a factory-fresh board.
-        let id = e.stored_id.map_or_else(|| "none".to_string(), |id| id.to_string());
+        let id = e
+            .stored_id
+            .map_or_else(|| "none".to_string(), |id| id.to_string());
         tracing::info!(node = %name, role = ?e.role, %id, "power on");
         // The core flags its initial actuators as changed: the next drain reports them.
         self.emit(IslandEvent::Power {
