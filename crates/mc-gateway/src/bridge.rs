@@ -7,7 +7,7 @@ use std::collections::{BTreeMap, BTreeSet, VecDeque};
 use std::time::{Duration, Instant};
 
 use ihex_proto::{
-    AckResult, DecodeError, DockRefuseReason, FaultCode, Kind, Message, NodeId, Packet,
+    AckResult, DecodeError, DockRefuseReason, FaultCode, Kind, Message, NodeId, Packet, Port,
     ResetReason, Seq, Uid,
 };
 
@@ -787,6 +787,16 @@ impl Bridge {
         }));
     }
 
+    /// Tells static `node` not to power (or to stop powering) its dock `port`.
+    fn send_dock_refuse(&mut self, node: NodeId, port: Port, reason: DockRefuseReason) {
+        let seq = self
+            .alloc_seq(node, Kind::DockRefuse)
+            .unwrap_or(self.next_seq);
+        let msg = Message::DockRefuse { seq, port, reason };
+        self.actions
+            .push_back(Action::Send(Packet::command(node, msg)));
+    }
+
     /// A sequence number not in use by a pending command of this kind to this destination.
     fn alloc_seq(&mut self, dest: NodeId, kind: Kind) -> Option<Seq> {
         for _ in 0..=u8::MAX {
@@ -1022,28 +1032,10 @@ impl Bridge {
                     )));
                 }
                 Step::RefuseBusy { node, port } => {
-                    let seq = self
-                        .alloc_seq(node, Kind::DockRefuse)
-                        .unwrap_or(self.next_seq);
-                    let msg = Message::DockRefuse {
-                        seq,
-                        port,
-                        reason: DockRefuseReason::Busy,
-                    };
-                    self.actions
-                        .push_back(Action::Send(Packet::command(node, msg)));
+                    self.send_dock_refuse(node, port, DockRefuseReason::Busy)
                 }
                 Step::Withdraw { node, port } => {
-                    let seq = self
-                        .alloc_seq(node, Kind::DockRefuse)
-                        .unwrap_or(self.next_seq);
-                    let msg = Message::DockRefuse {
-                        seq,
-                        port,
-                        reason: DockRefuseReason::NotAllowed,
-                    };
-                    self.actions
-                        .push_back(Action::Send(Packet::command(node, msg)));
+                    self.send_dock_refuse(node, port, DockRefuseReason::NotAllowed)
                 }
                 Step::PowerOff { node } => {
                     let seq = self
