@@ -132,7 +132,7 @@ fn report_index(event: &serde_json::Value) -> Option<u32> {
         return None;
     }
     let p = &event["payload"];
-    let id = u32::from_str_radix(p["id"].as_str()?, 16).ok()?;
+    let id = u32::from(p["id"].as_str()?.parse::<ihex_proto::NodeId>().ok()?.get());
     let code: u32 = p["reset"].as_str()?.strip_prefix("other_")?.parse().ok()?;
     (1..=u32::from(NODES)).contains(&id).then_some(())?;
     Some((code.checked_sub(4)?) * u32::from(NODES) + (id - 1))

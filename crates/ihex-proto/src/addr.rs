@@ -65,6 +65,31 @@ impl<'de> serde::Deserialize<'de> for NodeId {
     }
 }
 
+/// Strips an optional `0x` / `0X` prefix.
+pub(crate) fn strip_hex_prefix(s: &str) -> &str {
+    s.strip_prefix("0x")
+        .or_else(|| s.strip_prefix("0X"))
+        .unwrap_or(s)
+}
+
+impl core::str::FromStr for NodeId {
+    type Err = crate::ParseError;
+
+    /// 1 to 3 hex digits in either case, optionally prefixed `0x` (`"111"`, `"FfD"`, `"0x2"`):
+    /// any 12-bit address, reserved ones included (check [`NodeId::is_sc`] where only a
+    /// sub-controller may be meant). No sign, no spaces.
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        let digits = strip_hex_prefix(s);
+        if digits.is_empty() || digits.len() > 3 || !digits.bytes().all(|b| b.is_ascii_hexdigit()) {
+            return Err(crate::ParseError::NodeId);
+        }
+        u16::from_str_radix(digits, 16)
+            .ok()
+            .and_then(NodeId::new)
+            .ok_or(crate::ParseError::NodeId)
+    }
+}
+
 impl fmt::Display for NodeId {
     /// Lower-case hex without prefix, the form the MQTT API uses (`"111"`).
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {

@@ -65,3 +65,30 @@ impl fmt::Display for DecodeError {
 }
 
 impl core::error::Error for DecodeError {}
+
+/// Why a text is not a [`crate::NodeId`] or a [`crate::Uid`]. The one parser for each lives in
+/// their `FromStr`, so every tool (gateway, simulator, provisioning) accepts the same forms.
+#[derive(Clone, Copy, PartialEq, Eq, Debug)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum ParseError {
+    /// Not 1 to 3 hex digits (after an optional `0x`).
+    NodeId,
+    /// Not 24 hex digits (after an optional `0x`, ignoring `:`, `-` and spaces).
+    Uid,
+}
+
+impl fmt::Display for ParseError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            ParseError::NodeId => f.write_str(
+                "a node ID is 1 to 3 hex digits, optionally prefixed 0x (\"111\", \"0x2\")",
+            ),
+            ParseError::Uid => f.write_str(
+                "a UID is the board's 96-bit unique ID as 24 hex digits, byte 0 first \
+                 (\"0123456789abcdef01234567\"; `:`, `-` and spaces between digits are ignored)",
+            ),
+        }
+    }
+}
+
+impl core::error::Error for ParseError {}

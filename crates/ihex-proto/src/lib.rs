@@ -26,6 +26,8 @@
 #![warn(missing_docs)]
 #![forbid(unsafe_code)]
 
+#[macro_use]
+mod macros;
 mod addr;
 mod error;
 pub mod field;
@@ -34,9 +36,10 @@ mod header;
 mod message;
 pub mod timing;
 pub mod uart;
+pub mod unit;
 
 pub use addr::{NodeId, Port, Seq};
-pub use error::DecodeError;
+pub use error::{DecodeError, ParseError};
 pub use header::{Header, Kind};
 pub use message::{
     AckResult, BootRole, BuzzerCommand, DockRefuseReason, FaultCode, HealthFlags, HealthReply,

@@ -85,139 +85,53 @@ impl BuzzerCommand {
     pub const MAX_FREQ_HZ: u16 = 20_000;
 }
 
-/// Result code of an [`Message::Ack`] or [`Message::AssignReply`]; anything but `Ok` is a refusal.
-#[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
-#[cfg_attr(feature = "defmt", derive(defmt::Format))]
-pub enum AckResult {
-    /// Done.
-    Ok,
-    /// A value was out of range for this node.
-    InvalidValue,
-    /// Not possible in the node's current state (e.g. confirming a dock with nothing docked).
-    InvalidState,
-    /// The node is busy with something that excludes this command.
-    Busy,
-    /// The node does not implement this command (e.g. a dock command on an element without dock ports).
-    Unsupported,
-    /// Persisting the result failed (flash write).
-    StoreFailed,
-    /// A code this version does not know; kept so that newer nodes do not break older gateways.
-    Other(u8),
-}
-
-impl AckResult {
-    /// Wire value.
-    pub const fn to_raw(self) -> u8 {
-        match self {
-            AckResult::Ok => 0,
-            AckResult::InvalidValue => 1,
-            AckResult::InvalidState => 2,
-            AckResult::Busy => 3,
-            AckResult::Unsupported => 4,
-            AckResult::StoreFailed => 5,
-            AckResult::Other(v) => v,
-        }
-    }
-
-    /// From the wire value; unknown values become [`AckResult::Other`].
-    pub const fn from_raw(raw: u8) -> Self {
-        match raw {
-            0 => AckResult::Ok,
-            1 => AckResult::InvalidValue,
-            2 => AckResult::InvalidState,
-            3 => AckResult::Busy,
-            4 => AckResult::Unsupported,
-            5 => AckResult::StoreFailed,
-            v => AckResult::Other(v),
-        }
+enum_with_unknown! {
+    /// Result code of an [`Message::Ack`] or [`Message::AssignReply`]; anything but `Ok` is a refusal.
+    pub enum AckResult {
+        /// Done.
+        Ok = 0 => "ok",
+        /// A value was out of range for this node.
+        InvalidValue = 1 => "invalid_value",
+        /// Not possible in the node's current state (e.g. confirming a dock with nothing docked).
+        InvalidState = 2 => "invalid_state",
+        /// The node is busy with something that excludes this command.
+        Busy = 3 => "busy",
+        /// The node does not implement this command (e.g. a dock command on an element without dock ports).
+        Unsupported = 4 => "unsupported",
+        /// Persisting the result failed (flash write).
+        StoreFailed = 5 => "store_failed",
     }
 }
 
-/// Fault code of a [`Message::Fault`].
-#[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
-#[cfg_attr(feature = "defmt", derive(defmt::Format))]
-pub enum FaultCode {
-    /// A dock confirm arrived for a port whose signal loop is open (`arg` = port).
-    DockConfirmNotDocked,
-    /// The CAN controller went bus-off and recovered (`detail` = how many times since boot).
-    BusOff,
-    /// The CAN controller is error-passive (`detail` = TEC << 8 | REC).
-    ErrorPassive,
-    /// Received frames were lost (`detail` = count).
-    RxOverrun,
-    /// The node was reset by its watchdog.
-    WatchdogReset,
-    /// Writing the configuration to flash failed.
-    ConfigStore,
-    /// A well-formed message arrived that makes no sense here (`arg` = its kind).
-    UnexpectedMessage,
-    /// A frame addressed to this node could not be decoded (`arg` = its kind bits).
-    BadFrame,
-    /// A code this version does not know.
-    Other(u8),
-}
-
-impl FaultCode {
-    /// Wire value.
-    pub const fn to_raw(self) -> u8 {
-        match self {
-            FaultCode::DockConfirmNotDocked => 1,
-            FaultCode::BusOff => 2,
-            FaultCode::ErrorPassive => 3,
-            FaultCode::RxOverrun => 4,
-            FaultCode::WatchdogReset => 5,
-            FaultCode::ConfigStore => 6,
-            FaultCode::UnexpectedMessage => 7,
-            FaultCode::BadFrame => 8,
-            FaultCode::Other(v) => v,
-        }
-    }
-
-    /// From the wire value; unknown values become [`FaultCode::Other`].
-    pub const fn from_raw(raw: u8) -> Self {
-        match raw {
-            1 => FaultCode::DockConfirmNotDocked,
-            2 => FaultCode::BusOff,
-            3 => FaultCode::ErrorPassive,
-            4 => FaultCode::RxOverrun,
-            5 => FaultCode::WatchdogReset,
-            6 => FaultCode::ConfigStore,
-            7 => FaultCode::UnexpectedMessage,
-            8 => FaultCode::BadFrame,
-            v => FaultCode::Other(v),
-        }
+enum_with_unknown! {
+    /// Fault code of a [`Message::Fault`].
+    pub enum FaultCode {
+        /// A dock confirm arrived for a port whose signal loop is open (`arg` = port).
+        DockConfirmNotDocked = 1 => "dock_confirm_not_docked",
+        /// The CAN controller went bus-off and recovered (`detail` = how many times since boot).
+        BusOff = 2 => "bus_off",
+        /// The CAN controller is error-passive (`detail` = TEC << 8 | REC).
+        ErrorPassive = 3 => "error_passive",
+        /// Received frames were lost (`detail` = count).
+        RxOverrun = 4 => "rx_overrun",
+        /// The node was reset by its watchdog.
+        WatchdogReset = 5 => "watchdog_reset",
+        /// Writing the configuration to flash failed.
+        ConfigStore = 6 => "config_store",
+        /// A well-formed message arrived that makes no sense here (`arg` = its kind).
+        UnexpectedMessage = 7 => "unexpected_message",
+        /// A frame addressed to this node could not be decoded (`arg` = its kind bits).
+        BadFrame = 8 => "bad_frame",
     }
 }
 
-/// Why the gateway refused a docking.
-#[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
-#[cfg_attr(feature = "defmt", derive(defmt::Format))]
-pub enum DockRefuseReason {
-    /// Another docking is in progress (one at a time).
-    Busy,
-    /// The operator or configuration does not allow docking here.
-    NotAllowed,
-    /// A code this version does not know.
-    Other(u8),
-}
-
-impl DockRefuseReason {
-    /// Wire value.
-    pub const fn to_raw(self) -> u8 {
-        match self {
-            DockRefuseReason::Busy => 1,
-            DockRefuseReason::NotAllowed => 2,
-            DockRefuseReason::Other(v) => v,
-        }
-    }
-
-    /// From the wire value.
-    pub const fn from_raw(raw: u8) -> Self {
-        match raw {
-            1 => DockRefuseReason::Busy,
-            2 => DockRefuseReason::NotAllowed,
-            v => DockRefuseReason::Other(v),
-        }
+enum_with_unknown! {
+    /// Why the gateway refused a docking.
+    pub enum DockRefuseReason {
+        /// Another docking is in progress (one at a time).
+        Busy = 1 => "busy",
+        /// The operator or configuration does not allow docking here.
+        NotAllowed = 2 => "not_allowed",
     }
 }
 
@@ -232,43 +146,17 @@ pub enum BootRole {
     Mobile,
 }
 
-/// Why the node (re)started.
-#[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
-#[cfg_attr(feature = "defmt", derive(defmt::Format))]
-pub enum ResetReason {
-    /// Power applied.
-    PowerOn,
-    /// Independent watchdog expired.
-    Watchdog,
-    /// Software requested the reset.
-    Software,
-    /// NRST pin (reset button).
-    Pin,
-    /// A code this version does not know.
-    Other(u8),
-}
-
-impl ResetReason {
-    /// Wire value.
-    pub const fn to_raw(self) -> u8 {
-        match self {
-            ResetReason::PowerOn => 0,
-            ResetReason::Watchdog => 1,
-            ResetReason::Software => 2,
-            ResetReason::Pin => 3,
-            ResetReason::Other(v) => v,
-        }
-    }
-
-    /// From the wire value.
-    pub const fn from_raw(raw: u8) -> Self {
-        match raw {
-            0 => ResetReason::PowerOn,
-            1 => ResetReason::Watchdog,
-            2 => ResetReason::Software,
-            3 => ResetReason::Pin,
-            v => ResetReason::Other(v),
-        }
+enum_with_unknown! {
+    /// Why the node (re)started.
+    pub enum ResetReason {
+        /// Power applied.
+        PowerOn = 0 => "power_on",
+        /// Independent watchdog expired.
+        Watchdog = 1 => "watchdog",
+        /// Software requested the reset.
+        Software = 2 => "software",
+        /// NRST pin (reset button).
+        Pin = 3 => "pin",
     }
 }
 
@@ -290,6 +178,38 @@ impl Uid {
         let mut t = [0; 4];
         t.copy_from_slice(&self.0[8..]);
         t
+    }
+}
+
+impl core::str::FromStr for Uid {
+    type Err = crate::ParseError;
+
+    /// 24 hex digits in either case, byte 0 first, optionally prefixed `0x`; `:`, `-` and spaces
+    /// between digits are ignored (so a UID copied from a probe's or a log's output parses).
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        let mut uid = [0u8; 12];
+        let mut n = 0usize;
+        for c in crate::addr::strip_hex_prefix(s).chars() {
+            if matches!(c, ':' | '-' | ' ') {
+                continue;
+            }
+            let nibble = c.to_digit(16).ok_or(crate::ParseError::Uid)? as u8;
+            let byte = uid.get_mut(n / 2).ok_or(crate::ParseError::Uid)?;
+            *byte = *byte << 4 | nibble;
+            n += 1;
+        }
+        if n == 24 {
+            Ok(Uid(uid))
+        } else {
+            Err(crate::ParseError::Uid)
+        }
+    }
+}
+
+impl core::fmt::Display for Uid {
+    /// 24 lower-case hex digits, byte 0 first: the form the MQTT API and the tools print.
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        self.0.iter().try_for_each(|b| write!(f, "{b:02x}"))
     }
 }
 

@@ -13,42 +13,24 @@ use serde_json::{json, Value};
 /// Errors in what the gateway answered, or in what the user asked for.
 #[derive(Debug, thiserror::Error, PartialEq, Eq)]
 pub enum ApiError {
-    /// The unique ID is not 24 hex digits.
-    #[error(
-        "unique ID {0:?} must be 24 hex digits (the STM32's 96-bit UID, as the gateway reports it)"
-    )]
+    /// The unique ID is not 24 hex digits (the text and why).
+    #[error("unique ID {0}")]
     BadUid(String),
     /// An event that is not JSON of the expected shape.
     #[error("event is not {{\"event\": NAME, \"payload\": …}} JSON: {0}")]
     BadEvent(String),
 }
 
-/// Parses a 96-bit unique ID written as 24 hex digits (`:`/`-`/space separators allowed).
+/// Parses a 96-bit unique ID (`ihex_proto::Uid`'s form: 24 hex digits, separators allowed).
 pub fn parse_uid(text: &str) -> Result<Uid, ApiError> {
-    let digits: String = text
-        .chars()
-        .filter(|c| !matches!(c, ':' | '-' | ' '))
-        .collect();
-    let digits = digits.strip_prefix("0x").unwrap_or(&digits);
-    if digits.len() != 24 || !digits.chars().all(|c| c.is_ascii_hexdigit()) {
-        return Err(ApiError::BadUid(text.to_owned()));
-    }
-    let mut uid = [0u8; 12];
-    for (i, b) in uid.iter_mut().enumerate() {
-        *b = u8::from_str_radix(&digits[2 * i..2 * i + 2], 16)
-            .map_err(|_| ApiError::BadUid(text.to_owned()))?;
-    }
-    Ok(Uid(uid))
-}
-
-/// The unique ID as the API writes it: 24 lower-case hex digits.
-pub fn uid_hex(uid: &Uid) -> String {
-    uid.0.iter().map(|b| format!("{b:02x}")).collect()
+    text.trim()
+        .parse()
+        .map_err(|e| ApiError::BadUid(format!("{text:?}: {e}")))
 }
 
 /// `{"cmd":"assign","uid":…,"new_id":…,"request_id":…}`.
 pub fn assign_command(uid: &Uid, new_id: NodeId, request_id: &str) -> String {
-    json!({"cmd": "assign", "uid": uid_hex(uid), "new_id": new_id.to_string(), "request_id": request_id})
+    json!({"cmd": "assign", "uid": uid.to_string(), "new_id": new_id.to_string(), "request_id": request_id})
         .to_string()
 }
 
@@ -163,7 +145,7 @@ pub fn outcome(event: &Event, request_id: &str) -> Option<Outcome> {
 /// The node IDs in a `list` answer: every `id` in the payload's `nodes` array (objects with an `"id"`
 /// field, or bare ID strings) or the keys of a `nodes` object. `None` when there is no `nodes` field.
 pub fn listed_ids(payload: &Value) -> Option<Vec<NodeId>> {
-    let parse = |s: &str| u16::from_str_radix(s, 16).ok().and_then(NodeId::new);
+    let parse = |s: &str| s.parse::<NodeId>().ok();
     match payload.get("nodes")? {
         Value::Array(nodes) => Some(
             nodes
@@ -193,7 +175,7 @@ pub fn id_from_state_topic(root: &str, topic: &str) -> Option<NodeId> {
         .strip_prefix(root)?
         .strip_prefix('/')?
         .strip_suffix("/state")?;
-    NodeId::new(u16::from_str_radix(id, 16).ok()?)
+    id.parse().ok()
 }
 
 #[cfg(test)]
@@ -205,7 +187,7 @@ mod tests {
         let uid = parse_uid("0123456789abcdefFEDCBA98").unwrap();
         assert_eq!(uid.0[0], 0x01);
         assert_eq!(uid.0[11], 0x98);
-        assert_eq!(uid_hex(&uid), "0123456789abcdeffedcba98");
+        assert_eq!(uid.to_string(), "0123456789abcdeffedcba98");
         assert_eq!(
             parse_uid("01:23:45:67:89:ab:cd:ef:fe:dc:ba:98").unwrap(),
             uid

@@ -16,12 +16,9 @@ use ihex_proto::NodeId;
 /// Why an ID cannot be used.
 #[derive(Debug, thiserror::Error, PartialEq, Eq)]
 pub enum IdError {
-    /// Not a hex number at all.
-    #[error("node ID {0:?} is not a hex number (write it like \"123\" or \"0x123\")")]
-    NotHex(String),
-    /// More than 12 bits.
-    #[error("node ID {0:#x} does not fit in 12 bits (largest assignable ID is ffd)")]
-    TooLarge(u32),
+    /// Not 1 to 3 hex digits.
+    #[error("node ID {0:?}: {1}")]
+    NotHex(String, ihex_proto::ParseError),
     /// One of the reserved addresses.
     #[error("node ID {0:03x} is reserved ({1}); assignable IDs are 001..=ffd")]
     Reserved(u16, &'static str),
@@ -37,17 +34,11 @@ pub enum IdError {
 
 /// Parses a hex node ID and checks that a sub-controller may own it.
 pub fn parse_sc_id(text: &str) -> Result<NodeId, IdError> {
-    let t = text.trim();
-    let digits = t
-        .strip_prefix("0x")
-        .or_else(|| t.strip_prefix("0X"))
-        .unwrap_or(t);
-    if digits.is_empty() || digits.len() > 8 || !digits.chars().all(|c| c.is_ascii_hexdigit()) {
-        return Err(IdError::NotHex(text.to_owned()));
-    }
-    let raw = u32::from_str_radix(digits, 16).map_err(|_| IdError::NotHex(text.to_owned()))?;
-    let raw = u16::try_from(raw).map_err(|_| IdError::TooLarge(raw))?;
-    let id = NodeId::new(raw).ok_or(IdError::TooLarge(raw.into()))?;
+    let id: NodeId = text
+        .trim()
+        .parse()
+        .map_err(|e| IdError::NotHex(text.to_owned(), e))?;
+    let raw = id.get();
     match id {
         NodeId::GATEWAY => Err(IdError::Reserved(raw, "the gateway's address")),
         NodeId::UNCONFIGURED => Err(IdError::Reserved(raw, "marks an unconfigured node")),
@@ -212,11 +203,9 @@ mod tests {
             parse_sc_id("fff"),
             Err(IdError::Reserved(0xfff, _))
         ));
-        assert_eq!(parse_sc_id("1000"), Err(IdError::TooLarge(0x1000)));
-        assert_eq!(parse_sc_id("fffff"), Err(IdError::TooLarge(0xfffff)));
-        for bad in ["", "0x", "12g", "-1", "1 2", "123456789"] {
+        for bad in ["", "0x", "12g", "-1", "1 2", "123456789", "1000", "fffff"] {
             assert!(
-                matches!(parse_sc_id(bad), Err(IdError::NotHex(_))),
+                matches!(parse_sc_id(bad), Err(IdError::NotHex(..))),
                 "{bad:?}"
             );
         }
@@ -227,7 +216,7 @@ mod tests {
         let msg = parse_sc_id("fff").unwrap_err().to_string();
         assert!(msg.contains("fff") && msg.contains("broadcast"), "{msg}");
         let msg = parse_sc_id("1000").unwrap_err().to_string();
-        assert!(msg.contains("12 bits"), "{msg}");
+        assert!(msg.contains("1 to 3 hex digits"), "{msg}");
     }
 
     fn temp_path(name: &str) -> PathBuf {

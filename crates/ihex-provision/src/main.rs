@@ -231,14 +231,11 @@ async fn run_can(a: CanArgs) -> Result<()> {
         timeout: Duration::from_secs(a.timeout_secs),
     };
     let payload = can::assign(&broker, &a.broker.topics(), &assignment).await?;
-    println!(
-        "node {} assigned ID {new_id}: {payload}",
-        api::uid_hex(&uid)
-    );
+    println!("node {uid} assigned ID {new_id}: {payload}");
     if let Some(reg) = registry.as_mut() {
         reg.record(
             new_id,
-            &api::uid_hex(&uid),
+            &uid.to_string(),
             &a.broker.broker,
             "assigned over CAN",
         )?;

@@ -318,7 +318,7 @@ fn cli_refuses_bad_input_before_touching_the_network() {
         ("fff", "reserved"),
         ("0", "reserved"),
         ("ffe", "reserved"),
-        ("abcd", "12 bits"),
+        ("abcd", "1 to 3 hex digits"),
         ("1g", "hex"),
     ] {
         let (ok, err) = run(&["can", "--broker", "127.0.0.1:1", "--uid", UID, "--id", id]);

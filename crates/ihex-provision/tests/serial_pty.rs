@@ -265,7 +265,7 @@ fn cli_sets_ids_keeps_a_registry_and_refuses_bad_ones() {
         ("fff", "reserved"),
         ("000", "reserved"),
         ("ffe", "reserved"),
-        ("1000", "12 bits"),
+        ("1000", "1 to 3 hex digits"),
         ("xyz", "hex"),
     ] {
         let (ok, _, err) = tool(&["serial", "--port", port, "--id", bad]);

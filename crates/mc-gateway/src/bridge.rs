@@ -7,8 +7,8 @@ use std::collections::{BTreeMap, BTreeSet, VecDeque};
 use std::time::{Duration, Instant};
 
 use ihex_proto::{
-    AckResult, DecodeError, DockRefuseReason, FaultCode, Kind, Message, NodeId, Packet, Port,
-    ResetReason, Seq, Uid,
+    AckResult, DecodeError, DockRefuseReason, FaultCode, Kind, Message, NodeId, Packet, Port, Seq,
+    Uid,
 };
 
 use crate::command::{self, Command, CommandError, NodeAction};
@@ -217,32 +217,6 @@ pub struct Bridge {
     bus_down: bool,
 }
 
-fn ack_name(r: AckResult) -> String {
-    match r {
-        AckResult::Ok => "ok".into(),
-        AckResult::InvalidValue => "invalid_value".into(),
-        AckResult::InvalidState => "invalid_state".into(),
-        AckResult::Busy => "busy".into(),
-        AckResult::Unsupported => "unsupported".into(),
-        AckResult::StoreFailed => "store_failed".into(),
-        AckResult::Other(v) => format!("other_{v}"),
-    }
-}
-
-fn fault_name(c: FaultCode) -> String {
-    match c {
-        FaultCode::DockConfirmNotDocked => "dock_confirm_not_docked".into(),
-        FaultCode::BusOff => "bus_off".into(),
-        FaultCode::ErrorPassive => "error_passive".into(),
-        FaultCode::RxOverrun => "rx_overrun".into(),
-        FaultCode::WatchdogReset => "watchdog_reset".into(),
-        FaultCode::ConfigStore => "config_store".into(),
-        FaultCode::UnexpectedMessage => "unexpected_message".into(),
-        FaultCode::BadFrame => "bad_frame".into(),
-        FaultCode::Other(v) => format!("other_{v}"),
-    }
-}
-
 fn fault_text(c: FaultCode, arg: u8, detail: u32) -> String {
     match c {
         FaultCode::DockConfirmNotDocked => {
@@ -266,16 +240,6 @@ fn fault_text(c: FaultCode, arg: u8, detail: u32) -> String {
         FaultCode::Other(v) => {
             format!("fault code {v} unknown to this gateway (arg {arg}, detail {detail})")
         }
-    }
-}
-
-fn reset_name(r: ResetReason) -> String {
-    match r {
-        ResetReason::PowerOn => "power_on".into(),
-        ResetReason::Watchdog => "watchdog".into(),
-        ResetReason::Software => "software".into(),
-        ResetReason::Pin => "pin".into(),
-        ResetReason::Other(v) => format!("other_{v}"),
     }
 }
 
@@ -507,7 +471,7 @@ impl Bridge {
                 if seen == Seen::Known {
                     self.emit(Event::NodeRebooted(NodeRebooted {
                         id: HexId(src),
-                        reset: reset_name(reset),
+                        reset: reset.to_string(),
                         version: format!("{}.{}", version.0, version.1),
                         role: role.unwrap_or(Role::Static),
                     }));
@@ -523,7 +487,7 @@ impl Bridge {
                 kind, seq, result, ..
             } => self.on_ack(src, kind, seq, result, now),
             Message::Fault { code, arg, detail } => {
-                let name = fault_name(code);
+                let name = code.to_string();
                 if let Some(suppressed) = self.throttle.admit(&format!("fault:{src}:{name}"), now) {
                     self.emit(Event::Fault(FaultEvent {
                         node: HexId(src),
@@ -848,7 +812,7 @@ impl Bridge {
             if result != AckResult::Ok {
                 let steps = self
                     .docking
-                    .on_confirm_refused(src, seq, &ack_name(result), now);
+                    .on_confirm_refused(src, seq, &result.to_string(), now);
                 self.apply(steps, now);
             }
             return;
@@ -859,7 +823,7 @@ impl Bridge {
                 self.apply_action_state(src, action);
                 self.emit_result(p, Outcome::Ok, None);
             } else {
-                self.emit_result(p, Outcome::Refused, Some(ack_name(result)));
+                self.emit_result(p, Outcome::Refused, Some(result.to_string()));
             }
             return;
         }
@@ -881,7 +845,7 @@ impl Bridge {
         if result == AckResult::Ok {
             acked.insert(src);
         } else {
-            refused.insert(src, ack_name(result));
+            refused.insert(src, result.to_string());
         }
         let complete = !expected.is_empty()
             && expected
@@ -915,7 +879,7 @@ impl Bridge {
             } else if result == AckResult::Ok {
                 self.emit_result(p, Outcome::Ok, None);
             } else {
-                self.emit_result(p, Outcome::Refused, Some(ack_name(result)));
+                self.emit_result(p, Outcome::Refused, Some(result.to_string()));
             }
         }
     }
@@ -1085,7 +1049,7 @@ impl Bridge {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use ihex_proto::{BootRole, HealthFlags, HealthReply, LedCommand, Port, Rgb};
+    use ihex_proto::{BootRole, HealthFlags, HealthReply, LedCommand, Port, ResetReason, Rgb};
     use serde_json::{json, Value};
 
     fn id(raw: u16) -> NodeId {

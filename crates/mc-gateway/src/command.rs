@@ -326,8 +326,8 @@ fn target(cmd: &'static str, node: &str) -> Result<Target, CommandError> {
     if node == "all" {
         return Ok(Target::All);
     }
-    match HexId::parse(node) {
-        Some(id) if id.is_sc() => Ok(Target::Node(id)),
+    match node.parse::<NodeId>() {
+        Ok(id) if id.is_sc() => Ok(Target::Node(id)),
         _ => Err(invalid(
             cmd,
             format!("`node` must be a node id in hex, \"1\" to \"ffd\", or \"all\"; got {node:?}"),
@@ -347,13 +347,19 @@ fn u8_in(cmd: &'static str, field: &str, v: i64, lo: u8, hi: u8) -> Result<u8, C
 
 /// A duration in ms to the protocol's 10 ms units: 10–2550 ms accepted, rounded to the nearest 10 ms.
 fn ms_to_10ms(cmd: &'static str, field: &str, ms: i64) -> Result<u8, CommandError> {
-    if !(10..=2550).contains(&ms) {
-        return Err(invalid(
-            cmd,
-            format!("`{field}` must be 10 to 2550 (ms, rounded to the nearest 10 ms); got {ms}"),
-        ));
-    }
-    Ok(((ms + 5) / 10).min(255) as u8)
+    u32::try_from(ms)
+        .ok()
+        .and_then(ihex_proto::unit::from_ms)
+        .ok_or_else(|| {
+            invalid(
+                cmd,
+                format!(
+                    "`{field}` must be {} to {} (ms, rounded to the nearest 10 ms); got {ms}",
+                    ihex_proto::unit::MIN_MS,
+                    ihex_proto::unit::MAX_MS
+                ),
+            )
+        })
 }
 
 /// Named colours accepted by `led`.
@@ -523,22 +529,12 @@ fn buzzer(d: BuzzerDto) -> Result<Command, CommandError> {
 }
 
 fn assign(d: AssignDto) -> Result<Command, CommandError> {
-    let uid_hex = d.uid.as_bytes();
-    if uid_hex.len() != 24 || !uid_hex.iter().all(u8::is_ascii_hexdigit) {
-        return Err(invalid(
-            "assign",
-            format!(
-                "`uid` must be the board's 96-bit unique ID as 24 hex digits; got {:?}",
-                d.uid
-            ),
-        ));
-    }
-    let mut uid = [0u8; 12];
-    for (i, b) in uid.iter_mut().enumerate() {
-        *b = u8::from_str_radix(&d.uid[2 * i..2 * i + 2], 16).unwrap_or(0);
-    }
-    let new_id = match HexId::parse(&d.new_id) {
-        Some(id) if id.is_sc() => id,
+    let uid: Uid = d
+        .uid
+        .parse()
+        .map_err(|e| invalid("assign", format!("`uid`: {e}; got {:?}", d.uid)))?;
+    let new_id = match d.new_id.parse::<NodeId>() {
+        Ok(id) if id.is_sc() => id,
         _ => {
             return Err(invalid(
                 "assign",
@@ -550,7 +546,7 @@ fn assign(d: AssignDto) -> Result<Command, CommandError> {
         }
     };
     Ok(Command::Assign {
-        uid: Uid(uid),
+        uid,
         new_id,
         force: d.force.unwrap_or(false),
     })

@@ -314,7 +314,7 @@ mod tests {
         for (line, needle) in [
             ("dock 2 111", "takes 3"),
             ("dock 2 111 x", "not a number"),
-            ("undock zz", "not a hex number"),
+            ("undock zz", "1 to 3 hex digits"),
             ("cycle fff", "outside"),
             ("uart 111", "at least one byte"),
             ("uart 111 1ff", "not a hex byte"),

@@ -149,12 +149,14 @@ impl<'de> Deserialize<'de> for HexId {
     }
 }
 
-/// Parses a node ID as the island file and the CLI write it: hex, optional `0x`, `001..=ffd`.
+/// Parses a node ID as the island file and the CLI write it (`ihex_proto`'s form: hex, optional
+/// `0x`) and checks that a sub-controller may own it (`001..=ffd`).
 pub fn parse_node_id(s: &str) -> Result<NodeId, String> {
-    let digits = s.trim().trim_start_matches("0x").trim_start_matches("0X");
-    let raw = u16::from_str_radix(digits, 16)
-        .map_err(|_| format!("node id {s:?} is not a hex number (e.g. \"111\")"))?;
-    NodeId::new_sc(raw).ok_or_else(|| format!("node id {s:?} is outside 001..=ffd"))
+    match s.trim().parse::<NodeId>() {
+        Ok(id) if id.is_sc() => Ok(id),
+        Ok(_) => Err(format!("node id {s:?} is outside 001..=ffd")),
+        Err(e) => Err(format!("node id {s:?}: {e}")),
+    }
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -163,15 +165,9 @@ struct HexUid([u8; 12]);
 impl<'de> Deserialize<'de> for HexUid {
     fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
         let s = String::deserialize(d)?;
-        let bad = || serde::de::Error::custom(format!("uid {s:?} must be exactly 24 hex digits"));
-        if s.len() != 24 || !s.is_ascii() {
-            return Err(bad());
-        }
-        let mut out = [0u8; 12];
-        for (i, b) in out.iter_mut().enumerate() {
-            *b = u8::from_str_radix(&s[2 * i..2 * i + 2], 16).map_err(|_| bad())?;
-        }
-        Ok(HexUid(out))
+        s.parse::<Uid>()
+            .map(|u| HexUid(u.0))
+            .map_err(|e| serde::de::Error::custom(format!("uid {s:?}: {e}")))
     }
 }
 
@@ -458,7 +454,7 @@ unconfigured = true
         for (text, needle) in [
             ("[[static]]\nid = 111\n", "line 2"),
             ("[[static]]\nid = \"fff\"\n", "outside 001..=ffd"),
-            ("[[static]]\nid = \"xyz\"\n", "not a hex number"),
+            ("[[static]]\nid = \"xyz\"\n", "1 to 3 hex digits"),
             ("[[static]]\nid = \"1\"\ncolour = 3\n", "colour"),
             ("[[static]]\nid = \"1\"\nuid = \"12\"\n", "24 hex digits"),
             ("[[static]\n", "line 1"),

@@ -145,8 +145,8 @@ impl Node {
                 off_10ms,
                 count,
             } => {
-                let on_ms = u16::from(on_10ms) * 10;
-                let off_ms = u16::from(off_10ms) * 10;
+                let on_ms = ihex_proto::unit::to_ms(on_10ms);
+                let off_ms = ihex_proto::unit::to_ms(off_10ms);
                 let len = u64::from(count) * (u64::from(on_ms) + u64::from(off_ms));
                 let end = (count > 0).then(|| now.add_ms(len));
                 (
@@ -193,7 +193,7 @@ pub(crate) fn led_output(cmd: LedCommand) -> LedOutput {
             duty_pct,
         } => LedOutput {
             duty: scale(color, brightness),
-            blink: Some((u16::from(period_10ms) * 10, duty_pct)),
+            blink: Some((ihex_proto::unit::to_ms(period_10ms), duty_pct)),
         },
     }
 }

@@ -1,0 +1,83 @@
+//! The one text form of node IDs and UIDs (`FromStr`), shared by the gateway, the simulator and
+//! the tools, and the enumerations' names.
+
+use ihex_proto::{AckResult, FaultCode, NodeId, ParseError, ResetReason, Uid};
+
+#[test]
+fn node_ids_parse_as_one_to_three_hex_digits_with_an_optional_0x() {
+    let ok = [
+        ("111", 0x111),
+        ("FfD", 0xffd),
+        ("2", 0x2),
+        ("002", 0x2),
+        ("0x2", 0x2),
+        ("0XABC", 0xabc),
+        ("0", 0),
+        ("fff", 0xfff),
+    ];
+    for (text, raw) in ok {
+        assert_eq!(
+            text.parse::<NodeId>(),
+            Ok(NodeId::new(raw).unwrap()),
+            "{text}"
+        );
+    }
+    for bad in [
+        "", "0x", "1000", "-1", "+1", " 1", "1 ", "x1", "0x1000", "1.0", "１",
+    ] {
+        assert_eq!(bad.parse::<NodeId>(), Err(ParseError::NodeId), "{bad:?}");
+    }
+}
+
+#[test]
+fn node_ids_round_trip_through_display() {
+    for raw in 0..=NodeId::MAX_RAW {
+        let id = NodeId::new(raw).unwrap();
+        assert_eq!(id.to_string().parse::<NodeId>(), Ok(id));
+    }
+}
+
+#[test]
+fn uids_parse_as_24_hex_digits_ignoring_separators() {
+    let want = Uid([
+        0x01, 0x23, 0x45, 0x67, 0x89, 0xab, 0xcd, 0xef, 0x01, 0x23, 0x45, 0x67,
+    ]);
+    for text in [
+        "0123456789abcdef01234567",
+        "0123456789ABCDEF01234567",
+        "0x0123456789abcdef01234567",
+        "01:23:45:67:89:ab:cd:ef:01:23:45:67",
+        "01234567-89abcdef-01234567",
+        "01234567 89abcdef 01234567",
+    ] {
+        assert_eq!(text.parse::<Uid>(), Ok(want), "{text}");
+    }
+    assert_eq!(want.to_string(), "0123456789abcdef01234567");
+    for bad in [
+        "",
+        "0123456789abcdef0123456",
+        "0123456789abcdef012345678",
+        "0123456789abcdef0123456g",
+        "0123456789abcdef01234567 00",
+    ] {
+        assert_eq!(bad.parse::<Uid>(), Err(ParseError::Uid), "{bad:?}");
+    }
+}
+
+#[test]
+fn enumerations_name_their_values_and_keep_unknown_ones() {
+    assert_eq!(AckResult::InvalidValue.to_string(), "invalid_value");
+    assert_eq!(AckResult::from_raw(42), AckResult::Other(42));
+    assert_eq!(AckResult::Other(42).to_string(), "other_42");
+    assert_eq!(FaultCode::BadFrame.to_string(), "bad_frame");
+    assert_eq!(ResetReason::Watchdog.to_string(), "watchdog");
+    for raw in 0..=u8::MAX {
+        assert_eq!(AckResult::from_raw(raw).to_raw(), raw);
+        assert_eq!(FaultCode::from_raw(raw).to_raw(), raw);
+        assert_eq!(ResetReason::from_raw(raw).to_raw(), raw);
+    }
+    for known in AckResult::KNOWN {
+        assert_eq!(AckResult::from_raw(known.to_raw()), *known);
+        assert!(known.name().is_some());
+    }
+}
