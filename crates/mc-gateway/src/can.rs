@@ -21,7 +21,9 @@ use tokio::sync::{mpsc, watch, Notify};
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, info, warn};
 
-use crate::{bridge::BusEvent, error::CanError};
+use ihex_gateway_core::BusEvent;
+
+use crate::error::CanError;
 
 /// `CAN_ERR_BUSOFF` (linux/can/error.h): the controller went bus-off.
 pub const CAN_ERR_BUSOFF: u32 = 0x0000_0040;

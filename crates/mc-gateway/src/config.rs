@@ -13,7 +13,9 @@ use std::{
 use clap::Parser;
 use serde::Deserialize;
 
-use crate::{bridge::BridgeConfig, error::ConfigError, topic};
+use ihex_gateway_core::{topic, BridgeConfig};
+
+use crate::error::ConfigError;
 
 /// The lab broker of the seed.
 pub const DEFAULT_BROKER: &str = "192.168.1.101:1883";
@@ -367,7 +369,8 @@ impl Config {
 
         let island = pick!(island);
         if let Some(name) = &island {
-            topic::validate_island(name)?;
+            topic::validate_island(name)
+                .map_err(|e| ConfigError::invalid("island", e.to_string()))?;
         }
 
         let broker = match broker {
@@ -452,7 +455,9 @@ impl Config {
 
         let topic_of = |field: &'static str, v: Option<String>, default: &str| {
             let v = v.unwrap_or_else(|| default.into());
-            topic::validate_topic(field, &v).map(|()| v)
+            topic::validate_topic(&v)
+                .map(|()| v)
+                .map_err(|e| ConfigError::invalid(field, e.to_string()))
         };
         let commands = topic_of("commands-topic", pick!(commands_topic), topic::COMMANDS)?;
         let events = topic_of("events-topic", pick!(events_topic), topic::EVENTS)?;

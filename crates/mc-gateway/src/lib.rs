@@ -1,6 +1,6 @@
 //! iHEX main controller: bridges MQTT JSON commands and events to the island's CAN bus.
 //!
-//! The logic is sans-IO ([`bridge`] and the modules it uses); the rest are thin async adapters:
+//! The logic is the sans-IO [`ihex_gateway_core::Bridge`]; this crate is the tokio shell around it:
 //! [`can`] (SocketCAN or the demo's in-memory bus), [`mqtt`] (rumqttc, one task owning the event
 //! loop), [`run`] wiring them around the bridge, [`config`] (CLI > env > TOML > defaults), [`log`],
 //! [`shutdown`], the embedded [`broker`] and the simulated island of the [`demo`].
@@ -14,23 +14,19 @@
 //! ```
 #![warn(missing_docs)]
 
-pub mod bridge;
 pub mod broker;
 pub mod can;
-pub mod command;
 pub mod config;
 pub mod demo;
-pub mod docking;
 pub mod error;
-pub mod error_frame;
-pub mod event;
 pub mod log;
 pub mod mqtt;
-pub mod registry;
 pub mod run;
 pub mod shutdown;
-pub mod throttle;
-pub mod topic;
+
+/// The sans-IO gateway core this shell runs (re-exported for the tests and tools built on the shell).
+pub use ihex_gateway_core as core;
+pub use ihex_gateway_core::topic;
 
 pub use config::Config;
 pub use error::GatewayError;

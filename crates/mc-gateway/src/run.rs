@@ -9,8 +9,9 @@ use tokio::{sync::mpsc, task::JoinSet};
 use tokio_util::sync::CancellationToken;
 use tracing::{error, info, warn};
 
+use ihex_gateway_core::Bridge;
+
 use crate::{
-    bridge::{Action, Bridge},
     can::{self, CanInput, LinkSpec},
     config::{Broker, Config, Link},
     demo,
@@ -154,7 +155,7 @@ impl Core {
     ) -> Result<(), GatewayError> {
         loop {
             self.carry_out();
-            let deadline = tokio::time::Instant::from_std(self.bridge.next_deadline());
+            let deadline = tokio::time::Instant::from_std(self.bridge.poll_timeout());
             // Unbiased on purpose: a timer that is always due must not starve the inputs, nor a
             // flood of frames the timers.
             tokio::select! {
@@ -172,19 +173,19 @@ impl Core {
                     error!(%why, "stopping the gateway");
                     return Err(GatewayError::Task(why));
                 }
-                _ = tokio::time::sleep_until(deadline) => self.bridge.tick(Instant::now()),
+                _ = tokio::time::sleep_until(deadline) => self.bridge.handle_timeout(Instant::now()),
                 Some(input) = can_in.recv() => {
                     let now = Instant::now();
                     match input {
-                        CanInput::Packet(p) => self.bridge.on_packet(p, now),
-                        CanInput::Undecodable { raw_id, data, err } => self.bridge.on_undecodable(raw_id, &data, err, now),
-                        CanInput::Bus(ev) => self.bridge.on_bus_event(ev, now),
-                        CanInput::SendFailed(p, reason) => self.bridge.on_send_failed(p, &reason, now),
+                        CanInput::Packet(p) => self.bridge.handle_packet(p, now),
+                        CanInput::Undecodable { raw_id, data, err } => self.bridge.handle_undecodable(raw_id, &data, err, now),
+                        CanInput::Bus(ev) => self.bridge.handle_bus_event(ev, now),
+                        CanInput::SendFailed(p, reason) => self.bridge.handle_send_failed(p, &reason, now),
                     }
                 }
                 Some(input) = mqtt_in.recv() => match input {
-                    MqttInput::Command(payload) => self.bridge.on_command(&payload, Instant::now()),
-                    MqttInput::Connected => self.bridge.on_mqtt_connected(Instant::now()),
+                    MqttInput::Command(payload) => self.bridge.handle_command(&payload, Instant::now()),
+                    MqttInput::Connected => self.bridge.handle_mqtt_connected(Instant::now()),
                     MqttInput::Sim(payload) => {
                         if let Some(island) = sim {
                             demo::handle(island, &payload).await;
@@ -195,39 +196,40 @@ impl Core {
         }
     }
 
-    /// Drains the bridge's actions without ever waiting: a full CAN queue is a failed send the bridge
+    /// Drains the bridge's outputs without ever waiting: a full CAN queue is a failed send the bridge
     /// hears about, a full publication queue a counted drop.
     fn carry_out(&mut self) {
-        while let Some(action) = self.bridge.poll_action() {
-            match action {
-                Action::Send(packet) => {
-                    let reason = match self.can_tx.try_send(packet) {
-                        Ok(()) => continue,
-                        Err(mpsc::error::TrySendError::Full(_)) => "CAN transmit queue full",
-                        Err(mpsc::error::TrySendError::Closed(_)) => "CAN transmitter stopped",
-                    };
-                    self.bridge.on_send_failed(packet, reason, Instant::now());
-                }
-                Action::Publish {
-                    topic,
-                    payload,
-                    retain,
-                } => {
-                    let p = Publication {
-                        topic: self.topics.resolve(topic),
-                        payload: payload.into_bytes(),
-                        retain,
-                    };
-                    if self.pub_tx.try_send(p).is_err() {
-                        self.dropped += 1;
-                        if self.dropped.is_power_of_two() {
-                            warn!(
-                                dropped_total = self.dropped,
-                                "publication queue full: event dropped"
-                            );
-                        }
-                    }
-                }
+        loop {
+            while let Some(packet) = self.bridge.poll_transmit() {
+                let reason = match self.can_tx.try_send(packet) {
+                    Ok(()) => continue,
+                    Err(mpsc::error::TrySendError::Full(_)) => "CAN transmit queue full",
+                    Err(mpsc::error::TrySendError::Closed(_)) => "CAN transmitter stopped",
+                };
+                self.bridge
+                    .handle_send_failed(packet, reason, Instant::now());
+            }
+            let Some(publication) = self.bridge.poll_publication() else {
+                return;
+            };
+            self.publish(publication);
+        }
+    }
+
+    /// The one place publications leave the core: serialised once, handed to the MQTT task.
+    fn publish(&mut self, publication: ihex_gateway_core::Publication) {
+        let p = Publication {
+            topic: self.topics.resolve(publication.topic()),
+            payload: publication.to_json().into_bytes(),
+            retain: publication.retain(),
+        };
+        if self.pub_tx.try_send(p).is_err() {
+            self.dropped += 1;
+            if self.dropped.is_power_of_two() {
+                warn!(
+                    dropped_total = self.dropped,
+                    "publication queue full: event dropped"
+                );
             }
         }
     }
