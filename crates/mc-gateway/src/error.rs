@@ -98,12 +98,6 @@ pub enum BrokerError {
     /// The broker thread did not accept connections in time.
     #[error("the embedded broker on {0} did not start accepting connections")]
     NotReady(SocketAddr),
-    /// The binary was built without the `embedded-broker` feature.
-    #[error(
-        "no broker configured and this gateway was built without the `embedded-broker` feature: \
-         pass --broker HOST:PORT"
-    )]
-    Unavailable,
 }
 
 /// Everything [`crate::run`] can fail with.
@@ -124,6 +118,13 @@ pub enum GatewayError {
     /// The simulated island could not be built.
     #[error("simulated island: {0}")]
     Sim(String),
+    /// The configuration asks for the embedded broker or the simulated island, and this build has
+    /// no `demo` feature.
+    #[error(
+        "this gateway was built without the `demo` cargo feature (embedded broker, simulated island): \
+         pass --broker HOST[:PORT] and --can IFACE"
+    )]
+    DemoUnavailable,
     /// A gateway task panicked.
     #[error("gateway task failed: {0}")]
     Task(String),

@@ -1,9 +1,10 @@
 //! iHEX main controller: bridges MQTT JSON commands and events to the island's CAN bus.
 //!
 //! The logic is the sans-IO [`ihex_gateway_core::Bridge`]; this crate is the tokio shell around it:
-//! [`can`] (SocketCAN or the demo's in-memory bus), [`mqtt`] (rumqttc, one task owning the event
-//! loop), [`run`] wiring them around the bridge, [`config`] (CLI > env > TOML > defaults), [`log`],
-//! [`shutdown`], the embedded [`broker`] and the simulated island of the [`demo`].
+//! [`can`] (SocketCAN, or any [`can::FrameLink`]), [`mqtt`] (rumqttc, one task owning the event
+//! loop), [`run`] building the resources and then running them around the core, [`config`]
+//! (CLI > env > TOML > defaults), [`log`], [`shutdown`]; and with the default `demo` feature the
+//! embedded broker and the simulated island (`demo`).
 //!
 //! ```no_run
 //! # async fn f() -> Result<(), Box<dyn std::error::Error>> {
@@ -14,9 +15,9 @@
 //! ```
 #![warn(missing_docs)]
 
-pub mod broker;
 pub mod can;
 pub mod config;
+#[cfg(feature = "demo")]
 pub mod demo;
 pub mod error;
 pub mod log;
@@ -30,6 +31,6 @@ pub use ihex_gateway_core::topic;
 
 pub use config::Config;
 pub use error::GatewayError;
-pub use run::{run, run_with_stats};
+pub use run::{run, run_with_stats, Gateway};
 /// The shutdown signal [`run`] takes (re-exported so callers need no direct `tokio-util` dependency).
 pub use tokio_util::sync::CancellationToken;

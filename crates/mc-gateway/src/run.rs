@@ -1,22 +1,23 @@
-//! Wires the gateway together: embedded broker and simulated island when configured, the CAN tasks,
-//! the MQTT task, and the core loop that owns the [`Bridge`], feeds it inputs and timer ticks and
-//! carries out its [`Action`]s. Every channel is bounded; one [`CancellationToken`] stops everything
-//! and a `JoinSet` awaits every task.
+//! The gateway as a program, in two steps (mini-redis' `main` + `server::run`):
+//! [`Gateway::build`] makes and checks every resource — the CAN link (first socket open), the MQTT
+//! options, and in the demo the embedded broker, the simulated island and its control client — and
+//! [`Gateway::run`] only runs them: the CAN tasks, the MQTT task, and the core loop, one task that
+//! owns the [`Bridge`], feeds it inputs and timeouts and carries out its outputs without waiting.
+//! Every channel is bounded; one [`CancellationToken`] stops everything and a `JoinSet` awaits every
+//! task.
 
 use std::{sync::Arc, time::Instant};
 
+use ihex_gateway_core::{Bridge, Publication};
 use tokio::{sync::mpsc, task::JoinSet};
 use tokio_util::sync::CancellationToken;
 use tracing::{error, info, warn};
 
-use ihex_gateway_core::Bridge;
-
 use crate::{
-    can::{self, CanInput, LinkSpec},
-    config::{Broker, Config, Link},
-    demo,
+    can::{CanInput, CanLink},
+    config::{Config, Link},
     error::GatewayError,
-    mqtt::{self, MqttInput, MqttStats, MqttTask, Publication},
+    mqtt::{self, MqttInput, MqttStats, MqttTask, Outbound},
     topic::Topics,
 };
 
@@ -39,107 +40,116 @@ pub async fn run_with_stats(
     shutdown: CancellationToken,
     stats: Arc<MqttStats>,
 ) -> Result<(), GatewayError> {
-    if config.can.bitrate != ihex_proto::BITRATE {
-        warn!(
-            configured = config.can.bitrate,
-            island = ihex_proto::BITRATE,
-            "bitrate differs from the island's; the interface's own configuration decides"
-        );
-    }
-    // The island file is checked before the broker starts, so a typo fails fast.
-    let (link, sim) = match &config.can.link {
-        Link::SocketCan(iface) => (
-            LinkSpec::SocketCan {
-                iface: iface.clone(),
-                rx_buffer: config.can.rx_buffer,
-            },
-            None,
-        ),
-        Link::Simulated { island_file } => {
-            let s = demo::start(island_file.as_deref())?;
-            (LinkSpec::Mem(s.endpoint), Some(s.handle))
-        }
-    };
+    Gateway::build(config, stats).await?.run(shutdown).await
+}
 
-    if let Broker::Embedded { listen } = &config.mqtt.broker {
-        let listen = *listen;
-        tokio::task::spawn_blocking(move || crate::broker::start(listen))
-            .await
-            .map_err(|e| GatewayError::Task(e.to_string()))??;
-        info!(%listen, "embedded MQTT broker ready");
-    }
-    let cancel = shutdown.child_token();
-    let mut tasks = JoinSet::new();
-    let (can_in_tx, can_in) = mpsc::channel(CAN_INPUTS);
-    let (mqtt_in_tx, mqtt_in) = mpsc::channel(MQTT_INPUTS);
-    let (pub_tx, pub_rx) = mpsc::channel(PUBLICATIONS);
+/// A gateway whose resources are built and checked, ready to run.
+pub struct Gateway {
+    config: Config,
+    link: CanLink,
+    mqtt: MqttTask,
+    #[cfg(feature = "demo")]
+    demo: crate::demo::Demo,
+}
 
-    let can_tx = can::spawn(
-        link,
-        config.can.tx_queue,
-        can_in_tx,
-        &mut tasks,
-        cancel.clone(),
-    )?;
-    let mqtt_task = MqttTask {
-        options: mqtt::options(
-            &config.mqtt,
-            &config.topics,
-            config
-                .bridge
-                .max_command_bytes
-                .saturating_mul(4)
-                .max(1 << 20),
-        )?,
-        topics: config.topics.clone(),
-        subscribe_sim: sim.is_some(),
-        queue: config.mqtt.queue,
-        stats,
-    };
-    tasks.spawn(mqtt_task.run(pub_rx, mqtt_in_tx, cancel.clone()));
-
-    if config.is_demo() {
-        if let Broker::Embedded { listen } = &config.mqtt.broker {
-            println!(
-                "{}",
-                demo::banner(&config, &listen.ip().to_string(), listen.port())
+impl Gateway {
+    /// Builds every resource `config` asks for; fails on anything that would stop the gateway later
+    /// (a bad island file, a taken broker port, CAN filters the kernel refuses, TLS unavailable).
+    pub async fn build(config: Config, stats: Arc<MqttStats>) -> Result<Gateway, GatewayError> {
+        if config.can.bitrate != ihex_proto::BITRATE {
+            warn!(
+                configured = config.can.bitrate,
+                island = ihex_proto::BITRATE,
+                "bitrate differs from the island's; the interface's own configuration decides"
             );
         }
+        #[cfg(feature = "demo")]
+        let (demo, island_link) = crate::demo::Demo::build(&config).await?;
+        #[cfg(not(feature = "demo"))]
+        let island_link: Option<CanLink> = match config.mqtt.broker {
+            crate::config::Broker::Embedded { .. } => return Err(GatewayError::DemoUnavailable),
+            crate::config::Broker::External { .. } => None,
+        };
+        let link = match (&config.can.link, island_link) {
+            (Link::SocketCan(iface), _) => CanLink::socketcan(iface, config.can.rx_buffer)?,
+            (Link::Simulated { .. }, Some(link)) => link,
+            (Link::Simulated { .. }, None) => return Err(GatewayError::DemoUnavailable),
+        };
+        let max_incoming = config
+            .bridge
+            .max_command_bytes
+            .saturating_mul(4)
+            .max(1 << 20);
+        let mqtt = MqttTask {
+            options: mqtt::options(&config.mqtt, &config.topics, max_incoming)?,
+            topics: config.topics.clone(),
+            queue: config.mqtt.queue,
+            stats,
+        };
+        Ok(Gateway {
+            config,
+            link,
+            mqtt,
+            #[cfg(feature = "demo")]
+            demo,
+        })
     }
-    info!(island = ?config.island, commands = %config.topics.commands, events = %config.topics.events,
-          link = ?config.can.link, "gateway running");
 
-    let core = Core {
-        bridge: Bridge::new(config.bridge.clone(), Instant::now()),
-        can_tx,
-        pub_tx,
-        topics: config.topics.clone(),
-        dropped: 0,
-    };
-    let result = core
-        .run(can_in, mqtt_in, sim.as_ref(), &mut tasks, &cancel)
-        .await;
+    /// Runs until `shutdown` is cancelled (then stops every task, publishes `offline` and returns
+    /// `Ok`), or until a task fails.
+    pub async fn run(self, shutdown: CancellationToken) -> Result<(), GatewayError> {
+        #[cfg(feature = "demo")]
+        let Gateway {
+            config,
+            link,
+            mqtt,
+            mut demo,
+        } = self;
+        #[cfg(not(feature = "demo"))]
+        let Gateway { config, link, mqtt } = self;
+        let cancel = shutdown.child_token();
+        let mut tasks = JoinSet::new();
+        let (can_in_tx, can_in) = mpsc::channel(CAN_INPUTS);
+        let (mqtt_in_tx, mqtt_in) = mpsc::channel(MQTT_INPUTS);
+        let (pub_tx, pub_rx) = mpsc::channel(PUBLICATIONS);
 
-    cancel.cancel();
-    let mut failure = result.err();
-    while let Some(r) = tasks.join_next().await {
-        if let Err(e) = r {
-            error!(error = %e, "gateway task failed");
-            failure.get_or_insert(GatewayError::Task(e.to_string()));
+        let link_name = link.name().to_owned();
+        let can_tx = link.spawn(config.can.tx_queue, can_in_tx, &mut tasks, cancel.clone());
+        tasks.spawn(mqtt.run(pub_rx, mqtt_in_tx, cancel.clone()));
+        #[cfg(feature = "demo")]
+        demo.spawn(&config, &mut tasks, cancel.clone());
+        info!(island = ?config.island, commands = %config.topics.commands, events = %config.topics.events,
+              link = %link_name, "gateway running");
+
+        let core = Core {
+            bridge: Bridge::new(config.bridge.clone(), Instant::now()),
+            can_tx,
+            pub_tx,
+            topics: config.topics.clone(),
+            dropped: 0,
+        };
+        let result = core.run(can_in, mqtt_in, &mut tasks, &cancel).await;
+
+        cancel.cancel();
+        let mut failure = result.err();
+        while let Some(r) = tasks.join_next().await {
+            if let Err(e) = r {
+                error!(error = %e, "gateway task failed");
+                failure.get_or_insert(GatewayError::Task(e.to_string()));
+            }
         }
+        #[cfg(feature = "demo")]
+        demo.shutdown().await;
+        info!("gateway stopped");
+        failure.map_or(Ok(()), Err)
     }
-    if let Some(island) = sim {
-        island.shutdown().await;
-    }
-    info!("gateway stopped");
-    failure.map_or(Ok(()), Err)
 }
 
 /// The task that owns the bridge.
 struct Core {
     bridge: Bridge,
     can_tx: mpsc::Sender<ihex_proto::Packet>,
-    pub_tx: mpsc::Sender<Publication>,
+    pub_tx: mpsc::Sender<Outbound>,
     topics: Topics,
     dropped: u64,
 }
@@ -149,7 +159,6 @@ impl Core {
         mut self,
         mut can_in: mpsc::Receiver<CanInput>,
         mut mqtt_in: mpsc::Receiver<MqttInput>,
-        sim: Option<&sim_node::IslandHandle>,
         tasks: &mut JoinSet<()>,
         cancel: &CancellationToken,
     ) -> Result<(), GatewayError> {
@@ -186,11 +195,6 @@ impl Core {
                 Some(input) = mqtt_in.recv() => match input {
                     MqttInput::Command(payload) => self.bridge.handle_command(&payload, Instant::now()),
                     MqttInput::Connected => self.bridge.handle_mqtt_connected(Instant::now()),
-                    MqttInput::Sim(payload) => {
-                        if let Some(island) = sim {
-                            demo::handle(island, &payload).await;
-                        }
-                    }
                 },
             }
         }
@@ -217,8 +221,8 @@ impl Core {
     }
 
     /// The one place publications leave the core: serialised once, handed to the MQTT task.
-    fn publish(&mut self, publication: ihex_gateway_core::Publication) {
-        let p = Publication {
+    fn publish(&mut self, publication: Publication) {
+        let p = Outbound {
             topic: self.topics.resolve(publication.topic()),
             payload: publication.to_json().into_bytes(),
             retain: publication.retain(),

@@ -1,6 +1,6 @@
 //! The `mc-gateway` binary itself: `--help`, a bad option, and a demo run stopped with SIGTERM that
 //! exits 0, announces `offline` and leaves a JSON-lines log file.
-#![cfg(feature = "embedded-broker")]
+#![cfg(feature = "demo")]
 
 use std::{
     io::{BufRead, BufReader},
