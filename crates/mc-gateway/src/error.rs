@@ -1,5 +1,5 @@
 //! One error enum per layer of the gateway (configuration, CAN, MQTT, embedded broker), gathered by
-//! [`GatewayError`] for [`crate::run`].
+//! [`GatewayError`] for [`crate::run()`].
 
 use std::{io, net::SocketAddr, path::PathBuf};
 
@@ -22,20 +22,20 @@ pub enum ConfigError {
         /// What the TOML parser said.
         source: Box<toml::de::Error>,
     },
-    /// A value is out of range or malformed (`field` names the flag / TOML key).
+    /// A value is out of range or malformed (`field` names the option by its flag).
     #[error("invalid {field}: {reason}")]
     Invalid {
-        /// Flag or TOML key.
-        field: &'static str,
+        /// The option's flag without dashes (`lost-after`).
+        field: String,
         /// What is wrong, with the offending value.
         reason: String,
     },
 }
 
 impl ConfigError {
-    pub(crate) fn invalid(field: &'static str, reason: impl Into<String>) -> Self {
+    pub(crate) fn invalid(field: impl Into<String>, reason: impl Into<String>) -> Self {
         ConfigError::Invalid {
-            field,
+            field: field.into(),
             reason: reason.into(),
         }
     }
@@ -100,7 +100,7 @@ pub enum BrokerError {
     NotReady(SocketAddr),
 }
 
-/// Everything [`crate::run`] can fail with.
+/// Everything [`crate::run()`] can fail with.
 #[derive(Debug, thiserror::Error)]
 pub enum GatewayError {
     /// Bad configuration.

@@ -2,7 +2,7 @@
 //!
 //! The logic is the sans-IO [`ihex_gateway_core::Bridge`]; this crate is the tokio shell around it:
 //! [`can`] (SocketCAN, or any [`can::FrameLink`]), [`mqtt`] (rumqttc, one task owning the event
-//! loop), [`run`] building the resources and then running them around the core, [`config`]
+//! loop), [`mod@run`] building the resources and then running them around the core, [`config`]
 //! (CLI > env > TOML > defaults), [`log`], [`shutdown`]; and with the default `demo` feature the
 //! embedded broker and the simulated island (`demo`).
 //!
@@ -32,5 +32,5 @@ pub use ihex_gateway_core::topic;
 pub use config::Config;
 pub use error::GatewayError;
 pub use run::{run, run_with_stats, Gateway};
-/// The shutdown signal [`run`] takes (re-exported so callers need no direct `tokio-util` dependency).
+/// The shutdown signal [`run()`] takes (re-exported so callers need no direct `tokio-util` dependency).
 pub use tokio_util::sync::CancellationToken;

@@ -4,11 +4,7 @@
 
 use std::{net::TcpListener, time::Duration};
 
-use mc_gateway::{
-    config::{Cli, FileConfig},
-    error::BrokerError,
-    CancellationToken, Config, GatewayError,
-};
+use mc_gateway::{config::Options, error::BrokerError, CancellationToken, Config, GatewayError};
 use rumqttc::{AsyncClient, Event, Incoming, MqttOptions, QoS};
 use serde_json::Value;
 use tokio::sync::mpsc;
@@ -24,13 +20,13 @@ fn free_port() -> u16 {
 }
 
 fn demo_config(port: u16) -> Config {
-    let cli = Cli {
-        broker_listen: Some(format!("127.0.0.1:{port}")),
+    let cli = Options {
+        broker_listen: Some(format!("127.0.0.1:{port}").parse().unwrap()),
         health_period_ms: Some(200),
         log_dir: Some("-".into()),
-        ..Cli::default()
+        ..Options::default()
     };
-    let c = Config::resolve(cli, FileConfig::default()).unwrap();
+    let c = Config::resolve(cli, Options::default()).unwrap();
     assert!(c.is_demo());
     c
 }

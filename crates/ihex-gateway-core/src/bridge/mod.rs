@@ -5,10 +5,10 @@
 //! (command validation, acknowledgement tracking, health and lost-node detection, the one-at-a-time
 //! docking sequence, bus diagnostics) is tested without a bus or a broker.
 //!
-//! This file only routes each input to the concern that owns it: [`commands`] (pending commands,
-//! sequence numbers, acks and timeouts), [`health`] (health checks, presence, lost detection),
-//! [`diagnostics`] (error frames, drops, undecodable frames, faults, rate limits), [`dock`] (the
-//! docking sequence's frames and events), [`output`] (the queues the adapters drain).
+//! This file only routes each input to the concern that owns it, one submodule each: `commands`
+//! (pending commands, sequence numbers, acks and timeouts), `health` (health checks, presence, lost
+//! detection), `diagnostics` (error frames, drops, undecodable frames, faults, rate limits), `dock`
+//! (the docking sequence's frames and events), `output` (the queues the adapters drain).
 
 mod commands;
 mod diagnostics;
@@ -51,14 +51,25 @@ pub struct BridgeConfig {
     pub max_command_bytes: usize,
 }
 
+/// Default period of the broadcast health check (the seed's 1 s).
+pub const DEFAULT_HEALTH_PERIOD: Duration = Duration::from_secs(1);
+/// Default number of missed health replies before `node_lost`.
+pub const DEFAULT_LOST_AFTER: u32 = 3;
+/// Default wait for a mobile element's handshake.
+pub const DEFAULT_DOCK_TIMEOUT: Duration = Duration::from_secs(5);
+/// Default wait for a node's ack.
+pub const DEFAULT_COMMAND_TIMEOUT: Duration = Duration::from_millis(500);
+/// Default largest command payload, bytes.
+pub const DEFAULT_MAX_COMMAND_BYTES: usize = 4096;
+
 impl Default for BridgeConfig {
     fn default() -> Self {
         BridgeConfig {
-            health_period: Duration::from_secs(1),
-            lost_after_misses: 3,
-            dock_timeout: Duration::from_secs(5),
-            command_timeout: Duration::from_millis(500),
-            max_command_bytes: 4096,
+            health_period: DEFAULT_HEALTH_PERIOD,
+            lost_after_misses: DEFAULT_LOST_AFTER,
+            dock_timeout: DEFAULT_DOCK_TIMEOUT,
+            command_timeout: DEFAULT_COMMAND_TIMEOUT,
+            max_command_bytes: DEFAULT_MAX_COMMAND_BYTES,
         }
     }
 }

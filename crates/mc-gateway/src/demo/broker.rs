@@ -71,7 +71,7 @@ pub fn start(listen: SocketAddr) -> Result<(), BrokerError> {
     wait_ready(listen)
 }
 
-/// Polls a TCP connect until it succeeds or [`READY_TIMEOUT`] passes.
+/// Polls a TCP connect until it succeeds or `READY_TIMEOUT` passes.
 pub fn wait_ready(addr: SocketAddr) -> Result<(), BrokerError> {
     let deadline = Instant::now() + READY_TIMEOUT;
     while Instant::now() < deadline {
