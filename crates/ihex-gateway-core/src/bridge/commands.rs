@@ -205,16 +205,8 @@ impl Commands {
             };
             return Err((request_id, error));
         };
+        // The parser built `action` from checked values: no second range check here.
         let packet = Packet::command(target.dest(), action.to_message(seq));
-        if let Err(e) = packet.validate() {
-            // The parser checks every range first; this guards against the two drifting apart.
-            let message = format!("the protocol refuses this value: {e}");
-            let error = CommandError::Invalid {
-                cmd: action.name(),
-                message,
-            };
-            return Err((request_id, error));
-        }
         let what = match target {
             Target::Node(_) => What::Node(action),
             Target::All => What::Broadcast {

@@ -756,4 +756,103 @@ mod tests {
         );
         assert!(b.node_state(id(9), t0).is_none());
     }
+
+    /// The bytes a cell of the docs' reason table stands for: `<N spaces>`, `<bytes 41 42>`, or the
+    /// command itself.
+    fn documented_input(cell: &str) -> Vec<u8> {
+        if let Some(n) = cell
+            .strip_prefix('<')
+            .and_then(|c| c.strip_suffix(" spaces>"))
+        {
+            return vec![b' '; n.parse().unwrap()];
+        }
+        if let Some(hex) = cell
+            .strip_prefix("<bytes ")
+            .and_then(|c| c.strip_suffix('>'))
+        {
+            return hex
+                .split(' ')
+                .map(|b| u8::from_str_radix(b, 16).unwrap())
+                .collect();
+        }
+        cell.as_bytes().to_vec()
+    }
+
+    /// Every rejection reason docs/mqtt-api.md lists is, word for word, what the gateway says to
+    /// that command (`UPDATE_DOCS=1` rewrites the reasons from the gateway's answers).
+    #[test]
+    fn every_documented_rejection_reason_is_the_gateways() {
+        const BEGIN: &str = "<!-- rejection reasons: checked by ihex-gateway-core's tests -->\n";
+        const END: &str = "<!-- end of rejection reasons -->";
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../docs/mqtt-api.md");
+        let doc = std::fs::read_to_string(&path).unwrap();
+        let start = doc.find(BEGIN).expect("begin marker") + BEGIN.len();
+        let end = start + doc[start..].find(END).expect("end marker");
+        let mut rows = doc[start..end].lines().skip(2).peekable();
+        assert!(rows.peek().is_some(), "no rows in the reason table");
+        let mut updated = String::new();
+        let mut wrong = Vec::new();
+        for row in rows {
+            let cells: Vec<&str> = row
+                .strip_prefix("| ")
+                .and_then(|r| r.strip_suffix(" |"))
+                .unwrap_or_else(|| panic!("not a table row: {row}"))
+                .split(" | ")
+                .collect();
+            let [input, reason] = cells[..] else {
+                panic!("a row needs a command and a reason: {row}")
+            };
+            let input = input.trim_matches('`');
+            let documented = reason
+                .strip_prefix("``")
+                .and_then(|r| r.strip_suffix("``"))
+                .unwrap_or_else(|| panic!("reasons are ``quoted``: {row}"))
+                .trim();
+            let (repeat, input) = match input.split_once(" × ") {
+                Some((n, rest)) => (n.parse().unwrap(), rest),
+                None => (1, input),
+            };
+            let (mut b, t0) = with_nodes(&[2, 0x111]);
+            let payload = documented_input(input);
+            for _ in 1..repeat {
+                b.handle_command(&payload, t0);
+            }
+            drain(&mut b);
+            b.handle_command(&payload, t0);
+            let out = drain(&mut b);
+            assert!(out.sent.is_empty(), "{input}: sent {:?}", out.sent);
+            let actual = out.one("command_rejected")["reason"]
+                .as_str()
+                .unwrap()
+                .to_owned();
+            if actual != documented {
+                wrong.push(format!(
+                    "{input}\n  docs:    {documented}\n  gateway: {actual}"
+                ));
+            }
+            let shown = if repeat > 1 {
+                format!("{repeat} × {input}")
+            } else {
+                input.to_owned()
+            };
+            updated.push_str(&format!("| `{shown}` | `` {actual} `` |\n"));
+        }
+        if wrong.is_empty() {
+            return;
+        }
+        if std::env::var_os("UPDATE_DOCS").is_some() {
+            let header: String = doc[start..end]
+                .lines()
+                .take(2)
+                .map(|l| format!("{l}\n"))
+                .collect();
+            let text = format!("{}{header}{updated}{}", &doc[..start], &doc[end..]);
+            std::fs::write(&path, text).unwrap();
+        } else {
+            panic!(
+                "docs/mqtt-api.md's reasons differ from the gateway's (UPDATE_DOCS=1 rewrites them):\n{}",
+                wrong.join("\n")
+            );
+        }
+    }
 }
