@@ -3,8 +3,10 @@
 #![cfg(feature = "demo")]
 
 use std::{
+    ffi::OsStr,
     io::{BufRead, BufReader},
     net::TcpListener,
+    path::Path,
     process::{Command, Stdio},
     time::{Duration, Instant},
 };
@@ -40,60 +42,159 @@ fn a_bad_option_value_fails_with_its_name() {
     assert!(err.contains("lost-after"), "{err}");
 }
 
-#[test]
-fn sigterm_stops_the_demo_cleanly_and_flushes_the_log() {
-    let port = TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port();
-    let dir = tempfile::tempdir().unwrap();
-    let mut child = Command::new(BIN)
-        .args(["--broker-listen", &format!("127.0.0.1:{port}")])
-        .arg("--log-dir")
-        .arg(dir.path())
-        .env_remove("IHEX_CONFIG")
-        .env_remove("IHEX_BROKER")
-        .env_remove("IHEX_CAN")
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
-    // The banner is printed once broker, island and tasks run.
-    let mut lines = BufReader::new(child.stdout.take().unwrap()).lines();
-    let deadline = Instant::now() + Duration::from_secs(30);
-    let mut banner = String::new();
-    for line in lines.by_ref() {
-        let line = line.unwrap();
-        banner.push_str(&line);
-        banner.push('\n');
-        if line.contains("Ctrl-C stops the gateway") || Instant::now() > deadline {
-            break;
+/// A demo run of the binary: started on a free port, stopped with SIGTERM.
+struct DemoRun {
+    child: std::process::Child,
+    port: u16,
+    /// Everything printed on stdout up to the end of the banner.
+    banner: String,
+}
+
+impl DemoRun {
+    /// Starts `mc-gateway` with `args`, in `dir` (when given), with `env` set and every `IHEX_*`
+    /// variable of this process removed; returns once the banner is printed.
+    fn start(args: &[&str], dir: Option<&Path>, env: &[(&str, &OsStr)]) -> DemoRun {
+        let port = TcpListener::bind("127.0.0.1:0")
+            .unwrap()
+            .local_addr()
+            .unwrap()
+            .port();
+        let mut cmd = Command::new(BIN);
+        cmd.args(["--broker-listen", &format!("127.0.0.1:{port}")])
+            .args(args)
+            .stdout(Stdio::piped())
+            .stderr(Stdio::null());
+        for (k, _) in std::env::vars_os() {
+            if k.to_string_lossy().starts_with("IHEX_") {
+                cmd.env_remove(k);
+            }
+        }
+        for (k, v) in env {
+            cmd.env(k, v);
+        }
+        if let Some(dir) = dir {
+            cmd.current_dir(dir);
+        }
+        let mut child = cmd.spawn().unwrap();
+        // The banner is printed once broker, island and tasks run.
+        let mut lines = BufReader::new(child.stdout.take().unwrap()).lines();
+        let deadline = Instant::now() + Duration::from_secs(30);
+        let mut banner = String::new();
+        for line in lines.by_ref() {
+            let line = line.unwrap();
+            banner.push_str(&line);
+            banner.push('\n');
+            if line.contains("Ctrl-C stops the gateway") || Instant::now() > deadline {
+                break;
+            }
+        }
+        DemoRun {
+            child,
+            port,
+            banner,
         }
     }
-    assert!(
-        banner.contains(&format!("mosquitto_pub -h 127.0.0.1 -p {port}")),
-        "{banner}"
-    );
-    // Let the MQTT task connect before asking it to say goodbye.
-    std::thread::sleep(Duration::from_millis(500));
-    // SAFETY: plain kill(2) on our own child's pid.
-    assert_eq!(unsafe { libc::kill(child.id() as i32, libc::SIGTERM) }, 0);
-    let status = child.wait().unwrap();
-    assert!(status.success(), "exit status {status}");
 
-    let files: Vec<_> = std::fs::read_dir(dir.path())
+    /// SIGTERM, and the exit status.
+    fn stop(mut self) -> std::process::ExitStatus {
+        // SAFETY: plain kill(2) on our own child's pid.
+        assert_eq!(
+            unsafe { libc::kill(self.child.id() as i32, libc::SIGTERM) },
+            0
+        );
+        self.child.wait().unwrap()
+    }
+}
+
+/// The JSON-lines records of the one log file in `dir`.
+fn log_records(dir: &Path) -> (String, Vec<serde_json::Value>) {
+    let files: Vec<_> = std::fs::read_dir(dir)
         .unwrap()
         .map(|e| e.unwrap().path())
         .collect();
     assert_eq!(files.len(), 1, "{files:?}");
     let text = std::fs::read_to_string(&files[0]).unwrap();
-    let records: Vec<serde_json::Value> = text
+    let records = text
         .lines()
         .map(|l| serde_json::from_str(l).expect("every line is JSON"))
         .collect();
+    (text, records)
+}
+
+#[test]
+fn sigterm_stops_the_demo_cleanly_and_flushes_the_log() {
+    let dir = tempfile::tempdir().unwrap();
+    let log_dir = dir.path().to_str().unwrap();
+    let demo = DemoRun::start(&["--log-dir", log_dir], None, &[]);
+    assert!(
+        demo.banner
+            .contains(&format!("mosquitto_pub -h 127.0.0.1 -p {}", demo.port)),
+        "{}",
+        demo.banner
+    );
+    // Let the MQTT task connect before asking it to say goodbye.
+    std::thread::sleep(Duration::from_millis(500));
+    let status = demo.stop();
+    assert!(status.success(), "exit status {status}");
+    let (text, records) = log_records(dir.path());
     let said = |m: &str| records.iter().any(|r| r["fields"]["message"] == m);
     assert!(said("gateway running"), "{text}");
     assert!(said("published offline and disconnected"), "{text}");
     assert!(said("gateway stopped"), "the last line was flushed: {text}");
+}
+
+fn git(dir: &Path, args: &[&str]) -> String {
+    let out = Command::new("git")
+        .args([
+            "-c",
+            "user.name=ihex-test",
+            "-c",
+            "user.email=test@ihex.invalid",
+        ])
+        .args(args)
+        .current_dir(dir)
+        .output()
+        .expect("git is installed");
+    assert!(
+        out.status.success(),
+        "git {args:?}: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+/// The demo started from inside a work tree (a copy of the repository's top files) writes nothing
+/// there: `git status` stays clean, and the JSON log is in the state directory under `$HOME`.
+#[test]
+fn a_demo_run_leaves_the_work_tree_clean() {
+    let tree = tempfile::tempdir().unwrap();
+    let home = tempfile::tempdir().unwrap();
+    let repo = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+    for f in ["Cargo.toml", "README.md"] {
+        std::fs::copy(repo.join(f), tree.path().join(f)).unwrap();
+    }
+    git(tree.path(), &["init", "-q"]);
+    git(tree.path(), &["add", "."]);
+    git(
+        tree.path(),
+        &["commit", "-q", "-m", "a copy of the repository"],
+    );
+    let demo = DemoRun::start(
+        &[],
+        Some(tree.path()),
+        &[
+            ("HOME", home.path().as_os_str()),
+            ("XDG_STATE_HOME", OsStr::new("")),
+        ],
+    );
+    std::thread::sleep(Duration::from_millis(500));
+    assert!(demo.stop().success());
+    assert_eq!(
+        git(tree.path(), &["status", "--porcelain", "--ignored"]),
+        ""
+    );
+    let (_, records) = log_records(&home.path().join(".local/state/ihex"));
+    assert!(records
+        .iter()
+        .any(|r| r["fields"]["message"] == "gateway stopped"));
 }

@@ -97,8 +97,10 @@ options! {
     /// Publications held while the broker is unreachable before the oldest are dropped (and
     /// counted).
     mqtt_queue: usize = 1024, env "IHEX_MQTT_QUEUE", value "N", range 1..=1048576;
-    /// Directory of the JSON-lines log (`mc-gateway.<date>.jsonl`, rotated); `-` = no file.
-    log_dir: String = (text "`logs`"), env "IHEX_LOG_DIR", value "DIR";
+    /// Directory of the JSON-lines log (`mc-gateway.<date>.jsonl`, rotated); `-` = no file (the
+    /// Pi's service uses `/var/log/ihex`).
+    log_dir: String = (text "`$XDG_STATE_HOME/ihex`, else `~/.local/state/ihex`"),
+        env "IHEX_LOG_DIR", value "DIR";
     /// When the log file rotates.
     log_rotation: String = "daily", env "IHEX_LOG_ROTATION", value "WHEN",
         one_of ["minutely", "hourly", "daily", "never"];
@@ -449,7 +451,20 @@ impl Config {
             max_command_bytes: s.max_command_bytes,
         };
 
-        let dir = s.log_dir.clone().unwrap_or_else(|| "logs".into());
+        let dir = match s.log_dir.as_deref() {
+            Some("-") | Some("") => None,
+            Some(dir) => Some(PathBuf::from(dir)),
+            None => {
+                let dir = state_dir(std::env::var_os("XDG_STATE_HOME"), std::env::var_os("HOME"));
+                if dir.is_none() {
+                    warnings.push(
+                        "no log file: neither XDG_STATE_HOME nor HOME is set (give --log-dir)"
+                            .into(),
+                    );
+                }
+                dir
+            }
+        };
         let rotation = match s.log_rotation.as_str() {
             "minutely" => Rotation::Minutely,
             "hourly" => Rotation::Hourly,
@@ -457,7 +472,7 @@ impl Config {
             _ => Rotation::Daily,
         };
         let log = LogConfig {
-            dir: (dir != "-" && !dir.is_empty()).then(|| PathBuf::from(dir)),
+            dir,
             rotation,
             filter: s.log.clone(),
         };
@@ -485,6 +500,23 @@ impl Config {
             warnings,
         })
     }
+}
+
+/// Where the log goes by default (the XDG base directory spec's state directory): `$XDG_STATE_HOME/ihex`
+/// when that is an absolute path, else `$HOME/.local/state/ihex`; `None` without either. Never the
+/// working directory, so a run from a source tree leaves it clean.
+pub fn state_dir(
+    xdg_state_home: Option<std::ffi::OsString>,
+    home: Option<std::ffi::OsString>,
+) -> Option<PathBuf> {
+    let xdg = xdg_state_home
+        .map(PathBuf::from)
+        .filter(|p| p.is_absolute());
+    let home = home
+        .map(PathBuf::from)
+        .filter(|p| p.is_absolute())
+        .map(|h| h.join(".local").join("state"));
+    xdg.or(home).map(|d| d.join("ihex"))
 }
 
 /// Parses `HOST`, `HOST:PORT`, `[V6]:PORT` or `V6` (port 1883 when absent).
@@ -783,6 +815,31 @@ mod tests {
                 );
             }
         }
+    }
+
+    #[test]
+    fn the_log_goes_to_the_state_directory_by_default() {
+        let d = |xdg: Option<&str>, home: Option<&str>| {
+            state_dir(xdg.map(Into::into), home.map(Into::into))
+        };
+        assert_eq!(
+            d(Some("/x/state"), Some("/home/u")),
+            Some(PathBuf::from("/x/state/ihex"))
+        );
+        assert_eq!(
+            d(None, Some("/home/u")),
+            Some(PathBuf::from("/home/u/.local/state/ihex"))
+        );
+        // The spec ignores a relative XDG_STATE_HOME; a relative path would land in the cwd.
+        assert_eq!(
+            d(Some("rel"), Some("/home/u")),
+            Some(PathBuf::from("/home/u/.local/state/ihex"))
+        );
+        assert_eq!(d(Some(""), None), None);
+        let c = Config::resolve(cli(&["--log-dir", "-"]), Options::default()).unwrap();
+        assert_eq!(c.log.dir, None);
+        let c = Config::resolve(cli(&["--log-dir", "/var/log/ihex"]), Options::default()).unwrap();
+        assert_eq!(c.log.dir, Some(PathBuf::from("/var/log/ihex")));
     }
 
     #[test]
