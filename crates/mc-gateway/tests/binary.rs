@@ -54,6 +54,16 @@ impl DemoRun {
     /// Starts `mc-gateway` with `args`, in `dir` (when given), with `env` set and every `IHEX_*`
     /// variable of this process removed; returns once the banner is printed.
     fn start(args: &[&str], dir: Option<&Path>, env: &[(&str, &OsStr)]) -> DemoRun {
+        DemoRun::start_with_stderr(args, dir, env, Stdio::null())
+    }
+
+    /// [`DemoRun::start`] with stderr going to `stderr`.
+    fn start_with_stderr(
+        args: &[&str],
+        dir: Option<&Path>,
+        env: &[(&str, &OsStr)],
+        stderr: Stdio,
+    ) -> DemoRun {
         let port = TcpListener::bind("127.0.0.1:0")
             .unwrap()
             .local_addr()
@@ -63,7 +73,7 @@ impl DemoRun {
         cmd.args(["--broker-listen", &format!("127.0.0.1:{port}")])
             .args(args)
             .stdout(Stdio::piped())
-            .stderr(Stdio::null());
+            .stderr(stderr);
         for (k, _) in std::env::vars_os() {
             if k.to_string_lossy().starts_with("IHEX_") {
                 cmd.env_remove(k);
@@ -197,4 +207,21 @@ fn a_demo_run_leaves_the_work_tree_clean() {
     assert!(records
         .iter()
         .any(|r| r["fields"]["message"] == "gateway stopped"));
+}
+
+/// Redirected to a file, stderr carries no terminal escape codes (colour is for terminals only).
+#[test]
+fn a_redirected_run_has_no_escape_codes() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("stderr.txt");
+    let file = std::fs::File::create(&path).unwrap();
+    let demo = DemoRun::start_with_stderr(&["--log-dir", "-"], None, &[], Stdio::from(file));
+    std::thread::sleep(Duration::from_millis(300));
+    assert!(demo.stop().success());
+    let text = std::fs::read_to_string(&path).unwrap();
+    assert!(text.contains("gateway running"), "{text}");
+    assert!(
+        !text.contains('\x1b'),
+        "escape codes in a redirected log:\n{text:?}"
+    );
 }
