@@ -131,6 +131,23 @@ fn log_records(dir: &Path) -> (String, Vec<serde_json::Value>) {
     (text, records)
 }
 
+/// A failure is said once, on one line: no `Error:` then `Caused by:` repeating it.
+#[test]
+fn an_error_is_printed_once() {
+    let out = Command::new(BIN)
+        .args(["--config", "/nonexistent/gateway.toml"])
+        .env_remove("IHEX_CONFIG")
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(
+        err,
+        "mc-gateway: cannot read config file /nonexistent/gateway.toml: \
+         No such file or directory (os error 2)\n"
+    );
+}
+
 #[test]
 fn sigterm_stops_the_demo_cleanly_and_flushes_the_log() {
     let dir = tempfile::tempdir().unwrap();
