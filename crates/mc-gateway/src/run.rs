@@ -56,6 +56,9 @@ impl Gateway {
     /// Builds every resource `config` asks for; fails on anything that would stop the gateway later
     /// (a bad island file, a taken broker port, CAN filters the kernel refuses, TLS unavailable).
     pub async fn build(config: Config, stats: Arc<MqttStats>) -> Result<Gateway, GatewayError> {
+        for w in &config.warnings {
+            warn!("{w}");
+        }
         if config.can.bitrate != ihex_proto::BITRATE {
             warn!(
                 configured = config.can.bitrate,
@@ -113,13 +116,18 @@ impl Gateway {
         let (mqtt_in_tx, mqtt_in) = mpsc::channel(MQTT_INPUTS);
         let (pub_tx, pub_rx) = mpsc::channel(PUBLICATIONS);
 
-        let link_name = link.name().to_owned();
         let can_tx = link.spawn(config.can.tx_queue, can_in_tx, &mut tasks, cancel.clone());
         tasks.spawn(mqtt.run(pub_rx, mqtt_in_tx, cancel.clone()));
         #[cfg(feature = "demo")]
         demo.spawn(&config, &mut tasks, cancel.clone());
-        info!(island = ?config.island, commands = %config.topics.commands, events = %config.topics.events,
-              link = %link_name, "gateway running");
+        info!(
+            island = config.island.as_deref().unwrap_or("none"),
+            broker = %config.mqtt.broker,
+            link = %config.can.link,
+            commands = %config.topics.commands,
+            events = %config.topics.events,
+            "gateway running"
+        );
 
         let core = Core {
             bridge: Bridge::new(config.bridge.clone(), Instant::now()),

@@ -153,6 +153,7 @@ fn sigterm_stops_the_demo_cleanly_and_flushes_the_log() {
     let dir = tempfile::tempdir().unwrap();
     let log_dir = dir.path().to_str().unwrap();
     let demo = DemoRun::start(&["--log-dir", log_dir], None, &[]);
+    let port = demo.port;
     assert!(
         demo.banner
             .contains(&format!("mosquitto_pub -h 127.0.0.1 -p {}", demo.port)),
@@ -165,7 +166,20 @@ fn sigterm_stops_the_demo_cleanly_and_flushes_the_log() {
     assert!(status.success(), "exit status {status}");
     let (text, records) = log_records(dir.path());
     let said = |m: &str| records.iter().any(|r| r["fields"]["message"] == m);
-    assert!(said("gateway running"), "{text}");
+    // Start-up lines say what a person reads, not Rust's Debug of the configuration.
+    let running = records
+        .iter()
+        .find(|r| r["fields"]["message"] == "gateway running")
+        .unwrap_or_else(|| panic!("{text}"));
+    assert_eq!(running["fields"]["link"], "simulated island (built in)");
+    assert_eq!(
+        running["fields"]["broker"],
+        format!("embedded broker on 127.0.0.1:{port}")
+    );
+    assert_eq!(running["fields"]["island"], "none");
+    for debug in ["None", "Some(", "Simulated {", "Embedded {"] {
+        assert!(!text.contains(debug), "{debug} in the log:\n{text}");
+    }
     assert!(said("published offline and disconnected"), "{text}");
     assert!(said("gateway stopped"), "the last line was flushed: {text}");
 }
@@ -241,4 +255,28 @@ fn a_redirected_run_has_no_escape_codes() {
         !text.contains('\x1b'),
         "escape codes in a redirected log:\n{text:?}"
     );
+}
+
+/// Half a lab configuration works, and says which lab default it used.
+#[test]
+fn a_can_interface_alone_warns_that_the_lab_broker_is_used() {
+    let mut child = Command::new(BIN)
+        .args(["--can", "ihexnone0", "--log-dir", "-"])
+        .env_remove("IHEX_CONFIG")
+        .env_remove("IHEX_BROKER")
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let stderr = BufReader::new(child.stderr.take().unwrap());
+    let warned = stderr.lines().map_while(Result::ok).find(|l| {
+        l.contains("WARN")
+            && l.contains(
+                "no broker configured (--broker): using the lab broker 192.168.1.101:1883",
+            )
+    });
+    // SAFETY: plain kill(2) on our own child's pid.
+    assert_eq!(unsafe { libc::kill(child.id() as i32, libc::SIGTERM) }, 0);
+    child.wait().unwrap();
+    assert!(warned.is_some(), "no warning naming the lab broker");
 }
