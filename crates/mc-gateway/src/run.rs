@@ -11,7 +11,7 @@ use std::{sync::Arc, time::Instant};
 use ihex_gateway_core::{Bridge, Publication};
 use tokio::{sync::mpsc, task::JoinSet};
 use tokio_util::sync::CancellationToken;
-use tracing::{error, info, warn};
+use tracing::{debug, error, info, warn};
 
 use crate::{
     can::{CanInput, CanLink},
@@ -228,11 +228,17 @@ impl Core {
         }
     }
 
-    /// The one place publications leave the core: serialised once, handed to the MQTT task.
+    /// The one place publications leave the core: serialised once, logged (every event at info, so
+    /// the log alone tells the island's story), handed to the MQTT task.
     fn publish(&mut self, publication: Publication) {
+        let json = publication.to_json();
+        match &publication {
+            Publication::Event(e) => info!(event = e.name(), payload = %json, "event published"),
+            Publication::State(s) => debug!(node = %s.id, payload = %json, "state published"),
+        }
         let p = Outbound {
             topic: self.topics.resolve(publication.topic()),
-            payload: publication.to_json().into_bytes(),
+            payload: json.into_bytes(),
             retain: publication.retain(),
         };
         if self.pub_tx.try_send(p).is_err() {

@@ -280,3 +280,107 @@ fn a_can_interface_alone_warns_that_the_lab_broker_is_used() {
     child.wait().unwrap();
     assert!(warned.is_some(), "no warning naming the lab broker");
 }
+
+/// Every event the gateway publishes is also a line of its JSON log, at info, with the payload as
+/// published: command answers, rejections, the node list and the simulator's answers included.
+#[test]
+fn every_published_event_is_in_the_json_log() {
+    use rumqttc::{Client, Event, Incoming, MqttOptions, QoS};
+    let dir = tempfile::tempdir().unwrap();
+    let demo = DemoRun::start(&["--log-dir", dir.path().to_str().unwrap()], None, &[]);
+    let mut o = MqttOptions::new("log-test", "127.0.0.1", demo.port);
+    o.set_keep_alive(Duration::from_secs(5));
+    let (client, mut connection) = Client::new(o, 16);
+    let (tx, rx) = std::sync::mpsc::channel();
+    let sub = client.clone();
+    std::thread::spawn(move || {
+        for ev in connection.iter() {
+            match ev {
+                Ok(Event::Incoming(Incoming::ConnAck(_))) => {
+                    let _ = sub.try_subscribe("EventsTopic", QoS::AtLeastOnce);
+                }
+                Ok(Event::Incoming(Incoming::SubAck(_))) => {
+                    let _ = tx.send(None);
+                }
+                Ok(Event::Incoming(Incoming::Publish(p))) => {
+                    if tx
+                        .send(Some(String::from_utf8_lossy(&p.payload).into_owned()))
+                        .is_err()
+                    {
+                        return;
+                    }
+                }
+                Ok(_) => {}
+                Err(_) => std::thread::sleep(Duration::from_millis(50)),
+            }
+        }
+    });
+    assert_eq!(
+        rx.recv_timeout(Duration::from_secs(20)),
+        Ok(None),
+        "subscribed"
+    );
+    let sends = [
+        (
+            "CommandsTopic",
+            r#"{"cmd":"led","node":"111","color":"red","request_id":"a"}"#,
+        ),
+        (
+            "CommandsTopic",
+            r#"{"cmd":"led","node":"111","colour":"red","request_id":"b"}"#,
+        ),
+        ("CommandsTopic", r#"{"cmd":"list","request_id":"c"}"#),
+        (
+            "ihex/sim",
+            r#"{"sim":"dock","mobile":"3","static":"112","port":2}"#,
+        ),
+        (
+            "ihex/sim",
+            r#"{"sim":"dock","mobile":"9","static":"112","port":2}"#,
+        ),
+    ];
+    for (topic, payload) in sends {
+        client
+            .publish(topic, QoS::AtLeastOnce, false, payload)
+            .unwrap();
+    }
+    // command_result, command_rejected, node_list, new_connection, two sim_results at least.
+    let mut seen = Vec::new();
+    let deadline = Instant::now() + Duration::from_secs(20);
+    let wanted = [
+        "command_result",
+        "command_rejected",
+        "node_list",
+        "new_connection",
+        "sim_result",
+    ];
+    while !wanted.iter().all(|w| {
+        seen.iter()
+            .any(|e: &String| e.contains(&format!("\"event\":\"{w}\"")))
+    }) {
+        let left = deadline
+            .checked_duration_since(Instant::now())
+            .expect("the answers in time");
+        if let Ok(Some(e)) = rx.recv_timeout(left) {
+            seen.push(e);
+        }
+    }
+    // A quiet moment for whatever else is on its way, then stop: the log is flushed at exit.
+    std::thread::sleep(Duration::from_millis(300));
+    while let Ok(Some(e)) = rx.try_recv() {
+        seen.push(e);
+    }
+    assert!(demo.stop().success());
+    let (text, records) = log_records(dir.path());
+    let logged: Vec<&str> = records
+        .iter()
+        .filter(|r| r["level"] == "INFO" && r["fields"]["message"] == "event published")
+        .filter_map(|r| r["fields"]["payload"].as_str())
+        .collect();
+    for e in &seen {
+        assert!(
+            logged.contains(&e.as_str()),
+            "published but not logged: {e}\nlog:\n{text}"
+        );
+    }
+}

@@ -319,7 +319,8 @@ impl Control {
 
     fn answer(&self, event: &Event) {
         let json = event.to_json();
-        info!(event = event.name(), payload = %json, "simulation control answered");
+        // Logged like the core's events: the log alone tells what happened on the bench.
+        info!(event = event.name(), payload = %json, "event published");
         if let Err(e) =
             self.client
                 .try_publish(self.topics.events.clone(), QoS::AtLeastOnce, false, json)
