@@ -1,7 +1,7 @@
 //! The JSON text of a command as a tree that keeps what `serde_json::Value` hides: object members in
 //! their order and every repeated key (so a duplicate can be refused instead of the last one
 //! silently winning). Parsing is serde_json's (with its nesting limit); reading the tree is
-//! [`super::field`]'s.
+//! `field`'s.
 
 use std::fmt;
 

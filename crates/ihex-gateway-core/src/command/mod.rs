@@ -1,6 +1,6 @@
 //! JSON commands from `CommandsTopic`, parsed and checked in one pass: the text becomes a [`json`]
 //! tree once (keeping repeated keys, so they can be refused), then each field is read once by
-//! [`field`] as the type it must be and within the protocol's range, straight into the protocol's
+//! `field` as the type it must be and within the protocol's range, straight into the protocol's
 //! own values — so nothing out of range ever becomes a frame and no later check is needed. Every
 //! failure is a [`CommandError`] whose text says, in the API's words, which field was wrong, what
 //! it accepts and what it got; parsing never panics, whatever the bytes.
