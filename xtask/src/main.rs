@@ -5,6 +5,7 @@ mod bench;
 mod broker;
 mod cmd;
 mod cpio;
+mod dbc;
 mod fwsize;
 mod setup;
 mod vcan;
@@ -46,6 +47,16 @@ enum Task {
         /// Its arguments.
         #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
         args: Vec<String>,
+    },
+    /// Write docs/ihex.dbc (the CAN protocol for cantools, SavvyCAN, ...) from ihex-proto's schema.
+    Dbc {
+        /// Only check that docs/ihex.dbc is what the generator writes (the host stage does).
+        #[arg(long, conflicts_with = "island")]
+        check: bool,
+        /// Print instead a DBC with exact IDs for these sub-controllers (hex IDs: 111,112,2), for
+        /// tools that cannot mask IDs (SavvyCAN).
+        #[arg(long, value_delimiter = ',', num_args = 1..)]
+        island: Vec<ihex_proto::NodeId>,
     },
     /// Benchmarks (not a test): gateway rates, latency, CPU, RSS, instructions per frame, firmware
     /// size; writes target/bench/results.json (docs/benchmarks.md).
@@ -145,6 +156,9 @@ fn main() -> ExitCode {
         },
         Task::VmShell { vm } => vcan::vm_shell(vm.settings()),
         Task::Bench(args) => bench::run(args, &firmware_release_dir()),
+        Task::Dbc { check: true, .. } => dbc::check(),
+        Task::Dbc { island, .. } if !island.is_empty() => dbc::island(&island),
+        Task::Dbc { .. } => dbc::write(),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
