@@ -3,6 +3,7 @@
 
 mod bench;
 mod broker;
+mod cantools;
 mod cmd;
 mod cpio;
 mod dbc;
@@ -223,11 +224,30 @@ fn run_stage(stage: Stage, args: &TestArgs) -> Result<Done> {
     match stage {
         Stage::Setup => setup::run().map(|()| Done::Ran),
         Stage::Host => {
-            cmd::run(
+            // golden.rs appends every vector it checks here; cantools then decodes them all.
+            let vectors = cmd::target_dir().join("dbc/golden-vectors.txt");
+            if let Some(dir) = vectors.parent() {
+                std::fs::create_dir_all(dir)?;
+            }
+            if vectors.exists() {
+                std::fs::remove_file(&vectors)?;
+            }
+            let mut failures = Vec::new();
+            if let Err(e) = cmd::run(
                 cmd::cargo()
                     .current_dir(&root)
+                    .env("IHEX_GOLDEN_VECTORS", &vectors)
                     .args(["test", "--workspace"]),
-            )?;
+            ) {
+                failures.push(format!("{e:#}"));
+            }
+            println!("==> xtask: host: DBC round trip through cantools");
+            if let Err(e) = cantools::round_trip(&vectors) {
+                failures.push(format!("cantools round trip: {e:#}"));
+            }
+            if !failures.is_empty() {
+                anyhow::bail!("{}", failures.join("; "));
+            }
             Ok(Done::Ran)
         }
         Stage::ProtoMcu => {
