@@ -86,6 +86,16 @@ pub fn write<W: Write>(w: &mut W, layout: Layout<'_>) -> Result<(), Error> {
             }
         }
     }
+    header(w, layout)?;
+    messages(w, layout)?;
+    comments(w, layout)?;
+    attributes(w)?;
+    value_tables(w, layout)?;
+    Ok(())
+}
+
+/// Version, symbols, nodes.
+fn header<W: Write>(w: &mut W, layout: Layout<'_>) -> fmt::Result {
     let (major, minor) = PROTOCOL_VERSION;
     writeln!(w, "VERSION \"iHEX {major}.{minor}\"\n")?;
     w.write_str(concat!(
@@ -95,8 +105,11 @@ pub fn write<W: Write>(w: &mut W, layout: Layout<'_>) -> Result<(), Error> {
     ))?;
     write!(w, "BU_: {GATEWAY}")?;
     for_each_sc(layout, |n| write!(w, " {n}"))?;
-    w.write_str("\n\n")?;
+    w.write_str("\n\n")
+}
 
+/// `BO_` with its `SG_` lines, per message.
+fn messages<W: Write>(w: &mut W, layout: Layout<'_>) -> fmt::Result {
     for_each_message(layout, |m| {
         writeln!(
             w,
@@ -124,8 +137,12 @@ pub fn write<W: Write>(w: &mut W, layout: Layout<'_>) -> Result<(), Error> {
             w.write_char('\n')?;
         }
         w.write_char('\n')
-    })?;
+    })
+}
 
+/// `CM_` for the file, the nodes, every message and every signal.
+fn comments<W: Write>(w: &mut W, layout: Layout<'_>) -> fmt::Result {
+    let (major, minor) = PROTOCOL_VERSION;
     write!(
         w,
         "CM_ \"iHEX CAN protocol {major}.{minor}, generated from crates/ihex-proto by cargo xtask \
@@ -148,11 +165,18 @@ pub fn write<W: Write>(w: &mut W, layout: Layout<'_>) -> Result<(), Error> {
         "CM_ BU_ {GATEWAY} \"The main controller (Raspberry Pi), node ID 0x000.\";"
     )?;
     for_each_sc(layout, |n| {
-        writeln!(
-            w,
-            "CM_ BU_ {n} \"A sub-controller (static or mobile element); IDs 0x001 to 0xFFD, \
-             0xFFE while it has none.\";"
-        )
+        write!(w, "CM_ BU_ {n} \"")?;
+        match n {
+            ScName::Any => w.write_str(
+                "A sub-controller (static or mobile element): node IDs 0x001 to 0xFFD, 0xFFE \
+                 while it has none.",
+            )?,
+            ScName::Node(id) => write!(w, "The sub-controller with node ID 0x{:03X}.", id.get())?,
+            ScName::Unconfigured => {
+                w.write_str("A sub-controller that has no node ID yet (0xFFE).")?
+            }
+        }
+        w.write_str("\";\n")
     })?;
     for_each_message(layout, |m| {
         let id = m.dbc_id();
@@ -166,17 +190,23 @@ pub fn write<W: Write>(w: &mut W, layout: Layout<'_>) -> Result<(), Error> {
             writeln!(w, "CM_ SG_ {id} {} \"{}.\";", s.name, s.comment)?;
         }
         Ok(())
-    })?;
+    })
+}
 
+/// The bus type and bitrate, as Vector's database attributes.
+fn attributes<W: Write>(w: &mut W) -> fmt::Result {
     w.write_str(concat!(
         "BA_DEF_  \"BusType\" STRING ;\n",
         "BA_DEF_  \"Baudrate\" INT 0 1000000;\n",
         "BA_DEF_DEF_  \"BusType\" \"CAN\";\n",
-        "BA_DEF_DEF_  \"Baudrate\" 500000;\n",
-        "BA_ \"BusType\" \"CAN\";\n",
     ))?;
-    writeln!(w, "BA_ \"Baudrate\" {BITRATE};")?;
+    writeln!(w, "BA_DEF_DEF_  \"Baudrate\" {BITRATE};")?;
+    w.write_str("BA_ \"BusType\" \"CAN\";\n")?;
+    writeln!(w, "BA_ \"Baudrate\" {BITRATE};")
+}
 
+/// `VAL_` for every signal with named values.
+fn value_tables<W: Write>(w: &mut W, layout: Layout<'_>) -> fmt::Result {
     for_each_message(layout, |m| {
         for s in m.schema.signals.iter().filter(|s| !s.values.is_empty()) {
             write!(w, "VAL_ {} {}", m.dbc_id(), s.name)?;
@@ -186,8 +216,7 @@ pub fn write<W: Write>(w: &mut W, layout: Layout<'_>) -> Result<(), Error> {
             w.write_str(" ;\n")?;
         }
         Ok(())
-    })?;
-    Ok(())
+    })
 }
 
 /// The name of a sub-controller node in the file.
