@@ -15,8 +15,8 @@
 
 use core::fmt::{self, Write};
 
-use crate::schema::{self, Direction, MessageSchema};
-use crate::{Header, NodeId, BITRATE, PROTOCOL_VERSION};
+use crate::schema::{self, Direction, MessageSchema, Mux};
+use crate::{Header, Kind, NodeId, BITRATE, PROTOCOL_VERSION};
 
 /// The identifier bits that hold the kind: the mask that matches a frame to its
 /// [`Layout::ByKind`] message.
@@ -74,8 +74,18 @@ impl fmt::Display for Error {
 
 impl core::error::Error for Error {}
 
-/// Writes the whole DBC file.
+/// Writes the DBC file of the whole protocol.
 pub fn write<W: Write>(w: &mut W, layout: Layout<'_>) -> Result<(), Error> {
+    write_messages(w, layout, &Kind::ALL.map(schema::of))
+}
+
+/// Writes a DBC file describing only `messages` (for a tool that wants a few; [`write()`] is the
+/// whole protocol).
+pub fn write_messages<W: Write>(
+    w: &mut W,
+    layout: Layout<'_>,
+    messages: &[MessageSchema],
+) -> Result<(), Error> {
     if let Layout::Island(nodes) = layout {
         for (i, n) in nodes.iter().enumerate() {
             if !n.is_sc() {
@@ -86,12 +96,21 @@ pub fn write<W: Write>(w: &mut W, layout: Layout<'_>) -> Result<(), Error> {
             }
         }
     }
+    let db = Db { layout, messages };
     header(w, layout)?;
-    messages(w, layout)?;
-    comments(w, layout)?;
+    message_lines(w, db)?;
+    comments(w, db)?;
     attributes(w)?;
-    value_tables(w, layout)?;
+    value_tables(w, db)?;
+    multiplex_values(w, db)?;
     Ok(())
+}
+
+/// What a file describes.
+#[derive(Clone, Copy)]
+struct Db<'a> {
+    layout: Layout<'a>,
+    messages: &'a [MessageSchema],
 }
 
 /// Version, symbols, nodes.
@@ -100,7 +119,7 @@ fn header<W: Write>(w: &mut W, layout: Layout<'_>) -> fmt::Result {
     writeln!(w, "VERSION \"iHEX {major}.{minor}\"\n")?;
     w.write_str(concat!(
         "NS_ :\n\tNS_DESC_\n\tCM_\n\tBA_DEF_\n\tBA_\n\tVAL_\n\tBA_DEF_DEF_\n\tVAL_TABLE_\n",
-        "\tBO_TX_BU_\n\tSIG_VALTYPE_\n\n",
+        "\tBO_TX_BU_\n\tSIG_VALTYPE_\n\tSG_MUL_VAL_\n\n",
         "BS_:\n\n",
     ))?;
     write!(w, "BU_: {GATEWAY}")?;
@@ -109,8 +128,8 @@ fn header<W: Write>(w: &mut W, layout: Layout<'_>) -> fmt::Result {
 }
 
 /// `BO_` with its `SG_` lines, per message.
-fn messages<W: Write>(w: &mut W, layout: Layout<'_>) -> fmt::Result {
-    for_each_message(layout, |m| {
+fn message_lines<W: Write>(w: &mut W, db: Db<'_>) -> fmt::Result {
+    for_each_message(db, |m| {
         writeln!(
             w,
             "BO_ {} {}: {} {}",
@@ -120,10 +139,16 @@ fn messages<W: Write>(w: &mut W, layout: Layout<'_>) -> fmt::Result {
             m.transmitter()
         )?;
         for s in m.schema.signals {
+            write!(w, " SG_ {}", s.name)?;
+            match s.mux {
+                Mux::Always => {}
+                Mux::Selector => w.write_str(" M")?,
+                // Several values: the first here, all of them in `SG_MUL_VAL_`.
+                Mux::When(values) => write!(w, " m{}", values.first().copied().unwrap_or(0))?,
+            }
             write!(
                 w,
-                " SG_ {} : {}|{}@1{} ({},{}) [{}|{}] \"{}\" ",
-                s.name,
+                " : {}|{}@1{} ({},{}) [{}|{}] \"{}\" ",
                 s.start,
                 s.bits,
                 if s.signed { '-' } else { '+' },
@@ -133,7 +158,7 @@ fn messages<W: Write>(w: &mut W, layout: Layout<'_>) -> fmt::Result {
                 s.physical(s.max),
                 s.unit,
             )?;
-            m.receivers(layout, w)?;
+            m.receivers(db.layout, w)?;
             w.write_char('\n')?;
         }
         w.write_char('\n')
@@ -141,7 +166,8 @@ fn messages<W: Write>(w: &mut W, layout: Layout<'_>) -> fmt::Result {
 }
 
 /// `CM_` for the file, the nodes, every message and every signal.
-fn comments<W: Write>(w: &mut W, layout: Layout<'_>) -> fmt::Result {
+fn comments<W: Write>(w: &mut W, db: Db<'_>) -> fmt::Result {
+    let layout = db.layout;
     let (major, minor) = PROTOCOL_VERSION;
     write!(
         w,
@@ -178,7 +204,7 @@ fn comments<W: Write>(w: &mut W, layout: Layout<'_>) -> fmt::Result {
         }
         w.write_str("\";\n")
     })?;
-    for_each_message(layout, |m| {
+    for_each_message(db, |m| {
         let id = m.dbc_id();
         writeln!(
             w,
@@ -206,14 +232,50 @@ fn attributes<W: Write>(w: &mut W) -> fmt::Result {
 }
 
 /// `VAL_` for every signal with named values.
-fn value_tables<W: Write>(w: &mut W, layout: Layout<'_>) -> fmt::Result {
-    for_each_message(layout, |m| {
+fn value_tables<W: Write>(w: &mut W, db: Db<'_>) -> fmt::Result {
+    for_each_message(db, |m| {
         for s in m.schema.signals.iter().filter(|s| !s.values.is_empty()) {
             write!(w, "VAL_ {} {}", m.dbc_id(), s.name)?;
             for (raw, name) in s.values {
                 write!(w, " {raw} \"{name}\"")?;
             }
             w.write_str(" ;\n")?;
+        }
+        Ok(())
+    })
+}
+
+/// `SG_MUL_VAL_` (extended multiplexing) for every signal present under several selector values,
+/// consecutive values as one range.
+fn multiplex_values<W: Write>(w: &mut W, db: Db<'_>) -> fmt::Result {
+    for_each_message(db, |m| {
+        let Some(selector) = m.schema.selector() else {
+            return Ok(());
+        };
+        for s in m.schema.signals {
+            let Mux::When(values) = s.mux else { continue };
+            if values.len() < 2 {
+                continue;
+            }
+            write!(
+                w,
+                "SG_MUL_VAL_ {} {} {} ",
+                m.dbc_id(),
+                s.name,
+                selector.name
+            )?;
+            let mut sep = "";
+            let mut i = 0;
+            while i < values.len() {
+                let first = values[i];
+                while i + 1 < values.len() && u16::from(values[i + 1]) == u16::from(values[i]) + 1 {
+                    i += 1;
+                }
+                write!(w, "{sep}{first}-{}", values[i])?;
+                sep = ", ";
+                i += 1;
+            }
+            w.write_str(";\n")?;
         }
         Ok(())
     })
@@ -335,12 +397,9 @@ impl fmt::Display for Transmitter<'_> {
 
 /// Calls `f` for every message of the layout, in kind order, then destination, then source (each
 /// in the order gateway, the island's nodes as given, `0xFFE`, broadcast).
-fn for_each_message(
-    layout: Layout<'_>,
-    mut f: impl FnMut(&DbcMessage) -> fmt::Result,
-) -> fmt::Result {
-    for schema in schema::all() {
-        match layout {
+fn for_each_message(db: Db<'_>, mut f: impl FnMut(&DbcMessage) -> fmt::Result) -> fmt::Result {
+    for &schema in db.messages {
+        match db.layout {
             Layout::ByKind => f(&DbcMessage {
                 schema,
                 header: None,

@@ -10,7 +10,9 @@
 //!
 //! Every signal is an unsigned little-endian ("Intel") bit field, like every field of the codec.
 //! The destination and source node IDs are in the identifier, not in the data, so they are not
-//! signals.
+//! signals. A message whose layout depends on one of its bytes (a part number, say) marks that
+//! signal [`Mux::Selector`] and the fields of each layout [`Mux::When`] (DBC multiplexing); fields
+//! that a mode merely leaves zero stay plain signals that read 0.
 
 use crate::field::{
     ack, assign_commit, assign_reply, assign_select, boot_up, buzzer_set, dock, dock_confirm,
@@ -72,6 +74,29 @@ impl MessageSchema {
     pub fn signal(&self, name: &str) -> Option<&'static Signal> {
         self.signals.iter().find(|s| s.name == name)
     }
+
+    /// The multiplexer, if the layout depends on one of its fields.
+    pub fn selector(&self) -> Option<&'static Signal> {
+        self.signals.iter().find(|s| s.mux == Mux::Selector)
+    }
+
+    /// The signals a frame with this data carries: every signal of a message without a
+    /// selector; otherwise the selector, the signals always there and those its value selects.
+    pub fn signals_in<'a>(&self, data: &'a [u8]) -> impl Iterator<Item = &'static Signal> + 'a {
+        let selected = self.selector().and_then(|s| s.raw(data));
+        self.signals.iter().filter(move |s| s.present_for(selected))
+    }
+}
+
+/// Whether a signal is in every frame of its message or only in some (DBC multiplexing).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Mux {
+    /// In every frame.
+    Always,
+    /// The multiplexer: its raw value says which [`Mux::When`] signals a frame carries.
+    Selector,
+    /// Only in frames whose selector has one of these raw values (ascending).
+    When(&'static [u8]),
 }
 
 /// One field of a message's data: an unsigned little-endian bit field.
@@ -102,6 +127,8 @@ pub struct Signal {
     pub values: &'static [(u8, &'static str)],
     /// What it means, one line.
     pub comment: &'static str,
+    /// In every frame, or only in some.
+    pub mux: Mux,
 }
 
 impl Signal {
@@ -120,6 +147,16 @@ impl Signal {
     /// The physical value of a raw value (`raw * factor + offset`).
     pub const fn physical(&self, raw: u32) -> i64 {
         raw as i64 * self.factor as i64 + self.offset as i64
+    }
+
+    /// True when a frame whose selector reads `selected` (`None`: no selector) carries this signal.
+    pub fn present_for(&self, selected: Option<u32>) -> bool {
+        match self.mux {
+            Mux::Always | Mux::Selector => true,
+            Mux::When(values) => {
+                selected.is_some_and(|v| values.iter().any(|w| u32::from(*w) == v))
+            }
+        }
     }
 
     /// The name of a raw value, if it has one.
@@ -144,6 +181,7 @@ impl Signal {
             max: u8::MAX as u32,
             values: &[],
             comment,
+            mux: Mux::Always,
         }
     }
 

@@ -12,9 +12,9 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 
-use can_dbc::{ByteOrder, Dbc, MessageId, NumericValue, ValueType};
+use can_dbc::{ByteOrder, Dbc, MessageId, MultiplexIndicator, NumericValue, ValueType};
 use ihex_proto::dbc::{self, Layout, FRAME_ID_MASK};
-use ihex_proto::schema::{self, Direction, MessageSchema};
+use ihex_proto::schema::{self, Direction, MessageSchema, Mux};
 use ihex_proto::{Header, Kind, NodeId, Packet};
 use proptest::strategy::{Strategy, ValueTree};
 use proptest::test_runner::TestRunner;
@@ -79,6 +79,31 @@ fn check_message(dbc: &Dbc, m: &can_dbc::Message, schema: &MessageSchema, tx: &s
         );
         assert_eq!(got.unit, s.unit, "{what}");
         assert_eq!(got.receivers, rx, "{what}");
+        let (indicator, extended) = match s.mux {
+            Mux::Always => (MultiplexIndicator::Plain, None),
+            Mux::Selector => (MultiplexIndicator::Multiplexor, None),
+            Mux::When(v) => (
+                MultiplexIndicator::MultiplexedSignal(u64::from(v[0])),
+                (v.len() > 1).then_some(v),
+            ),
+        };
+        assert_eq!(got.multiplexer_indicator, indicator, "{what}");
+        let mapped: Vec<u64> = dbc
+            .extended_multiplex
+            .iter()
+            .filter(|x| x.message_id == m.id && x.signal_name == s.name)
+            .flat_map(|x| {
+                let selector = schema.selector().map(|s| s.name);
+                assert_eq!(Some(x.multiplexor_signal_name.as_str()), selector, "{what}");
+                x.mappings.iter().flat_map(|r| r.min_value..=r.max_value)
+            })
+            .collect();
+        let want: Vec<u64> = extended
+            .unwrap_or(&[])
+            .iter()
+            .map(|v| u64::from(*v))
+            .collect();
+        assert_eq!(mapped, want, "{what}: SG_MUL_VAL_");
         let values: Vec<(i64, &str)> = dbc
             .value_descriptions_for_signal(m.id, s.name)
             .unwrap_or_default()
@@ -179,6 +204,23 @@ fn can_dbc_reads_an_island_file_with_every_allowed_address_pair() {
     }
     assert_eq!(seen, allowed);
     assert_eq!(dbc.messages.len(), allowed.len(), "a message twice");
+}
+
+/// Multiplexing (on an example: no kind is multiplexed yet): `M`, `m<n>` and `SG_MUL_VAL_` ranges.
+#[test]
+fn can_dbc_reads_multiplexed_signals() {
+    let example = signals::mux_example();
+    let mut text = String::new();
+    dbc::write_messages(&mut text, Layout::ByKind, &[example]).unwrap();
+    assert!(text.contains(" SG_ part M : 0|8@1+"), "{text}");
+    assert!(text.contains(" SG_ c m1 : 8|16@1+"), "{text}");
+    assert!(
+        text.contains("SG_MUL_VAL_ 2164260864 c part 1-3;"),
+        "{text}"
+    );
+    let dbc = Dbc::try_from(text.as_str()).unwrap();
+    assert_eq!(dbc.messages.len(), 1);
+    check_message(&dbc, &dbc.messages[0], &example, dbc::SC, &[dbc::GATEWAY]);
 }
 
 #[test]
@@ -363,6 +405,34 @@ fn cantools_decodes_and_encodes_like_the_codec() {
             assert_eq!(r["island_decoded"], r["decoded"], "{ctx}");
         }
     }
+
+    // Multiplexing (on an example: no kind is multiplexed yet) reads the same in cantools.
+    let mux_path = Path::new(env!("CARGO_TARGET_TMPDIR")).join("mux-example.dbc");
+    let mut text = String::new();
+    dbc::write_messages(&mut text, Layout::ByKind, &[signals::mux_example()]).unwrap();
+    std::fs::write(&mux_path, text).unwrap();
+    let script = "import cantools, json, sys\n\
+                  m = cantools.database.load_file(sys.argv[1]).messages[0]\n\
+                  out = []\n\
+                  for d in json.load(sys.stdin):\n\
+                  \x20   v = m.decode(bytes.fromhex(d), decode_choices=False)\n\
+                  \x20   out.append([v, m.encode(v).hex().upper()])\n\
+                  print(json.dumps(out))\n";
+    let frames = ["00AA01020304", "0233120FEEDD", "0100000000FF"];
+    let out = run_python(
+        &python,
+        &["-c", script, mux_path.to_str().unwrap()],
+        &json!(frames).to_string(),
+    );
+    let got: Value = serde_json::from_str(&out).unwrap();
+    assert_eq!(
+        got,
+        json!([
+            [{"part": 0, "a": 0xAA, "b": 0x0403_0201}, frames[0]],
+            [{"part": 2, "c": 0x1233, "d": 0xDD_EE0F}, frames[1]],
+            [{"part": 1, "c": 0, "d": 0xFF_0000}, frames[2]],
+        ])
+    );
 
     // The documented one-liner: candump -L lines into `cantools decode --frame-id-mask`.
     let log: String = golden

@@ -4,7 +4,7 @@
 
 use std::collections::{BTreeMap, BTreeSet};
 
-use ihex_proto::schema::{self, Direction, Signal};
+use ihex_proto::schema::{self, Direction, MessageSchema, Mux, Signal};
 use ihex_proto::{Header, Kind, Message, Packet};
 use proptest::prelude::*;
 use proptest::strategy::ValueTree;
@@ -47,8 +47,83 @@ fn put(s: &Signal, data: &mut [u8], raw: u32) {
     }
 }
 
+/// One entry's own consistency: names, ranges, value tables, multiplexing, and that the signals of
+/// every layout (every selector value a signal is selected by) cover each payload bit exactly once.
+fn check_entry(m: &MessageSchema) {
+    let kind = m.kind;
+    assert!(dbc_safe(m.summary) && !m.summary.is_empty(), "{kind:?}");
+    let mut names = BTreeSet::new();
+    let selectors: Vec<&Signal> = m
+        .signals
+        .iter()
+        .filter(|s| s.mux == Mux::Selector)
+        .collect();
+    assert!(selectors.len() <= 1, "{kind:?}: several selectors");
+    let mut layouts = BTreeSet::new();
+    for s in m.signals {
+        let what = format!("{kind:?}.{}", s.name);
+        assert!(is_identifier(s.name), "{what}: not a DBC identifier");
+        assert!(names.insert(s.name), "{what}: twice");
+        assert!((1..=32).contains(&s.bits), "{what}: {} bits", s.bits);
+        assert!(!s.signed, "{what}: no iHEX field is signed");
+        assert!(s.factor >= 1, "{what}");
+        assert!(s.min <= s.max && s.max <= full(s.bits), "{what}: range");
+        assert!(dbc_safe(s.unit) && dbc_safe(s.comment) && !s.comment.is_empty());
+        let raws: Vec<u32> = s.values.iter().map(|(v, _)| u32::from(*v)).collect();
+        assert!(raws.windows(2).all(|w| w[0] < w[1]), "{what}: value order");
+        assert!(raws.iter().all(|v| (s.min..=s.max).contains(v)), "{what}");
+        let labels: BTreeSet<_> = s.values.iter().map(|(_, l)| *l).collect();
+        assert_eq!(labels.len(), s.values.len(), "{what}: value names twice");
+        assert!(labels.iter().all(|l| dbc_safe(l) && !l.is_empty()));
+        if let Mux::When(values) = s.mux {
+            let selector = selectors
+                .first()
+                .unwrap_or_else(|| panic!("{what}: no selector"));
+            assert!(!values.is_empty(), "{what}: selected by no value");
+            assert!(
+                values.windows(2).all(|w| w[0] < w[1]),
+                "{what}: value order"
+            );
+            for v in values {
+                let v = u32::from(*v);
+                assert!(
+                    (selector.min..=selector.max).contains(&v),
+                    "{what}: selector {v}"
+                );
+                layouts.insert(Some(v));
+            }
+        }
+    }
+    if layouts.is_empty() {
+        assert!(
+            selectors.is_empty(),
+            "{kind:?}: a selector that selects nothing"
+        );
+        layouts.insert(None);
+    }
+    for layout in layouts {
+        let mut owner = vec![None; m.data_len() as usize * 8];
+        for s in m.signals.iter().filter(|s| s.present_for(layout)) {
+            let what = format!("{kind:?}.{} (selector {layout:?})", s.name);
+            for bit in s.start as usize..s.start as usize + s.bits as usize {
+                let slot = owner
+                    .get_mut(bit)
+                    .unwrap_or_else(|| panic!("{what}: bit {bit} past the data"));
+                assert!(slot.is_none(), "{what}: bit {bit} also in {slot:?}");
+                *slot = Some(s.name);
+            }
+        }
+        // The codec reads every byte (unused ones must be zero), so a tool must see every bit.
+        let uncovered: Vec<usize> = (0..owner.len()).filter(|b| owner[*b].is_none()).collect();
+        assert!(
+            uncovered.is_empty(),
+            "{kind:?} (selector {layout:?}): bits {uncovered:?} in no signal"
+        );
+    }
+}
+
 #[test]
-fn every_kind_has_an_entry_that_tiles_its_payload() {
+fn every_kind_has_a_consistent_entry_that_tiles_its_payload() {
     // Every assigned kind value is in Kind::ALL, so iterating ALL misses none.
     let assigned: Vec<Kind> = (0..=Header::KIND_MASK as u8)
         .filter_map(Kind::from_raw)
@@ -65,39 +140,30 @@ fn every_kind_has_an_entry_that_tiles_its_payload() {
             kind.is_command(),
             "{kind:?}"
         );
-        assert!(dbc_safe(m.summary) && !m.summary.is_empty(), "{kind:?}");
-        let mut names = BTreeSet::new();
-        let mut owner = vec![None; m.data_len() as usize * 8];
-        for s in m.signals {
-            let what = format!("{kind:?}.{}", s.name);
-            assert!(is_identifier(s.name), "{what}: not a DBC identifier");
-            assert!(names.insert(s.name), "{what}: twice");
-            assert!((1..=32).contains(&s.bits), "{what}: {} bits", s.bits);
-            assert!(!s.signed, "{what}: no iHEX field is signed");
-            assert!(s.factor >= 1, "{what}");
-            assert!(s.min <= s.max && s.max <= full(s.bits), "{what}: range");
-            assert!(dbc_safe(s.unit) && dbc_safe(s.comment) && !s.comment.is_empty());
-            let raws: Vec<u32> = s.values.iter().map(|(v, _)| u32::from(*v)).collect();
-            assert!(raws.windows(2).all(|w| w[0] < w[1]), "{what}: value order");
-            assert!(raws.iter().all(|v| (s.min..=s.max).contains(v)), "{what}");
-            let labels: BTreeSet<_> = s.values.iter().map(|(_, l)| *l).collect();
-            assert_eq!(labels.len(), s.values.len(), "{what}: value names twice");
-            assert!(labels.iter().all(|l| dbc_safe(l) && !l.is_empty()));
-            for bit in s.start as usize..s.start as usize + s.bits as usize {
-                let slot = owner
-                    .get_mut(bit)
-                    .unwrap_or_else(|| panic!("{what}: bit {bit} past the data"));
-                assert!(slot.is_none(), "{what}: bit {bit} also in {slot:?}");
-                *slot = Some(s.name);
-            }
-        }
-        // The codec reads every byte (unused ones must be zero), so a tool must see every bit.
-        let uncovered: Vec<usize> = (0..owner.len()).filter(|b| owner[*b].is_none()).collect();
-        assert!(
-            uncovered.is_empty(),
-            "{kind:?}: bits {uncovered:?} in no signal"
-        );
+        check_entry(&m);
     }
+}
+
+/// The checks above see each multiplexed layout separately (on an example: no kind is multiplexed
+/// yet), and the signals of a frame follow its selector.
+#[test]
+fn a_multiplexed_entry_is_checked_layout_by_layout() {
+    let m = signals::mux_example();
+    check_entry(&m);
+    let names = |data: &[u8]| -> Vec<&str> { m.signals_in(data).map(|s| s.name).collect() };
+    assert_eq!(names(&[0, 1, 2, 3, 4, 5]), ["part", "a", "b"]);
+    assert_eq!(names(&[2, 1, 2, 3, 4, 5]), ["part", "c", "d"]);
+    assert_eq!(names(&[9, 1, 2, 3, 4, 5]), ["part"]);
+    assert_eq!(m.selector().map(|s| s.name), Some("part"));
+    assert_eq!(schema::of(Kind::LedSet).selector(), None);
+    // A layout whose signals overlap fails the check.
+    let mut broken = m.signals.to_vec();
+    broken[3].bits = 24; // c now reaches into d in parts 1 to 3
+    let broken = MessageSchema {
+        signals: Vec::leak(broken),
+        ..m
+    };
+    assert!(std::panic::catch_unwind(|| check_entry(&broken)).is_err());
 }
 
 proptest! {
@@ -110,7 +176,7 @@ proptest! {
         let data = p.msg.encode();
         let m = schema::of(p.msg.kind());
         let expected = signals::expected(&p.msg);
-        let mut names: Vec<_> = m.signals.iter().map(|s| s.name).collect();
+        let mut names: Vec<_> = m.signals_in(&data).map(|s| s.name).collect();
         let mut want: Vec<_> = expected.iter().map(|e| e.name).collect();
         names.sort_unstable();
         want.sort_unstable();
@@ -157,7 +223,7 @@ fn signal_ranges_are_exactly_what_decode_accepts() {
                 put(s, &mut d, raw);
                 Packet::decode(id, &d)
             };
-            for s in m.signals {
+            for s in m.signals_in(&data) {
                 let ok = bounds.entry((m.kind as u8, s.name)).or_default();
                 ok.0 |= with(s, s.max).is_ok();
                 ok.1 |= with(s, s.min).is_ok();

@@ -215,3 +215,46 @@ pub fn expected(msg: &Message) -> Vec<Expected> {
         }
     }
 }
+
+/// A multiplexed message for the tests of the multiplexing machinery (no iHEX kind is multiplexed
+/// yet): 6 bytes, `part` in byte 0 selects `a` (byte 1) and `b` (bytes 2–5) for part 0, `c`
+/// (bytes 1–2) and `d` (bytes 3–5) for parts 1 to 3.
+pub fn mux_example() -> ihex_proto::schema::MessageSchema {
+    use ihex_proto::schema::{MessageSchema, Mux, Signal};
+    const fn sig(name: &'static str, start: u8, bits: u8, mux: Mux) -> Signal {
+        Signal {
+            name,
+            start,
+            bits,
+            signed: false,
+            factor: 1,
+            offset: 0,
+            unit: "",
+            min: 0,
+            max: if bits >= 32 {
+                u32::MAX
+            } else {
+                (1 << bits) - 1
+            },
+            values: &[],
+            comment: "example",
+            mux,
+        }
+    }
+    static SIGNALS: [Signal; 5] = [
+        Signal {
+            max: 3,
+            values: &[(0, "zero"), (1, "one"), (2, "two"), (3, "three")],
+            ..sig("part", 0, 8, Mux::Selector)
+        },
+        sig("a", 8, 8, Mux::When(&[0])),
+        sig("b", 16, 32, Mux::When(&[0])),
+        sig("c", 8, 16, Mux::When(&[1, 2, 3])),
+        sig("d", 24, 24, Mux::When(&[1, 2, 3])),
+    ];
+    MessageSchema {
+        kind: ihex_proto::Kind::Fault,
+        summary: "A multiplexed example",
+        signals: &SIGNALS,
+    }
+}
