@@ -34,11 +34,16 @@ pub fn round_trip(vectors: &Path) -> Result<()> {
         }
         Err(e) => return Err(e.context("CI=true: the cantools round trip must run")),
     };
+    let report = vectors.with_file_name("cantools-report.txt");
+    if report.exists() {
+        std::fs::remove_file(&report)?;
+    }
     cmd::run(
         cmd::cargo()
             .current_dir(cmd::root())
             .env("IHEX_CANTOOLS_PYTHON", &python)
             .env("IHEX_GOLDEN_VECTORS", vectors)
+            .env("IHEX_CANTOOLS_REPORT", &report)
             .args([
                 "test",
                 "-p",
@@ -48,7 +53,16 @@ pub fn round_trip(vectors: &Path) -> Result<()> {
                 "--",
                 "--ignored",
             ]),
-    )
+    )?;
+    // The test writes its report only when it ran to the end: no report, no round trip.
+    let done = std::fs::read_to_string(&report).with_context(|| {
+        format!(
+            "the cantools test did not run (no {}): was it renamed or filtered out?",
+            report.display()
+        )
+    })?;
+    print!("xtask: {done}");
+    Ok(())
 }
 
 /// The environment's Python, created and filled when needed.
