@@ -312,6 +312,34 @@ impl Docking {
             .collect()
     }
 
+    /// `node` is forgotten: every connection it is part of ends, its waiting reports are dropped,
+    /// and a docking it reported that is still pending fails (the next report starts).
+    pub fn forget(&mut self, node: NodeId, now: Instant) -> Vec<Step> {
+        let mut out = Vec::new();
+        let gone: Vec<_> = self
+            .connections
+            .iter()
+            .filter(|(&(s, _), &(m, _))| s == node || m == node)
+            .map(|(&s, &m)| (s, m))
+            .collect();
+        for (s, m) in gone {
+            self.connections.remove(&s);
+            out.push(Step::Removed(conn(s, m)));
+        }
+        self.queue.retain(|&(n, _)| n != node);
+        if let Some(p) = self.pending {
+            if p.node == node {
+                out.push(Step::Failed {
+                    node,
+                    port: p.port,
+                    reason: "cancelled: the element was forgotten".into(),
+                });
+                self.next(now, &mut out);
+            }
+        }
+        out
+    }
+
     /// Handshake timeout.
     pub fn tick(&mut self, now: Instant) -> Vec<Step> {
         let mut out = Vec::new();
@@ -557,5 +585,42 @@ mod tests {
             vec![Step::Removed(conn((id(1), port(0)), (id(3), port(1))))]
         );
         assert!(d.connections().is_empty());
+    }
+
+    #[test]
+    fn a_forgotten_element_leaves_no_connection_report_or_pending_docking() {
+        let t0 = Instant::now();
+        let mut d = Docking::new(T, 4);
+        d.on_detected(id(0x111), port(3), t0);
+        d.on_handshake(id(2), port(0), t0);
+        // 111 reports another docking (pending), then one more (queued); 112 one (queued).
+        d.on_detected(id(0x111), port(4), t0);
+        d.on_detected(id(0x111), port(5), t0);
+        d.on_detected(id(0x112), port(1), t0);
+        let steps = d.forget(id(0x111), t0);
+        assert_eq!(
+            steps,
+            vec![
+                Step::Removed(conn((id(0x111), port(3)), (id(2), port(0)))),
+                Step::Failed {
+                    node: id(0x111),
+                    port: port(4),
+                    reason: "cancelled: the element was forgotten".into()
+                },
+                Step::Confirm {
+                    node: id(0x112),
+                    port: port(1)
+                },
+            ],
+            "111's queued port 5 is dropped; 112's report goes next"
+        );
+        assert!(d.connections().is_empty());
+        assert_eq!(d.queued().count(), 0);
+        // Forgetting a mobile element ends its connection too.
+        d.on_handshake(id(3), port(1), t0);
+        assert_eq!(
+            d.forget(id(3), t0),
+            vec![Step::Removed(conn((id(0x112), port(1)), (id(3), port(1))))]
+        );
     }
 }

@@ -154,6 +154,18 @@ pub struct NodeRebooted {
     pub role: Role,
 }
 
+/// Payload of `node_forgotten`: the gateway dropped a node from its registry, its retained state
+/// document and its Home Assistant device.
+#[derive(Clone, PartialEq, Eq, Debug, Serialize, Deserialize)]
+pub struct NodeForgotten {
+    /// The node's former ID.
+    pub id: HexId,
+    /// `forget` (the `forget` command) or `renumbered` (the board now answers as `new_id`).
+    pub reason: String,
+    /// The board's new ID when it was renumbered, else `null`.
+    pub new_id: Option<HexId>,
+}
+
 /// How a command ended.
 #[derive(Clone, Copy, PartialEq, Eq, Debug, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -312,6 +324,8 @@ pub enum Event {
     NodeLost(NodeLost),
     /// A known, online node announced a restart.
     NodeRebooted(NodeRebooted),
+    /// A node was forgotten (the `forget` command, or it was renumbered).
+    NodeForgotten(NodeForgotten),
     /// A command was acknowledged, refused, timed out or could not be sent.
     CommandResult(CommandResult),
     /// A command was invalid and not sent.
@@ -339,6 +353,7 @@ impl Event {
             Event::NodeOnline(_) => "node_online",
             Event::NodeLost(_) => "node_lost",
             Event::NodeRebooted(_) => "node_rebooted",
+            Event::NodeForgotten(_) => "node_forgotten",
             Event::CommandResult(_) => "command_result",
             Event::CommandRejected(_) => "command_rejected",
             Event::Fault(_) => "fault",

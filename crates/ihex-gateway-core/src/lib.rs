@@ -26,7 +26,8 @@
 //! Modules: [`bridge`] (the state machine, one submodule per concern), [`command`] (parsing and
 //! validation of JSON commands), [`event`] (the MQTT API's events and state documents), [`registry`]
 //! (what is known of each node), [`docking`] (the one-at-a-time docking sequence), [`throttle`]
-//! (rate limit of error events), [`error_frame`] (SocketCAN error frames), [`topic`] (topic names).
+//! (rate limit of error events), [`error_frame`] (SocketCAN error frames), [`topic`] (topic names),
+//! [`ha`] (Home Assistant discovery and commands).
 #![forbid(unsafe_code)]
 #![warn(missing_docs)]
 
@@ -35,6 +36,7 @@ pub mod command;
 pub mod docking;
 pub mod error_frame;
 pub mod event;
+pub mod ha;
 pub mod registry;
 pub mod throttle;
 pub mod topic;

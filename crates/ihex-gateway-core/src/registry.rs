@@ -4,7 +4,7 @@
 use std::collections::BTreeMap;
 use std::time::Instant;
 
-use ihex_proto::{BootRole, BuzzerCommand, HealthFlags, HealthReply, LedCommand, NodeId};
+use ihex_proto::{BootRole, BuzzerCommand, HealthFlags, HealthReply, LedCommand, NodeId, Uid};
 
 use crate::event::{HexId, Link, NodeState, Reported, Role};
 
@@ -50,6 +50,8 @@ pub struct NodeEntry {
     pub relay: Option<bool>,
     /// Signal-loop bitmap (bit n = port n closed).
     pub loops: u8,
+    /// The board's 96-bit unique ID, once the gateway learnt it (a successful `assign`).
+    pub uid: Option<Uid>,
     /// The stable part of the state document last published (see [`Registry::state_changed`]).
     published: Option<NodeState>,
 }
@@ -72,6 +74,7 @@ impl NodeEntry {
             buzzer: None,
             relay: None,
             loops: 0,
+            uid: None,
             published: None,
         }
     }
@@ -183,6 +186,24 @@ impl Registry {
     /// Every entry, by ascending ID.
     pub fn iter(&self) -> impl Iterator<Item = &NodeEntry> {
         self.nodes.values()
+    }
+
+    /// Removes `id` (the `forget` command, a renumbered board); returns its entry.
+    pub fn remove(&mut self, id: NodeId) -> Option<NodeEntry> {
+        self.nodes.remove(&id)
+    }
+
+    /// Records that the board `uid` answers as `id` now, and returns the other IDs the registry
+    /// knew that board by: it was renumbered, and nothing answers to those any more.
+    pub fn learn_uid(&mut self, id: NodeId, uid: Uid) -> Vec<NodeId> {
+        if let Some(e) = self.nodes.get_mut(&id) {
+            e.uid = Some(uid);
+        }
+        self.nodes
+            .values()
+            .filter(|e| e.id != id && e.uid == Some(uid))
+            .map(|e| e.id)
+            .collect()
     }
 
     /// IDs of nodes currently online.

@@ -1,9 +1,10 @@
 //! MQTT topic names: the seed's defaults, the island prefix, and the mapping of the bridge's logical
-//! [`Topic`]s to concrete names.
+//! [`Topic`]s to concrete names (the Home Assistant ones through [`HaTopics`]).
 
 use ihex_proto::NodeId;
 
 use crate::bridge::Topic;
+use crate::ha::HaTopics;
 
 /// Default command topic (the seed's name).
 pub const COMMANDS: &str = "CommandsTopic";
@@ -29,6 +30,9 @@ pub struct Topics {
     pub node_state_root: String,
     /// Subscribed in demo mode: simulated island control.
     pub sim: String,
+    /// Home Assistant's topics (discovery, status) and the gateway's own for it; Home Assistant's
+    /// defaults until [`Topics::with_ha`].
+    pub ha: HaTopics,
 }
 
 impl Topics {
@@ -50,7 +54,14 @@ impl Topics {
             availability: p(availability),
             node_state_root: p(node_state_root),
             sim: p(SIM),
+            ha: HaTopics::defaults(island),
         }
+    }
+
+    /// The same names with Home Assistant's discovery prefix and status topic as configured.
+    pub fn with_ha(mut self, island: Option<&str>, discovery_prefix: &str, status: &str) -> Topics {
+        self.ha = HaTopics::new(island, discovery_prefix, status);
+        self
     }
 
     /// The seed's names without an island prefix.
@@ -68,6 +79,7 @@ impl Topics {
         match topic {
             Topic::Events => self.events.clone(),
             Topic::NodeState(id) => self.node_state(id),
+            Topic::Ha(t) => self.ha.resolve(t),
         }
     }
 }

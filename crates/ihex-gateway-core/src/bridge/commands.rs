@@ -333,7 +333,8 @@ impl Commands {
         }
     }
 
-    /// An `AssignReply` (from the board's new ID, or from an unconfigured board).
+    /// An `AssignReply` (from the board's new ID, or from an unconfigured board). Returns the
+    /// board's UID when it confirmed its new ID: the gateway now knows which board `new_id` is.
     pub(super) fn on_assign_reply(
         &mut self,
         seq: Seq,
@@ -341,26 +342,31 @@ impl Commands {
         new_id: NodeId,
         uid_tail: [u8; 4],
         out: &mut Outputs,
-    ) {
+    ) -> Option<Uid> {
         let key = (NodeId::BROADCAST, Kind::AssignCommit, seq);
         let matches = matches!(self.pending.get(&key), Some(PendingCommand { what: What::Assign { uid, .. }, .. }) if uid.tail() == uid_tail);
         if !matches {
             tracing::debug!(seq, %new_id, "assign reply for no pending assign");
-            return;
+            return None;
         }
-        if let Some(p) = self.pending.remove(&key) {
-            let wanted = match p.what {
-                What::Assign { new_id, .. } => new_id,
-                _ => new_id,
-            };
-            if result == AckResult::Ok && new_id != wanted {
-                let reason = format!("the board answered with id {new_id} instead of {wanted}");
-                self.emit_result(p, Outcome::Refused, Some(reason), out);
-            } else if result == AckResult::Ok {
-                self.emit_result(p, Outcome::Ok, None, out);
-            } else {
-                self.emit_result(p, Outcome::Refused, Some(result.to_string()), out);
-            }
+        let p = self.pending.remove(&key)?;
+        let What::Assign {
+            uid,
+            new_id: wanted,
+        } = p.what
+        else {
+            return None;
+        };
+        if result == AckResult::Ok && new_id != wanted {
+            let reason = format!("the board answered with id {new_id} instead of {wanted}");
+            self.emit_result(p, Outcome::Refused, Some(reason), out);
+            None
+        } else if result == AckResult::Ok {
+            self.emit_result(p, Outcome::Ok, None, out);
+            Some(uid)
+        } else {
+            self.emit_result(p, Outcome::Refused, Some(result.to_string()), out);
+            None
         }
     }
 

@@ -8,12 +8,16 @@
 //! This file only routes each input to the concern that owns it, one submodule each: `commands`
 //! (pending commands, sequence numbers, acks and timeouts), `health` (health checks, presence, lost
 //! detection), `diagnostics` (error frames, drops, undecodable frames, faults, rate limits), `dock`
-//! (the docking sequence's frames and events), `output` (the queues the adapters drain).
+//! (the docking sequence's frames and events), `forget` (the `forget` command and renumbered
+//! boards), `home_assistant` (discovery and commands from Home Assistant, [`crate::ha`]), `output`
+//! (the queues the adapters drain).
 
 mod commands;
 mod diagnostics;
 mod dock;
+mod forget;
 mod health;
+mod home_assistant;
 mod output;
 #[cfg(test)]
 mod test_support;
@@ -26,9 +30,10 @@ pub use commands::CommandCounters;
 pub use diagnostics::{BusEvent, BusHealth, ERROR_EVENT_WINDOW};
 pub use output::{Publication, Topic};
 
-use crate::command::{self, Command, CommandError};
+use crate::command::{self, Command, CommandError, Request};
 use crate::docking::Docking;
 use crate::event::{CommandRejected, Connection, Event, HexId, NodeList, NodeState, Target};
+use crate::ha::Ha;
 use crate::registry::Registry;
 use commands::Commands;
 use diagnostics::Diagnostics;
@@ -87,6 +92,8 @@ pub struct Bridge {
     commands: Commands,
     health: Health,
     diagnostics: Diagnostics,
+    /// Home Assistant discovery, when enabled ([`Bridge::with_home_assistant`]).
+    ha: Option<Ha>,
 }
 
 impl Bridge {
@@ -100,6 +107,7 @@ impl Bridge {
             commands: Commands::new(config.command_timeout),
             health: Health::new(config.health_period, config.lost_after_misses, now),
             diagnostics: Diagnostics::new(),
+            ha: None,
             config,
         }
     }
@@ -155,10 +163,14 @@ impl Bridge {
     /// A message arrived on `CommandsTopic` (raw bytes: the bridge parses and validates them and answers
     /// bad input with a `command_rejected` event).
     pub fn handle_command(&mut self, payload: &[u8], now: Instant) {
-        let req = match command::parse(payload, self.config.max_command_bytes) {
-            Ok(req) => req,
-            Err(rej) => return self.reject(rej.request_id, rej.error),
-        };
+        match command::parse(payload, self.config.max_command_bytes) {
+            Ok(req) => self.execute(req, now),
+            Err(rej) => self.reject(rej.request_id, rej.error),
+        }
+    }
+
+    /// Carries out a valid command (from the JSON API or from Home Assistant).
+    fn execute(&mut self, req: Request, now: Instant) {
         let request_id = req.request_id;
         let sent = match req.command {
             Command::List => {
@@ -195,6 +207,10 @@ impl Bridge {
                 self.commands
                     .send_assign(request_id, uid, new_id, now, &mut self.out)
             }
+            Command::Forget { id } => {
+                self.forget_command(request_id, id, now);
+                Ok(())
+            }
         };
         if let Err((request_id, error)) = sent {
             self.reject(request_id, error);
@@ -218,8 +234,12 @@ impl Bridge {
                 uid_tail,
             } = packet.msg
             {
-                self.commands
-                    .on_assign_reply(seq, result, new_id, uid_tail, &mut self.out);
+                let uid =
+                    self.commands
+                        .on_assign_reply(seq, result, new_id, uid_tail, &mut self.out);
+                if let Some(uid) = uid {
+                    self.learn_uid(new_id, uid, now);
+                }
             }
             self.flush_states(now);
             return;
@@ -259,9 +279,14 @@ impl Bridge {
                 result,
                 new_id,
                 uid_tail,
-            } => self
-                .commands
-                .on_assign_reply(seq, result, new_id, uid_tail, &mut self.out),
+            } => {
+                let uid =
+                    self.commands
+                        .on_assign_reply(seq, result, new_id, uid_tail, &mut self.out);
+                if let Some(uid) = uid {
+                    self.learn_uid(new_id, uid, now);
+                }
+            }
             // Command kinds never come addressed to the gateway (the decoder checks addresses).
             _ => tracing::debug!(?packet, "ignoring unexpected packet"),
         }
@@ -304,8 +329,11 @@ impl Bridge {
     }
 
     /// The MQTT session is (re)established: queue the retained node states again (a restarted broker
-    /// may have lost them).
+    /// may have lost them), and with Home Assistant discovery every config and light state.
     pub fn handle_mqtt_connected(&mut self, now: Instant) {
+        if let Some(ha) = &self.ha {
+            self.out.publish.push_back(Publication::Ha(ha.gateway()));
+        }
         let ids: Vec<NodeId> = self.registry.iter().map(|e| e.id).collect();
         for id in ids {
             self.publish_state(id, now, true);
@@ -400,7 +428,12 @@ impl Bridge {
         };
         let changed = self.registry.state_changed(id, &doc);
         if changed || force {
+            let ha = match (&mut self.ha, self.registry.get(id)) {
+                (Some(ha), Some(entry)) => ha.on_state(&doc, entry, force),
+                _ => Vec::new(),
+            };
             self.out.publish.push_back(Publication::State(doc));
+            self.out.publish.extend(ha.into_iter().map(Publication::Ha));
         }
     }
 

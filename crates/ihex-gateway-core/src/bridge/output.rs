@@ -1,13 +1,14 @@
-//! What the bridge hands to the adapters: frames to transmit, and publications (events and retained
-//! node state documents) as typed values, each queue in the order the bridge produced it. The
-//! adapter serialises a publication exactly once ([`Publication::to_json`]) and sends it on
-//! [`Publication::topic`].
+//! What the bridge hands to the adapters: frames to transmit, and publications (events, retained
+//! node state documents, Home Assistant's discovery configs and light states, and emptied retained
+//! topics) as typed values, each queue in the order the bridge produced it. The adapter serialises a
+//! publication exactly once ([`Publication::to_json`]) and sends it on [`Publication::topic`].
 
 use std::collections::{BTreeSet, VecDeque};
 
 use ihex_proto::{NodeId, Packet};
 
 use crate::event::{self, Event, NodeState};
+use crate::ha::{HaPublication, HaTopic};
 
 /// Logical MQTT topics; the adapter maps them to names under the island prefix
 /// ([`crate::topic::Topics::resolve`]).
@@ -17,6 +18,8 @@ pub enum Topic {
     Events,
     /// The retained state document of one node.
     NodeState(NodeId),
+    /// A Home Assistant topic (retained).
+    Ha(HaTopic),
 }
 
 /// One message for MQTT, as a Rust value: an event, or a node's retained state document.
@@ -26,6 +29,11 @@ pub enum Publication {
     Event(Event),
     /// A node's state document for [`Topic::NodeState`] (retained).
     State(NodeState),
+    /// A Home Assistant discovery config or light state for [`Topic::Ha`] (retained).
+    Ha(HaPublication),
+    /// An empty retained message: the broker drops what the topic held (a forgotten node's state
+    /// document, Home Assistant device and light state).
+    Cleared(Topic),
 }
 
 impl Publication {
@@ -34,19 +42,24 @@ impl Publication {
         match self {
             Publication::Event(_) => Topic::Events,
             Publication::State(s) => Topic::NodeState(s.id.0),
+            Publication::Ha(h) => Topic::Ha(h.topic()),
+            Publication::Cleared(t) => *t,
         }
     }
 
-    /// Retained (state documents) or not (events).
+    /// Retained (everything but events) or not (events).
     pub fn retain(&self) -> bool {
-        matches!(self, Publication::State(_))
+        !matches!(self, Publication::Event(_))
     }
 
-    /// The compact JSON text that is published: `{"event":…,"payload":…}` or the state document.
+    /// The text that is published: compact JSON (`{"event":…,"payload":…}`, the state document, a
+    /// Home Assistant config or light state), or nothing for [`Publication::Cleared`].
     pub fn to_json(&self) -> String {
         match self {
             Publication::Event(e) => e.to_json(),
             Publication::State(s) => event::to_json(s),
+            Publication::Ha(h) => h.to_json(),
+            Publication::Cleared(_) => String::new(),
         }
     }
 }

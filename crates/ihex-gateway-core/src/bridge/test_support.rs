@@ -5,7 +5,7 @@ use std::time::{Duration, Instant};
 use ihex_proto::{AckResult, HealthFlags, HealthReply, Kind, Message, NodeId, Packet, Port};
 use serde_json::Value;
 
-use super::{Bridge, BridgeConfig, Publication};
+use super::{Bridge, BridgeConfig, Publication, Topic};
 
 pub(super) fn id(raw: u16) -> NodeId {
     NodeId::new(raw).unwrap()
@@ -23,6 +23,10 @@ pub(super) struct Out {
     pub(super) events: Vec<Value>,
     pub(super) raw_events: Vec<String>,
     pub(super) states: Vec<(NodeId, Value)>,
+    /// Home Assistant configs and light states, with their topics.
+    pub(super) ha: Vec<(Topic, Value)>,
+    /// Retained topics emptied.
+    pub(super) cleared: Vec<Topic>,
 }
 
 impl Out {
@@ -55,6 +59,15 @@ pub(super) fn drain(b: &mut Bridge) -> Out {
                 assert!(p.retain(), "node states are retained");
                 out.states
                     .push((s.id.0, serde_json::from_str(&payload).unwrap()));
+            }
+            Publication::Ha(_) => {
+                assert!(p.retain(), "Home Assistant configs and states are retained");
+                out.ha
+                    .push((p.topic(), serde_json::from_str(&payload).unwrap()));
+            }
+            Publication::Cleared(t) => {
+                assert!(p.retain() && payload.is_empty(), "{t:?}");
+                out.cleared.push(t);
             }
         }
     }

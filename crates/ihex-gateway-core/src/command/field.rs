@@ -8,7 +8,7 @@ use super::json::{Json, Quote};
 use super::CommandError;
 
 /// The fields of one JSON object of a command (the command itself, or `blink` inside `led`).
-pub(super) struct Fields<'a> {
+pub(crate) struct Fields<'a> {
     cmd: &'static str,
     /// `"blink."` for the members of `blink`, `""` at the top.
     prefix: &'static str,
@@ -16,7 +16,7 @@ pub(super) struct Fields<'a> {
 }
 
 /// What a duration field accepts.
-pub(super) fn ms_expected() -> String {
+pub(crate) fn ms_expected() -> String {
     format!(
         "an integer {} to {}, in ms (rounded to the nearest 10 ms)",
         unit::MIN_MS,
@@ -28,14 +28,35 @@ impl<'a> Fields<'a> {
     /// The members of `cmd`'s object; refuses a repeated name, and any name not in `allowed`
     /// (`cmd` and `request_id` are read before and allowed everywhere; `hint` follows the list of
     /// accepted names in the reason).
-    pub(super) fn new(
+    pub(crate) fn new(
         cmd: &'static str,
         prefix: &'static str,
         members: &'a [(String, Json)],
         allowed: &[&str],
         hint: &str,
     ) -> Result<Fields<'a>, CommandError> {
-        let top = prefix.is_empty();
+        Fields::check(cmd, prefix, members, allowed, hint, prefix.is_empty())
+    }
+
+    /// The members of an object that is not a JSON API command (a Home Assistant payload): like
+    /// [`Fields::new`] at the top, but `cmd` and `request_id` are as unknown as any other name.
+    pub(crate) fn object(
+        cmd: &'static str,
+        members: &'a [(String, Json)],
+        allowed: &[&str],
+    ) -> Result<Fields<'a>, CommandError> {
+        Fields::check(cmd, "", members, allowed, "", false)
+    }
+
+    /// Refuses repeated and unknown names; `top`: `cmd` and `request_id` are allowed too.
+    fn check(
+        cmd: &'static str,
+        prefix: &'static str,
+        members: &'a [(String, Json)],
+        allowed: &[&str],
+        hint: &str,
+        top: bool,
+    ) -> Result<Fields<'a>, CommandError> {
         for (i, (name, _)) in members.iter().enumerate() {
             if members[..i].iter().any(|(n, _)| n == name) {
                 return Err(CommandError::Invalid {
@@ -68,7 +89,7 @@ impl<'a> Fields<'a> {
     }
 
     /// The value of `name`; `None` when it is absent or `null` ("not given").
-    pub(super) fn get(&self, name: &str) -> Option<&'a Json> {
+    pub(crate) fn get(&self, name: &str) -> Option<&'a Json> {
         match self.members.iter().find(|(n, _)| n == name) {
             None | Some((_, Json::Null)) => None,
             Some((_, v)) => Some(v),
@@ -76,7 +97,7 @@ impl<'a> Fields<'a> {
     }
 
     /// ``cmd: `field` must be EXPECTED; got VALUE``.
-    pub(super) fn bad(&self, name: &str, expected: &str, got: &Json) -> CommandError {
+    pub(crate) fn bad(&self, name: &str, expected: &str, got: &Json) -> CommandError {
         self.invalid(format!(
             "`{}{name}` must be {expected}; got {}",
             self.prefix,
@@ -85,12 +106,12 @@ impl<'a> Fields<'a> {
     }
 
     /// ``cmd: missing `field`: EXPECTED``.
-    pub(super) fn missing(&self, name: &str, expected: &str) -> CommandError {
+    pub(crate) fn missing(&self, name: &str, expected: &str) -> CommandError {
         self.invalid(format!("missing `{}{name}`: {expected}", self.prefix))
     }
 
     /// `cmd: MESSAGE`.
-    pub(super) fn invalid(&self, message: String) -> CommandError {
+    pub(crate) fn invalid(&self, message: String) -> CommandError {
         CommandError::Invalid {
             cmd: self.cmd,
             message,
@@ -98,7 +119,7 @@ impl<'a> Fields<'a> {
     }
 
     /// A required value: `v`, or the missing-field error.
-    pub(super) fn required<T>(
+    pub(crate) fn required<T>(
         &self,
         name: &str,
         v: Option<T>,
@@ -108,7 +129,7 @@ impl<'a> Fields<'a> {
     }
 
     /// An integer from `lo` to `hi` (a JSON number without fraction or exponent beyond it).
-    pub(super) fn int(&self, name: &str, lo: i64, hi: i64) -> Result<Option<i64>, CommandError> {
+    pub(crate) fn int(&self, name: &str, lo: i64, hi: i64) -> Result<Option<i64>, CommandError> {
         let Some(v) = self.get(name) else {
             return Ok(None);
         };
@@ -122,19 +143,19 @@ impl<'a> Fields<'a> {
     }
 
     /// An integer from `lo` to `hi` as a byte.
-    pub(super) fn u8_in(&self, name: &str, lo: u8, hi: u8) -> Result<Option<u8>, CommandError> {
+    pub(crate) fn u8_in(&self, name: &str, lo: u8, hi: u8) -> Result<Option<u8>, CommandError> {
         let v = self.int(name, i64::from(lo), i64::from(hi))?;
         Ok(v.and_then(|i| u8::try_from(i).ok()))
     }
 
     /// An integer from `lo` to `hi` as a `u16`.
-    pub(super) fn u16_in(&self, name: &str, lo: u16, hi: u16) -> Result<Option<u16>, CommandError> {
+    pub(crate) fn u16_in(&self, name: &str, lo: u16, hi: u16) -> Result<Option<u16>, CommandError> {
         let v = self.int(name, i64::from(lo), i64::from(hi))?;
         Ok(v.and_then(|i| u16::try_from(i).ok()))
     }
 
     /// A duration in ms, as the protocol's 10 ms units (10–2550 ms, rounded to the nearest 10 ms).
-    pub(super) fn duration(&self, name: &str) -> Result<Option<u8>, CommandError> {
+    pub(crate) fn duration(&self, name: &str) -> Result<Option<u8>, CommandError> {
         let Some(v) = self.get(name) else {
             return Ok(None);
         };
@@ -151,7 +172,7 @@ impl<'a> Fields<'a> {
     }
 
     /// `true` or `false`.
-    pub(super) fn bool(&self, name: &str) -> Result<Option<bool>, CommandError> {
+    pub(crate) fn bool(&self, name: &str) -> Result<Option<bool>, CommandError> {
         match self.get(name) {
             None => Ok(None),
             Some(Json::Bool(b)) => Ok(Some(*b)),
@@ -160,7 +181,7 @@ impl<'a> Fields<'a> {
     }
 
     /// A string, described by `expected` when it is something else.
-    pub(super) fn str(&self, name: &str, expected: &str) -> Result<Option<&'a str>, CommandError> {
+    pub(crate) fn str(&self, name: &str, expected: &str) -> Result<Option<&'a str>, CommandError> {
         match self.get(name) {
             None => Ok(None),
             Some(Json::String(s)) => Ok(Some(s)),

@@ -5,7 +5,7 @@
 //! failure is a [`CommandError`] whose text says, in the API's words, which field was wrong, what
 //! it accepts and what it got; parsing never panics, whatever the bytes.
 
-mod field;
+pub(crate) mod field;
 pub mod json;
 
 use ihex_proto::{BuzzerCommand, LedCommand, Message, NodeId, Rgb, Seq, Uid};
@@ -15,7 +15,7 @@ use field::{ms_expected, Fields};
 use json::{Json, Quote};
 
 /// Every command name, for error messages.
-pub const COMMAND_NAMES: &str = "led, buzzer, power, identify, assign, list";
+pub const COMMAND_NAMES: &str = "led, buzzer, power, identify, assign, forget, list";
 
 /// Default buzzer tone when a command gives none, in Hz.
 pub const DEFAULT_FREQ_HZ: u16 = 2000;
@@ -83,6 +83,12 @@ pub enum CommandError {
          with one id on the bus (add \"force\": true to assign anyway)"
     )]
     IdInUse(HexId),
+    /// `forget` of a node that still answers health checks.
+    #[error(
+        "forget: node {0} is online; only a lost node can be forgotten (an online one would be \
+         registered again at its next health reply)"
+    )]
+    ForgetOnline(HexId),
     /// Too many unanswered commands of one kind to one node: every sequence number is in use.
     #[error(
         "{cmd}: 256 {cmd} commands to node {node} are still unanswered; wait for their results"
@@ -149,6 +155,11 @@ pub enum Command {
         /// Assign even when a node with `new_id` is online.
         force: bool,
     },
+    /// `forget`: drop a lost node from the registry, its retained state and its Home Assistant device.
+    Forget {
+        /// The node.
+        id: NodeId,
+    },
     /// `list`: publish `node_list`.
     List,
 }
@@ -159,6 +170,7 @@ impl Command {
         match self {
             Command::Node { action, .. } => action.name(),
             Command::Assign { .. } => "assign",
+            Command::Forget { .. } => "forget",
             Command::List => "list",
         }
     }
@@ -200,6 +212,7 @@ const BUZZER_FIELDS: &[&str] = &["node", "mode", "freq_hz", "on_ms", "off_ms", "
 const POWER_FIELDS: &[&str] = &["node", "on"];
 const IDENTIFY_FIELDS: &[&str] = &["node", "seconds"];
 const ASSIGN_FIELDS: &[&str] = &["uid", "new_id", "force"];
+const FORGET_FIELDS: &[&str] = &["node"];
 
 /// Parses and validates one command payload. Node existence is not checked here (the registry is the
 /// bridge's); everything else is.
@@ -274,6 +287,17 @@ fn command(cmd: &str, members: &[(String, Json)]) -> Result<Command, CommandErro
         "assign" => {
             let hint = " (assign is broadcast and selects the board by its `uid`)";
             assign(&Fields::new("assign", "", members, ASSIGN_FIELDS, hint)?)
+        }
+        "forget" => {
+            let f = Fields::new("forget", "", members, FORGET_FIELDS, "")?;
+            let v = f.get("node").ok_or_else(|| f.missing("node", NODE_ID))?;
+            match v {
+                Json::String(s) => match s.parse::<NodeId>() {
+                    Ok(id) if id.is_sc() => Ok(Command::Forget { id }),
+                    _ => Err(f.bad("node", NODE_ID, v)),
+                },
+                _ => Err(f.bad("node", NODE_ID, v)),
+            }
         }
         "list" => {
             Fields::new("list", "", members, &[], "")?;
