@@ -1,7 +1,8 @@
 //! The MQTT side: exactly one task owns rumqttc's `EventLoop::poll()`. It connects with keep-alive,
-//! clean session and a retained `offline` last will, (re)subscribes the command topic on *every*
-//! ConnAck, publishes `online` (retained), forwards commands to the core and carries out its
-//! publications (QoS 1). rumqttc reconnects whenever `poll()` is called again but has no back-off, so
+//! clean session and a retained `offline` last will, (re)subscribes the command topic (and with
+//! Home Assistant discovery, Home Assistant's status and command topics) on *every* ConnAck,
+//! publishes `online` (retained), forwards commands to the core and carries out its publications
+//! (QoS 1). rumqttc reconnects whenever `poll()` is called again but has no back-off, so
 //! this task sleeps with a capped exponential delay between failed polls.
 //!
 //! Publications are never lost silently: while the broker is unreachable they wait in a bounded queue
@@ -57,6 +58,15 @@ pub struct Outbound {
 pub enum MqttInput {
     /// A message on the command topic (raw payload; the core validates it).
     Command(Vec<u8>),
+    /// A message on one of Home Assistant's command topics (the core reads the topic too).
+    HaCommand {
+        /// The topic, in full.
+        topic: String,
+        /// The raw payload.
+        payload: Vec<u8>,
+    },
+    /// A message on Home Assistant's status topic (its birth message is `online`).
+    HaStatus(Vec<u8>),
     /// A ConnAck: the session is (re)established and subscribed.
     Connected,
 }
@@ -138,6 +148,8 @@ pub struct MqttTask {
     pub options: MqttOptions,
     /// Topic names.
     pub topics: Topics,
+    /// Subscribe Home Assistant's status and command topics (discovery is on).
+    pub ha: bool,
     /// Publications held while disconnected.
     pub queue: usize,
     /// Counters.
@@ -208,6 +220,14 @@ impl MqttTask {
                     let input = if p.topic == self.topics.commands {
                         self.stats.commands.fetch_add(1, Ordering::Relaxed);
                         MqttInput::Command(p.payload.to_vec())
+                    } else if self.ha && p.topic == self.topics.ha.status {
+                        MqttInput::HaStatus(p.payload.to_vec())
+                    } else if self.ha && self.topics.ha.parse_command(&p.topic).is_some() {
+                        self.stats.commands.fetch_add(1, Ordering::Relaxed);
+                        MqttInput::HaCommand {
+                            topic: p.topic.clone(),
+                            payload: p.payload.to_vec(),
+                        }
                     } else {
                         debug!(topic = %p.topic, "message on an unexpected topic ignored");
                         continue;
@@ -251,9 +271,15 @@ impl MqttTask {
 
     /// Subscribes and announces `online`; runs on every ConnAck (a clean session forgets both).
     fn on_connack(&self, client: &AsyncClient) {
-        let t = &self.topics.commands;
-        if let Err(e) = client.try_subscribe(t.clone(), QoS::AtLeastOnce) {
-            warn!(topic = %t, error = %e, "cannot queue the subscription");
+        let mut filters = vec![self.topics.commands.clone()];
+        if self.ha {
+            filters.push(self.topics.ha.status.clone());
+            filters.push(self.topics.ha.command_filter());
+        }
+        for t in filters {
+            if let Err(e) = client.try_subscribe(t.clone(), QoS::AtLeastOnce) {
+                warn!(topic = %t, error = %e, "cannot queue the subscription");
+            }
         }
         if let Err(e) =
             client.try_publish(&self.topics.availability, QoS::AtLeastOnce, true, ONLINE)
@@ -390,6 +416,7 @@ mod tests {
         MqttTask {
             options: options(&cfg, &topics, 1 << 20).unwrap(),
             topics,
+            ha: false,
             queue,
             stats: Arc::default(),
         }

@@ -86,6 +86,7 @@ impl Gateway {
         let mqtt = MqttTask {
             options: mqtt::options(&config.mqtt, &config.topics, max_incoming)?,
             topics: config.topics.clone(),
+            ha: config.ha.is_some(),
             queue: config.mqtt.queue,
             stats,
         };
@@ -129,8 +130,17 @@ impl Gateway {
             "gateway running"
         );
 
+        let mut bridge = Bridge::new(config.bridge.clone(), Instant::now());
+        if let Some(ha) = &config.ha {
+            info!(
+                discovery = %ha.topics.ha.discovery_prefix,
+                commands = %ha.topics.ha.command_filter(),
+                "Home Assistant discovery on"
+            );
+            bridge = bridge.with_home_assistant(ha.clone());
+        }
         let core = Core {
-            bridge: Bridge::new(config.bridge.clone(), Instant::now()),
+            bridge,
             can_tx,
             pub_tx,
             topics: config.topics.clone(),
@@ -202,6 +212,8 @@ impl Core {
                 }
                 Some(input) = mqtt_in.recv() => match input {
                     MqttInput::Command(payload) => self.bridge.handle_command(&payload, Instant::now()),
+                    MqttInput::HaCommand { topic, payload } => self.bridge.handle_ha_command(&topic, &payload, Instant::now()),
+                    MqttInput::HaStatus(payload) => self.bridge.handle_ha_status(&payload, Instant::now()),
                     MqttInput::Connected => self.bridge.handle_mqtt_connected(Instant::now()),
                 },
             }
@@ -235,6 +247,10 @@ impl Core {
         match &publication {
             Publication::Event(e) => info!(event = e.name(), payload = %json, "event published"),
             Publication::State(s) => debug!(node = %s.id, payload = %json, "state published"),
+            Publication::Ha(h) => {
+                debug!(topic = ?h.topic(), payload = %json, "Home Assistant published")
+            }
+            Publication::Cleared(t) => info!(topic = ?t, "retained topic cleared"),
         }
         let p = Outbound {
             topic: self.topics.resolve(publication.topic()),

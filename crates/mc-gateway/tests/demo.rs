@@ -231,6 +231,7 @@ async fn publications_queued_before_the_broker_exists_are_delivered() {
     let task = MqttTask {
         options: mqtt::options(&cfg, &topics, 1 << 20).unwrap(),
         topics,
+        ha: false,
         queue: cfg.queue,
         stats: stats.clone(),
     };

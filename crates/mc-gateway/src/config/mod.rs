@@ -15,7 +15,7 @@ use std::{
     time::Duration,
 };
 
-use ihex_gateway_core::{bridge, topic, BridgeConfig};
+use ihex_gateway_core::{bridge, ha, topic, BridgeConfig};
 
 use crate::error::ConfigError;
 use options::{default_text, ms, options, setting_type, setting_value};
@@ -74,6 +74,18 @@ options! {
     /// Root of the retained per-node state topics `ROOT/<id>/state`.
     node_state_root: String = {topic::NODE_STATE_ROOT}, env "IHEX_NODE_STATE_ROOT",
         value "TOPIC";
+    /// Home Assistant MQTT discovery: one device per element, commands from Home Assistant
+    /// (`docs/integrations.md`). `false`: nothing Home Assistant's is published or subscribed.
+    ha_discovery: bool = true, env "IHEX_HA_DISCOVERY", value "BOOL";
+    /// Home Assistant's discovery prefix (not under the island prefix).
+    ha_discovery_prefix: String = {ha::topic::DISCOVERY_PREFIX}, env "IHEX_HA_DISCOVERY_PREFIX",
+        value "TOPIC";
+    /// Home Assistant's status topic: its `online` birth message makes the gateway publish every
+    /// discovery config again.
+    ha_status_topic: String = {ha::topic::STATUS}, env "IHEX_HA_STATUS_TOPIC", value "TOPIC";
+    /// The gateway's web page as people reach it (`http://…` or `https://…`): every Home Assistant
+    /// device links to it.
+    public_url: String = none, env "IHEX_PUBLIC_URL", value "URL";
     /// Period of the broadcast health check, ms.
     health_period_ms: u64 = {ms(bridge::DEFAULT_HEALTH_PERIOD)}, env "IHEX_HEALTH_PERIOD_MS",
         value "MS", range 10..=3600000;
@@ -291,6 +303,8 @@ pub struct Config {
     pub topics: topic::Topics,
     /// The core's tunables.
     pub bridge: BridgeConfig,
+    /// Home Assistant discovery, `None` when switched off.
+    pub ha: Option<ha::HaConfig>,
     /// Logging.
     pub log: LogConfig,
     /// Every option as resolved (defaults applied, ranges checked), for options that need no more
@@ -424,13 +438,25 @@ impl Config {
         let events = topic_of("events-topic", &s.events_topic)?;
         let availability = topic_of("availability-topic", &s.availability_topic)?;
         let node_root = topic_of("node-state-root", &s.node_state_root)?;
+        let ha_prefix = topic_of("ha-discovery-prefix", &s.ha_discovery_prefix)?;
+        let ha_status = topic_of("ha-status-topic", &s.ha_status_topic)?;
         let topics = topic::Topics::new(
             s.island.as_deref(),
             &commands,
             &events,
             &availability,
             &node_root,
-        );
+        )
+        .with_ha(s.island.as_deref(), &ha_prefix, &ha_status);
+        if let Some(url) = &s.public_url {
+            check_url(url)?;
+        }
+        let ha = s.ha_discovery.then(|| ha::HaConfig {
+            topics: topics.clone(),
+            island: s.island.clone(),
+            configuration_url: s.public_url.clone(),
+            sw_version: env!("CARGO_PKG_VERSION").to_owned(),
+        });
         let distinct = [&topics.commands, &topics.events, &topics.availability];
         if distinct
             .iter()
@@ -495,6 +521,7 @@ impl Config {
             island: s.island.clone(),
             topics,
             bridge,
+            ha,
             log,
             settings: s,
             warnings,
@@ -517,6 +544,22 @@ pub fn state_dir(
         .filter(|p| p.is_absolute())
         .map(|h| h.join(".local").join("state"));
     xdg.or(home).map(|d| d.join("ihex"))
+}
+
+/// Checks the public URL: `http://` or `https://` and a host, as Home Assistant accepts a device's
+/// `configuration_url` (it refuses the whole device otherwise).
+fn check_url(url: &str) -> Result<(), ConfigError> {
+    let host = url
+        .strip_prefix("http://")
+        .or_else(|| url.strip_prefix("https://"))
+        .map(|rest| rest.split(['/', '?', '#']).next().unwrap_or(""));
+    match host {
+        Some(h) if !h.is_empty() && !h.contains(char::is_whitespace) => Ok(()),
+        _ => Err(ConfigError::invalid(
+            "public-url",
+            format!("{url:?}: expected http://HOST[:PORT][/PATH] or https://…"),
+        )),
+    }
 }
 
 /// Parses `HOST`, `HOST:PORT`, `[V6]:PORT` or `V6` (port 1883 when absent).
@@ -690,6 +733,54 @@ mod tests {
         ];
         for (args, field) in cases {
             match Config::resolve(cli(args), Options::default()) {
+                Err(ConfigError::Invalid { field: f, .. }) => assert_eq!(f, *field, "{args:?}"),
+                other => panic!("{args:?}: expected invalid {field}, got {other:?}"),
+            }
+        }
+    }
+
+    #[test]
+    fn home_assistant_discovery_is_on_by_default_and_configurable() {
+        let c = Config::resolve(
+            cli(&["--broker", "h", "--island", "lab1"]),
+            Options::default(),
+        )
+        .unwrap();
+        let ha = c.ha.expect("discovery is on by default");
+        assert_eq!(ha.topics, c.topics);
+        assert_eq!(ha.topics.ha.discovery_prefix, "homeassistant");
+        assert_eq!(ha.topics.ha.status, "homeassistant/status");
+        assert_eq!(ha.topics.ha.command_filter(), "lab1/ihex/ha/+/+/set");
+        assert_eq!(ha.island.as_deref(), Some("lab1"));
+        assert_eq!(ha.configuration_url, None);
+        assert_eq!(ha.sw_version, env!("CARGO_PKG_VERSION"));
+
+        let c = Config::resolve(cli(&["--ha-discovery=false"]), file("broker = \"h\"\n")).unwrap();
+        assert!(c.ha.is_none());
+
+        let f = file(
+            "broker = \"h\"\nha_discovery_prefix = \"ha\"\nha_status_topic = \"ha/status\"\n\
+             public_url = \"http://pi.local:8080/\"\n",
+        );
+        let ha = Config::resolve(Options::default(), f).unwrap().ha.unwrap();
+        assert_eq!(ha.topics.ha.discovery_prefix, "ha");
+        assert_eq!(ha.topics.ha.status, "ha/status");
+        assert_eq!(
+            ha.configuration_url.as_deref(),
+            Some("http://pi.local:8080/")
+        );
+
+        let cases: &[(&[&str], &str)] = &[
+            (&["--public-url", "pi.local:8080"], "public-url"),
+            (&["--public-url", "ftp://pi.local/"], "public-url"),
+            (&["--public-url", "http:///x"], "public-url"),
+            (&["--ha-discovery-prefix", "a/#"], "ha-discovery-prefix"),
+            (&["--ha-status-topic", ""], "ha-status-topic"),
+        ];
+        for (args, field) in cases {
+            let mut args = args.to_vec();
+            args.extend(["--broker", "h"]);
+            match Config::resolve(cli(&args), Options::default()) {
                 Err(ConfigError::Invalid { field: f, .. }) => assert_eq!(f, *field, "{args:?}"),
                 other => panic!("{args:?}: expected invalid {field}, got {other:?}"),
             }
