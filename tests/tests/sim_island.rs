@@ -62,3 +62,8 @@ async fn docked_at_start() {
 async fn can_assignment() {
     scenario::can_assignment(vcan()).await;
 }
+
+#[tokio::test]
+async fn state_query() {
+    scenario::state_query(vcan()).await;
+}
