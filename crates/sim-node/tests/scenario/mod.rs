@@ -87,8 +87,32 @@ impl Gateway {
 
     /// Sends a command from the gateway.
     pub async fn send(&self, dest: NodeId, msg: Message) {
+        self.try_send(dest, msg).await.expect("gateway send");
+    }
+
+    /// Sends a command from the gateway; the send may fail (an interface that is down).
+    pub async fn try_send(&self, dest: NodeId, msg: Message) -> Result<(), sim_node::LinkError> {
         let frame = Packet::command(dest, msg).to_frame().expect("frame");
-        self.tx.send(frame).await.expect("gateway send");
+        self.tx.send(frame).await
+    }
+
+    /// The next packet matching `pred` within `wait` (unscaled), if any; others go to the backlog.
+    pub async fn within(
+        &mut self,
+        wait: Duration,
+        mut pred: impl FnMut(&Packet) -> bool,
+    ) -> Option<Packet> {
+        if let Some(i) = self.backlog.iter().position(&mut pred) {
+            return Some(self.backlog.remove(i));
+        }
+        let until = tokio::time::Instant::now() + wait;
+        while let Some(p) = self.next(until).await {
+            if pred(&p) {
+                return Some(p);
+            }
+            self.backlog.push(p);
+        }
+        None
     }
 
     async fn next(&mut self, until: tokio::time::Instant) -> Option<Packet> {
