@@ -29,6 +29,8 @@ pub fn id(hex: &str) -> NodeId {
 pub struct Seen {
     pub topic: String,
     pub payload: Vec<u8>,
+    /// Delivered as a retained message (sent on subscribing), not live.
+    pub retain: bool,
 }
 
 impl Seen {
@@ -67,6 +69,7 @@ impl Client {
                         let _ = tx.send(Seen {
                             topic: p.topic,
                             payload: p.payload.to_vec(),
+                            retain: p.retain,
                         });
                     }
                     Ok(_) => {}
