@@ -1,7 +1,7 @@
 //! Running external programs: cargo through `$CARGO`, command lines echoed, failures as errors.
 
 use std::ffi::OsString;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 
 use anyhow::{bail, Context, Result};
@@ -9,6 +9,25 @@ use anyhow::{bail, Context, Result};
 /// The cargo that started us (`$CARGO`), so nested builds use the same toolchain.
 pub fn cargo() -> Command {
     Command::new(std::env::var_os("CARGO").unwrap_or_else(|| OsString::from("cargo")))
+}
+
+/// The firmware workspace, relative to the root: its own `Cargo.lock`, profiles, target and
+/// `.cargo/config.toml` (thumb target); `host-tests/` and `mcu-tests/` inside are workspaces too.
+pub const FIRMWARE: &str = "crates/sc-fw";
+
+/// `cmd` prepared to run in `dir`, a workspace of its own (the firmware's): its
+/// `.cargo/config.toml` (target, target-dir), profiles and `target/` apply, whatever
+/// `CARGO_TARGET_DIR` or `CARGO_BUILD_TARGET` the host build uses.
+pub fn in_workspace(mut cmd: Command, dir: &Path) -> Command {
+    cmd.current_dir(dir)
+        .env_remove("CARGO_TARGET_DIR")
+        .env_remove("CARGO_BUILD_TARGET");
+    cmd
+}
+
+/// Cargo run in `dir`, a workspace of its own (see [`in_workspace`]).
+pub fn cargo_in(dir: &Path) -> Command {
+    in_workspace(cargo(), dir)
 }
 
 /// The workspace root (the parent of this crate's folder).

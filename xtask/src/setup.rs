@@ -1,4 +1,5 @@
-//! `cargo xtask setup`: the rustup targets and the system packages the test stages need.
+//! `cargo xtask setup`: the rustup targets and toolchains and the system packages the test stages
+//! need.
 //!
 //! On Debian/Ubuntu as root (or with password-less sudo) missing packages are installed with
 //! apt-get; a machine that has everything never touches apt. Elsewhere it lists what is missing
@@ -6,16 +7,9 @@
 
 use std::process::Command;
 
-use anyhow::{bail, Result};
+use anyhow::{bail, Context, Result};
 
 use crate::cmd;
-
-/// Cross targets of the project (firmware, static test binaries for the VM, the Pi).
-pub const TARGETS: [&str; 3] = [
-    "thumbv7em-none-eabihf",
-    "x86_64-unknown-linux-musl",
-    "aarch64-unknown-linux-gnu",
-];
 
 /// Debian packages for the microVM and the MQTT tests.
 const VM_PACKAGES: [&str; 4] = [
@@ -34,6 +28,9 @@ pub fn run() -> Result<()> {
     if let Err(e) = targets() {
         problems.push(format!("{e:#}"));
     }
+    if let Err(e) = crate::lint::declared_msrv().and_then(|v| toolchain(&v)) {
+        problems.push(format!("{e:#}"));
+    }
     if let Err(e) = packages() {
         problems.push(format!("{e:#}"));
     }
@@ -43,22 +40,43 @@ pub fn run() -> Result<()> {
     Ok(())
 }
 
+/// The cross targets of the project (firmware, static binaries for the VMs, the Pi): the
+/// `targets` of `rust-toolchain.toml`, the one place that lists them.
+pub fn toolchain_targets() -> Result<Vec<String>> {
+    let path = cmd::root().join("rust-toolchain.toml");
+    let text = std::fs::read_to_string(&path).with_context(|| format!("{}", path.display()))?;
+    let list = text
+        .lines()
+        .find_map(|l| l.trim().strip_prefix("targets"))
+        .and_then(|rest| rest.trim_start().strip_prefix('='))
+        .and_then(|rest| rest.trim().strip_prefix('['))
+        .and_then(|rest| rest.split_once(']'))
+        .map(|(inner, _)| inner)
+        .with_context(|| format!("no `targets = [...]` line in {}", path.display()))?;
+    Ok(list
+        .split(',')
+        .map(|t| t.trim().trim_matches('"').to_string())
+        .filter(|t| !t.is_empty())
+        .collect())
+}
+
 fn targets() -> Result<()> {
+    let targets = toolchain_targets()?;
     let Some(installed) =
         cmd::output(Command::new("rustup").args(["target", "list", "--installed"]))
     else {
         bail!(
             "rustup not found: install it from https://rustup.rs, then run `rustup target add {}`",
-            TARGETS.join(" ")
+            targets.join(" ")
         );
     };
-    let missing: Vec<&str> = TARGETS
+    let missing: Vec<&str> = targets
         .iter()
-        .copied()
+        .map(String::as_str)
         .filter(|t| !installed.lines().any(|l| l.trim() == *t))
         .collect();
     if missing.is_empty() {
-        println!("setup: rust targets present ({})", TARGETS.join(", "));
+        println!("setup: rust targets present ({})", targets.join(", "));
         return Ok(());
     }
     cmd::run(
@@ -66,6 +84,20 @@ fn targets() -> Result<()> {
             .args(["target", "add"])
             .args(&missing),
     )
+}
+
+/// Installs the rustup toolchain `version` (`1.85`: the lint's MSRV check) with the minimal
+/// profile when it is missing.
+pub fn toolchain(version: &str) -> Result<()> {
+    let list = cmd::output(Command::new("rustup").args(["toolchain", "list"])).context(
+        "rustup not found: install it from https://rustup.rs (the MSRV check needs a second toolchain)",
+    )?;
+    // `rustup toolchain install 1.85` names it `1.85-<host triple>`.
+    if list.lines().any(|l| l.starts_with(&format!("{version}-"))) {
+        println!("setup: toolchain {version} present");
+        return Ok(());
+    }
+    cmd::run(Command::new("rustup").args(["toolchain", "install", version, "--profile", "minimal"]))
 }
 
 /// The packages this machine needs: the VM ones only where SocketCAN cannot run natively.
