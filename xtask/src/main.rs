@@ -8,6 +8,8 @@ mod cpio;
 mod fwsize;
 mod lint;
 mod setup;
+#[cfg(test)]
+mod tidy;
 mod vcan;
 mod vm;
 
