@@ -19,8 +19,11 @@ const VM_PACKAGES: [&str; 4] = [
     "cpio",
 ];
 const BROKER_PACKAGE: &str = "mosquitto";
-/// Runs the SC core's tests on Cortex-M4 instructions (the firmware stage).
+/// Runs the SC core's tests on Cortex-M4 instructions (the firmware stage) and, as
+/// qemu-system-aarch64, the arm64 stage's VM.
 const MCU_EMULATOR_PACKAGE: &str = "qemu-system-arm";
+/// The arm64 stage unpacks Debian's compressed kernel modules.
+const XZ_PACKAGE: &str = "xz-utils";
 
 /// Installs what is missing; fails with instructions when it cannot.
 pub fn run() -> Result<()> {
@@ -108,7 +111,18 @@ fn wanted() -> Vec<&'static str> {
     }
     v.push(BROKER_PACKAGE);
     v.push(MCU_EMULATOR_PACKAGE);
+    v.push(XZ_PACKAGE);
     v
+}
+
+/// True when deploy/check-arm64.sh will need Debian's arm64 package lists (its kernel and busybox
+/// are not cached yet) and apt does not have them.
+fn arm64_lists_wanted() -> bool {
+    let root = cmd::root();
+    root.join("deploy/check-arm64.sh").exists()
+        && !root.join("target/arm64-vm/rootfs/.complete").exists()
+        && !cmd::output(Command::new("dpkg").arg("--print-foreign-architectures"))
+            .is_some_and(|a| a.lines().any(|l| l.trim() == "arm64"))
 }
 
 fn dpkg_installed(pkg: &str) -> bool {
@@ -137,6 +151,13 @@ fn packages() -> Result<()> {
             m = missing.join(" ")
         );
     };
+    // With the architecture added first, this one update also fetches the arm64 lists the arm64
+    // stage downloads its kernel from, and that stage needs no update of its own.
+    if arm64_lists_wanted() {
+        if let Some(mut dpkg) = cmd::privileged("dpkg") {
+            cmd::run(dpkg.args(["--add-architecture", "arm64"]))?;
+        }
+    }
     cmd::run(
         update
             .env("DEBIAN_FRONTEND", "noninteractive")
@@ -164,6 +185,7 @@ fn check_without_apt(wanted: &[&str]) -> Result<()> {
             "busybox-static" => (crate::vm::static_busybox().is_some(), "a statically linked busybox (package busybox-static / busybox; or set IHEX_VM_BUSYBOX)"),
             "cpio" => (true, ""),
             "qemu-system-arm" => (cmd::exists("qemu-system-arm"), "qemu-system-arm (package qemu-system-arm / qemu)"),
+            "xz-utils" => (cmd::exists("xz"), "xz (package xz-utils / xz)"),
             _ => (cmd::exists("mosquitto"), "mosquitto (package mosquitto)"),
         };
         if !ok {
