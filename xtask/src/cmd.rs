@@ -46,9 +46,28 @@ pub fn target_dir() -> PathBuf {
     }
 }
 
-/// A command line as the user would type it.
+/// A command line as the user would type it, from the root: `cd crates/sc-fw && cargo ...` for a
+/// command that runs in a subfolder, with the variables it sets (`RUSTDOCFLAGS='-D warnings' ...`).
 pub fn display(cmd: &Command) -> String {
-    let mut s = cmd.get_program().to_string_lossy().into_owned();
+    let mut s = String::new();
+    if let Some(rel) = cmd
+        .get_current_dir()
+        .and_then(|d| d.strip_prefix(root()).ok())
+        .filter(|rel| !rel.as_os_str().is_empty())
+    {
+        s.push_str(&format!("cd {} && ", rel.display()));
+    }
+    for (k, v) in cmd.get_envs() {
+        if let Some(v) = v {
+            let v = v.to_string_lossy();
+            if v.contains(' ') {
+                s.push_str(&format!("{}='{v}' ", k.to_string_lossy()));
+            } else {
+                s.push_str(&format!("{}={v} ", k.to_string_lossy()));
+            }
+        }
+    }
+    s.push_str(&cmd.get_program().to_string_lossy());
     for a in cmd.get_args() {
         s.push(' ');
         s.push_str(&a.to_string_lossy());

@@ -6,6 +6,7 @@
 //! (rustdoc `--no-deps` documents only our crates), and the firmware is linted in the `release`
 //! profile its stage builds, so embassy's build scripts run once for both.
 
+use std::path::{Path, PathBuf};
 use std::process::Command;
 
 use anyhow::{bail, Context, Result};
@@ -163,23 +164,50 @@ pub fn run() -> Result<()> {
     Ok(())
 }
 
-/// `cargo check` of the host workspace's libraries and binaries (what its users build; tests and
-/// dev-dependencies are ours) with the toolchain of its declared `rust-version`, installed when
-/// missing. Its own target directory: nothing built by another compiler can be reused anyway.
+/// Targets the MSRV toolchain needs besides the host: the firmware's.
+pub const MSRV_TARGETS: [&str; 1] = ["thumbv7em-none-eabihf"];
+
+/// `cargo check` with the toolchain of the declared `rust-version` (installed when missing) of the
+/// host workspace's libraries and binaries (what its users build; tests and dev-dependencies are
+/// ours) and of the firmware, which declares the same version. In `target/msrv` of each: nothing
+/// built by another compiler can be reused anyway.
 fn msrv() -> Result<()> {
     let version = declared_msrv()?;
-    setup::toolchain(&version)?;
-    cmd::run(
-        Command::new("rustup")
-            .args(["run", &version, "cargo", "check"])
-            .args(["--workspace", "--locked", "--keep-going"])
-            .current_dir(cmd::root())
-            .env("CARGO_TARGET_DIR", cmd::target_dir().join("msrv"))
-            // Set by the outer cargo for its own compiler; the MSRV cargo must find its own.
-            .env_remove("RUSTC")
-            .env_remove("RUSTDOC"),
-    )
-    .with_context(|| format!("the workspace does not build with its declared MSRV {version}"))
+    setup::toolchain(&version, &MSRV_TARGETS)?;
+    let check = |dir: &Path, target: PathBuf, args: &[&str]| {
+        let mut c = cmd::in_workspace(Command::new("rustup"), dir);
+        c.args([
+            "run",
+            &version,
+            "cargo",
+            "check",
+            "--locked",
+            "--keep-going",
+        ])
+        .args(args)
+        .env("CARGO_TARGET_DIR", target)
+        // Set by the outer cargo for its own compiler; the MSRV cargo must find its own.
+        .env_remove("RUSTC")
+        .env_remove("RUSTDOC");
+        cmd::run(&mut c)
+    };
+    let root = cmd::root();
+    let mut failed = Vec::new();
+    if let Err(e) = check(&root, cmd::target_dir().join("msrv"), &["--workspace"]) {
+        failed.push(format!("host workspace: {e:#}"));
+    }
+    // The release profile the firmware stage builds (its build scripts' settings).
+    let fw = root.join(cmd::FIRMWARE);
+    if let Err(e) = check(&fw, fw.join("target/msrv"), &["--release"]) {
+        failed.push(format!("firmware: {e:#}"));
+    }
+    if !failed.is_empty() {
+        bail!(
+            "does not build with the declared MSRV {version}: {}",
+            failed.join("; ")
+        );
+    }
+    Ok(())
 }
 
 /// The host workspace's `rust-version`: the one every member declares (a tidy test checks they

@@ -31,7 +31,9 @@ pub fn run() -> Result<()> {
     if let Err(e) = targets() {
         problems.push(format!("{e:#}"));
     }
-    if let Err(e) = crate::lint::declared_msrv().and_then(|v| toolchain(&v)) {
+    if let Err(e) =
+        crate::lint::declared_msrv().and_then(|v| toolchain(&v, &crate::lint::MSRV_TARGETS))
+    {
         problems.push(format!("{e:#}"));
     }
     if let Err(e) = packages() {
@@ -89,18 +91,45 @@ fn targets() -> Result<()> {
     )
 }
 
-/// Installs the rustup toolchain `version` (`1.85`: the lint's MSRV check) with the minimal
-/// profile when it is missing.
-pub fn toolchain(version: &str) -> Result<()> {
+/// Installs the rustup toolchain `version` (the lint's MSRV check) with the minimal profile and
+/// `targets` when they are missing; a machine that has them never asks the network.
+pub fn toolchain(version: &str, targets: &[&str]) -> Result<()> {
     let list = cmd::output(Command::new("rustup").args(["toolchain", "list"])).context(
         "rustup not found: install it from https://rustup.rs (the MSRV check needs a second toolchain)",
     )?;
-    // `rustup toolchain install 1.85` names it `1.85-<host triple>`.
-    if list.lines().any(|l| l.starts_with(&format!("{version}-"))) {
-        println!("setup: toolchain {version} present");
+    // `rustup toolchain install 1.89` names it `1.89-<host triple>`.
+    if !list.lines().any(|l| l.starts_with(&format!("{version}-"))) {
+        return cmd::run(
+            Command::new("rustup")
+                .args(["toolchain", "install", version, "--profile", "minimal"])
+                .args(targets.iter().flat_map(|t| ["--target", t])),
+        );
+    }
+    let installed = cmd::output(Command::new("rustup").args([
+        "target",
+        "list",
+        "--installed",
+        "--toolchain",
+        version,
+    ]))
+    .unwrap_or_default();
+    let missing: Vec<&str> = targets
+        .iter()
+        .copied()
+        .filter(|t| !installed.lines().any(|l| l.trim() == *t))
+        .collect();
+    if missing.is_empty() {
+        println!(
+            "setup: toolchain {version} present ({})",
+            targets.join(", ")
+        );
         return Ok(());
     }
-    cmd::run(Command::new("rustup").args(["toolchain", "install", version, "--profile", "minimal"]))
+    cmd::run(
+        Command::new("rustup")
+            .args(["target", "add", "--toolchain", version])
+            .args(&missing),
+    )
 }
 
 /// The packages this machine needs: the VM ones only where SocketCAN cannot run natively.

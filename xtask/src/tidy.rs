@@ -297,7 +297,7 @@ fn every_binary_has_a_test_of_its_help() {
 }
 
 #[test]
-fn every_workspace_package_declares_the_msrv() {
+fn every_package_declares_the_msrv() {
     let out = cmd::output(cmd::cargo().current_dir(cmd::root()).args([
         "metadata",
         "--no-deps",
@@ -316,6 +316,13 @@ fn every_workspace_package_declares_the_msrv() {
             p["name"]
         );
     }
+    let fw = read(&format!("{}/Cargo.toml", cmd::FIRMWARE));
+    assert!(
+        fw.lines()
+            .any(|l| l.replace(' ', "") == format!("rust-version=\"{msrv}\"")),
+        "{}/Cargo.toml should declare rust-version = \"{msrv}\", the version the lint checks it with",
+        cmd::FIRMWARE
+    );
 }
 
 /// An island file's elements: (id, unconfigured).
