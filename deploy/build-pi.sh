@@ -7,7 +7,7 @@
 #   deploy/build-pi.sh --musl                 # only the static musl build
 #   deploy/build-pi.sh --gnu -p mc-gateway    # one package, glibc only
 #   deploy/build-pi.sh --musl --profile arm64-check   # what deploy/check-arm64.sh runs
-#   deploy/build-pi.sh --features mc-gateway/embedded-broker   # with the embedded broker
+#   deploy/build-pi.sh --features mc-gateway/demo   # with the demo (embedded broker, simulated island)
 #
 # musl is linked by rust-lld (shipped with rustup: no C toolchain needed); glibc by cargo-zigbuild,
 # which pins the glibc version (IHEX_PI_GLIBC, default 2.29; bullseye has 2.31, bookworm 2.36).
