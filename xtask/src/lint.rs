@@ -1,6 +1,6 @@
 //! `cargo xtask lint` and the `lint` stage: formatting, clippy and rustdoc warnings of the host and
-//! firmware workspaces, and `cargo check` with the declared MSRV toolchain. Every step runs; their
-//! failures are reported together.
+//! firmware workspaces, and the declared MSRV (nothing to do while it is the pinned toolchain's
+//! version). Every step runs; their failures are reported together.
 //!
 //! Cheap by construction: clippy and rustdoc build dependencies as metadata only and share it
 //! (rustdoc `--no-deps` documents only our crates), and the firmware is linted in the `release`
@@ -167,12 +167,36 @@ pub fn run() -> Result<()> {
 /// Targets the MSRV toolchain needs besides the host: the firmware's.
 pub const MSRV_TARGETS: [&str; 1] = ["thumbv7em-none-eabihf"];
 
+/// The declared `rust-version` when it is older than the pinned toolchain (rust-toolchain.toml),
+/// so that it needs a check of its own; `None` when they are the same version, which every stage
+/// already builds with.
+pub fn msrv_below_pinned() -> Result<Option<String>> {
+    let declared = declared_msrv()?;
+    let rustc = cmd::output(
+        Command::new("rustc")
+            .arg("--version")
+            .current_dir(cmd::root()),
+    )
+    .context("`rustc --version` failed")?;
+    // `rustc 1.95.0 (59807616e 2026-04-14)` against `1.95` or `1.95.0`.
+    let pinned = rustc.split_whitespace().nth(1).unwrap_or_default();
+    let same = pinned == declared || pinned.strip_prefix(&format!("{declared}.")).is_some();
+    Ok((!same).then_some(declared))
+}
+
 /// `cargo check` with the toolchain of the declared `rust-version` (installed when missing) of the
 /// host workspace's libraries and binaries (what its users build; tests and dev-dependencies are
-/// ours) and of the firmware, which declares the same version. In `target/msrv` of each: nothing
-/// built by another compiler can be reused anyway.
+/// ours) and of the firmware, which declares the same version — when that version is not the
+/// pinned toolchain every stage builds with anyway. In `target/msrv` of each: nothing built by
+/// another compiler can be reused.
 fn msrv() -> Result<()> {
-    let version = declared_msrv()?;
+    let Some(version) = msrv_below_pinned()? else {
+        println!(
+            "xtask: lint: the declared MSRV is the pinned toolchain (rust-toolchain.toml): every \
+             stage builds with it, nothing more to check"
+        );
+        return Ok(());
+    };
     setup::toolchain(&version, &MSRV_TARGETS)?;
     let check = |dir: &Path, target: PathBuf, args: &[&str]| {
         let mut c = cmd::in_workspace(Command::new("rustup"), dir);

@@ -33,8 +33,8 @@ struct Cli {
 enum Task {
     /// Run every test stage in order, or those picked with --stage / --skip (docs/testing.md).
     Test(TestArgs),
-    /// Formatting, clippy and rustdoc warnings of the host and firmware workspaces, and a check
-    /// with the declared MSRV toolchain (the `lint` stage alone).
+    /// Formatting, clippy and rustdoc warnings of the host and firmware workspaces, and the MSRV
+    /// (the `lint` stage alone).
     Lint,
     /// Install the rust targets, toolchains and system packages the tests need (apt on
     /// Debian/Ubuntu).
@@ -119,7 +119,7 @@ struct TestArgs {
 /// docs/testing.md (the tidy tests check the docs).
 #[derive(Clone, Copy, PartialEq, Eq, Debug, ValueEnum)]
 enum Stage {
-    /// Rust targets, the MSRV toolchain and system packages.
+    /// Rust targets (an MSRV toolchain if one is needed) and system packages.
     Setup,
     /// `cargo test --workspace`.
     Host,

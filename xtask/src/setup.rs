@@ -31,10 +31,15 @@ pub fn run() -> Result<()> {
     if let Err(e) = targets() {
         problems.push(format!("{e:#}"));
     }
-    if let Err(e) =
-        crate::lint::declared_msrv().and_then(|v| toolchain(&v, &crate::lint::MSRV_TARGETS))
-    {
-        problems.push(format!("{e:#}"));
+    // A second toolchain only when the declared MSRV is older than the pinned one.
+    match crate::lint::msrv_below_pinned() {
+        Ok(None) => {}
+        Ok(Some(v)) => {
+            if let Err(e) = toolchain(&v, &crate::lint::MSRV_TARGETS) {
+                problems.push(format!("{e:#}"));
+            }
+        }
+        Err(e) => problems.push(format!("{e:#}")),
     }
     if let Err(e) = packages() {
         problems.push(format!("{e:#}"));
