@@ -15,7 +15,8 @@
 //!   [`Packet::from_frame`] generic over any [`embedded_can::Frame`] (socketcan and embassy frames alike).
 //! * [`filter`] — accept/reject ID and mask filters with the seed's semantics, and their translation to
 //!   SocketCAN kernel filters and bxCAN filter banks.
-//! * [`timing`] — bxCAN bit timing from a peripheral clock and a bitrate.
+//! * [`timing`] — bxCAN bit timing from a peripheral clock and a bitrate; [`bus`] — bit lengths of
+//!   frames on the wire (bus load).
 //! * [`uart`] — the 2-byte node-ID configuration message spoken over the ST-Link virtual COM port.
 //! * [`schema`] — every message described as data (signals, units, value names), and [`dbc`] — that
 //!   description as a DBC file for CAN tools (`docs/ihex.dbc`).
@@ -31,6 +32,7 @@
 #[macro_use]
 mod macros;
 mod addr;
+pub mod bus;
 pub mod dbc;
 mod error;
 pub mod field;
