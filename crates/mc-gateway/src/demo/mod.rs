@@ -154,8 +154,20 @@ impl Demo {
         Ok((Demo { broker, island }, link))
     }
 
-    /// Starts the island's control client and prints the banner (embedded broker + island).
-    pub fn spawn(&mut self, config: &Config, tasks: &mut JoinSet<()>, cancel: CancellationToken) {
+    /// Positions of static elements the island file gives, for the island view.
+    pub fn layout(&self) -> crate::config::web::Layout {
+        crate::config::web::Layout::new()
+    }
+
+    /// Starts the island's control client and prints the banner (embedded broker + island), with
+    /// the island view's address when it runs.
+    pub fn spawn(
+        &mut self,
+        config: &Config,
+        tasks: &mut JoinSet<()>,
+        cancel: CancellationToken,
+        view_url: Option<&str>,
+    ) {
         let Some(island) = &mut self.island else {
             return;
         };
@@ -169,6 +181,7 @@ impl Demo {
                 listen.port(),
                 &island.desc,
                 island.file.as_deref(),
+                view_url,
             );
             println!("{text}");
         }
