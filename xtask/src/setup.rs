@@ -76,6 +76,7 @@ fn wanted() -> Vec<&'static str> {
     }
     v.push(BROKER_PACKAGE);
     v.push(MCU_EMULATOR_PACKAGE);
+    v.extend(crate::browser::PACKAGES);
     v
 }
 
@@ -132,6 +133,8 @@ fn check_without_apt(wanted: &[&str]) -> Result<()> {
             "busybox-static" => (crate::vm::static_busybox().is_some(), "a statically linked busybox (package busybox-static / busybox; or set IHEX_VM_BUSYBOX)"),
             "cpio" => (true, ""),
             "qemu-system-arm" => (cmd::exists("qemu-system-arm"), "qemu-system-arm (package qemu-system-arm / qemu)"),
+            "chromium" => (crate::browser::present(), "Chromium and chromedriver (or set IHEX_CHROMIUM and IHEX_CHROMEDRIVER)"),
+            "chromium-driver" => (true, ""),
             _ => (cmd::exists("mosquitto"), "mosquitto (package mosquitto)"),
         };
         if !ok {

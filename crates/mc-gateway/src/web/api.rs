@@ -298,12 +298,14 @@ mod tests {
     fn who_may_use_the_controls() {
         use Refusal::*;
         let local = [("host", "127.0.0.1:8080")];
-        let cases: &[(
+        /// Controls, token, request headers, verdict.
+        type Case<'a> = (
             Controls,
-            Option<&str>,
-            &[(&'static str, &str)],
+            Option<&'a str>,
+            &'a [(&'static str, &'a str)],
             Result<(), Refusal>,
-        )] = &[
+        );
+        let cases: &[Case] = &[
             (Controls::Open, None, &local, Ok(())),
             (
                 Controls::Open,

@@ -2,9 +2,10 @@
 //! (fantoccini), against the `mc-gateway` demo binary (embedded broker, simulated island), while the
 //! island is changed over MQTT like a person at the bench would.
 //!
-//! Ignored in the host stage (it needs `chromium` and `chromedriver`); the `browser` stage of
-//! `cargo xtask test` installs them and runs it with `--ignored`. Screenshots go to
-//! `target/web-screenshots/`. Deadlines are scaled by `IHEX_TEST_TIME_SCALE`: they bound how long
+//! Ignored by `cargo test` (it needs `chromium` and `chromedriver`); the host stage of
+//! `cargo xtask test` runs it with `--ignored` after the workspace's tests, and `cargo xtask setup`
+//! installs both. Screenshots go to `target/web-screenshots/`; with `UPDATE_DOCS=1` the one of the
+//! docs is also written to `docs/img/island-view.png`. Deadlines are scaled by `IHEX_TEST_TIME_SCALE`: they bound how long
 //! a change may take to show, they do not measure it.
 #![cfg(all(feature = "demo", feature = "web"))]
 
@@ -51,9 +52,10 @@ fn program(var: &str, names: &[&str]) -> PathBuf {
 
 /// The screenshot folder, `target/web-screenshots/`.
 fn screenshot_dir() -> PathBuf {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
     let target = std::env::var_os("CARGO_TARGET_DIR")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../../target"));
+        .map(|d| root.join(d))
+        .unwrap_or_else(|| root.join("target"));
     let dir = target.join("web-screenshots");
     std::fs::create_dir_all(&dir).unwrap();
     dir
@@ -66,10 +68,16 @@ struct Gateway {
 
 impl Gateway {
     fn start(broker: u16, http: u16) -> Gateway {
+        Gateway::start_with(broker, &format!("127.0.0.1:{http}"), &[])
+    }
+
+    /// The demo with the view on `http` (`ADDR:PORT`) and more options.
+    fn start_with(broker: u16, http: &str, more: &[&str]) -> Gateway {
         let mut cmd = Command::new(BIN);
         cmd.args(["--broker-listen", &format!("127.0.0.1:{broker}")])
-            .args(["--http", &format!("127.0.0.1:{http}")])
+            .args(["--http", http])
             .args(["--log-dir", "-", "--health-period-ms", "250"])
+            .args(more)
             .stdout(Stdio::piped())
             .stderr(Stdio::null());
         for (k, _) in std::env::vars_os() {
@@ -88,7 +96,8 @@ impl Gateway {
                 break;
             }
         }
-        let url = format!("See the island live in a browser: http://127.0.0.1:{http}/");
+        let port = http.rsplit(':').next().unwrap_or_default();
+        let url = format!("See the island live in a browser: http://127.0.0.1:{port}/");
         assert!(
             banner.contains(&url),
             "the banner does not name the view:\n{banner}"
@@ -277,7 +286,7 @@ fn attr(id: &str, name: &str) -> String {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-#[ignore = "needs chromium and chromedriver: cargo xtask test --stage browser"]
+#[ignore = "needs chromium and chromedriver: cargo xtask test --stage host"]
 async fn the_island_view_follows_the_bench() {
     let (broker, http) = (free_port(), free_port());
     let gateway = Gateway::start(broker, http);
@@ -487,6 +496,57 @@ async fn the_island_view_follows_the_bench() {
     .await;
     shoot(&c, "command.png").await;
 
+    // A command the gateway refuses (a tone below 20 Hz): the page shows the reason beside 111.
+    c.execute("document.getElementById('buzzer-freq').value = '5'", vec![])
+        .await
+        .unwrap();
+    click(&c, "#buzzer-on").await;
+    until(
+        &c,
+        Duration::from_secs(2),
+        "the rejection",
+        "(t => t.startsWith('rejected: ') && t.includes('freq_hz'))(document.getElementById('details-result').textContent) \
+         && document.getElementById('details-result').classList.contains('failed')",
+    )
+    .await;
+    shoot(&c, "rejected.png").await;
+
+    // The picture of the docs: 3 docked again, 112 selected with its result.
+    bus.publish(
+        "ihex/sim",
+        QoS::AtLeastOnce,
+        false,
+        r#"{"sim":"dock","mobile":"3","static":"112","port":2}"#,
+    )
+    .await
+    .unwrap();
+    until(
+        &c,
+        one_second,
+        "3 online on 112 again",
+        &format!(
+            "{} === '112' && {} === 'online'",
+            attr("3", "dockedTo"),
+            attr("3", "status")
+        ),
+    )
+    .await;
+    click(&c, &on_map("112")).await;
+    until(
+        &c,
+        one_second,
+        "112's result again",
+        "document.getElementById('details-result').textContent === 'led: ok'",
+    )
+    .await;
+    shoot(&c, "island-view.png").await;
+    if std::env::var_os("UPDATE_DOCS").is_some() {
+        let from = screenshot_dir().join("island-view.png");
+        let to = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../docs/img/island-view.png");
+        std::fs::create_dir_all(to.parent().unwrap()).unwrap();
+        std::fs::copy(from, to).unwrap();
+    }
+
     // Stopping the gateway shows the stale banner; a new gateway on the same ports clears it.
     gateway.stop();
     until(
@@ -523,5 +583,228 @@ async fn the_island_view_follows_the_bench() {
     shoot(&c, "recovered.png").await;
 
     c.close().await.unwrap();
+    gateway.stop();
+}
+
+// ---- the API without a browser (run by `cargo test`) ----
+
+/// One HTTP/1 request to the view on `port`: its status, `WWW-Authenticate` and body.
+async fn http(
+    port: u16,
+    method: &str,
+    path: &str,
+    headers: &[(&str, &str)],
+    body: &str,
+) -> (u16, Option<String>, String) {
+    use http_body_util::{BodyExt, Full};
+    let client = hyper_util::client::legacy::Client::builder(hyper_util::rt::TokioExecutor::new())
+        .build_http::<Full<axum::body::Bytes>>();
+    let mut req = axum::http::Request::builder()
+        .method(method)
+        .uri(format!("http://127.0.0.1:{port}{path}"));
+    for (k, v) in headers {
+        req = req.header(*k, *v);
+    }
+    let req = req
+        .body(Full::new(axum::body::Bytes::from(body.to_owned())))
+        .unwrap();
+    let resp = tokio::time::timeout(scaled(Duration::from_secs(5)), client.request(req))
+        .await
+        .unwrap_or_else(|_| panic!("{method} {path}: no answer"))
+        .unwrap();
+    let status = resp.status().as_u16();
+    let auth = resp
+        .headers()
+        .get("www-authenticate")
+        .map(|v| v.to_str().unwrap().to_owned());
+    let body = resp.into_body().collect().await.unwrap().to_bytes();
+    (status, auth, String::from_utf8(body.to_vec()).unwrap())
+}
+
+const JSON: (&str, &str) = ("content-type", "application/json");
+
+/// The snapshot once the demo island is on the bus (its three powered elements known, 2 docked).
+async fn island_snapshot(port: u16) -> Value {
+    let deadline = tokio::time::Instant::now() + scaled(Duration::from_secs(10));
+    loop {
+        let (status, _, body) = http(port, "GET", "/api/island", &[], "").await;
+        assert_eq!(status, 200, "{body}");
+        let snap: Value = serde_json::from_str(&body).unwrap();
+        let nodes = snap["nodes"].as_array().unwrap();
+        if nodes.len() == 3 && nodes.iter().any(|n| n["connections"] != json!([])) {
+            return snap;
+        }
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "the island never showed: {snap}"
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}
+
+/// Reads the event stream `body` into `text` until `done` says so (5 s, scaled).
+async fn read_until(
+    body: &mut axum::body::Body,
+    text: &mut String,
+    what: &str,
+    done: impl Fn(&str) -> bool,
+) {
+    use http_body_util::BodyExt;
+    let wait = async {
+        while !done(text) {
+            let frame = body.frame().await.expect("stream ended").unwrap();
+            if let Ok(data) = frame.into_data() {
+                text.push_str(std::str::from_utf8(&data).unwrap());
+            }
+        }
+    };
+    if tokio::time::timeout(scaled(Duration::from_secs(5)), wait)
+        .await
+        .is_err()
+    {
+        panic!("no {what} on the event stream:\n{text}");
+    }
+}
+
+/// `GET /api/island` has the documented shape (docs/web.md); `GET /api/events` says `hello`, then
+/// delivers a publication caused by a command given through `POST /api/command`.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_snapshot_and_the_event_stream() {
+    let (broker, port) = (free_port(), free_port());
+    let gateway = Gateway::start(broker, port);
+    let snap = island_snapshot(port).await;
+    assert_eq!(snap["version"], 1, "{snap}");
+    assert!(snap["seq"].as_u64().is_some() && snap["time_ms"].as_u64().unwrap() > 0);
+    assert_eq!(snap["island"], Value::Null);
+    assert_eq!(snap["controls"], "open");
+    assert_eq!(
+        snap["layout"],
+        json!({}),
+        "the built-in island places nothing"
+    );
+    let g = &snap["gateway"];
+    assert_eq!(g["mqtt_connected"], true, "{g}");
+    for k in ["version", "mqtt_reconnects", "uptime_s", "commands"] {
+        assert!(!g[k].is_null(), "gateway.{k} missing: {g}");
+    }
+    assert!(!g["commands"]["in_flight"].is_null(), "{g}");
+    let b = &snap["bus"];
+    assert_eq!(b["bitrate"], 500_000, "{b}");
+    for k in ["link", "frames_per_s", "load_percent", "bus_off"] {
+        assert!(!b[k].is_null(), "bus.{k} missing: {b}");
+    }
+    let mut ids: Vec<&str> = snap["nodes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|n| n["id"].as_str().unwrap())
+        .collect();
+    ids.sort_unstable();
+    assert_eq!(ids, ["111", "112", "2"]);
+    let two = snap["nodes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|n| n["id"] == "2")
+        .unwrap();
+    assert_eq!(two["role"], "mobile", "{two}");
+    assert_eq!(two["online"], true, "{two}");
+    assert_eq!(two["connections"][0]["peer"], "111", "{two}");
+    let events = snap["events"].as_array().unwrap();
+    assert!(!events.is_empty(), "{snap}");
+    // Newest first, each as published on the events topic.
+    assert!(events[0]["seq"].as_u64() >= events[events.len() - 1]["seq"].as_u64());
+    assert!(events.iter().all(|e| e["event"]["event"].is_string()));
+
+    // The event stream: `hello` first, then what a command through the API causes.
+    let client = hyper_util::client::legacy::Client::builder(hyper_util::rt::TokioExecutor::new())
+        .build_http::<http_body_util::Empty<axum::body::Bytes>>();
+    let resp = client
+        .get(
+            format!("http://127.0.0.1:{port}/api/events")
+                .parse()
+                .unwrap(),
+        )
+        .await
+        .unwrap();
+    assert_eq!(resp.status(), 200);
+    assert_eq!(resp.headers()["content-type"], "text/event-stream");
+    let mut body = axum::body::Body::new(resp.into_body());
+    let mut text = String::new();
+    read_until(&mut body, &mut text, "hello", |t| {
+        t.contains("event: hello\n")
+    })
+    .await;
+    let (status, _, reply) = http(
+        port,
+        "POST",
+        "/api/command",
+        &[JSON],
+        r##"{"cmd":"led","node":"112","color":"#ff0000","request_id":"api-1"}"##,
+    )
+    .await;
+    assert_eq!((status, reply.as_str()), (202, r#"{"accepted":true}"#));
+    read_until(&mut body, &mut text, "the command's result", |t| {
+        t.lines().any(|l| {
+            l.starts_with("data: ")
+                && l.contains(r#""event":"command_result""#)
+                && l.contains(r#""request_id":"api-1""#)
+                && l.contains(r#""result":"ok""#)
+        })
+    })
+    .await;
+    assert!(text.contains("event: event\nid: "), "{text}");
+    // A body that is not declared JSON never reaches the core.
+    let (status, _, _) = http(port, "POST", "/api/command", &[], "{}").await;
+    assert_eq!(status, 415);
+    gateway.stop();
+}
+
+/// The controls' rules (docs/web.md): read-only on a non-loopback address without a token; with a
+/// token, only requests carrying it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn who_may_command() {
+    let cmd = r#"{"cmd":"identify","node":"111","seconds":1}"#;
+
+    let (broker, port) = (free_port(), free_port());
+    let gateway = Gateway::start_with(broker, &format!("0.0.0.0:{port}"), &[]);
+    let (status, _, body) = http(port, "GET", "/api/island", &[], "").await;
+    assert_eq!(status, 200, "reading stays open: {body}");
+    assert_eq!(
+        serde_json::from_str::<Value>(&body).unwrap()["controls"],
+        "read_only"
+    );
+    let (status, _, body) = http(port, "POST", "/api/command", &[JSON], cmd).await;
+    assert_eq!(status, 403, "{body}");
+    assert!(body.contains("read-only"), "{body}");
+    gateway.stop();
+
+    let (broker, port) = (free_port(), free_port());
+    let gateway = Gateway::start_with(
+        broker,
+        &format!("0.0.0.0:{port}"),
+        &["--http-token", "s3cret"],
+    );
+    let (_, _, body) = http(port, "GET", "/api/island", &[], "").await;
+    assert_eq!(
+        serde_json::from_str::<Value>(&body).unwrap()["controls"],
+        "token"
+    );
+    for auth in [None, Some("Bearer wrong")] {
+        let mut h = vec![JSON];
+        h.extend(auth.map(|a| ("authorization", a)));
+        let (status, www, body) = http(port, "POST", "/api/command", &h, cmd).await;
+        assert_eq!(status, 401, "{auth:?}: {body}");
+        assert_eq!(www.as_deref(), Some("Bearer realm=\"ihex\""));
+    }
+    let (status, _, body) = http(
+        port,
+        "POST",
+        "/api/command",
+        &[JSON, ("authorization", "Bearer s3cret")],
+        cmd,
+    )
+    .await;
+    assert_eq!(status, 202, "{body}");
     gateway.stop();
 }
