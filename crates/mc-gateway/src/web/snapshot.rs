@@ -1,7 +1,7 @@
 //! The JSON the island view serves besides the publications themselves: the snapshot of
 //! `GET /api/island` ([`Snapshot`], versioned by [`VERSION`]) and the once-a-second `health` event
-//! ([`Health`]); `docs/web.md` documents both field by field, and a test checks that page against
-//! these types.
+//! ([`Health`]); `docs/web.md` documents both, and `tests/web.rs` checks the snapshot's shape on
+//! the demo island.
 
 use std::{collections::BTreeMap, time::Instant};
 
