@@ -17,7 +17,7 @@ use crate::cmd;
 const REQUIREMENTS: &str = "crates/ihex-proto/tests/dbc/requirements.txt";
 
 /// True under CI, where nothing may be skipped for want of a tool.
-fn in_ci() -> bool {
+pub fn in_ci() -> bool {
     std::env::var("CI").is_ok_and(|v| v == "true")
 }
 

@@ -3,6 +3,7 @@
 
 mod bench;
 mod broker;
+mod browser;
 mod cantools;
 mod cmd;
 mod cpio;
@@ -275,6 +276,10 @@ fn run_stage(stage: Stage, args: &TestArgs) -> Result<Done> {
             println!("==> xtask: host: DBC round trip through cantools");
             if let Err(e) = cantools::round_trip(&vectors) {
                 failures.push(format!("cantools round trip: {e:#}"));
+            }
+            println!("==> xtask: host: the island view in headless Chromium");
+            if let Err(e) = browser::run() {
+                failures.push(format!("browser test: {e:#}"));
             }
             if !failures.is_empty() {
                 anyhow::bail!("{}", failures.join("; "));

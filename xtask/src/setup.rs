@@ -146,6 +146,7 @@ fn wanted() -> Vec<&'static str> {
     v.push(BROKER_PACKAGE);
     v.push(MCU_EMULATOR_PACKAGE);
     v.push(XZ_PACKAGE);
+    v.extend(crate::browser::PACKAGES);
     v
 }
 
@@ -220,6 +221,8 @@ fn check_without_apt(wanted: &[&str]) -> Result<()> {
             "cpio" => (true, ""),
             "qemu-system-arm" => (cmd::exists("qemu-system-arm"), "qemu-system-arm (package qemu-system-arm / qemu)"),
             "xz-utils" => (cmd::exists("xz"), "xz (package xz-utils / xz)"),
+            "chromium" => (crate::browser::present(), "Chromium and chromedriver (or set IHEX_CHROMIUM and IHEX_CHROMEDRIVER)"),
+            "chromium-driver" => (true, ""),
             _ => (cmd::exists("mosquitto"), "mosquitto (package mosquitto)"),
         };
         if !ok {

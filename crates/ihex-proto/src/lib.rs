@@ -16,7 +16,8 @@
 //! * [`StateReport`] and friends — a node's state read back part by part ([`Message::StateQuery`]).
 //! * [`filter`] — accept/reject ID and mask filters with the seed's semantics, and their translation to
 //!   SocketCAN kernel filters and bxCAN filter banks.
-//! * [`timing`] — bxCAN bit timing from a peripheral clock and a bitrate.
+//! * [`timing`] — bxCAN bit timing from a peripheral clock and a bitrate; [`bus`] — bit lengths of
+//!   frames on the wire (bus load).
 //! * [`uart`] — the 2-byte node-ID configuration message spoken over the ST-Link virtual COM port.
 //! * [`schema`] — every message described as data (signals, units, value names), and [`dbc`] — that
 //!   description as a DBC file for CAN tools (`docs/ihex.dbc`).
@@ -32,6 +33,7 @@
 #[macro_use]
 mod macros;
 mod addr;
+pub mod bus;
 pub mod dbc;
 mod error;
 pub mod field;

@@ -1,5 +1,5 @@
-//! One error enum per layer of the gateway (configuration, CAN, MQTT, embedded broker), gathered by
-//! [`GatewayError`] for [`crate::run()`].
+//! One error enum per layer of the gateway (configuration, CAN, MQTT, embedded broker, island view),
+//! gathered by [`GatewayError`] for [`crate::run()`].
 
 use std::{io, net::SocketAddr, path::PathBuf};
 
@@ -100,6 +100,22 @@ pub enum BrokerError {
     NotReady(SocketAddr),
 }
 
+/// The island view could not be started.
+#[derive(Debug, thiserror::Error)]
+pub enum WebError {
+    /// The configured address cannot be listened on.
+    #[error(
+        "cannot listen on {addr} for the island view: {source} (choose another address with \
+         --http ADDR:PORT, or --http off)"
+    )]
+    Bind {
+        /// The address.
+        addr: SocketAddr,
+        /// The OS's answer.
+        source: io::Error,
+    },
+}
+
 /// Everything [`crate::run()`] can fail with.
 #[derive(Debug, thiserror::Error)]
 pub enum GatewayError {
@@ -115,6 +131,9 @@ pub enum GatewayError {
     /// Embedded broker failure.
     #[error(transparent)]
     Broker(#[from] BrokerError),
+    /// The island view could not be started.
+    #[error(transparent)]
+    Web(#[from] WebError),
     /// The simulated island could not be built.
     #[error("simulated island: {0}")]
     Sim(String),
@@ -125,6 +144,11 @@ pub enum GatewayError {
          pass --broker HOST[:PORT] and --can IFACE"
     )]
     DemoUnavailable,
+    /// `--http` names an address, and this build has no `web` feature.
+    #[error(
+        "this gateway was built without the `web` cargo feature (island view): pass --http off"
+    )]
+    WebUnavailable,
     /// A gateway task panicked.
     #[error("gateway task failed: {0}")]
     Task(String),

@@ -3,8 +3,9 @@
 //! The logic is the sans-IO [`ihex_gateway_core::Bridge`]; this crate is the tokio shell around it:
 //! [`can`] (SocketCAN, or any [`can::FrameLink`]), [`mqtt`] (rumqttc, one task owning the event
 //! loop), [`mod@run`] building the resources and then running them around the core, [`config`]
-//! (CLI > env > TOML > defaults), [`log`], [`shutdown`]; and with the default `demo` feature the
-//! embedded broker and the simulated island (`demo`).
+//! (CLI > env > TOML > defaults), [`log`], [`shutdown`], [`feed`] (the core's publications and
+//! views for other adapters); with the default `demo` feature the embedded broker and the simulated
+//! island (`demo`), and with the default `web` feature the island view (`web`, `docs/web.md`).
 //!
 //! ```no_run
 //! # async fn f() -> Result<(), Box<dyn std::error::Error>> {
@@ -20,10 +21,13 @@ pub mod config;
 #[cfg(feature = "demo")]
 pub mod demo;
 pub mod error;
+pub mod feed;
 pub mod log;
 pub mod mqtt;
 pub mod run;
 pub mod shutdown;
+#[cfg(feature = "web")]
+pub mod web;
 
 /// The sans-IO gateway core this shell runs (re-exported for the tests and tools built on the shell).
 pub use ihex_gateway_core as core;

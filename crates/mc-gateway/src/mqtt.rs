@@ -13,7 +13,7 @@
 use std::{
     collections::VecDeque,
     sync::{
-        atomic::{AtomicU64, Ordering},
+        atomic::{AtomicBool, AtomicU64, Ordering},
         Arc,
     },
     time::Duration,
@@ -74,6 +74,8 @@ pub enum MqttInput {
 /// Counters of the MQTT side, readable while the gateway runs.
 #[derive(Debug, Default)]
 pub struct MqttStats {
+    /// Connected to the broker right now (from an accepted ConnAck to the next connection error).
+    pub connected: AtomicBool,
     /// Successful connections (ConnAck accepted).
     pub connects: AtomicU64,
     /// Publications dropped because the queue was full while disconnected.
@@ -204,6 +206,7 @@ impl MqttTask {
                         continue;
                     }
                     connected = true;
+                    self.stats.connected.store(true, Ordering::Relaxed);
                     delay = RECONNECT_MIN;
                     let n = self.stats.connects.fetch_add(1, Ordering::Relaxed) + 1;
                     info!(
@@ -252,6 +255,7 @@ impl MqttTask {
                         debug!(error = %e, retry_in = ?delay, "cannot reach the broker");
                     }
                     connected = false;
+                    self.stats.connected.store(false, Ordering::Relaxed);
                     self.take_back(&mut el, &mut backlog);
                     tokio::select! {
                         _ = cancel.cancelled() => break,
@@ -265,6 +269,7 @@ impl MqttTask {
             self.goodbye(&client, &mut el, &mut publications, &mut backlog)
                 .await;
         }
+        self.stats.connected.store(false, Ordering::Relaxed);
         let dropped = self.stats.dropped.load(Ordering::Relaxed);
         info!(dropped, unsent = backlog.len(), "MQTT task stopped");
     }

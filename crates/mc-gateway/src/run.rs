@@ -8,7 +8,7 @@
 
 use std::{sync::Arc, time::Instant};
 
-use ihex_gateway_core::{Bridge, Publication};
+use ihex_gateway_core::{Bridge, BridgeConfig, Publication};
 use tokio::{sync::mpsc, task::JoinSet};
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, error, info, warn};
@@ -17,6 +17,7 @@ use crate::{
     can::{CanInput, CanLink},
     config::{Config, Link},
     error::GatewayError,
+    feed::{Feed, ViewRequests},
     mqtt::{self, MqttInput, MqttStats, MqttTask, Outbound},
     topic::Topics,
 };
@@ -27,6 +28,13 @@ const CAN_INPUTS: usize = 1024;
 const MQTT_INPUTS: usize = 256;
 /// Publications from the core waiting for the MQTT task.
 const PUBLICATIONS: usize = 1024;
+
+/// The largest message handed to the core as a command (by the MQTT task and the island view): well
+/// above the command limit, so an oversized command is answered with `command_rejected` rather than
+/// breaking the connection it came on.
+pub(crate) fn max_incoming(bridge: &BridgeConfig) -> usize {
+    bridge.max_command_bytes.saturating_mul(4).max(1 << 20)
+}
 
 /// Runs the gateway until `shutdown` is cancelled (then stops every task, publishes `offline` and
 /// returns `Ok`), or until a task fails.
@@ -50,6 +58,8 @@ pub struct Gateway {
     mqtt: MqttTask,
     #[cfg(feature = "demo")]
     demo: crate::demo::Demo,
+    #[cfg(feature = "web")]
+    web: Option<crate::web::Web>,
 }
 
 impl Gateway {
@@ -66,8 +76,17 @@ impl Gateway {
                 "bitrate differs from the island's; the interface's own configuration decides"
             );
         }
+        // Bound first: a taken address fails before the demo starts its broker.
+        #[cfg(feature = "web")]
+        let web = crate::web::Web::bind(&config).await?;
+        #[cfg(not(feature = "web"))]
+        if config.web.configured && config.web.listen.is_some() {
+            return Err(GatewayError::WebUnavailable);
+        }
         #[cfg(feature = "demo")]
         let (demo, island_link) = crate::demo::Demo::build(&config).await?;
+        #[cfg(all(feature = "demo", feature = "web"))]
+        let web = web.map(|w| w.with_island_layout(demo.layout()));
         #[cfg(not(feature = "demo"))]
         let island_link: Option<CanLink> = match config.mqtt.broker {
             crate::config::Broker::Embedded { .. } => return Err(GatewayError::DemoUnavailable),
@@ -78,13 +97,8 @@ impl Gateway {
             (Link::Simulated { .. }, Some(link)) => link,
             (Link::Simulated { .. }, None) => return Err(GatewayError::DemoUnavailable),
         };
-        let max_incoming = config
-            .bridge
-            .max_command_bytes
-            .saturating_mul(4)
-            .max(1 << 20);
         let mqtt = MqttTask {
-            options: mqtt::options(&config.mqtt, &config.topics, max_incoming)?,
+            options: mqtt::options(&config.mqtt, &config.topics, max_incoming(&config.bridge))?,
             topics: config.topics.clone(),
             ha: config.ha.is_some(),
             queue: config.mqtt.queue,
@@ -96,21 +110,31 @@ impl Gateway {
             mqtt,
             #[cfg(feature = "demo")]
             demo,
+            #[cfg(feature = "web")]
+            web,
         })
+    }
+
+    /// Where the island view listens, when it runs.
+    pub fn view_addr(&self) -> Option<std::net::SocketAddr> {
+        #[cfg(feature = "web")]
+        return self.web.as_ref().map(crate::web::Web::addr);
+        #[cfg(not(feature = "web"))]
+        None
     }
 
     /// Runs until `shutdown` is cancelled (then stops every task, publishes `offline` and returns
     /// `Ok`), or until a task fails.
     pub async fn run(self, shutdown: CancellationToken) -> Result<(), GatewayError> {
-        #[cfg(feature = "demo")]
         let Gateway {
             config,
             link,
             mqtt,
+            #[cfg(feature = "demo")]
             mut demo,
+            #[cfg(feature = "web")]
+            web,
         } = self;
-        #[cfg(not(feature = "demo"))]
-        let Gateway { config, link, mqtt } = self;
         let cancel = shutdown.child_token();
         let mut tasks = JoinSet::new();
         let (can_in_tx, can_in) = mpsc::channel(CAN_INPUTS);
@@ -118,9 +142,33 @@ impl Gateway {
         let (pub_tx, pub_rx) = mpsc::channel(PUBLICATIONS);
 
         let can_tx = link.spawn(config.can.tx_queue, can_in_tx, &mut tasks, cancel.clone());
+        // The island view reads the core through the feed and its views, and sends commands into
+        // the same input as MQTT.
+        #[cfg(feature = "web")]
+        let (feed, views, view_url) = match web {
+            Some(web) => {
+                let feed = Arc::new(Feed::default());
+                let (views_tx, views) = ViewRequests::channel();
+                let url = web.url();
+                let parts = crate::web::Parts {
+                    feed: feed.clone(),
+                    views: views_tx,
+                    commands: mqtt_in_tx.clone(),
+                    mqtt: mqtt.stats.clone(),
+                };
+                web.spawn(parts, &mut tasks, cancel.clone());
+                (Some(feed), views, Some(url))
+            }
+            None => (None, ViewRequests::default(), None),
+        };
+        #[cfg(not(feature = "web"))]
+        let (feed, views, view_url): (Option<Arc<Feed>>, _, Option<String>) =
+            (None, ViewRequests::default(), None);
         tasks.spawn(mqtt.run(pub_rx, mqtt_in_tx, cancel.clone()));
         #[cfg(feature = "demo")]
-        demo.spawn(&config, &mut tasks, cancel.clone());
+        demo.spawn(&config, &mut tasks, cancel.clone(), view_url.as_deref());
+        #[cfg(not(feature = "demo"))]
+        let _ = view_url;
         info!(
             island = config.island.as_deref().unwrap_or("none"),
             broker = %config.mqtt.broker,
@@ -145,6 +193,8 @@ impl Gateway {
             pub_tx,
             topics: config.topics.clone(),
             dropped: 0,
+            feed,
+            views,
         };
         let result = core.run(can_in, mqtt_in, &mut tasks, &cancel).await;
 
@@ -170,6 +220,10 @@ struct Core {
     pub_tx: mpsc::Sender<Outbound>,
     topics: Topics,
     dropped: u64,
+    /// The island view's copy of every publication, when it runs.
+    feed: Option<Arc<Feed>>,
+    /// The island view's requests for views of the bridge.
+    views: ViewRequests,
 }
 
 impl Core {
@@ -210,6 +264,10 @@ impl Core {
                         CanInput::SendFailed(p, reason) => self.bridge.handle_send_failed(p, &reason, now),
                     }
                 }
+                req = self.views.next() => {
+                    let seq = self.feed.as_ref().map_or(0, |f| f.seq());
+                    req.answer(&self.bridge, seq, Instant::now());
+                }
                 Some(input) = mqtt_in.recv() => match input {
                     MqttInput::Command(payload) => self.bridge.handle_command(&payload, Instant::now()),
                     MqttInput::HaCommand { topic, payload } => self.bridge.handle_ha_command(&topic, &payload, Instant::now()),
@@ -241,7 +299,7 @@ impl Core {
     }
 
     /// The one place publications leave the core: serialised once, logged (every event at info, so
-    /// the log alone tells the island's story), handed to the MQTT task.
+    /// the log alone tells the island's story), handed to the MQTT task and to the island view.
     fn publish(&mut self, publication: Publication) {
         let json = publication.to_json();
         match &publication {
@@ -251,6 +309,9 @@ impl Core {
                 debug!(topic = ?h.topic(), payload = %json, "Home Assistant published")
             }
             Publication::Cleared(t) => info!(topic = ?t, "retained topic cleared"),
+        }
+        if let Some(feed) = &self.feed {
+            feed.publish(&publication, &json);
         }
         let p = Outbound {
             topic: self.topics.resolve(publication.topic()),

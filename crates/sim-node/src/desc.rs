@@ -11,6 +11,8 @@
 //! firmware = "0.1.0"            # optional: the firmware version it reports (default: this crate's)
 //! image_hash = "0011223344aabb" # optional: the first 7 bytes of its image hash, 14 hex digits
 //!                               # (default: derived from the version)
+//! hex = [0, 0]                  # optional: where the gateway's island view draws it (axial hex
+//!                               # coordinates q, r; docs/web.md)
 //!
 //! [[mobile]]
 //! id = "2"
@@ -68,6 +70,8 @@ pub struct StaticDesc {
     pub configured: bool,
     /// The firmware it reports.
     pub firmware: FirmwareIdentity,
+    /// Where the gateway's island view draws it: axial hex coordinates `(q, r)`.
+    pub hex: Option<(i32, i32)>,
 }
 
 /// A mobile element: powered through the static element it is docked on.
@@ -131,7 +135,11 @@ struct StaticRaw {
     unconfigured: bool,
     firmware: Option<Version>,
     image_hash: Option<HexHash>,
+    hex: Option<Spanned<[i32; 2]>>,
 }
+
+/// The largest axial coordinate of a hexagon, either sign.
+pub const MAX_HEX: i32 = 1000;
 
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -337,6 +345,7 @@ impl IslandDesc {
             bounce: raw.bounce,
             ..Default::default()
         };
+        let mut placed: HashMap<(i32, i32), NodeId> = HashMap::new();
         for s in &raw.statics {
             let id = s.id.get_ref().0;
             let uid = s
@@ -344,12 +353,32 @@ impl IslandDesc {
                 .as_ref()
                 .map_or(derived_uid(id), |u| Uid(u.get_ref().0));
             check_unique(&s.id, uid, s.uid.as_ref().map(|u| u.span()))?;
+            let hex = match &s.hex {
+                None => None,
+                Some(h) => {
+                    let [q, r] = *h.get_ref();
+                    if q.abs() > MAX_HEX || r.abs() > MAX_HEX {
+                        return Err(loc.err(
+                            h.span(),
+                            format!("hex = [{q}, {r}]: coordinates are -{MAX_HEX} to {MAX_HEX}"),
+                        ));
+                    }
+                    if let Some(other) = placed.insert((q, r), id) {
+                        return Err(loc.err(
+                            h.span(),
+                            format!("hex = [{q}, {r}] is taken by \"{other}\""),
+                        ));
+                    }
+                    Some((q, r))
+                }
+            };
             desc.statics.push(StaticDesc {
                 id,
                 ports: ports_of(&s.ports)?,
                 uid,
                 configured: !s.unconfigured,
                 firmware: firmware_identity(s.firmware, s.image_hash),
+                hex,
             });
         }
         let mut taken: HashMap<(NodeId, Port), NodeId> = HashMap::new();
@@ -445,6 +474,7 @@ uid = "0123456789abcdef00000111"
 [[static]]
 id = "0x112"
 firmware = "1.2.3"
+hex = [1, -1]
 
 [[mobile]]
 id = "2"
@@ -465,6 +495,7 @@ unconfigured = true
         assert_eq!(d.statics[1].id, id(0x112));
         assert_eq!(d.statics[1].ports, DEFAULT_PORTS);
         assert_eq!(d.statics[1].uid, derived_uid(id(0x112)));
+        assert_eq!((d.statics[0].hex, d.statics[1].hex), (None, Some((1, -1))));
         assert_eq!(d.mobiles[0].dock, Some((id(0x111), Port::new(3).unwrap())));
         assert_eq!(d.mobiles[0].port, Port::new(1).unwrap());
         assert!(d.mobiles[0].configured);
@@ -585,6 +616,18 @@ unconfigured = true
     }
 
     #[test]
+    fn hexagons_stay_apart_and_near() {
+        let (line, msg) = invalid_at(
+            "[[static]]\nid = \"1\"\nhex = [0, 0]\n[[static]]\nid = \"2\"\nhex = [0, 0]\n",
+        );
+        assert_eq!(line, 6);
+        assert_eq!(msg, "hex = [0, 0] is taken by \"1\"");
+        let (line, msg) = invalid_at("[[static]]\nid = \"1\"\nhex = [0, 1001]\n");
+        assert_eq!(line, 3);
+        assert!(msg.contains("-1000 to 1000"), "{msg}");
+    }
+
+    #[test]
     fn type_and_value_errors_come_from_toml_with_the_line() {
         for (text, needle) in [
             ("[[static]]\nid = 111\n", "line 2"),
@@ -606,6 +649,8 @@ unconfigured = true
                 "14 hex digits",
             ),
             ("[[static]]\nid = \"1\"\nfirmware = 1\n", "line 3"),
+            ("[[static]]\nid = \"1\"\nhex = [1]\n", "line 3"),
+            ("[[mobile]]\nid = \"1\"\nhex = [1, 2]\n", "hex"),
             ("[[static]\n", "line 1"),
         ] {
             match IslandDesc::parse(text) {

@@ -13,7 +13,7 @@ use crate::event::{CommandResult, Event, HexId, Outcome, Refusal, Target};
 use crate::registry::Registry;
 
 /// How many commands are in flight, and how the finished ones ended (since start).
-#[derive(Clone, Copy, PartialEq, Eq, Debug, Default)]
+#[derive(Clone, Copy, PartialEq, Eq, Debug, Default, serde::Serialize, serde::Deserialize)]
 pub struct CommandCounters {
     /// Sent and not answered yet.
     pub in_flight: usize,

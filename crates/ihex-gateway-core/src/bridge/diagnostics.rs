@@ -34,8 +34,9 @@ pub enum BusEvent {
     RxDropped(u32),
 }
 
-/// What the bus has done since start: counts of every kind of trouble, published or suppressed.
-#[derive(Clone, Copy, PartialEq, Eq, Debug, Default)]
+/// What the bus has done since start: the gateway's traffic, and counts of every kind of trouble,
+/// published or suppressed (serialised as the island view shows it, `docs/web.md`).
+#[derive(Clone, Copy, PartialEq, Eq, Debug, Default, serde::Serialize, serde::Deserialize)]
 pub struct BusHealth {
     /// The gateway's own interface is bus-off or down right now.
     pub bus_down: bool,
@@ -55,6 +56,13 @@ pub struct BusHealth {
     pub faults: u64,
     /// `fault` and `bus_error` events held back by the rate limit.
     pub events_suppressed: u64,
+    /// Frames received through the gateway's filters (valid or not; error frames not included).
+    pub frames_received: u64,
+    /// Frames handed to the CAN adapter for sending (those it could not send are `send_failures`).
+    pub frames_sent: u64,
+    /// Bits those received and sent frames take on the wire without stuff bits
+    /// ([`ihex_proto::bus::frame_bits`]): the gateway's share of the bus load.
+    pub frame_bits: u64,
 }
 
 /// The rate limit and the counters.
@@ -272,6 +280,16 @@ impl Diagnostics {
     }
 
     /// Counts a frame that could not be sent (whoever reports it).
+    /// A frame with `data_len` data bytes was received (`sent = false`) or handed over for sending.
+    pub(super) fn count_frame(&mut self, data_len: u8, sent: bool) {
+        if sent {
+            self.health.frames_sent += 1;
+        } else {
+            self.health.frames_received += 1;
+        }
+        self.health.frame_bits += u64::from(ihex_proto::bus::frame_bits(data_len));
+    }
+
     pub(super) fn count_send_failure(&mut self) {
         self.health.send_failures += 1;
     }

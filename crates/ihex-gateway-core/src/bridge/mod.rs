@@ -219,6 +219,8 @@ impl Bridge {
 
     /// A valid iHEX packet arrived on the bus.
     pub fn handle_packet(&mut self, packet: Packet, now: Instant) {
+        self.diagnostics
+            .count_frame(Message::len_of(packet.msg.kind()), false);
         if packet.dest != NodeId::GATEWAY {
             // Another controller's command seen on the bus: not ours to act on.
             tracing::debug!(?packet, "ignoring packet not addressed to the gateway");
@@ -295,6 +297,8 @@ impl Bridge {
 
     /// A frame arrived that passed the filters but is not a valid iHEX packet.
     pub fn handle_undecodable(&mut self, raw_id: u32, data: &[u8], err: DecodeError, now: Instant) {
+        let len = u8::try_from(data.len()).unwrap_or(u8::MAX);
+        self.diagnostics.count_frame(len, false);
         self.diagnostics
             .on_undecodable(raw_id, data, err, now, &mut self.out);
     }
@@ -381,7 +385,10 @@ impl Bridge {
 
     /// The next frame to transmit, `None` when there is none.
     pub fn poll_transmit(&mut self) -> Option<Packet> {
-        self.out.transmit.pop_front()
+        let packet = self.out.transmit.pop_front()?;
+        self.diagnostics
+            .count_frame(Message::len_of(packet.msg.kind()), true);
+        Some(packet)
     }
 
     /// The next event or state document to publish, `None` when there is none.
@@ -713,6 +720,34 @@ mod tests {
             "the test exercised little: {accepted} {events}"
         );
         assert_eq!(results, accepted, "one command_result per accepted command");
+    }
+
+    /// Every frame through the bridge is counted with its bits on the wire (67 + 8 per data byte,
+    /// no stuff bits), received or sent, valid or not, addressed to the gateway or not.
+    #[test]
+    fn frames_are_counted_with_their_bits() {
+        let (mut b, t0) = with_nodes(&[2, 0x111]);
+        let health_check = 67 + 8 * u64::from(Message::len_of(Kind::HealthCheck));
+        let reply = 67 + 8 * u64::from(Message::len_of(Kind::HealthReply));
+        let h = b.bus_health();
+        assert_eq!((h.frames_sent, h.frames_received), (1, 2));
+        assert_eq!(h.frame_bits, health_check + 2 * reply);
+
+        command(
+            &mut b,
+            json!({"cmd": "power", "node": "111", "on": true}),
+            t0,
+        );
+        b.handle_undecodable(0x1f00_0001, &[1, 2, 3], DecodeError::UnknownKind(0x1f), t0);
+        b.handle_packet(
+            Packet::command(id(2), Message::PowerSet { seq: 0, on: true }),
+            t0,
+        );
+        drain(&mut b);
+        let h2 = b.bus_health();
+        assert_eq!((h2.frames_sent, h2.frames_received), (2, 4));
+        let power = 67 + 8 * u64::from(Message::len_of(Kind::PowerSet));
+        assert_eq!(h2.frame_bits - h.frame_bits, power + (67 + 24) + power);
     }
 
     #[test]

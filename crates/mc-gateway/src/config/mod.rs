@@ -7,6 +7,7 @@
 //! an embedded broker on `broker_listen` and a simulated island.
 
 pub mod options;
+pub mod web;
 
 use std::{
     fmt,
@@ -50,6 +51,14 @@ options! {
     /// Where the embedded demo broker listens.
     broker_listen: SocketAddr = {SocketAddr::from(([127, 0, 0, 1], MQTT_PORT))},
         env "IHEX_BROKER_LISTEN", value "ADDR:PORT";
+    /// Where the island view (web page and JSON API, `docs/web.md`) listens; `off` switches it off.
+    http: String = (text "`127.0.0.1:8080`"), env "IHEX_HTTP", value "ADDR:PORT";
+    /// Bearer token for the island view's controls; without one they work only when the view
+    /// listens on a loopback address (elsewhere it is read-only).
+    http_token: String = none, env "IHEX_HTTP_TOKEN", value "TOKEN", [secret];
+    /// Positions of static elements in the island view, `ID=Q,R` (axial hex coordinates) separated
+    /// by spaces, e.g. `111=0,0 112=1,0`; the others are arranged around them.
+    layout: String = none, env "IHEX_LAYOUT", value "ID=Q,R ...";
     /// MQTT client id.
     client_id: String = (text "`ihex-gateway`, or `ihex-gateway-ISLAND`"), env "IHEX_CLIENT_ID",
         value "ID";
@@ -307,6 +316,8 @@ pub struct Config {
     pub ha: Option<ha::HaConfig>,
     /// Logging.
     pub log: LogConfig,
+    /// The island view.
+    pub web: web::WebConfig,
     /// Every option as resolved (defaults applied, ranges checked), for options that need no more
     /// than that.
     pub settings: Settings,
@@ -523,6 +534,7 @@ impl Config {
             bridge,
             ha,
             log,
+            web: web::WebConfig::from_settings(&s)?,
             settings: s,
             warnings,
         })

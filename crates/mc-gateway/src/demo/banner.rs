@@ -63,13 +63,15 @@ fn dock_example(desc: &IslandDesc) -> Option<DockExample> {
     })
 }
 
-/// The banner for `desc` (loaded from `file`, or the built-in island), the broker at `host:port`.
+/// The banner for `desc` (loaded from `file`, or the built-in island), the broker at `host:port`,
+/// the island view at `view_url` when it runs.
 pub fn banner(
     topics: &Topics,
     host: &str,
     port: u16,
     desc: &IslandDesc,
     file: Option<&Path>,
+    view_url: Option<&str>,
 ) -> String {
     let b = format!("-h {host} -p {port}");
     let (events, cmds, sim) = (&topics.events, &topics.commands, &topics.sim);
@@ -141,6 +143,9 @@ pub fn banner(
     );
     let _ = writeln!(t, "retained state topics below show it.");
     let _ = writeln!(t);
+    if let Some(url) = view_url {
+        let _ = writeln!(t, "See the island live in a browser: {url}");
+    }
     let _ = writeln!(t, "Watch every event:");
     let _ = writeln!(t, "  mosquitto_sub {b} -t '{events}' -v");
     let _ = writeln!(
@@ -220,7 +225,20 @@ mod tests {
     fn the_banner_uses_the_configured_topics() {
         let topics = Topics::new(Some("lab"), "CommandsTopic", "EventsTopic", "a", "n");
         let desc = IslandDesc::parse(super::super::BUILTIN_ISLAND).unwrap();
-        let text = banner(&topics, "127.0.0.1", 1884, &desc, None);
+        let text = banner(&topics, "127.0.0.1", 1884, &desc, None, None);
+        assert!(!text.contains("browser"), "{text}");
+        let text = banner(
+            &topics,
+            "127.0.0.1",
+            1884,
+            &desc,
+            None,
+            Some("http://127.0.0.1:8080/"),
+        );
+        assert!(
+            text.contains("See the island live in a browser: http://127.0.0.1:8080/\n"),
+            "{text}"
+        );
         assert!(text.contains("mosquitto_pub -h 127.0.0.1 -p 1884 -q 1 -t 'lab/CommandsTopic'"));
         assert!(text.contains("mosquitto_sub -h 127.0.0.1 -p 1884 -t 'lab/EventsTopic' -v"));
         assert!(text.contains("-t 'lab/ihex/sim'"));
@@ -250,7 +268,7 @@ mod tests {
         );
         let topics = Topics::seed();
         for (file, desc) in islands {
-            let text = banner(&topics, "127.0.0.1", 1883, &desc, file.as_deref());
+            let text = banner(&topics, "127.0.0.1", 1883, &desc, file.as_deref(), None);
             let island = Island::start(&desc, Link::Mem(MemBus::new())).unwrap();
             let payload = |line: &str| {
                 line.split(" -m '")

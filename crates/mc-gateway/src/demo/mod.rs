@@ -59,6 +59,14 @@ pub fn load_island(island_file: Option<&Path>) -> Result<IslandDesc, GatewayErro
     desc.map_err(|e| GatewayError::Sim(e.to_string()))
 }
 
+/// The positions (`hex`) an island description gives its static elements.
+pub fn island_layout(desc: &IslandDesc) -> crate::config::web::Layout {
+    desc.statics
+        .iter()
+        .filter_map(|s| s.hex.map(|(q, r)| (s.id, crate::config::web::Hex { q, r })))
+        .collect()
+}
+
 /// The gateway's endpoint on the simulated island's in-memory bus.
 struct MemLink(MemEndpoint);
 
@@ -154,8 +162,23 @@ impl Demo {
         Ok((Demo { broker, island }, link))
     }
 
-    /// Starts the island's control client and prints the banner (embedded broker + island).
-    pub fn spawn(&mut self, config: &Config, tasks: &mut JoinSet<()>, cancel: CancellationToken) {
+    /// Positions of static elements the island file gives, for the island view.
+    pub fn layout(&self) -> crate::config::web::Layout {
+        self.island
+            .as_ref()
+            .map(|island| island_layout(&island.desc))
+            .unwrap_or_default()
+    }
+
+    /// Starts the island's control client and prints the banner (embedded broker + island), with
+    /// the island view's address when it runs.
+    pub fn spawn(
+        &mut self,
+        config: &Config,
+        tasks: &mut JoinSet<()>,
+        cancel: CancellationToken,
+        view_url: Option<&str>,
+    ) {
         let Some(island) = &mut self.island else {
             return;
         };
@@ -169,6 +192,7 @@ impl Demo {
                 listen.port(),
                 &island.desc,
                 island.file.as_deref(),
+                view_url,
             );
             println!("{text}");
         }
@@ -179,5 +203,28 @@ impl Demo {
         if let Some(island) = self.island {
             island.handle.shutdown().await;
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::web::Hex;
+
+    #[test]
+    fn the_island_file_places_its_hexagons() {
+        let path = concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../../examples/islands/bench.toml"
+        );
+        let layout = island_layout(&load_island(Some(Path::new(path))).unwrap());
+        let id = |s: &str| s.parse::<ihex_proto::NodeId>().unwrap();
+        // The flower: seven placed, the factory-fresh board left to the automatic arrangement.
+        assert_eq!(layout.len(), 7);
+        assert_eq!(layout[&id("100")], Hex { q: 0, r: 0 });
+        assert_eq!(layout[&id("101")], Hex { q: 0, r: -1 });
+        assert!(!layout.contains_key(&id("1f0")));
+        // The built-in island places nothing.
+        assert!(island_layout(&load_island(None).unwrap()).is_empty());
     }
 }

@@ -1,0 +1,845 @@
+//! The island view in a real browser: Debian's headless Chromium driven through chromedriver
+//! (fantoccini), against the `mc-gateway` demo binary (embedded broker, simulated island), while the
+//! island is changed over MQTT like a person at the bench would.
+//!
+//! Ignored by `cargo test` (it needs `chromium` and `chromedriver`); the host stage of
+//! `cargo xtask test` runs it with `--ignored` after the workspace's tests, and `cargo xtask setup`
+//! installs both. Screenshots go to `target/web-screenshots/`; with `UPDATE_DOCS=1` the one of the
+//! docs is also written to `docs/img/island-view.png`. Deadlines are scaled by `IHEX_TEST_TIME_SCALE`: they bound how long
+//! a change may take to show, they do not measure it.
+#![cfg(all(feature = "demo", feature = "web"))]
+
+use std::{
+    io::{BufRead, BufReader},
+    net::TcpListener,
+    path::{Path, PathBuf},
+    process::{Child, Command, Stdio},
+    time::Duration,
+};
+
+use fantoccini::{Client, ClientBuilder, Locator};
+use ihex_tests::time::scaled;
+use rumqttc::{AsyncClient, Event, Incoming, MqttOptions, QoS};
+use serde_json::{json, Value};
+use tokio::sync::mpsc;
+
+const BIN: &str = env!("CARGO_BIN_EXE_mc-gateway");
+
+fn free_port() -> u16 {
+    TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+/// A program on `PATH` (or named by the environment variable `var`).
+fn program(var: &str, names: &[&str]) -> PathBuf {
+    if let Some(p) = std::env::var_os(var) {
+        return PathBuf::from(p);
+    }
+    let path = std::env::var_os("PATH").unwrap_or_default();
+    names
+        .iter()
+        .flat_map(|n| std::env::split_paths(&path).map(move |d| d.join(n)))
+        .find(|p| p.is_file())
+        .unwrap_or_else(|| {
+            panic!(
+                "none of {names:?} found on PATH (set {var}); `cargo xtask setup` installs Debian's chromium and chromium-driver"
+            )
+        })
+}
+
+/// The screenshot folder, `target/web-screenshots/`.
+fn screenshot_dir() -> PathBuf {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+    let target = std::env::var_os("CARGO_TARGET_DIR")
+        .map(|d| root.join(d))
+        .unwrap_or_else(|| root.join("target"));
+    let dir = target.join("web-screenshots");
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
+/// The demo gateway as a process, started and stopped like a person would.
+struct Gateway {
+    child: Child,
+}
+
+impl Gateway {
+    fn start(broker: u16, http: u16) -> Gateway {
+        Gateway::start_with(broker, &format!("127.0.0.1:{http}"), &[])
+    }
+
+    /// The demo with the view on `http` (`ADDR:PORT`) and more options.
+    fn start_with(broker: u16, http: &str, more: &[&str]) -> Gateway {
+        let mut cmd = Command::new(BIN);
+        cmd.args(["--broker-listen", &format!("127.0.0.1:{broker}")])
+            .args(["--http", http])
+            .args(["--log-dir", "-", "--health-period-ms", "250"])
+            .args(more)
+            .stdout(Stdio::piped())
+            .stderr(Stdio::null());
+        for (k, _) in std::env::vars_os() {
+            if k.to_string_lossy().starts_with("IHEX_") {
+                cmd.env_remove(k);
+            }
+        }
+        let mut child = cmd.spawn().unwrap();
+        // The banner is printed once broker, island, view and tasks run; it names the view.
+        let mut banner = String::new();
+        for line in BufReader::new(child.stdout.take().unwrap()).lines() {
+            let line = line.unwrap();
+            banner.push_str(&line);
+            banner.push('\n');
+            if line.contains("Ctrl-C stops the gateway") {
+                break;
+            }
+        }
+        let port = http.rsplit(':').next().unwrap_or_default();
+        let url = format!("See the island live in a browser: http://127.0.0.1:{port}/");
+        assert!(
+            banner.contains(&url),
+            "the banner does not name the view:\n{banner}"
+        );
+        Gateway { child }
+    }
+
+    /// SIGTERM, and the exit status must be a success.
+    fn stop(mut self) {
+        // SAFETY: plain kill(2) on our own child's pid.
+        assert_eq!(
+            unsafe { libc::kill(self.child.id() as i32, libc::SIGTERM) },
+            0
+        );
+        assert!(self.child.wait().unwrap().success());
+    }
+}
+
+impl Drop for Gateway {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// chromedriver on a free port, killed on drop.
+struct Driver(Child, u16);
+
+impl Driver {
+    fn start() -> Driver {
+        let port = free_port();
+        let child = Command::new(program("IHEX_CHROMEDRIVER", &["chromedriver"]))
+            .arg(format!("--port={port}"))
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("start chromedriver");
+        Driver(child, port)
+    }
+}
+
+impl Drop for Driver {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+/// A headless Chromium session with the flags that work on machines without a network or a GPU.
+async fn browser(driver: &Driver, profile: &Path) -> Client {
+    let chromium = program(
+        "IHEX_CHROMIUM",
+        &["chromium", "chromium-browser", "google-chrome"],
+    );
+    let caps = json!({
+        "goog:chromeOptions": {
+            "binary": chromium,
+            "args": [
+                "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+                "--disable-background-networking", "--disable-component-update", "--disable-sync",
+                "--window-size=1400,1100",
+                format!("--user-data-dir={}", profile.display()),
+            ],
+        }
+    });
+    let caps = caps.as_object().unwrap().clone();
+    let url = format!("http://127.0.0.1:{}", driver.1);
+    let deadline = tokio::time::Instant::now() + scaled(Duration::from_secs(20));
+    loop {
+        let connector = hyper_util::client::legacy::connect::HttpConnector::new();
+        match ClientBuilder::new(connector)
+            .capabilities(caps.clone())
+            .connect(&url)
+            .await
+        {
+            Ok(c) => return c,
+            Err(e) if tokio::time::Instant::now() < deadline => {
+                let _ = e;
+                tokio::time::sleep(Duration::from_millis(100)).await;
+            }
+            Err(e) => panic!("no browser session through chromedriver: {e}"),
+        }
+    }
+}
+
+/// An MQTT client of the demo broker seeing every message; reconnects on its own.
+fn mqtt(port: u16) -> (AsyncClient, mpsc::UnboundedReceiver<(String, Value)>) {
+    let mut o = MqttOptions::new("browser-test", "127.0.0.1", port);
+    o.set_keep_alive(Duration::from_secs(5));
+    let (c, mut el) = AsyncClient::new(o, 32);
+    let (tx, rx) = mpsc::unbounded_channel();
+    let sub = c.clone();
+    tokio::spawn(async move {
+        loop {
+            match el.poll().await {
+                Ok(Event::Incoming(Incoming::ConnAck(_))) => {
+                    let _ = sub.try_subscribe("#", QoS::AtLeastOnce);
+                }
+                Ok(Event::Incoming(Incoming::Publish(p))) => {
+                    let v = serde_json::from_slice(&p.payload).unwrap_or(Value::Null);
+                    if tx.send((p.topic, v)).is_err() {
+                        return;
+                    }
+                }
+                Ok(_) => {}
+                Err(_) => tokio::time::sleep(Duration::from_millis(50)).await,
+            }
+        }
+    });
+    (c, rx)
+}
+
+async fn expect_mqtt(
+    rx: &mut mpsc::UnboundedReceiver<(String, Value)>,
+    what: &str,
+    pred: impl Fn(&str, &Value) -> bool,
+) -> Value {
+    let wait = async {
+        while let Some((t, v)) = rx.recv().await {
+            if pred(&t, &v) {
+                return v;
+            }
+        }
+        panic!("MQTT client stopped");
+    };
+    tokio::time::timeout(scaled(Duration::from_secs(10)), wait)
+        .await
+        .unwrap_or_else(|_| panic!("no {what} on MQTT"))
+}
+
+/// Evaluates `expr` in the page until it is `true`; fails after `within` (scaled) with `what`, the
+/// last value and a screenshot.
+async fn until(c: &Client, within: Duration, what: &str, expr: &str) {
+    let deadline = tokio::time::Instant::now() + scaled(within);
+    let script = format!("try {{ return ({expr}); }} catch (e) {{ return String(e); }}");
+    loop {
+        let v = c.execute(&script, vec![]).await.unwrap();
+        if v == Value::Bool(true) {
+            return;
+        }
+        if tokio::time::Instant::now() > deadline {
+            let name = format!(
+                "failed-{}.png",
+                what.replace(|ch: char| !ch.is_alphanumeric(), "-")
+            );
+            shoot(c, &name).await;
+            panic!(
+                "the page did not show {what} within {:?} (last value {v}); see {name}",
+                scaled(within)
+            );
+        }
+        tokio::time::sleep(Duration::from_millis(25)).await;
+    }
+}
+
+async fn shoot(c: &Client, name: &str) {
+    if let Ok(png) = c.screenshot().await {
+        std::fs::write(screenshot_dir().join(name), png).unwrap();
+    }
+}
+
+/// Clicks what `css` selects, as a person would (a WebDriver click); the page redraws the map when
+/// the island changes, so an element found just before a redraw is looked up again.
+async fn click(c: &Client, css: &str) {
+    for _ in 0..20 {
+        match c.find(Locator::Css(css)).await.unwrap().click().await {
+            Ok(()) => return,
+            Err(e) if e.to_string().contains("stale element") => continue,
+            Err(e) => panic!("cannot click {css}: {e}"),
+        }
+    }
+    panic!("{css} kept being redrawn under the click");
+}
+
+/// The map's element `id`: a CSS selector.
+fn on_map(id: &str) -> String {
+    format!("#map g.element[data-node='{id}']")
+}
+
+/// JavaScript reading one data attribute of the map's element `id` (`null` when it is not drawn).
+fn attr(id: &str, name: &str) -> String {
+    format!(
+        "(document.querySelector(\"{}\") || {{dataset: {{}}}}).dataset.{name}",
+        on_map(id)
+    )
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[ignore = "needs chromium and chromedriver: cargo xtask test --stage host"]
+async fn the_island_view_follows_the_bench() {
+    let (broker, http) = (free_port(), free_port());
+    let gateway = Gateway::start(broker, http);
+    let (bus, mut rx) = mqtt(broker);
+    let driver = Driver::start();
+    let profile = tempfile::tempdir().unwrap();
+    let c = browser(&driver, profile.path()).await;
+    c.goto(&format!("http://127.0.0.1:{http}/")).await.unwrap();
+
+    // Every element of the demo island on the bus, in its state: 111 and 112 static, 2 docked on
+    // 111 port 3 by its port 0, all online, 111's relay on (it powers 2). Mobile 3 is not docked,
+    // so it has no power and the gateway has never heard of it: it is not drawn.
+    let one_second = Duration::from_secs(1);
+    until(
+        &c,
+        Duration::from_secs(10),
+        "the island",
+        "document.querySelectorAll('#map g.element').length === 3",
+    )
+    .await;
+    until(
+        &c,
+        one_second,
+        "no 3",
+        &format!("document.querySelector(\"{}\") === null", on_map("3")),
+    )
+    .await;
+    for (id, role) in [("111", "static"), ("112", "static"), ("2", "mobile")] {
+        until(
+            &c,
+            one_second,
+            &format!("{id} as {role}"),
+            &format!("{} === '{role}'", attr(id, "role")),
+        )
+        .await;
+        until(
+            &c,
+            one_second,
+            &format!("{id} online"),
+            &format!("{} === 'online'", attr(id, "status")),
+        )
+        .await;
+        until(
+            &c,
+            one_second,
+            &format!("{id} listed online"),
+            &format!("document.querySelector(\"#elements tr[data-node='{id}']\").dataset.status === 'online'"),
+        )
+        .await;
+    }
+    until(
+        &c,
+        one_second,
+        "2 docked on 111 port 3",
+        &format!(
+            "{} === '111' && {} === '3' && {} === '0'",
+            attr("2", "dockedTo"),
+            attr("2", "dockPort"),
+            attr("2", "ownPort")
+        ),
+    )
+    .await;
+    until(
+        &c,
+        one_second,
+        "111's relay on",
+        &format!("{} === 'on'", attr("111", "relay")),
+    )
+    .await;
+    until(&c, one_second, "111's closed loop on port 3",
+        &format!("document.querySelector(\"{} circle.port[data-port='3']\").classList.contains('closed')", on_map("111"))).await;
+    until(
+        &c,
+        one_second,
+        "the gateway's health",
+        "document.getElementById('mqtt-state').textContent === 'connected'",
+    )
+    .await;
+    until(
+        &c,
+        one_second,
+        "no stale banner",
+        "document.getElementById('stale').hidden",
+    )
+    .await;
+    shoot(&c, "island.png").await;
+
+    // Docking in the simulator redraws 3 against 112's port 2; undocking puts it back in the tray.
+    bus.publish(
+        "ihex/sim",
+        QoS::AtLeastOnce,
+        false,
+        r#"{"sim":"dock","mobile":"3","static":"112","port":2}"#,
+    )
+    .await
+    .unwrap();
+    until(
+        &c,
+        one_second,
+        "3 docked on 112 port 2",
+        &format!(
+            "{} === '112' && {} === '2' && {} === 'online'",
+            attr("3", "dockedTo"),
+            attr("3", "dockPort"),
+            attr("3", "status")
+        ),
+    )
+    .await;
+    until(&c, one_second, "the docking in the timeline",
+        "[...document.querySelectorAll('#timeline li')].some(li => li.dataset.event === 'new_connection' && li.dataset.nodes.split(' ').includes('3'))").await;
+    shoot(&c, "docked.png").await;
+    bus.publish(
+        "ihex/sim",
+        QoS::AtLeastOnce,
+        false,
+        r#"{"sim":"undock","mobile":"3"}"#,
+    )
+    .await
+    .unwrap();
+    until(
+        &c,
+        one_second,
+        "3 undocked",
+        &format!("{} === 'true'", attr("3", "free")),
+    )
+    .await;
+    // Without power it stops answering: lost after three missed health checks of 250 ms.
+    until(
+        &c,
+        Duration::from_secs(3),
+        "3 lost",
+        &format!("{} === 'lost'", attr("3", "status")),
+    )
+    .await;
+
+    // An LED command over MQTT changes 111's colour on the page.
+    bus.publish(
+        "CommandsTopic",
+        QoS::AtLeastOnce,
+        false,
+        r##"{"cmd":"led","node":"111","color":"#00ff00"}"##,
+    )
+    .await
+    .unwrap();
+    until(&c, one_second, "111 green", &format!(
+        "{} === '#00ff00' && document.querySelector(\"{} polygon.body\").getAttribute('fill') === '#00ff00'",
+        attr("111", "led"), on_map("111"))).await;
+    shoot(&c, "led.png").await;
+
+    // A command given on the page reaches the simulated node and its result shows beside it.
+    click(&c, &on_map("112")).await;
+    until(
+        &c,
+        one_second,
+        "112's details",
+        "document.getElementById('details-body').dataset.node === '112'",
+    )
+    .await;
+    c.execute(
+        "document.getElementById('led-color').value = '#0000ff'",
+        vec![],
+    )
+    .await
+    .unwrap();
+    click(&c, "#led-set").await;
+    until(
+        &c,
+        Duration::from_secs(2),
+        "the command's result",
+        "document.getElementById('details-result').textContent === 'led: ok'",
+    )
+    .await;
+    let state = expect_mqtt(&mut rx, "112's state turning blue", |t, v| {
+        t == "ihex/node/112/state" && v["led"]["color"] == "#0000ff"
+    })
+    .await;
+    assert_eq!(state["led"]["mode"], "steady", "{state}");
+    until(
+        &c,
+        one_second,
+        "112 blue on the map",
+        &format!("{} === '#0000ff'", attr("112", "led")),
+    )
+    .await;
+    until(&c, one_second, "the result in the list",
+        "document.querySelector(\"#elements tr[data-node='112'] td.result\").textContent === 'led: ok'").await;
+    // The relay of 111 switched off from the page; the node acknowledges (its state says so).
+    click(&c, &on_map("111")).await;
+    click(&c, "#relay-off").await;
+    until(
+        &c,
+        Duration::from_secs(2),
+        "power: ok",
+        "document.getElementById('details-result').textContent === 'power: ok'",
+    )
+    .await;
+    expect_mqtt(&mut rx, "111's relay off", |t, v| {
+        t == "ihex/node/111/state" && v["relay"] == false
+    })
+    .await;
+    until(
+        &c,
+        one_second,
+        "111's relay off on the map",
+        &format!("{} === 'off'", attr("111", "relay")),
+    )
+    .await;
+    shoot(&c, "command.png").await;
+
+    // A command the gateway refuses (a tone below 20 Hz): the page shows the reason beside 111.
+    c.execute("document.getElementById('buzzer-freq').value = '5'", vec![])
+        .await
+        .unwrap();
+    click(&c, "#buzzer-on").await;
+    until(
+        &c,
+        Duration::from_secs(2),
+        "the rejection",
+        "(t => t.startsWith('rejected: ') && t.includes('freq_hz'))(document.getElementById('details-result').textContent) \
+         && document.getElementById('details-result').classList.contains('failed')",
+    )
+    .await;
+    shoot(&c, "rejected.png").await;
+
+    // The picture of the docs: 111 powers 2 again, 3 docked again, 112 selected with its result.
+    c.execute(
+        "document.getElementById('buzzer-freq').value = '2000'",
+        vec![],
+    )
+    .await
+    .unwrap();
+    click(&c, "#relay-on").await;
+    until(
+        &c,
+        Duration::from_secs(2),
+        "111's relay on again",
+        &format!("{} === 'on'", attr("111", "relay")),
+    )
+    .await;
+    // Whether 2 was already lost and its docking forgotten depends on the timing of the power
+    // cut: dock it anew in the simulator so the picture is always the same.
+    for msg in [
+        r#"{"sim":"undock","mobile":"2"}"#,
+        r#"{"sim":"dock","mobile":"2","static":"111","port":3}"#,
+    ] {
+        bus.publish("ihex/sim", QoS::AtLeastOnce, false, msg)
+            .await
+            .unwrap();
+    }
+    until(
+        &c,
+        Duration::from_secs(3),
+        "2 docked again",
+        &format!(
+            "{} === '111' && ['online', 'rebooted'].includes({})",
+            attr("2", "dockedTo"),
+            attr("2", "status")
+        ),
+    )
+    .await;
+    bus.publish(
+        "ihex/sim",
+        QoS::AtLeastOnce,
+        false,
+        r#"{"sim":"dock","mobile":"3","static":"112","port":2}"#,
+    )
+    .await
+    .unwrap();
+    until(
+        &c,
+        one_second,
+        "3 online on 112 again",
+        &format!(
+            "{} === '112' && {} === 'online'",
+            attr("3", "dockedTo"),
+            attr("3", "status")
+        ),
+    )
+    .await;
+    click(&c, &on_map("112")).await;
+    until(
+        &c,
+        one_second,
+        "112's result again",
+        "document.getElementById('details-result').textContent === 'led: ok'",
+    )
+    .await;
+    shoot(&c, "island-view.png").await;
+    if std::env::var_os("UPDATE_DOCS").is_some() {
+        let from = screenshot_dir().join("island-view.png");
+        let to = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../docs/img/island-view.png");
+        std::fs::create_dir_all(to.parent().unwrap()).unwrap();
+        std::fs::copy(from, to).unwrap();
+    }
+
+    // Stopping the gateway shows the stale banner; a new gateway on the same ports clears it.
+    gateway.stop();
+    until(
+        &c,
+        Duration::from_secs(3),
+        "the stale banner",
+        "!document.getElementById('stale').hidden",
+    )
+    .await;
+    shoot(&c, "stale.png").await;
+    let gateway = Gateway::start(broker, http);
+    until(
+        &c,
+        Duration::from_secs(10),
+        "the banner cleared",
+        "document.getElementById('stale').hidden",
+    )
+    .await;
+    until(
+        &c,
+        one_second,
+        "the new gateway's island",
+        "document.querySelectorAll('#map g.element').length === 3",
+    )
+    .await;
+    // The new gateway's island starts afresh: 111 is dark again.
+    until(
+        &c,
+        one_second,
+        "111 as the new island has it",
+        &format!("{} !== '#00ff00'", attr("111", "led")),
+    )
+    .await;
+    shoot(&c, "recovered.png").await;
+
+    c.close().await.unwrap();
+    gateway.stop();
+}
+
+// ---- the API without a browser (run by `cargo test`) ----
+
+/// One HTTP/1 request to the view on `port`: its status, `WWW-Authenticate` and body.
+async fn http(
+    port: u16,
+    method: &str,
+    path: &str,
+    headers: &[(&str, &str)],
+    body: &str,
+) -> (u16, Option<String>, String) {
+    use http_body_util::{BodyExt, Full};
+    let client = hyper_util::client::legacy::Client::builder(hyper_util::rt::TokioExecutor::new())
+        .build_http::<Full<axum::body::Bytes>>();
+    let mut req = axum::http::Request::builder()
+        .method(method)
+        .uri(format!("http://127.0.0.1:{port}{path}"));
+    for (k, v) in headers {
+        req = req.header(*k, *v);
+    }
+    let req = req
+        .body(Full::new(axum::body::Bytes::from(body.to_owned())))
+        .unwrap();
+    let resp = tokio::time::timeout(scaled(Duration::from_secs(5)), client.request(req))
+        .await
+        .unwrap_or_else(|_| panic!("{method} {path}: no answer"))
+        .unwrap();
+    let status = resp.status().as_u16();
+    let auth = resp
+        .headers()
+        .get("www-authenticate")
+        .map(|v| v.to_str().unwrap().to_owned());
+    let body = resp.into_body().collect().await.unwrap().to_bytes();
+    (status, auth, String::from_utf8(body.to_vec()).unwrap())
+}
+
+const JSON: (&str, &str) = ("content-type", "application/json");
+
+/// The snapshot once the demo island is on the bus (its three powered elements known, 2 docked).
+async fn island_snapshot(port: u16) -> Value {
+    let deadline = tokio::time::Instant::now() + scaled(Duration::from_secs(10));
+    loop {
+        let (status, _, body) = http(port, "GET", "/api/island", &[], "").await;
+        assert_eq!(status, 200, "{body}");
+        let snap: Value = serde_json::from_str(&body).unwrap();
+        let nodes = snap["nodes"].as_array().unwrap();
+        if nodes.len() == 3 && nodes.iter().any(|n| n["connections"] != json!([])) {
+            return snap;
+        }
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "the island never showed: {snap}"
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}
+
+/// Reads the event stream `body` into `text` until `done` says so (5 s, scaled).
+async fn read_until(
+    body: &mut axum::body::Body,
+    text: &mut String,
+    what: &str,
+    done: impl Fn(&str) -> bool,
+) {
+    use http_body_util::BodyExt;
+    let wait = async {
+        while !done(text) {
+            let frame = body.frame().await.expect("stream ended").unwrap();
+            if let Ok(data) = frame.into_data() {
+                text.push_str(std::str::from_utf8(&data).unwrap());
+            }
+        }
+    };
+    if tokio::time::timeout(scaled(Duration::from_secs(5)), wait)
+        .await
+        .is_err()
+    {
+        panic!("no {what} on the event stream:\n{text}");
+    }
+}
+
+/// `GET /api/island` has the documented shape (docs/web.md); `GET /api/events` says `hello`, then
+/// delivers a publication caused by a command given through `POST /api/command`.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_snapshot_and_the_event_stream() {
+    let (broker, port) = (free_port(), free_port());
+    let gateway = Gateway::start(broker, port);
+    let snap = island_snapshot(port).await;
+    assert_eq!(snap["version"], 1, "{snap}");
+    assert!(snap["seq"].as_u64().is_some() && snap["time_ms"].as_u64().unwrap() > 0);
+    assert_eq!(snap["island"], Value::Null);
+    assert_eq!(snap["controls"], "open");
+    assert_eq!(
+        snap["layout"],
+        json!({}),
+        "the built-in island places nothing"
+    );
+    let g = &snap["gateway"];
+    assert_eq!(g["mqtt_connected"], true, "{g}");
+    for k in ["version", "mqtt_reconnects", "uptime_s", "commands"] {
+        assert!(!g[k].is_null(), "gateway.{k} missing: {g}");
+    }
+    assert!(!g["commands"]["in_flight"].is_null(), "{g}");
+    let b = &snap["bus"];
+    assert_eq!(b["bitrate"], 500_000, "{b}");
+    for k in ["link", "frames_per_s", "load_percent", "bus_off"] {
+        assert!(!b[k].is_null(), "bus.{k} missing: {b}");
+    }
+    let mut ids: Vec<&str> = snap["nodes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|n| n["id"].as_str().unwrap())
+        .collect();
+    ids.sort_unstable();
+    assert_eq!(ids, ["111", "112", "2"]);
+    let two = snap["nodes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|n| n["id"] == "2")
+        .unwrap();
+    assert_eq!(two["role"], "mobile", "{two}");
+    assert_eq!(two["online"], true, "{two}");
+    assert_eq!(two["connections"][0]["peer"], "111", "{two}");
+    let events = snap["events"].as_array().unwrap();
+    assert!(!events.is_empty(), "{snap}");
+    // Newest first, each as published on the events topic.
+    assert!(events[0]["seq"].as_u64() >= events[events.len() - 1]["seq"].as_u64());
+    assert!(events.iter().all(|e| e["event"]["event"].is_string()));
+
+    // The event stream: `hello` first, then what a command through the API causes.
+    let client = hyper_util::client::legacy::Client::builder(hyper_util::rt::TokioExecutor::new())
+        .build_http::<http_body_util::Empty<axum::body::Bytes>>();
+    let resp = client
+        .get(
+            format!("http://127.0.0.1:{port}/api/events")
+                .parse()
+                .unwrap(),
+        )
+        .await
+        .unwrap();
+    assert_eq!(resp.status(), 200);
+    assert_eq!(resp.headers()["content-type"], "text/event-stream");
+    let mut body = axum::body::Body::new(resp.into_body());
+    let mut text = String::new();
+    read_until(&mut body, &mut text, "hello", |t| {
+        t.contains("event: hello\n")
+    })
+    .await;
+    let (status, _, reply) = http(
+        port,
+        "POST",
+        "/api/command",
+        &[JSON],
+        r##"{"cmd":"led","node":"112","color":"#ff0000","request_id":"api-1"}"##,
+    )
+    .await;
+    assert_eq!((status, reply.as_str()), (202, r#"{"accepted":true}"#));
+    read_until(&mut body, &mut text, "the command's result", |t| {
+        t.lines().any(|l| {
+            l.starts_with("data: ")
+                && l.contains(r#""event":"command_result""#)
+                && l.contains(r#""request_id":"api-1""#)
+                && l.contains(r#""result":"ok""#)
+        })
+    })
+    .await;
+    assert!(text.contains("event: event\nid: "), "{text}");
+    // A body that is not declared JSON never reaches the core.
+    let (status, _, _) = http(port, "POST", "/api/command", &[], "{}").await;
+    assert_eq!(status, 415);
+    gateway.stop();
+}
+
+/// The controls' rules (docs/web.md): read-only on a non-loopback address without a token; with a
+/// token, only requests carrying it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn who_may_command() {
+    let cmd = r#"{"cmd":"identify","node":"111","seconds":1}"#;
+
+    let (broker, port) = (free_port(), free_port());
+    let gateway = Gateway::start_with(broker, &format!("0.0.0.0:{port}"), &[]);
+    let (status, _, body) = http(port, "GET", "/api/island", &[], "").await;
+    assert_eq!(status, 200, "reading stays open: {body}");
+    assert_eq!(
+        serde_json::from_str::<Value>(&body).unwrap()["controls"],
+        "read_only"
+    );
+    let (status, _, body) = http(port, "POST", "/api/command", &[JSON], cmd).await;
+    assert_eq!(status, 403, "{body}");
+    assert!(body.contains("read-only"), "{body}");
+    gateway.stop();
+
+    let (broker, port) = (free_port(), free_port());
+    let gateway = Gateway::start_with(
+        broker,
+        &format!("0.0.0.0:{port}"),
+        &["--http-token", "s3cret"],
+    );
+    let (_, _, body) = http(port, "GET", "/api/island", &[], "").await;
+    assert_eq!(
+        serde_json::from_str::<Value>(&body).unwrap()["controls"],
+        "token"
+    );
+    for auth in [None, Some("Bearer wrong")] {
+        let mut h = vec![JSON];
+        h.extend(auth.map(|a| ("authorization", a)));
+        let (status, www, body) = http(port, "POST", "/api/command", &h, cmd).await;
+        assert_eq!(status, 401, "{auth:?}: {body}");
+        assert_eq!(www.as_deref(), Some("Bearer realm=\"ihex\""));
+    }
+    let (status, _, body) = http(
+        port,
+        "POST",
+        "/api/command",
+        &[JSON, ("authorization", "Bearer s3cret")],
+        cmd,
+    )
+    .await;
+    assert_eq!(status, 202, "{body}");
+    gateway.stop();
+}
