@@ -235,3 +235,387 @@ impl ReadBack {
         self.replies
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::super::test_support::*;
+    use super::super::*;
+    use ihex_proto::{
+        BootRole, DockPartner, DockState, FirmwareVersion, LedCommand, PowerState, ResetReason,
+        Rgb, Uid,
+    };
+    use serde_json::{json, Value};
+
+    const RED: LedCommand = LedCommand::Steady {
+        color: Rgb { r: 255, g: 0, b: 0 },
+        brightness: 255,
+    };
+
+    fn power(role: BootRole, relay: bool, loops: u8) -> StateReport {
+        StateReport::Power(PowerState {
+            relay,
+            loops,
+            confirmed: loops,
+            identify_s: 0,
+            role,
+            ports: 6,
+        })
+    }
+
+    fn linked(m: u16, mp: u8) -> DockState {
+        DockState {
+            closed: true,
+            confirmed: true,
+            partner: Some(DockPartner {
+                node: id(m),
+                port: port(mp),
+            }),
+        }
+    }
+
+    /// `node` answers the query `q` with `parts`, closed by its `End`.
+    fn answer(b: &mut Bridge, q: &Packet, parts: &[StateReport], now: Instant) {
+        let Message::StateQuery { seq, parts: asked } = q.msg else {
+            panic!("not a query: {q:?}")
+        };
+        for &r in parts {
+            b.handle_packet(Packet::report(q.dest, Message::StateReport(r)), now);
+        }
+        let end = StateReport::End {
+            seq,
+            parts: asked,
+            count: parts.len() as u8,
+        };
+        b.handle_packet(Packet::report(q.dest, Message::StateReport(end)), now);
+    }
+
+    fn query_to(out: &Out, n: u16) -> Packet {
+        *out.queries
+            .iter()
+            .find(|q| q.dest == id(n))
+            .unwrap_or_else(|| panic!("no query to {n:x} in {:?}", out.queries))
+    }
+
+    fn last_state(out: &Out, n: u16) -> Value {
+        out.states
+            .iter()
+            .rev()
+            .find(|(i, _)| *i == id(n))
+            .map(|(_, s)| s.clone())
+            .unwrap_or_else(|| panic!("no state of {n:x}"))
+    }
+
+    #[test]
+    fn a_restarted_gateway_rebuilds_dockings_and_states_without_new_connection() {
+        let t0 = Instant::now();
+        let mut b = Bridge::new(BridgeConfig::default(), t0);
+        b.handle_timeout(t0);
+        drain(&mut b);
+        // A static element with mobile 2 docked on its port 3 (linked by the gateway before its
+        // restart), and the mobile element, answer the first health check.
+        b.handle_packet(Packet::report(id(0x111), reply(0, 0)), t0 + MS);
+        b.handle_packet(Packet::report(id(2), reply(0, 0)), t0 + MS);
+        let out = drain(&mut b);
+        assert_eq!(out.queries.len(), 2, "both are asked: {:?}", out.queries);
+        assert!(b.reading_back(id(0x111)) && b.reading_back(id(2)));
+        let uid = Uid([1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12]);
+        answer(
+            &mut b,
+            &query_to(&out, 0x111),
+            &[
+                StateReport::Led(RED),
+                StateReport::Buzzer(ihex_proto::BuzzerCommand::Off),
+                power(BootRole::Static, true, 1 << 3),
+                StateReport::Dock {
+                    port: port(3),
+                    state: linked(2, 0),
+                },
+                StateReport::Firmware {
+                    version: FirmwareVersion::new(1, 2, 3),
+                    trial: false,
+                },
+                StateReport::ImageHash([0xab, 0, 0, 0, 0, 0, 0x01]),
+                StateReport::UidLow(uid.low()),
+                StateReport::UidHigh(uid.high()),
+            ],
+            t0 + 2 * MS,
+        );
+        answer(
+            &mut b,
+            &query_to(&out, 2),
+            &[power(BootRole::Mobile, false, 1)],
+            t0 + 2 * MS,
+        );
+        let out = drain(&mut b);
+        assert!(
+            out.named("new_connection").is_empty(),
+            "an existing docking is no new connection: {:?}",
+            out.events
+        );
+        assert!(
+            out.sent.is_empty(),
+            "nothing to tell anyone: {:?}",
+            out.sent
+        );
+        assert_eq!(b.connections().len(), 1);
+        assert_eq!(b.read_backs(), 2);
+        assert!(!b.reading_back(id(0x111)));
+        let s = last_state(&out, 0x111);
+        assert_eq!(
+            s["connections"],
+            json!([{"port": 3, "peer": "2", "peer_port": 0}])
+        );
+        assert_eq!(
+            s["led"],
+            serde_json::to_value(crate::event::LedState::from(RED)).unwrap()
+        );
+        assert_eq!(s["relay"], true);
+        assert_eq!(s["role"], "static");
+        assert_eq!(
+            s["firmware"],
+            json!({"version": "1.2.3", "trial": false, "image_hash": "ab000000000001"})
+        );
+        assert_eq!(s["uid"], uid.to_string());
+        assert_eq!(
+            last_state(&out, 2)["connections"],
+            json!([{"port": 0, "peer": "111", "peer_port": 3}])
+        );
+        // The mobile element undocks: the restored connection ends like any other.
+        b.handle_packet(
+            Packet::report(id(0x111), Message::DockRemoved { port: port(3) }),
+            t0 + S,
+        );
+        assert_eq!(drain(&mut b).named("connection_removed").len(), 1);
+    }
+
+    #[test]
+    fn a_completed_docking_is_linked_and_a_lost_mobile_unlinked() {
+        let (mut b, t0) = with_nodes(&[0x111, 2]);
+        b.handle_packet(
+            Packet::report(id(0x111), Message::DockDetected { port: port(3) }),
+            t0 + S,
+        );
+        let out = drain(&mut b);
+        let Message::DockConfirm { seq, .. } = out.sent[0].msg else {
+            panic!("{:?}", out.sent)
+        };
+        b.handle_packet(
+            Packet::report(id(0x111), ack(Kind::DockConfirm, seq, AckResult::Ok)),
+            t0 + S,
+        );
+        b.handle_packet(
+            Packet::report(id(2), Message::Handshake { port: port(0) }),
+            t0 + S,
+        );
+        let out = drain(&mut b);
+        assert_eq!(out.named("new_connection").len(), 1);
+        let partner = Some(DockPartner {
+            node: id(2),
+            port: port(0),
+        });
+        assert!(
+            matches!(out.sent[..], [Packet { dest, msg: Message::DockLink { port: p, partner: ref got, .. }, .. }]
+                if dest == id(0x111) && p == port(3) && *got == partner),
+            "{:?}",
+            out.sent
+        );
+        // The mobile element goes silent until it is lost: the link is cleared.
+        let mut now = t0 + S;
+        let mut cleared = false;
+        for _ in 0..10 {
+            now += S;
+            b.handle_timeout(now);
+            let out = drain(&mut b);
+            if let Some(Message::HealthCheck { seq }) = out.sent.first().map(|p| p.msg) {
+                b.handle_packet(Packet::report(id(0x111), reply(seq, 0)), now);
+            }
+            cleared |= out.sent.iter().any(|p| {
+                matches!(p.msg, Message::DockLink { port: p3, partner: None, .. } if p3 == port(3))
+            });
+            if cleared {
+                break;
+            }
+        }
+        assert!(cleared, "the static element is told its link is gone");
+    }
+
+    #[test]
+    fn state_read_back_replaces_what_was_assumed_but_not_a_newer_ack() {
+        let (mut b, t0) = with_nodes(&[5]);
+        // The node reboots: it is asked again, and its reply is the truth.
+        let boot = Message::BootUp {
+            version: (1, 1),
+            role: BootRole::Static,
+            ports: 6,
+            reset: ResetReason::Watchdog,
+        };
+        b.handle_packet(Packet::report(id(5), boot), t0 + S);
+        let out = drain(&mut b);
+        let q = query_to(&out, 5);
+        // Meanwhile an LED command is acknowledged: it is newer than the reply to come.
+        let out = command(
+            &mut b,
+            json!({"cmd": "led", "node": "5", "color": "blue"}),
+            t0 + S,
+        );
+        let Message::LedSet { seq, cmd: blue } = out.sent[0].msg else {
+            panic!("{:?}", out.sent)
+        };
+        b.handle_packet(
+            Packet::report(id(5), ack(Kind::LedSet, seq, AckResult::Ok)),
+            t0 + S,
+        );
+        drain(&mut b);
+        answer(
+            &mut b,
+            &q,
+            &[StateReport::Led(RED), power(BootRole::Static, true, 0)],
+            t0 + S + MS,
+        );
+        drain(&mut b);
+        let s = serde_json::to_value(b.node_state(id(5), t0 + S + MS)).unwrap();
+        assert_eq!(
+            s["led"],
+            serde_json::to_value(crate::event::LedState::from(blue)).unwrap()
+        );
+        // A command that timed out leaves the bridge unsure: the node is asked, its answer wins.
+        let out = command(
+            &mut b,
+            json!({"cmd": "led", "node": "5", "color": "green"}),
+            t0 + 2 * S,
+        );
+        assert!(out.queries.is_empty());
+        // The node keeps answering health checks (it is online) but never this command.
+        let mut now = t0 + 2 * S;
+        let (mut result, mut query) = (None, None);
+        while query.is_none() && now < t0 + 60 * S {
+            now = b.poll_timeout().max(now + MS);
+            b.handle_timeout(now);
+            let out = drain(&mut b);
+            for p in &out.sent {
+                if let Message::HealthCheck { seq } = p.msg {
+                    b.handle_packet(Packet::report(id(5), reply(seq, 0)), now);
+                }
+            }
+            if let Some(r) = out.named("command_result").first() {
+                result = Some(r["payload"]["result"].clone());
+            }
+            query = out.queries.iter().find(|q| q.dest == id(5)).copied();
+        }
+        assert_eq!(result, Some(json!("timeout")));
+        let q = query.expect("the node of a timed-out command is asked");
+        drain(&mut b);
+        answer(&mut b, &q, &[StateReport::Led(RED)], now);
+        let s = last_state(&drain(&mut b), 5);
+        assert_eq!(
+            s["led"],
+            serde_json::to_value(crate::event::LedState::from(RED)).unwrap()
+        );
+    }
+
+    #[test]
+    fn nodes_of_protocol_1_0_are_not_asked_again() {
+        let (mut b, t0) = with_nodes(&[]);
+        // A node that refuses the query as an unknown kind.
+        b.handle_packet(Packet::report(id(7), reply(0, 0)), t0 + MS);
+        let out = drain(&mut b);
+        query_to(&out, 7);
+        let refusal = Message::Fault {
+            code: ihex_proto::FaultCode::BadFrame,
+            arg: Kind::StateQuery as u8,
+            detail: BAD_FRAME_UNKNOWN_KIND,
+        };
+        b.handle_packet(Packet::report(id(7), refusal), t0 + 2 * MS);
+        let out = drain(&mut b);
+        assert!(out.named("node_fault").is_empty(), "{:?}", out.events);
+        assert!(!b.reading_back(id(7)));
+        // A node that stays silent is asked SILENT_LIMIT times, then left alone.
+        b.handle_packet(Packet::report(id(8), reply(0, 0)), t0 + MS);
+        let mut asked = 0;
+        let mut now = t0 + MS;
+        for _ in 0..20 {
+            let out = drain(&mut b);
+            assert!(out.queries.iter().all(|q| q.dest != id(7)));
+            asked += out.queries.iter().filter(|q| q.dest == id(8)).count();
+            now += S;
+            // Both keep answering health checks, so they stay online.
+            for p in &out.sent {
+                if let Message::HealthCheck { seq } = p.msg {
+                    b.handle_packet(Packet::report(id(7), reply(seq, 0)), now);
+                    b.handle_packet(Packet::report(id(8), reply(seq, 0)), now);
+                }
+            }
+            b.handle_timeout(now);
+        }
+        assert_eq!(asked, SILENT_LIMIT as usize);
+        assert!(!b.reading_back(id(8)));
+        // A boot with protocol 1.1 makes it a node that can be asked.
+        let boot = Message::BootUp {
+            version: READ_BACK_VERSION,
+            role: BootRole::Mobile,
+            ports: 6,
+            reset: ResetReason::PowerOn,
+        };
+        b.handle_packet(Packet::report(id(8), boot), now);
+        query_to(&drain(&mut b), 8);
+    }
+
+    #[test]
+    fn everyone_is_asked_after_the_bus_came_back() {
+        let (mut b, t0) = with_nodes(&[1, 2, 3, 4, 5, 6]);
+        assert_eq!(b.read_backs(), 6);
+        b.handle_bus_event(BusEvent::InterfaceDown, t0 + S);
+        assert!(drain(&mut b).queries.is_empty());
+        b.handle_bus_event(BusEvent::Recovered, t0 + 2 * S);
+        let out = drain(&mut b);
+        assert_eq!(
+            out.queries.len(),
+            MAX_QUERIES,
+            "at most {MAX_QUERIES} at once"
+        );
+        answer_queries(&mut b, &out, t0 + 2 * S);
+        let out = drain(&mut b);
+        assert_eq!(out.queries.len(), 2);
+        answer_queries(&mut b, &out, t0 + 2 * S);
+        assert_eq!(b.read_backs(), 12);
+    }
+
+    #[test]
+    fn the_boot_up_announcing_an_assigned_id_is_no_reboot() {
+        let (mut b, t0) = with_nodes(&[9]);
+        let boot = Message::BootUp {
+            version: READ_BACK_VERSION,
+            role: BootRole::Mobile,
+            ports: 6,
+            reset: ResetReason::PowerOn,
+        };
+        let out = command(
+            &mut b,
+            json!({"cmd": "assign", "uid": "00112233445566778899aabb", "new_id": "123"}),
+            t0 + S,
+        );
+        let Message::AssignCommit {
+            uid_tail,
+            new_id,
+            seq,
+        } = out.sent[1].msg
+        else {
+            panic!("{:?}", out.sent)
+        };
+        let reply = Message::AssignReply {
+            seq,
+            result: AckResult::Ok,
+            new_id,
+            uid_tail,
+        };
+        b.handle_packet(Packet::report(id(0x123), reply), t0 + S);
+        b.handle_packet(Packet::report(id(0x123), boot), t0 + S + MS);
+        let out = drain(&mut b);
+        assert_eq!(out.one("command_result")["result"], "ok");
+        assert!(out.named("node_rebooted").is_empty(), "{:?}", out.events);
+        // Later BootUps of that board, and any of another known node, are reboots.
+        b.handle_packet(Packet::report(id(0x123), boot), t0 + 2 * S);
+        b.handle_packet(Packet::report(id(9), boot), t0 + 2 * S);
+        assert_eq!(drain(&mut b).named("node_rebooted").len(), 2);
+    }
+}
