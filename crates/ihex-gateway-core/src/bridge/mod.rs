@@ -453,9 +453,13 @@ impl Bridge {
     pub fn handle_bus_event(&mut self, event: BusEvent, now: Instant) {
         self.advance(now);
         match event {
-            BusEvent::BusOff => self.health.on_bus_down(),
+            BusEvent::BusOff => {
+                self.health.on_bus_down();
+                self.readback.on_bus_down();
+            }
             BusEvent::InterfaceDown => {
                 self.health.on_bus_down();
+                self.readback.on_bus_down();
                 // The kernel drops what a downed interface had queued — or it went out just before:
                 // nobody can tell any more.
                 for p in self.out.transmit.clear_in_flight() {
@@ -512,6 +516,9 @@ impl Bridge {
 
     fn send_failed(&mut self, packet: Packet, reason: &str, now: Instant) {
         self.diagnostics.count_send_failure();
+        if let Message::StateQuery { .. } = packet.msg {
+            self.readback.on_not_sent(packet.dest);
+        }
         if let Message::DockConfirm { seq, .. } = packet.msg {
             self.commands.on_send_failed(&packet, reason, &mut self.out);
             let steps = self

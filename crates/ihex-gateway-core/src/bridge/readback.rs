@@ -115,6 +115,26 @@ impl ReadBack {
         }
     }
 
+    /// The query to `id` never went out (the transmit queue was full, the write failed): not the
+    /// node's silence; it is asked again.
+    pub(super) fn on_not_sent(&mut self, id: NodeId) {
+        if let Some(q) = self.nodes.get_mut(&id) {
+            if q.asking.take().is_some() {
+                q.due = !q.unsupported;
+            }
+        }
+    }
+
+    /// Our own bus went away: the questions in flight are void, not unanswered (the silence is
+    /// ours); they are asked again when it is back.
+    pub(super) fn on_bus_down(&mut self) {
+        for q in self.nodes.values_mut() {
+            if q.asking.take().is_some() {
+                q.due = !q.unsupported;
+            }
+        }
+    }
+
     /// `id` refused a frame of a read-back kind as unknown (`BadFrame`): it speaks protocol 1.0.
     pub(super) fn on_unknown_kind(&mut self, id: NodeId) {
         let q = self.nodes.entry(id).or_default();
@@ -578,6 +598,29 @@ mod tests {
         assert_eq!(out.queries.len(), 2);
         answer_queries(&mut b, &out, t0 + 2 * S);
         assert_eq!(b.read_backs(), 12);
+    }
+
+    #[test]
+    fn questions_cut_by_our_own_outage_are_not_the_nodes_silence() {
+        let (mut b, t0) = with_nodes(&[3]);
+        let mut now = t0 + S;
+        for _ in 0..2 * SILENT_LIMIT {
+            b.handle_bus_event(BusEvent::Recovered, now);
+            // Recovered after an outage asks again; here the first one follows no outage.
+            b.handle_bus_event(BusEvent::InterfaceDown, now);
+            b.handle_bus_event(BusEvent::Recovered, now + MS);
+            let out = drain(&mut b);
+            query_to(&out, 3);
+            now += S;
+            b.handle_bus_event(BusEvent::BusOff, now);
+            b.handle_timeout(now + 10 * S);
+            drain(&mut b);
+            now += 11 * S;
+        }
+        b.handle_bus_event(BusEvent::Recovered, now);
+        let out = drain(&mut b);
+        answer_queries(&mut b, &out, now);
+        assert_eq!(b.read_backs(), 2, "still asked, and it answers");
     }
 
     #[test]
