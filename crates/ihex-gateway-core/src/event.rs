@@ -174,10 +174,14 @@ pub enum Outcome {
     Ok,
     /// A node answered with a refusal; `reason` names the ack result.
     Refused,
-    /// No (or not every) answer within the command timeout.
+    /// Sent (or handed to the CAN interface, see the reason), but no (or not every) answer within
+    /// the command timeout: the node may or may not have acted on it.
     Timeout,
-    /// The frame could not be sent on the bus.
+    /// The frame was never sent on the bus (the transmit queue was full or behind, the interface
+    /// down, a write failed): the node did not act on it.
     Failed,
+    /// Its `ttl_ms` ended before it could be sent: never sent, the node did not act on it.
+    Expired,
 }
 
 /// One node's refusal of a broadcast command.
@@ -297,6 +301,19 @@ pub struct NodeList {
     pub nodes: Vec<NodeState>,
 }
 
+/// Payload of `publications_dropped`: events the gateway dropped because it could not publish them
+/// as fast as they came (never answers or state documents), reported at most once per
+/// [`crate::bridge::DROP_REPORT_PERIOD`].
+#[derive(Clone, PartialEq, Eq, Debug, Serialize, Deserialize)]
+pub struct PublicationsDropped {
+    /// Events dropped since the previous report.
+    pub dropped: u64,
+    /// Events dropped since the gateway started.
+    pub total: u64,
+    /// `dropped` by event name (`bus_error`, `node_online`, …).
+    pub events: std::collections::BTreeMap<String, u64>,
+}
+
 /// Payload of `sim_result` (demo only): how a control message on the `ihex/sim` topic ended.
 #[derive(Clone, PartialEq, Eq, Debug, Serialize, Deserialize)]
 pub struct SimResult {
@@ -338,6 +355,8 @@ pub enum Event {
     DockFailed(DockFailed),
     /// Answer to `list`.
     NodeList(NodeList),
+    /// Events were dropped because they could not be published as fast as they came.
+    PublicationsDropped(PublicationsDropped),
     /// Demo only: a simulated island control message was carried out or refused.
     SimResult(SimResult),
     /// Demo only: a simulated island control message was not understood.
@@ -360,6 +379,7 @@ impl Event {
             Event::BusError(_) => "bus_error",
             Event::DockFailed(_) => "dock_failed",
             Event::NodeList(_) => "node_list",
+            Event::PublicationsDropped(_) => "publications_dropped",
             Event::SimResult(_) => "sim_result",
             Event::SimRejected(_) => "sim_rejected",
         }
@@ -507,6 +527,17 @@ pub struct Reported {
     pub uptime_s: u32,
 }
 
+/// The firmware a node runs, as it reports it.
+#[derive(Clone, PartialEq, Eq, Debug, Serialize, Deserialize)]
+pub struct Firmware {
+    /// `"major.minor.patch"`.
+    pub version: String,
+    /// Running a trial image that has not confirmed itself yet.
+    pub trial: bool,
+    /// The first 7 bytes of the running image's hash, 14 hex digits (all zero: unknown).
+    pub image_hash: String,
+}
+
 /// A docking connection seen from one element: its port, and who is at the other end on which port.
 #[derive(Clone, PartialEq, Eq, Debug, Serialize, Deserialize)]
 pub struct Link {
@@ -529,13 +560,20 @@ pub struct NodeState {
     pub role: Option<Role>,
     /// Number of dock ports, from its `BootUp`.
     pub ports: Option<u8>,
-    /// Firmware/protocol version `"major.minor"`, from its `BootUp`.
+    /// Protocol version `"major.minor"`, from its `BootUp`.
     pub version: Option<String>,
-    /// LED state last acknowledged by the node.
+    /// The firmware it runs, read back from the node (`null` until read, or from a node that
+    /// cannot be asked).
+    pub firmware: Option<Firmware>,
+    /// The board's 96-bit unique ID, 24 hex digits, read back from the node (what `assign`
+    /// selects a board by).
+    pub uid: Option<String>,
+    /// The LED state: read back from the node, or last acknowledged by it, whichever is newer.
     pub led: Option<LedState>,
-    /// Buzzer state last acknowledged by the node.
+    /// The buzzer state: read back from the node, or last acknowledged by it, whichever is newer.
     pub buzzer: Option<BuzzerState>,
-    /// Relay state: last acknowledged `power` command or last health report, whichever is newer.
+    /// Relay state: read back, last acknowledged `power` command or last health report, whichever
+    /// is newer.
     pub relay: Option<bool>,
     /// Dock ports whose signal loop is closed (something docked), ascending.
     pub loops: Vec<u8>,

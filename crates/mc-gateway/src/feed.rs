@@ -79,6 +79,9 @@ impl Feed {
         let kind = match publication {
             Publication::Event(e) => Kind::Event(e.name()),
             Publication::State(s) => Kind::State(s.id.0),
+            // Home Assistant's topics are not the page's; a forgotten node's emptied state document
+            // reaches it as the `node_forgotten` event.
+            Publication::Ha(_) | Publication::Cleared(_) => return,
         };
         let p = Arc::new(Published {
             seq: self.seq.fetch_add(1, Ordering::Relaxed) + 1,

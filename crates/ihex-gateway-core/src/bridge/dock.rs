@@ -1,14 +1,19 @@
 //! Docking glue: carries out the [`Step`]s of the one-at-a-time docking sequence
-//! ([`crate::docking`]) as frames (confirm, refuse, relay off) and events (`new_connection`,
-//! `connection_removed`, `dock_failed`, the `unexpected_handshake` fault).
+//! ([`crate::docking`]) as frames (confirm, refuse, relay off, dock links) and events
+//! (`new_connection`, `connection_removed`, `dock_failed`, the `unexpected_handshake` fault).
+//!
+//! Once a docking completes, the static element is told who docked on its port (`DockLink`), so
+//! that it can report the connection to a gateway that restarts; a link that is no longer true is
+//! cleared the same way. Nodes known to speak protocol 1.0 are not sent links.
 
 use std::time::Instant;
 
-use ihex_proto::{DockRefuseReason, Kind, Message, NodeId, Packet, Port};
+use ihex_proto::{DockPartner, DockRefuseReason, Kind, Message, NodeId, Port};
 
 use super::commands::Commands;
 use super::diagnostics::Diagnostics;
 use super::output::Outputs;
+use super::readback::ReadBack;
 use crate::docking::{Docking, Step};
 use crate::event::{DockFailed, Event, HexId};
 
@@ -20,6 +25,8 @@ pub(super) struct DockParts<'a> {
     pub(super) docking: &'a mut Docking,
     /// The rate limit of the `unexpected_handshake` fault.
     pub(super) diagnostics: &'a mut Diagnostics,
+    /// Which nodes understand dock links.
+    pub(super) readback: &'a ReadBack,
 }
 
 /// Carries out the docking sequence's steps.
@@ -28,28 +35,54 @@ pub(super) fn apply(steps: Vec<Step>, parts: DockParts<'_>, now: Instant, out: &
         commands,
         docking,
         diagnostics,
+        readback,
     } = parts;
     for step in steps {
         match step {
             Step::Confirm { node, port } => {
-                let seq = commands.any_seq(node, Kind::DockConfirm);
-                docking.confirm_sent(seq);
-                out.send(Packet::command(node, Message::DockConfirm { seq, port }));
+                let msg = |seq| Message::DockConfirm { seq, port };
+                // Without a free sequence number the confirm is not sent; the docking then ends
+                // with its handshake timeout.
+                if let Some(seq) = commands.send_internal(node, Kind::DockConfirm, msg, now, out) {
+                    docking.confirm_sent(seq);
+                }
             }
             Step::RefuseBusy { node, port } => {
-                send_dock_refuse(commands, out, node, port, DockRefuseReason::Busy)
+                send_dock_refuse(commands, out, node, port, DockRefuseReason::Busy, now)
             }
             Step::Withdraw { node, port } => {
-                send_dock_refuse(commands, out, node, port, DockRefuseReason::NotAllowed)
+                send_dock_refuse(commands, out, node, port, DockRefuseReason::NotAllowed, now)
             }
             Step::PowerOff { node } => {
-                let seq = commands.any_seq(node, Kind::PowerSet);
-                out.send(Packet::command(node, Message::PowerSet { seq, on: false }));
+                let msg = |seq| Message::PowerSet { seq, on: false };
+                commands.send_internal(node, Kind::PowerSet, msg, now, out);
             }
             Step::Connected(c) => {
                 out.touch(c.n.id.0);
                 out.touch(c.n_1.id.0);
                 out.emit(Event::NewConnection(c));
+                if let (Some(port), Some(mport)) = (Port::new(c.n_1.port), Port::new(c.n.port)) {
+                    let partner = DockPartner {
+                        node: c.n.id.0,
+                        port: mport,
+                    };
+                    send_dock_link(
+                        commands,
+                        readback,
+                        out,
+                        c.n_1.id.0,
+                        port,
+                        Some(partner),
+                        now,
+                    );
+                }
+            }
+            Step::Restored(c) => {
+                out.touch(c.n.id.0);
+                out.touch(c.n_1.id.0);
+            }
+            Step::Unlink { node, port } => {
+                send_dock_link(commands, readback, out, node, port, None, now);
             }
             Step::Removed(c) => {
                 out.touch(c.n.id.0);
@@ -70,6 +103,22 @@ pub(super) fn apply(steps: Vec<Step>, parts: DockParts<'_>, now: Instant, out: &
     }
 }
 
+/// Tells static `node` which mobile element is docked on its `port` (`None`: none any more).
+fn send_dock_link(
+    commands: &mut Commands,
+    readback: &ReadBack,
+    out: &mut Outputs,
+    node: NodeId,
+    port: Port,
+    partner: Option<DockPartner>,
+    now: Instant,
+) {
+    if readback.supports(node) {
+        let msg = |seq| Message::DockLink { seq, port, partner };
+        commands.send_internal(node, Kind::DockLink, msg, now, out);
+    }
+}
+
 /// Tells static `node` not to power (or to stop powering) its dock `port`.
 fn send_dock_refuse(
     commands: &mut Commands,
@@ -77,12 +126,10 @@ fn send_dock_refuse(
     node: NodeId,
     port: Port,
     reason: DockRefuseReason,
+    now: Instant,
 ) {
-    let seq = commands.any_seq(node, Kind::DockRefuse);
-    out.send(Packet::command(
-        node,
-        Message::DockRefuse { seq, port, reason },
-    ));
+    let msg = |seq| Message::DockRefuse { seq, port, reason };
+    commands.send_internal(node, Kind::DockRefuse, msg, now, out);
 }
 
 #[cfg(test)]

@@ -58,12 +58,12 @@ impl Bridge {
             for topic in ha.on_forgotten(id) {
                 self.out
                     .publish
-                    .push_back(Publication::Cleared(Topic::Ha(topic)));
+                    .push_kept(Publication::Cleared(Topic::Ha(topic)));
             }
         }
         self.out
             .publish
-            .push_back(Publication::Cleared(Topic::NodeState(id)));
+            .push_kept(Publication::Cleared(Topic::NodeState(id)));
         self.out.emit(Event::NodeForgotten(NodeForgotten {
             id: HexId(id),
             reason: if renumbered_to.is_some() {
@@ -75,7 +75,7 @@ impl Bridge {
             new_id: renumbered_to.map(HexId),
         }));
         // The other ends of its connections changed.
-        self.flush_states(now);
+        self.settle(now);
     }
 }
 
@@ -131,7 +131,7 @@ mod tests {
             ]
         );
         assert!(b.registry().get(id(2)).is_none());
-        assert!(b.poll_transmit().is_none(), "forget sends nothing");
+        assert!(b.poll_transmit(t).is_none(), "forget sends nothing");
         // Heard again, it is new.
         b.handle_packet(Packet::report(id(2), reply(9, 0)), t + S);
         let out = drain(&mut b);

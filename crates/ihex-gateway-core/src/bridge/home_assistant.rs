@@ -6,7 +6,7 @@ use std::time::Instant;
 
 use ihex_proto::NodeId;
 
-use super::{Bridge, Publication};
+use super::{Bridge, Delivery, Publication};
 use crate::ha::{Ha, HaConfig};
 
 /// Home Assistant's birth message (and the payload its status topic holds while it runs).
@@ -35,9 +35,9 @@ impl Bridge {
         }
         tracing::info!("Home Assistant is online: publishing discovery again");
         let configs = ha.configs();
-        self.out
-            .publish
-            .extend(configs.into_iter().map(Publication::Ha));
+        for c in configs {
+            self.out.publish.push_kept(Publication::Ha(c));
+        }
     }
 
     /// A message on one of the Home Assistant command topics (`topic` in full): carried out like
@@ -52,7 +52,7 @@ impl Bridge {
             registry.get(id).and_then(|e| e.led)
         });
         match parsed {
-            Ok(req) => self.execute(req, now),
+            Ok(req) => self.execute(req, Delivery::live(now), now),
             Err(rej) => self.reject(rej.request_id, rej.error),
         }
     }
@@ -65,9 +65,9 @@ impl Bridge {
         };
         let doc = entry.state(self.docking.links_of(id), now);
         let out = ha.on_state(&doc, entry, false);
-        self.out
-            .publish
-            .extend(out.into_iter().map(Publication::Ha));
+        for h in out {
+            self.out.publish.push_kept(Publication::Ha(h));
+        }
     }
 }
 

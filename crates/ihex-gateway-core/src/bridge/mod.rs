@@ -9,8 +9,9 @@
 //! (pending commands, sequence numbers, acks and timeouts), `health` (health checks, presence, lost
 //! detection), `diagnostics` (error frames, drops, undecodable frames, faults, rate limits), `dock`
 //! (the docking sequence's frames and events), `forget` (the `forget` command and renumbered
-//! boards), `home_assistant` (discovery and commands from Home Assistant, [`crate::ha`]), `output`
-//! (the queues the adapters drain).
+//! boards), `home_assistant` (discovery and commands from Home Assistant, [`crate::ha`]),
+//! `readback` (asking nodes for their state and applying their answers), `output` (the queues the
+//! adapters drain, and what gives when they cannot keep up).
 
 mod commands;
 mod diagnostics;
@@ -19,27 +20,38 @@ mod forget;
 mod health;
 mod home_assistant;
 mod output;
+mod readback;
 #[cfg(test)]
 mod test_support;
 
 use std::time::{Duration, Instant};
 
-use ihex_proto::{AckResult, DecodeError, Kind, Message, NodeId, Packet};
+use ihex_proto::{
+    AckResult, BootRole, DecodeError, FaultCode, Kind, Message, NodeId, Packet, StateParts,
+    StateReport, Uid,
+};
 
 pub use commands::CommandCounters;
 pub use diagnostics::{BusEvent, BusHealth, ERROR_EVENT_WINDOW};
-pub use output::{Publication, Topic};
+pub use output::{
+    Publication, PublicationCounters, Topic, Transmit, ANSWER_BACKLOG, TRANSMIT_WINDOW,
+};
+pub use readback::{INCOMPLETE_LIMIT, MAX_QUERIES, READ_BACK_VERSION, SILENT_LIMIT};
 
 use crate::command::{self, Command, CommandError, Request};
 use crate::docking::Docking;
-use crate::event::{CommandRejected, Connection, Event, HexId, NodeList, NodeState, Target};
+use crate::event::{
+    CommandRejected, CommandResult, Connection, Event, HexId, NodeList, NodeState, Outcome,
+    PublicationsDropped, Target,
+};
 use crate::ha::Ha;
-use crate::registry::Registry;
-use commands::Commands;
+use crate::registry::{millis, Registry, Seen};
+use commands::{Accepted, Commands};
 use diagnostics::Diagnostics;
 use dock::DockParts;
 use health::Health;
-use output::Outputs;
+use output::{Next, Outputs};
+use readback::{ReadBack, Reply};
 
 /// Tunables of the bridge (the CLI/TOML configuration fills these in).
 #[derive(Clone, Debug)]
@@ -50,10 +62,15 @@ pub struct BridgeConfig {
     pub lost_after_misses: u32,
     /// How long to wait for the mobile element's handshake after confirming a docking.
     pub dock_timeout: Duration,
-    /// How long to wait for a node's ack before a `command_result` with `"timeout"`.
+    /// How long a command may wait for the bus, and then for the node's ack, before its
+    /// `command_result` says `failed` (never sent) or `timeout` (sent, not acknowledged).
     pub command_timeout: Duration,
     /// Largest accepted command payload in bytes; larger ones are `command_rejected`.
     pub max_command_bytes: usize,
+    /// Frames the transmit queue holds before further frames fail (`CAN transmit queue full`).
+    pub tx_queue: usize,
+    /// Events (other than answers) held for the adapter before the oldest is dropped and counted.
+    pub event_queue: usize,
 }
 
 /// Default period of the broadcast health check (the seed's 1 s).
@@ -66,6 +83,18 @@ pub const DEFAULT_DOCK_TIMEOUT: Duration = Duration::from_secs(5);
 pub const DEFAULT_COMMAND_TIMEOUT: Duration = Duration::from_millis(500);
 /// Default largest command payload, bytes.
 pub const DEFAULT_MAX_COMMAND_BYTES: usize = 4096;
+/// Default bound of the transmit queue, frames.
+pub const DEFAULT_TX_QUEUE: usize = 256;
+/// Default bound of the event queue, events.
+pub const DEFAULT_EVENT_QUEUE: usize = 1024;
+
+/// How long a frame handed to the adapter may stay unconfirmed (no echo, no failure) before the
+/// bridge stops waiting for it: its command then ends `timeout` with a reason saying the frame may
+/// still reach the bus, and its place in the [`TRANSMIT_WINDOW`] is given to the next frame.
+pub const TRANSMIT_CONFIRM_TIMEOUT: Duration = Duration::from_secs(1);
+
+/// Shortest time between two `publications_dropped` events.
+pub const DROP_REPORT_PERIOD: Duration = Duration::from_secs(10);
 
 impl Default for BridgeConfig {
     fn default() -> Self {
@@ -75,12 +104,33 @@ impl Default for BridgeConfig {
             dock_timeout: DEFAULT_DOCK_TIMEOUT,
             command_timeout: DEFAULT_COMMAND_TIMEOUT,
             max_command_bytes: DEFAULT_MAX_COMMAND_BYTES,
+            tx_queue: DEFAULT_TX_QUEUE,
+            event_queue: DEFAULT_EVENT_QUEUE,
         }
     }
 }
 
 /// Shortest accepted health period: a zero period would make the gateway do nothing but health checks.
 pub const MIN_HEALTH_PERIOD: Duration = Duration::from_millis(10);
+
+/// How a command reached the gateway.
+#[derive(Clone, Copy, PartialEq, Eq, Debug)]
+pub struct Delivery {
+    /// When the adapter received it (its `ttl_ms` counts from here).
+    pub received: Instant,
+    /// It was a retained message (the broker replays those on every subscription): never executed.
+    pub retained: bool,
+}
+
+impl Delivery {
+    /// A live message received at `now`.
+    pub fn live(now: Instant) -> Self {
+        Delivery {
+            received: now,
+            retained: false,
+        }
+    }
+}
 
 /// The gateway state machine.
 #[derive(Debug)]
@@ -94,6 +144,11 @@ pub struct Bridge {
     diagnostics: Diagnostics,
     /// Home Assistant discovery, when enabled ([`Bridge::with_home_assistant`]).
     ha: Option<Ha>,
+    readback: ReadBack,
+    /// The time of the last input (state documents taken later are built as of it).
+    now: Instant,
+    /// When the next `publications_dropped` may go out.
+    next_drop_report: Instant,
 }
 
 impl Bridge {
@@ -101,14 +156,17 @@ impl Bridge {
     pub fn new(mut config: BridgeConfig, now: Instant) -> Self {
         config.health_period = config.health_period.max(MIN_HEALTH_PERIOD);
         Bridge {
-            out: Outputs::default(),
+            out: Outputs::new(config.tx_queue, config.event_queue),
             registry: Registry::new(),
             docking: Docking::new(config.dock_timeout, Docking::DEFAULT_QUEUE),
             commands: Commands::new(config.command_timeout),
             health: Health::new(config.health_period, config.lost_after_misses, now),
             diagnostics: Diagnostics::new(),
             ha: None,
+            readback: ReadBack::new(config.command_timeout),
             config,
+            now,
+            next_drop_report: now,
         }
     }
 
@@ -160,18 +218,81 @@ impl Bridge {
         self.commands.counters()
     }
 
-    /// A message arrived on `CommandsTopic` (raw bytes: the bridge parses and validates them and answers
-    /// bad input with a `command_rejected` event).
+    /// Publications taken and dropped since start, and what waits now.
+    pub fn publication_counters(&self) -> PublicationCounters {
+        self.out.publish.counters()
+    }
+
+    /// True when publications wait for [`Bridge::poll_publication`].
+    pub fn publications_waiting(&self) -> bool {
+        self.out.publish.waiting()
+    }
+
+    /// Events dropped since start because the event queue was full.
+    pub fn publications_dropped(&self) -> u64 {
+        self.out.publish.total_dropped()
+    }
+
+    /// True while the bridge is about to ask `id` for its state, or waits for its answer (its
+    /// state document may still change without anything happening on the node).
+    pub fn reading_back(&self, id: NodeId) -> bool {
+        self.readback.pending(id)
+    }
+
+    /// Complete state replies applied since start.
+    pub fn read_backs(&self) -> u64 {
+        self.readback.replies()
+    }
+
+    /// Frames waiting in the transmit queue, and frames handed out and not yet confirmed.
+    pub fn transmit_backlog(&self) -> (usize, usize) {
+        (self.out.transmit.queued(), self.out.transmit.in_flight())
+    }
+
+    /// False while [`ANSWER_BACKLOG`] answers wait for the adapter: it should then stop taking
+    /// commands (and leave them with the broker) until it has taken publications, so that answers
+    /// are never dropped and their queue stays bounded.
+    pub fn wants_commands(&self) -> bool {
+        self.out.publish.answers_waiting() < ANSWER_BACKLOG
+    }
+
+    fn advance(&mut self, now: Instant) {
+        self.now = now;
+    }
+
+    /// A message arrived on `CommandsTopic` just now (raw bytes: the bridge parses and validates
+    /// them and answers bad input with a `command_rejected` event). See
+    /// [`Bridge::handle_delivered_command`].
     pub fn handle_command(&mut self, payload: &[u8], now: Instant) {
+        self.handle_delivered_command(payload, Delivery::live(now), now);
+    }
+
+    /// A message arrived on `CommandsTopic` as `delivery` says. Every message gets exactly one
+    /// answer: `command_rejected` (invalid, retained, unknown node, …), `node_list`, or later one
+    /// `command_result`.
+    pub fn handle_delivered_command(&mut self, payload: &[u8], delivery: Delivery, now: Instant) {
+        self.advance(now);
+        if delivery.retained {
+            let request_id = command::request_id(payload);
+            return self.reject(request_id, CommandError::Retained);
+        }
         match command::parse(payload, self.config.max_command_bytes) {
-            Ok(req) => self.execute(req, now),
+            Ok(req) => self.execute(req, delivery, now),
             Err(rej) => self.reject(rej.request_id, rej.error),
         }
     }
 
-    /// Carries out a valid command (from the JSON API or from Home Assistant).
-    fn execute(&mut self, req: Request, now: Instant) {
+    /// Carries out a valid command (from the JSON API or from Home Assistant) delivered as
+    /// `delivery` says.
+    fn execute(&mut self, req: Request, delivery: Delivery, now: Instant) {
         let request_id = req.request_id;
+        let expires = req.ttl.map(|ttl| delivery.received + ttl);
+        if let (Some(expires), Some(ttl)) = (expires, req.ttl) {
+            if expires <= now && !matches!(req.command, Command::List) {
+                return self.expired_on_arrival(request_id, &req.command, ttl, delivery, now);
+            }
+        }
+        let acc = Accepted { now, expires };
         let sent = match req.command {
             Command::List => {
                 let nodes = self.node_states(now);
@@ -196,7 +317,7 @@ impl Bridge {
                     target,
                     action,
                     || registry.online_ids(),
-                    now,
+                    acc,
                     &mut self.out,
                 )
             }
@@ -205,7 +326,7 @@ impl Bridge {
                     return self.reject(request_id, CommandError::IdInUse(HexId(new_id)));
                 }
                 self.commands
-                    .send_assign(request_id, uid, new_id, now, &mut self.out)
+                    .send_assign(request_id, uid, new_id, acc, &mut self.out)
             }
             Command::Forget { id } => {
                 self.forget_command(request_id, id, now);
@@ -215,10 +336,49 @@ impl Bridge {
         if let Err((request_id, error)) = sent {
             self.reject(request_id, error);
         }
+        self.settle(now);
     }
 
-    /// A valid iHEX packet arrived on the bus.
+    /// A command whose ttl ended before the bridge got it: `expired`, never queued.
+    fn expired_on_arrival(
+        &mut self,
+        request_id: Option<String>,
+        cmd: &Command,
+        ttl: Duration,
+        delivery: Delivery,
+        now: Instant,
+    ) {
+        let node = match *cmd {
+            Command::Node { target, .. } => target,
+            Command::Assign { new_id, .. } => Target::Node(new_id),
+            Command::Forget { id } => Target::Node(id),
+            Command::List => Target::All,
+        };
+        let waited = millis(now.saturating_duration_since(delivery.received));
+        self.commands.count_expired();
+        self.out.emit(Event::CommandResult(CommandResult {
+            request_id,
+            cmd: cmd.name().into(),
+            node,
+            result: Outcome::Expired,
+            reason: Some(format!(
+                "not sent: its ttl ({} ms after the gateway received it) ended before it could be \
+                 queued ({waited} ms)",
+                ttl.as_millis()
+            )),
+            acked: None,
+            refused: None,
+            missing: None,
+        }));
+    }
+
+    /// A valid iHEX packet arrived on the bus (including the echo of one of our own frames, which
+    /// confirms it was sent).
     pub fn handle_packet(&mut self, packet: Packet, now: Instant) {
+        self.advance(now);
+        if packet.src == NodeId::GATEWAY {
+            return self.handle_transmitted(packet, now);
+        }
         self.diagnostics
             .count_frame(Message::len_of(packet.msg.kind()), false);
         if packet.dest != NodeId::GATEWAY {
@@ -236,27 +396,40 @@ impl Bridge {
                 uid_tail,
             } = packet.msg
             {
-                let uid =
-                    self.commands
-                        .on_assign_reply(seq, result, new_id, uid_tail, &mut self.out);
-                if let Some(uid) = uid {
-                    self.learn_uid(new_id, uid, now);
-                }
+                self.on_assign_reply(seq, result, new_id, uid_tail, now);
             }
-            self.flush_states(now);
+            self.settle(now);
             return;
         }
-        self.health
+        let seen = self
+            .health
             .on_heard(&mut self.registry, src, &packet.msg, now, &mut self.out);
+        if matches!(seen, Seen::New | Seen::Back) {
+            self.readback.want(src);
+        }
         match packet.msg {
             // Handled by `on_heard`.
-            Message::BootUp { .. } | Message::HealthReply(_) => {}
+            Message::HealthReply(_) => {}
+            Message::BootUp { version, .. } => self.readback.on_boot(src, version),
             Message::Ack {
                 kind, seq, result, ..
             } => self.on_ack(src, kind, seq, result, now),
+            Message::Fault {
+                code: FaultCode::BadFrame,
+                arg,
+                detail,
+            } if is_read_back_kind(arg) && detail & 0xff == BAD_FRAME_UNKNOWN_KIND => {
+                // Our question to a node of protocol 1.0: the answer is that it cannot be asked.
+                self.readback.on_unknown_kind(src);
+            }
             Message::Fault { code, arg, detail } => {
                 self.diagnostics
                     .on_fault(src, code, arg, detail, now, &mut self.out)
+            }
+            Message::StateReport(report) => {
+                if let Some(reply) = self.readback.on_report(src, report) {
+                    self.apply_reply(reply, now);
+                }
             }
             Message::DockDetected { port } => {
                 if let Some(e) = self.registry.get_mut(src) {
@@ -281,48 +454,99 @@ impl Bridge {
                 result,
                 new_id,
                 uid_tail,
-            } => {
-                let uid =
-                    self.commands
-                        .on_assign_reply(seq, result, new_id, uid_tail, &mut self.out);
-                if let Some(uid) = uid {
-                    self.learn_uid(new_id, uid, now);
-                }
-            }
+            } => self.on_assign_reply(seq, result, new_id, uid_tail, now),
             // Command kinds never come addressed to the gateway (the decoder checks addresses).
             _ => tracing::debug!(?packet, "ignoring unexpected packet"),
         }
-        self.flush_states(now);
+        self.settle(now);
     }
 
     /// A frame arrived that passed the filters but is not a valid iHEX packet.
     pub fn handle_undecodable(&mut self, raw_id: u32, data: &[u8], err: DecodeError, now: Instant) {
         let len = u8::try_from(data.len()).unwrap_or(u8::MAX);
         self.diagnostics.count_frame(len, false);
+        self.advance(now);
         self.diagnostics
             .on_undecodable(raw_id, data, err, now, &mut self.out);
     }
 
     /// A bus condition (error frame, bus-off, interface down/up, drops).
     pub fn handle_bus_event(&mut self, event: BusEvent, now: Instant) {
+        self.advance(now);
         match event {
-            BusEvent::BusOff | BusEvent::InterfaceDown => self.health.on_bus_down(),
-            BusEvent::Recovered => self.health.on_recovered(now),
+            BusEvent::BusOff => {
+                self.health.on_bus_down();
+                self.readback.on_bus_down();
+            }
+            BusEvent::InterfaceDown => {
+                self.health.on_bus_down();
+                self.readback.on_bus_down();
+                // The kernel drops what a downed interface had queued — or it went out just before:
+                // nobody can tell any more.
+                for p in self.out.transmit.clear_in_flight() {
+                    let why = "the CAN interface went down before confirming it was sent";
+                    self.commands.on_unconfirmed(&p, why, now, &mut self.out);
+                }
+            }
+            BusEvent::Recovered => {
+                if self.health.bus_down() {
+                    // Whatever changed while the bus was away, nobody heard it: ask everyone.
+                    for e in self.registry.iter() {
+                        self.readback.want(e.id);
+                    }
+                }
+                self.health.on_recovered(now);
+            }
             _ => {}
         }
         self.diagnostics.on_bus_event(event, now, &mut self.out);
+        self.settle(now);
+    }
+
+    /// The adapter confirms that a frame from [`Bridge::poll_transmit`] went on the bus: its echo
+    /// arrived (SocketCAN with `CAN_RAW_RECV_OWN_MSGS`), or, on a link that cannot tell, it was
+    /// written. [`Bridge::handle_packet`] calls this for frames from the gateway's own address.
+    pub fn handle_transmitted(&mut self, packet: Packet, now: Instant) {
+        self.advance(now);
+        if !self.out.transmit.settle(&packet) {
+            tracing::debug!(
+                ?packet,
+                "echo of a frame not waiting for one (late, or another gateway's)"
+            );
+        }
+        self.commands.on_transmitted(&packet, now);
+        self.settle(now);
+    }
+
+    /// The adapter did not write a frame because its [`Transmit::not_after`] had passed: its
+    /// command ends `expired` or `failed`, and the frame is never sent.
+    pub fn handle_withdrawn(&mut self, packet: Packet, now: Instant) {
+        self.advance(now);
+        self.out.transmit.settle(&packet);
+        self.commands.on_withdrawn(&packet, now, &mut self.out);
+        self.settle(now);
     }
 
     /// A frame from [`Bridge::poll_transmit`] could not be transmitted.
     pub fn handle_send_failed(&mut self, packet: Packet, reason: &str, now: Instant) {
+        self.advance(now);
+        self.out.transmit.settle(&packet);
+        self.send_failed(packet, reason, now);
+        self.settle(now);
+    }
+
+    fn send_failed(&mut self, packet: Packet, reason: &str, now: Instant) {
         self.diagnostics.count_send_failure();
+        if let Message::StateQuery { .. } = packet.msg {
+            self.readback.on_not_sent(packet.dest);
+        }
         if let Message::DockConfirm { seq, .. } = packet.msg {
+            self.commands.on_send_failed(&packet, reason, &mut self.out);
             let steps = self
                 .docking
                 .on_confirm_failed(packet.dest, seq, reason, now);
             if !steps.is_empty() {
                 self.apply(steps, now);
-                self.flush_states(now);
                 return;
             }
         } else if self.commands.on_send_failed(&packet, reason, &mut self.out) {
@@ -335,19 +559,34 @@ impl Bridge {
     /// The MQTT session is (re)established: queue the retained node states again (a restarted broker
     /// may have lost them), and with Home Assistant discovery every config and light state.
     pub fn handle_mqtt_connected(&mut self, now: Instant) {
+        self.advance(now);
         if let Some(ha) = &self.ha {
-            self.out.publish.push_back(Publication::Ha(ha.gateway()));
+            self.out.publish.push_kept(Publication::Ha(ha.gateway()));
         }
         let ids: Vec<NodeId> = self.registry.iter().map(|e| e.id).collect();
         for id in ids {
-            self.publish_state(id, now, true);
+            self.out.publish.push_state(id, true);
         }
         self.out.dirty.clear();
     }
 
-    /// Advances timers: ack and docking timeouts, the health broadcast and lost nodes.
+    /// Advances timers: withdrawals, ack and docking timeouts, frames never confirmed, the health
+    /// broadcast and lost nodes, the report of dropped publications.
     pub fn handle_timeout(&mut self, now: Instant) {
+        self.advance(now);
+        if let Some(cutoff) = now.checked_sub(TRANSMIT_CONFIRM_TIMEOUT) {
+            for p in self.out.transmit.expire_in_flight(cutoff) {
+                tracing::warn!(
+                    ?p,
+                    "frame not confirmed on the bus within {} ms",
+                    TRANSMIT_CONFIRM_TIMEOUT.as_millis()
+                );
+                let why = "the CAN interface did not confirm sending it";
+                self.commands.on_unconfirmed(&p, why, now, &mut self.out);
+            }
+        }
         self.commands.expire(now, &mut self.out);
+        self.readback.expire(now);
         let steps = self.docking.tick(now);
         self.apply(steps, now);
         let Bridge {
@@ -356,44 +595,109 @@ impl Bridge {
             commands,
             health,
             diagnostics,
+            readback,
             out,
             ..
         } = self;
         health.tick(registry, now, out, |id, out| {
+            readback.on_lost(id);
             let steps = docking.on_lost(id);
             let parts = DockParts {
                 commands: &mut *commands,
                 docking: &mut *docking,
                 diagnostics: &mut *diagnostics,
+                readback: &*readback,
             };
             dock::apply(steps, parts, now, out);
         });
-        self.flush_states(now);
+        if self.out.publish.has_unreported() && now >= self.next_drop_report {
+            let (dropped, events) = self.out.publish.take_unreported();
+            let total = self.out.publish.total_dropped();
+            self.out
+                .emit(Event::PublicationsDropped(PublicationsDropped {
+                    dropped,
+                    total,
+                    events,
+                }));
+            self.next_drop_report = now + DROP_REPORT_PERIOD;
+        }
+        self.settle(now);
     }
 
     /// When [`Bridge::handle_timeout`] must run next.
     pub fn poll_timeout(&self) -> Instant {
         let mut next = self.health.next_deadline();
-        if let Some(d) = self.commands.next_deadline() {
-            next = next.min(d);
-        }
-        if let Some(d) = self.docking.deadline() {
-            next = next.min(d);
+        let mut at = |d: Option<Instant>| {
+            if let Some(d) = d {
+                next = next.min(d);
+            }
+        };
+        at(self.commands.next_deadline());
+        at(self.readback.next_deadline());
+        at(self.docking.deadline());
+        at(self
+            .out
+            .transmit
+            .oldest_in_flight()
+            .map(|t| t + TRANSMIT_CONFIRM_TIMEOUT));
+        at(self.out.transmit.next_not_after());
+        if self.out.publish.has_unreported() {
+            at(Some(self.next_drop_report));
         }
         next
     }
 
-    /// The next frame to transmit, `None` when there is none.
-    pub fn poll_transmit(&mut self) -> Option<Packet> {
-        let packet = self.out.transmit.pop_front()?;
-        self.diagnostics
-            .count_frame(Message::len_of(packet.msg.kind()), true);
-        Some(packet)
+    /// The next frame to transmit at `now`, `None` when there is none or when
+    /// [`TRANSMIT_WINDOW`] frames are already handed out and not yet confirmed (each must be
+    /// answered by [`Bridge::handle_transmitted`], [`Bridge::handle_send_failed`] or
+    /// [`Bridge::handle_withdrawn`]).
+    pub fn poll_transmit(&mut self, now: Instant) -> Option<Transmit> {
+        self.advance(now);
+        loop {
+            match self.out.transmit.pop(now)? {
+                Ok(t) => {
+                    self.commands.on_handed(&t.packet, now);
+                    self.diagnostics
+                        .count_frame(Message::len_of(t.packet.msg.kind()), true);
+                    return Some(t);
+                }
+                Err(late) => {
+                    // Its command's deadline passed: answering it withdraws the frame.
+                    self.commands.expire(now, &mut self.out);
+                    self.out.transmit.withdraw(&late);
+                    self.settle(now);
+                }
+            }
+        }
     }
 
-    /// The next event or state document to publish, `None` when there is none.
+    /// The next event or state document to publish, `None` when there is none. State documents are
+    /// built when taken (the latest, as of the last input), at most one per node waits, and one
+    /// that has not changed since it was last published is skipped.
     pub fn poll_publication(&mut self) -> Option<Publication> {
-        self.out.publish.pop_front()
+        loop {
+            match self.out.publish.pop()? {
+                Next::Event(e) => return Some(Publication::Event(e)),
+                Next::Kept(p) => return Some(p),
+                Next::State { id, forced } => {
+                    let Some(doc) = self.node_state(id, self.now) else {
+                        continue;
+                    };
+                    let changed = self.registry.state_changed(id, &doc);
+                    if changed || forced {
+                        self.out.publish.count_state();
+                        // Home Assistant's config and light state follow the document.
+                        if let (Some(ha), Some(entry)) = (&mut self.ha, self.registry.get(id)) {
+                            let follow = ha.on_state(&doc, entry, forced);
+                            self.out
+                                .publish
+                                .push_kept_next(follow.into_iter().map(Publication::Ha));
+                        }
+                        return Some(Publication::State(doc));
+                    }
+                }
+            }
+        }
     }
 
     fn reject(&mut self, request_id: Option<String>, error: CommandError) {
@@ -406,17 +710,21 @@ impl Bridge {
     }
 
     fn on_ack(&mut self, src: NodeId, kind: Kind, seq: u8, result: AckResult, now: Instant) {
-        if kind == Kind::DockConfirm {
-            if result != AckResult::Ok {
-                let steps = self
-                    .docking
-                    .on_confirm_refused(src, seq, &result.to_string(), now);
-                self.apply(steps, now);
-            }
-            return;
+        self.commands.on_ack(
+            src,
+            kind,
+            seq,
+            result,
+            &mut self.registry,
+            now,
+            &mut self.out,
+        );
+        if kind == Kind::DockConfirm && result != AckResult::Ok {
+            let steps = self
+                .docking
+                .on_confirm_refused(src, seq, &result.to_string(), now);
+            self.apply(steps, now);
         }
-        self.commands
-            .on_ack(src, kind, seq, result, &mut self.registry, &mut self.out);
     }
 
     /// Carries out docking steps.
@@ -425,38 +733,121 @@ impl Bridge {
             commands: &mut self.commands,
             docking: &mut self.docking,
             diagnostics: &mut self.diagnostics,
+            readback: &self.readback,
         };
         dock::apply(steps, parts, now, &mut self.out);
     }
 
-    fn publish_state(&mut self, id: NodeId, now: Instant, force: bool) {
-        let Some(doc) = self.node_state(id, now) else {
-            return;
-        };
-        let changed = self.registry.state_changed(id, &doc);
-        if changed || force {
-            let ha = match (&mut self.ha, self.registry.get(id)) {
-                (Some(ha), Some(entry)) => ha.on_state(&doc, entry, force),
-                _ => Vec::new(),
-            };
-            self.out.publish.push_back(Publication::State(doc));
-            self.out.publish.extend(ha.into_iter().map(Publication::Ha));
+    fn on_assign_reply(
+        &mut self,
+        seq: u8,
+        result: AckResult,
+        new_id: NodeId,
+        uid_tail: [u8; 4],
+        now: Instant,
+    ) {
+        if let Some(uid) =
+            self.commands
+                .on_assign_reply(seq, result, new_id, uid_tail, &mut self.out)
+        {
+            // The board announces its new ID with a BootUp without restarting.
+            self.health
+                .expect_announcement(new_id, now, self.config.command_timeout);
+            self.learn_uid(new_id, uid, now);
         }
     }
 
-    fn flush_states(&mut self, now: Instant) {
-        for id in std::mem::take(&mut self.out.dirty) {
-            self.publish_state(id, now, false);
+    /// A node's complete answer to a state query: what it reports replaces what the bridge
+    /// assumed, except what a node acknowledged after the question (that is newer); a static
+    /// element's ports reconcile the docking record.
+    fn apply_reply(&mut self, reply: Reply, now: Instant) {
+        let Reply {
+            node,
+            parts,
+            reports,
+            asked,
+        } = reply;
+        let Some(e) = self.registry.get_mut(node) else {
+            return;
+        };
+        let fresher_acks = e.acked_at.is_some_and(|t| t >= asked);
+        let mut docks = Vec::new();
+        let (mut low, mut high) = (None, None);
+        for r in reports {
+            match r {
+                StateReport::Led(cmd) if !fresher_acks => e.led = Some(cmd),
+                StateReport::Buzzer(cmd) if !fresher_acks => e.buzzer = Some(cmd),
+                StateReport::Power(p) => {
+                    if !fresher_acks {
+                        e.relay = Some(p.relay);
+                    }
+                    e.loops = p.loops;
+                    e.role = Some(p.role);
+                    e.ports = Some(p.ports);
+                }
+                StateReport::Dock { port, state } => docks.push((port, state)),
+                StateReport::Firmware { version, trial } => e.firmware = Some((version, trial)),
+                StateReport::ImageHash(h) => e.image_hash = Some(h),
+                StateReport::UidLow(l) => low = Some(l),
+                StateReport::UidHigh(h) => high = Some(h),
+                _ => {}
+            }
+        }
+        if let (Some(l), Some(h)) = (low, high) {
+            e.uid = Some(Uid::from_low_high(l, h));
+        }
+        let is_static = e.role == Some(BootRole::Static);
+        self.out.touch(node);
+        if parts.contains(StateParts::DOCKING) && is_static {
+            let steps = self.docking.reconcile(node, &docks, asked);
+            self.apply(steps, now);
         }
     }
+
+    /// Ends an input: frames the full transmit queue refused fail, and every node whose state may
+    /// have changed gets its (coalesced) state document queued.
+    fn settle(&mut self, now: Instant) {
+        loop {
+            let refused = self.out.transmit.take_refused();
+            if refused.is_empty() {
+                break;
+            }
+            let reason = format!(
+                "CAN transmit queue full ({} frames)",
+                self.out.transmit.cap()
+            );
+            for p in refused {
+                self.send_failed(p, &reason, now);
+            }
+        }
+        for id in std::mem::take(&mut self.out.unsure) {
+            self.readback.want(id);
+        }
+        if !self.health.bus_down() {
+            let registry = &self.registry;
+            let online = |id| registry.get(id).is_some_and(|e| e.online);
+            self.readback.poll(online, now, &mut self.out);
+        }
+        for id in std::mem::take(&mut self.out.dirty) {
+            self.out.publish.push_state(id, false);
+        }
+    }
+}
+
+/// `BadFrame` detail class of a frame whose kind the node does not know.
+const BAD_FRAME_UNKNOWN_KIND: u32 = 1;
+
+/// The kinds protocol 1.1 added: a 1.0 node refuses them as unknown.
+fn is_read_back_kind(kind: u8) -> bool {
+    kind == Kind::StateQuery as u8 || kind == Kind::DockLink as u8
 }
 
 #[cfg(test)]
 mod tests {
     use super::test_support::*;
     use super::*;
-    use ihex_proto::{AckResult, DecodeError, Kind, Message, NodeId, Packet};
-    use serde_json::json;
+    use ihex_proto::{AckResult, DecodeError, HealthFlags, Kind, Message, NodeId, Packet};
+    use serde_json::{json, Value};
     use std::collections::BTreeMap;
     use std::time::{Duration, Instant};
 
@@ -699,7 +1090,7 @@ mod tests {
         b.handle_timeout(now);
         let out = drain(&mut b);
         results += out.named("command_result").len();
-        assert!(b.commands.is_empty());
+        assert_eq!(b.command_counters().in_flight, 0);
         for name in [
             "new_connection",
             "connection_removed",
@@ -730,22 +1121,39 @@ mod tests {
         let health_check = 67 + 8 * u64::from(Message::len_of(Kind::HealthCheck));
         let reply = 67 + 8 * u64::from(Message::len_of(Kind::HealthReply));
         let h = b.bus_health();
-        assert_eq!((h.frames_sent, h.frames_received), (1, 2));
-        assert_eq!(h.frame_bits, health_check + 2 * reply);
+        // At least the health check and both replies (the state read-back adds its own frames).
+        assert!(h.frames_sent >= 1 && h.frames_received >= 2, "{h:?}");
+        assert!(h.frame_bits >= health_check + 2 * reply);
 
-        command(
+        let sent = command(
             &mut b,
             json!({"cmd": "power", "node": "111", "on": true}),
             t0,
-        );
+        )
+        .sent;
         b.handle_undecodable(0x1f00_0001, &[1, 2, 3], DecodeError::UnknownKind(0x1f), t0);
+        // A frame between two nodes.
         b.handle_packet(
-            Packet::command(id(2), Message::PowerSet { seq: 0, on: true }),
+            Packet {
+                src: id(0x111),
+                dest: id(2),
+                msg: Message::PowerSet { seq: 0, on: true },
+            },
             t0,
         );
+        // The echo of our own frame: counted once, as sent.
+        for p in sent {
+            b.handle_packet(p, t0);
+        }
         drain(&mut b);
         let h2 = b.bus_health();
-        assert_eq!((h2.frames_sent, h2.frames_received), (2, 4));
+        assert_eq!(
+            (
+                h2.frames_sent - h.frames_sent,
+                h2.frames_received - h.frames_received
+            ),
+            (1, 2)
+        );
         let power = 67 + 8 * u64::from(Message::len_of(Kind::PowerSet));
         assert_eq!(h2.frame_bits - h.frame_bits, power + (67 + 24) + power);
     }
@@ -922,5 +1330,156 @@ mod tests {
                 wrong.join("\n")
             );
         }
+    }
+
+    #[test]
+    fn retained_commands_are_never_executed() {
+        let (mut b, t0) = with_nodes(&[2]);
+        let retained = Delivery {
+            received: t0,
+            retained: true,
+        };
+        let cmd = json!({"cmd": "power", "node": "2", "on": true, "request_id": "old"});
+        b.handle_delivered_command(cmd.to_string().as_bytes(), retained, t0);
+        let out = drain(&mut b);
+        assert!(out.sent.is_empty());
+        let r = out.one("command_rejected");
+        assert_eq!(r["request_id"], "old");
+        assert!(r["reason"]
+            .as_str()
+            .unwrap()
+            .starts_with("retained message on the command topic: not executed"));
+        // Even a retained `list` or a broken retained message gets its one answer.
+        b.handle_delivered_command(b"{\"cmd\":\"list\"}", retained, t0);
+        b.handle_delivered_command(b"garbage", retained, t0);
+        let out = drain(&mut b);
+        assert_eq!(out.named("command_rejected").len(), 2);
+        assert!(out.named("node_list").is_empty());
+    }
+
+    #[test]
+    fn rejections_echo_the_request_id_whenever_it_can_be_read() {
+        let (mut b, t0) = with_nodes(&[2]);
+        let big = format!(
+            r#"{{"request_id":"big","cmd":"led","node":"2","color":"red","pad":"{}"}}"#,
+            "x".repeat(5000)
+        );
+        for (payload, id) in [
+            (big.into_bytes(), json!("big")),
+            (
+                br#"{"request_id":"cut","cmd":"led","node":"#.to_vec(),
+                json!("cut"),
+            ),
+            (
+                [
+                    br#"{"request_id":"bin","x":""#.as_slice(),
+                    &[0xc3, 0x28],
+                    br#""}"#,
+                ]
+                .concat(),
+                json!("bin"),
+            ),
+            (
+                br#"{"request_id":"ttl","cmd":"led","node":"2","off":true,"ttl_ms":0}"#.to_vec(),
+                json!("ttl"),
+            ),
+            (br#"["request_id","no"]"#.to_vec(), Value::Null),
+        ] {
+            b.handle_command(&payload, t0);
+            let out = drain(&mut b);
+            assert_eq!(
+                out.one("command_rejected")["request_id"],
+                id,
+                "{}",
+                String::from_utf8_lossy(&payload[..40.min(payload.len())])
+            );
+        }
+        b.handle_command(
+            br#"{"cmd":"led","node":"2","off":true,"ttl_ms":"soon"}"#,
+            t0,
+        );
+        assert_eq!(
+            drain(&mut b).one("command_rejected")["reason"],
+            "led: `ttl_ms` must be an integer 1 to 3600000, in ms; got \"soon\""
+        );
+    }
+
+    #[test]
+    fn under_overload_answers_are_kept_states_coalesced_and_drops_reported() {
+        let t0 = Instant::now();
+        let config = BridgeConfig {
+            event_queue: 4,
+            ..BridgeConfig::default()
+        };
+        let mut b = Bridge::new(config, t0);
+        b.handle_timeout(t0);
+        // Nobody takes publications: 20 nodes come online (20 events, 20 state documents), every
+        // command is answered (rejections here: the nodes are unknown).
+        for n in 1..=20u16 {
+            b.handle_packet(Packet::report(id(n), reply(0, 0)), t0 + MS);
+        }
+        for n in 0..(ANSWER_BACKLOG - 1) {
+            assert!(b.wants_commands());
+            let cmd =
+                json!({"cmd": "led", "node": "fff", "off": true, "request_id": n.to_string()});
+            b.handle_command(cmd.to_string().as_bytes(), t0 + MS);
+        }
+        // Node 5's state changes twice meanwhile: one document, the latest.
+        b.handle_packet(
+            Packet::report(id(5), reply(1, HealthFlags::RELAY)),
+            t0 + 2 * MS,
+        );
+        b.handle_command(br#"{"cmd":"list","request_id":"L"}"#, t0 + 2 * MS);
+        assert!(!b.wants_commands(), "the answer backlog is full");
+        let c = b.publication_counters();
+        assert_eq!(
+            (c.answers_waiting, c.events_waiting, c.states_waiting),
+            (ANSWER_BACKLOG, 4, 20)
+        );
+        assert_eq!(c.dropped, 16);
+        assert_eq!(c.dropped_by_event.get("node_online"), Some(&16));
+        b.handle_timeout(t0 + 3 * MS);
+        let out = drain(&mut b);
+        assert_eq!(out.named("command_rejected").len(), ANSWER_BACKLOG - 1);
+        assert_eq!(out.named("node_list").len(), 1);
+        let online: Vec<_> = out
+            .named("node_online")
+            .iter()
+            .map(|e| e["payload"]["id"].clone())
+            .collect();
+        assert_eq!(
+            online,
+            [json!("11"), json!("12"), json!("13"), json!("14")],
+            "the newest events are kept"
+        );
+        assert_eq!(out.states.len(), 20);
+        let (_, five) = out.states.iter().find(|(n, _)| *n == id(5)).unwrap();
+        assert_eq!(five["relay"], true, "the latest document");
+        let d = out.one("publications_dropped");
+        assert_eq!(
+            d,
+            &json!({"dropped": 16, "total": 16, "events": {"node_online": 16}})
+        );
+        assert!(b.wants_commands());
+        // One report per period at most; nothing to report, nothing sent.
+        b.handle_timeout(t0 + DROP_REPORT_PERIOD);
+        assert!(drain(&mut b).named("publications_dropped").is_empty());
+    }
+
+    #[test]
+    fn echoes_of_our_own_frames_confirm_them() {
+        let (mut b, t0) = with_nodes(&[2]);
+        b.handle_command(br#"{"cmd":"identify","node":"2","seconds":1}"#, t0);
+        let frame = b.poll_transmit(t0).unwrap().packet;
+        assert_eq!(b.transmit_backlog(), (0, 1));
+        assert_eq!(frame.src, NodeId::GATEWAY);
+        b.handle_packet(frame, t0 + MS);
+        assert_eq!(b.transmit_backlog(), (0, 0));
+        let out = drain(&mut b);
+        assert!(
+            out.events.is_empty(),
+            "an echo is no event: {:?}",
+            out.events
+        );
     }
 }

@@ -2,7 +2,9 @@
 
 use std::time::{Duration, Instant};
 
-use ihex_proto::{AckResult, HealthFlags, HealthReply, Kind, Message, NodeId, Packet, Port};
+use ihex_proto::{
+    AckResult, HealthFlags, HealthReply, Kind, Message, NodeId, Packet, Port, StateReport,
+};
 use serde_json::Value;
 
 use super::{Bridge, BridgeConfig, Publication, Topic};
@@ -19,7 +21,10 @@ pub(super) const S: Duration = Duration::from_secs(1);
 /// What one call made the bridge do.
 #[derive(Default, Debug)]
 pub(super) struct Out {
+    /// Frames sent, state queries aside.
     pub(super) sent: Vec<Packet>,
+    /// State queries sent.
+    pub(super) queries: Vec<Packet>,
     pub(super) events: Vec<Value>,
     pub(super) raw_events: Vec<String>,
     pub(super) states: Vec<(NodeId, Value)>,
@@ -40,12 +45,31 @@ impl Out {
     }
 }
 
-/// Drains every output, serialising publications the way the adapter does (once, `to_json`).
+/// Drains every output as a healthy adapter does: every frame is written and confirmed on the bus
+/// at once (at the time of the last input), publications are serialised once (`to_json`).
 pub(super) fn drain(b: &mut Bridge) -> Out {
+    drain_with(b, true)
+}
+
+/// [`drain`], but the frames are handed out and left unconfirmed (the window fills).
+pub(super) fn drain_unconfirmed(b: &mut Bridge) -> Out {
+    drain_with(b, false)
+}
+
+fn drain_with(b: &mut Bridge, confirm: bool) -> Out {
     let mut out = Out::default();
-    while let Some(p) = b.poll_transmit() {
+    let now = b.now;
+    while let Some(t) = b.poll_transmit(now) {
+        let p = t.packet;
         p.validate().expect("the bridge only sends valid packets");
-        out.sent.push(p)
+        if matches!(p.msg, Message::StateQuery { .. }) {
+            out.queries.push(p);
+        } else {
+            out.sent.push(p);
+        }
+        if confirm {
+            b.handle_transmitted(p, now);
+        }
     }
     while let Some(p) = b.poll_publication() {
         let payload = p.to_json();
@@ -94,7 +118,24 @@ pub(super) fn ack(kind: Kind, seq: u8, result: AckResult) -> Message {
     }
 }
 
-/// A bridge at `t0` whose first health check went out and was answered by `nodes`.
+/// Answers every state query in `out` at `now` with an empty, complete reply (a node with nothing
+/// to report beyond what the bridge knows).
+pub(super) fn answer_queries(b: &mut Bridge, out: &Out, now: Instant) {
+    for q in &out.queries {
+        let Message::StateQuery { seq, parts } = q.msg else {
+            continue;
+        };
+        let end = StateReport::End {
+            seq,
+            parts,
+            count: 0,
+        };
+        b.handle_packet(Packet::report(q.dest, Message::StateReport(end)), now);
+    }
+}
+
+/// A bridge at `t0` whose first health check went out and was answered by `nodes` (and their
+/// state queries by empty replies).
 pub(super) fn with_nodes(nodes: &[u16]) -> (Bridge, Instant) {
     let t0 = Instant::now();
     let mut b = Bridge::new(BridgeConfig::default(), t0);
@@ -110,7 +151,14 @@ pub(super) fn with_nodes(nodes: &[u16]) -> (Bridge, Instant) {
     for &n in nodes {
         b.handle_packet(Packet::report(id(n), reply(0, 0)), t0 + MS);
     }
-    drain(&mut b);
+    // Four questions at a time: answer until none is left.
+    loop {
+        let out = drain(&mut b);
+        if out.queries.is_empty() {
+            break;
+        }
+        answer_queries(&mut b, &out, t0 + MS);
+    }
     (b, t0)
 }
 

@@ -90,6 +90,8 @@ pub fn parse(
     .map_err(reject)?;
     Ok(Request {
         request_id: Some(REQUEST_ID.to_owned()),
+        // Home Assistant's commands carry no time limit.
+        ttl: None,
         command: Command::Node {
             target: Target::Node(id),
             action,

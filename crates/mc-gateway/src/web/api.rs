@@ -160,7 +160,12 @@ async fn command(State(app): State<Arc<App>>, headers: HeaderMap, body: Bytes) -
             "send the command with Content-Type: application/json",
         );
     }
-    match app.commands.try_send(MqttInput::Command(body.to_vec())) {
+    let input = MqttInput::Command {
+        payload: body,
+        received: std::time::Instant::now(),
+        retained: false,
+    };
+    match app.commands.try_send(input) {
         Ok(()) => json(StatusCode::ACCEPTED, r#"{"accepted":true}"#.to_owned()),
         Err(mpsc::error::TrySendError::Full(_)) => error(
             StatusCode::SERVICE_UNAVAILABLE,

@@ -125,7 +125,7 @@ impl Web {
                 layout: web.layout.clone(),
             },
             token: web.token.clone(),
-            max_command: crate::run::max_incoming(&config.bridge),
+            max_command: max_body(&config.bridge),
         }))
     }
 
@@ -226,4 +226,10 @@ async fn health_task(
         let h = Health::new(&app, &view, rates);
         health.send_replace(Some(Arc::from(snapshot::to_json(&h))));
     }
+}
+
+/// The largest request body handed to the core as a command: well above the command limit, so an
+/// oversized command is answered with the core's `command_rejected` reason, like one over MQTT.
+fn max_body(bridge: &ihex_gateway_core::BridgeConfig) -> usize {
+    bridge.max_command_bytes.saturating_mul(4).max(1 << 20)
 }
