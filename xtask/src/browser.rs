@@ -20,7 +20,7 @@ const LAST_SCREENSHOT: &str = "web-screenshots/recovered.png";
 /// A program named by the environment variable `var`, or the first of `names` found.
 fn program(var: &str, names: &[&str]) -> Option<PathBuf> {
     if let Some(p) = std::env::var_os(var) {
-        return Some(PathBuf::from(p));
+        return Some(PathBuf::from(p)).filter(|p| p.is_file());
     }
     names.iter().find_map(|n| cmd::find(n))
 }

@@ -27,7 +27,7 @@ use tokio::sync::{broadcast, mpsc, oneshot};
 /// Events kept for readers that arrive late (the island view's timeline).
 pub const RECENT_EVENTS: usize = 300;
 /// Publications a slow live reader may fall behind before it is told it lost some.
-const LIVE_QUEUE: usize = 1024;
+pub const LIVE_QUEUE: usize = 1024;
 /// View requests waiting for the core task.
 pub const VIEW_REQUESTS: usize = 16;
 
