@@ -129,6 +129,41 @@ pub fn password_file(users: &[(&str, &str)]) -> Result<Vec<u8>, Error> {
     }
 }
 
+/// `conf` (a Mosquitto configuration file's text) with the value of every line whose first word
+/// is one of `values`' keys replaced. Fails when a key is on no line, so a test running a
+/// documented file notices when the file changes under it.
+pub fn rewrite(conf: &str, values: &[(&str, &str)]) -> Result<String, String> {
+    let mut used = vec![false; values.len()];
+    let mut out = String::new();
+    for line in conf.lines() {
+        let key = line.split_whitespace().next().unwrap_or_default();
+        match values.iter().position(|(k, _)| *k == key) {
+            Some(i) if !line.trim_start().starts_with('#') => {
+                used[i] = true;
+                out.push_str(&format!("{key} {}\n", values[i].1));
+            }
+            _ => {
+                out.push_str(line);
+                out.push('\n');
+            }
+        }
+    }
+    let missing: Vec<&str> = values
+        .iter()
+        .zip(&used)
+        .filter(|(_, u)| !**u)
+        .map(|((k, _), _)| *k)
+        .collect();
+    if missing.is_empty() {
+        Ok(out)
+    } else {
+        Err(format!(
+            "no line for {} in the configuration",
+            missing.join(", ")
+        ))
+    }
+}
+
 /// A running mosquitto process listening on `127.0.0.1:<port>`; killed on drop.
 #[derive(Debug)]
 pub struct Mosquitto {
@@ -156,6 +191,10 @@ pub struct Setup {
     /// `log_type` lines (default `error`, `warning`); add `notice` or `all` to see more in
     /// [`Mosquitto::log`].
     pub log_types: Vec<String>,
+    /// A complete configuration (a repository file run through [`rewrite`]) instead of the
+    /// generated listener, `anonymous`, `global`, `listener` and `bridges`; the harness only adds
+    /// what it needs to run the broker here (`user root`, no persistence, logging to stderr).
+    pub conf: Option<String>,
 }
 
 impl Default for Setup {
@@ -167,6 +206,7 @@ impl Default for Setup {
             bridges: String::new(),
             files: Vec::new(),
             log_types: vec!["error".into(), "warning".into()],
+            conf: None,
         }
     }
 }
@@ -199,19 +239,24 @@ impl Mosquitto {
         };
         // `user root` keeps a root-run broker from switching to a `mosquitto` account, which the
         // test VM does not have; for non-root runs mosquitto ignores it.
-        let mut conf = format!(
-            "per_listener_settings false\nallow_anonymous {}\npersistence false\nuser root\n\
-             log_dest stderr\n",
-            setup.anonymous
-        );
+        let mut conf = String::from("persistence false\nuser root\nlog_dest stderr\n");
         for t in &setup.log_types {
             conf.push_str(&format!("log_type {t}\n"));
         }
-        conf.push_str(&fill(&setup.global));
-        conf.push_str(&format!("\nlistener {port} 127.0.0.1\n"));
-        conf.push_str(&fill(&setup.listener));
-        conf.push('\n');
-        conf.push_str(&fill(&setup.bridges));
+        match &setup.conf {
+            Some(text) => conf.push_str(&fill(text)),
+            None => {
+                conf.push_str(&format!(
+                    "per_listener_settings false\nallow_anonymous {}\n",
+                    setup.anonymous
+                ));
+                conf.push_str(&fill(&setup.global));
+                conf.push_str(&format!("\nlistener {port} 127.0.0.1\n"));
+                conf.push_str(&fill(&setup.listener));
+                conf.push('\n');
+                conf.push_str(&fill(&setup.bridges));
+            }
+        }
         conf.push('\n');
         let conf_path = dir.join("mosquitto.conf");
         fs::write(&conf_path, conf).map_err(io_err(format!("writing {}", conf_path.display())))?;

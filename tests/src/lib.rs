@@ -12,5 +12,7 @@ pub mod fault;
 pub mod mqtt;
 pub mod proxy;
 pub mod time;
+#[cfg(feature = "tls")]
+pub mod tls;
 
 pub use time::{within, within_or_panic};

@@ -151,6 +151,15 @@ impl Client {
         }
     }
 
+    /// Like [`Client::expect`], but a report already in the log counts too.
+    pub async fn seen(&mut self, what: &str, pred: impl Fn(&Seen) -> bool) -> Seen {
+        self.drain();
+        if let Some(s) = self.log.iter().find(|s| pred(s)) {
+            return s.clone();
+        }
+        self.expect(what, pred).await
+    }
+
     /// Waits for the next ConnAck and returns its code.
     pub async fn connack(&mut self) -> ConnectReturnCode {
         match self

@@ -3,4 +3,6 @@
 //! that runs a real gateway, broker, proxy and simulated island over vcan and records the trace.
 
 pub mod check;
+pub mod harness;
+pub mod plan;
 pub mod trace;
