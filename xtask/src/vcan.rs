@@ -327,6 +327,11 @@ pub fn vm_run(settings: VmSettings, binary: &Path, args: &[String]) -> Result<i3
         .unwrap_or_default()
         .to_string_lossy()
         .into_owned();
+    let mut files = repo_files();
+    // The fault suite runs this gateway binary as a child process: it must be in the VM too.
+    if let Some(gw) = std::env::var_os("IHEX_GATEWAY_BIN") {
+        files.push(PathBuf::from(gw));
+    }
     let payload = Payload {
         programs: vec![Program {
             name,
@@ -335,7 +340,7 @@ pub fn vm_run(settings: VmSettings, binary: &Path, args: &[String]) -> Result<i3
         }],
         env: guest_env(broker.as_ref()),
         cwd: std::env::current_dir().ok(),
-        files: repo_files(),
+        files,
     };
     let outcome = vm.run(&payload)?;
     outcome

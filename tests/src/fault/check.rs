@@ -182,10 +182,59 @@ struct Answered {
     raw: String,
 }
 
-/// A session-breaking fault's window: from its start to its recovery (or the end of the run).
-struct Window {
-    begin: Ms,
-    end: Ms,
+/// The faults' windows, from their start to their recovery (or the end of the run).
+struct Windows {
+    /// Faults that may break the MQTT session.
+    breaking: Vec<(Ms, Ms)>,
+    /// Proxy delays: (from, to, delay).
+    delays: Vec<(Ms, Ms, Ms)>,
+}
+
+impl Windows {
+    fn new(faults: &BTreeMap<u32, (Ms, Fault)>, recovered: &BTreeMap<u32, Ms>, end: Ms) -> Windows {
+        let mut w = Windows {
+            breaking: Vec::new(),
+            delays: Vec::new(),
+        };
+        for (n, (begin, f)) in faults {
+            let until = recovered.get(n).copied().unwrap_or(end);
+            if f.breaks_mqtt() {
+                w.breaking.push((*begin, until));
+            }
+            if let Fault::ProxyDelay { delay_ms, .. } = f {
+                w.delays.push((*begin, until, *delay_ms));
+            }
+        }
+        w
+    }
+
+    /// A session-breaking fault overlaps `[from, to]`.
+    fn breaking(&self, from: Ms, to: Ms) -> bool {
+        self.breaking.iter().any(|(b, e)| *b <= to && from <= *e)
+    }
+
+    /// The proxy's delay at `at` (0 when none).
+    fn delay_at(&self, at: Ms) -> Ms {
+        self.delays
+            .iter()
+            .filter(|(b, e, _)| *b <= at && at <= *e)
+            .map(|(_, _, d)| *d)
+            .max()
+            .unwrap_or(0)
+    }
+
+    /// The latest a command published at `at` can have reached the gateway, less the machine's
+    /// slack: held by a session-breaking fault until its recovery, or delayed by the proxy.
+    fn reached_gateway_by(&self, at: Ms) -> Ms {
+        let held = self
+            .breaking
+            .iter()
+            .filter(|(b, e)| *b <= at && at <= *e)
+            .map(|(_, e)| *e)
+            .max()
+            .unwrap_or(at);
+        held + self.delay_at(at)
+    }
 }
 
 /// Checks a trace against the contract.
@@ -251,16 +300,8 @@ pub fn check(trace: &Trace) -> Report {
         }
     }
     report.faults = faults.len();
-    let windows: Vec<Window> = faults
-        .iter()
-        .filter(|(_, (_, f))| f.breaks_mqtt())
-        .map(|(n, (begin, _))| Window {
-            begin: *begin,
-            end: recovered.get(n).copied().unwrap_or(end_of_run),
-        })
-        .collect();
-    let deadline = p.command_timeout_ms + p.slack_ms;
-    let in_fault = |from: Ms, to: Ms| windows.iter().any(|w| w.begin <= to && from <= w.end);
+    let windows = Windows::new(&faults, &recovered, end_of_run);
+    let in_fault = |from: Ms, to: Ms| windows.breaking(from, to);
 
     // Each command's answers.
     let mut answer_of: BTreeMap<u32, Vec<&Answered>> = BTreeMap::new();
@@ -312,6 +353,8 @@ pub fn check(trace: &Trace) -> Report {
         });
     }
     for (at, s) in &sent {
+        // A delayed link delays the command and its answer.
+        let deadline = p.command_timeout_ms + p.slack_ms + 2 * windows.delay_at(*at);
         let got = answer_of.get(&s.n).map(Vec::as_slice).unwrap_or_default();
         if s.retained {
             // Every replay may be answered (a rejection each time); none may say `ok`.
@@ -367,7 +410,7 @@ pub fn check(trace: &Trace) -> Report {
         }
     }
 
-    check_frames(trace, &sent, &answer_of, &mut report);
+    check_frames(trace, &sent, &answer_of, &windows, &mut report);
     check_availability(trace, &faults, &recovered, &mut report);
     check_checkpoints(trace, &mut report);
     report.violations.sort_by_key(|v| (v.at, v.rule));
@@ -401,8 +444,10 @@ fn check_frames(
     trace: &Trace,
     sent: &[(Ms, &Sent)],
     answer_of: &BTreeMap<u32, Vec<&Answered>>,
+    windows: &Windows,
     report: &mut Report,
 ) {
+    let slack = trace.params.slack_ms;
     let actions: Vec<(Ms, &Sent, NodeId, NodeAction)> = sent
         .iter()
         .filter_map(|(at, s)| frame_of(s).map(|(dest, a)| (*at, *s, dest, a)))
@@ -440,12 +485,14 @@ fn check_frames(
                 why_not.push(format!("#{} is retained", s.n));
                 continue;
             }
+            // The ttl runs from when the gateway received the command: at the latest, when a
+            // fault holding it ended (plus the machine's slack).
             if let Some(ttl) = s.ttl_ms {
-                if r.at > at + ttl {
+                let expired = windows.reached_gateway_by(*at) + slack + ttl;
+                if r.at > expired {
                     why_not.push(format!(
-                        "#{} expired at {} ms (ttl_ms {ttl})",
-                        s.n,
-                        at + ttl
+                        "#{} (ttl_ms {ttl}) expired by {expired} ms at the latest",
+                        s.n
                     ));
                     continue;
                 }

@@ -64,7 +64,7 @@ impl T {
             r#"{{"cmd":"led","node":"111","color":[{},{},{}]}}"#,
             rgb[0], rgb[1], rgb[2]
         );
-        let mut payload = action.trim_end_matches('}').to_string();
+        let mut payload = action.strip_suffix('}').unwrap_or(&action).to_string();
         if let Some(r) = rid {
             payload.push_str(&format!(r#","request_id":"{r}""#));
         }
@@ -355,19 +355,39 @@ fn a_frame_no_command_asked_for_is_found() {
 
 #[test]
 fn an_expired_command_must_not_run() {
+    // slack 500: a ttl of 200 from 100 is over by 800 at the latest.
     let mut t = T::new();
     t.send(100, 1, [5, 5, 5], Some("a"), false, Some(200))
-        .frame(400, [5, 5, 5], 1)
-        .result(410, Some("a"), "ok");
+        .frame(900, [5, 5, 5], 1)
+        .result(910, Some("a"), "ok");
     let r = t.check();
     assert_eq!(rules(&r), [Rule::NoLateExecution], "{r}");
     assert!(r.violations[0].message.contains("expired"));
 
     let mut t = T::new();
     t.send(100, 1, [5, 5, 5], Some("a"), false, Some(200))
-        .frame(250, [5, 5, 5], 1)
-        .result(260, Some("a"), "ok");
+        .frame(750, [5, 5, 5], 1)
+        .result(760, Some("a"), "ok");
     assert!(t.check().ok());
+
+    // The ttl runs from the gateway's receipt: a command held by a half-open link until 3000 may
+    // run until 3000 + slack + ttl.
+    let mut t = T::new();
+    t.fault(
+        50,
+        1,
+        Fault::ProxyHalfOpen {
+            ms: 2950,
+            noticed: false,
+        },
+        3000,
+    );
+    t.send(100, 1, [5, 5, 5], Some("a"), false, Some(200));
+    t.trace.records.sort_by_key(|r| r.at);
+    t.frame(3600, [5, 5, 5], 1).result(3610, Some("a"), "ok");
+    assert!(t.check().ok(), "{}", t.check());
+    t.frame(3800, [5, 5, 5], 2);
+    assert_eq!(rules(&t.check()), [Rule::NoLateExecution]);
 }
 
 #[test]
