@@ -6,7 +6,8 @@
 //!   does. `BootUp` from a known node is used because it maps 1:1 to an event and is not
 //!   rate-limited (`Fault` is: one event per node and code per second).
 //! * command → frame: JSON `led` command bytes → [`Bridge::handle_command`] (parse, validate, track the
-//!   pending ack) → [`Packet::encode`] to the frame's id and bytes.
+//!   pending ack) → [`Packet::encode`] to the frame's id and bytes → [`Bridge::handle_transmitted`]
+//!   (the frame's echo, as the gateway's SocketCAN adapter reports it).
 //!
 //! Inputs are prepared once, before the measured loop, and reused round-robin, so that running
 //! `n` and `2n` iterations differs only by `n` iterations of the loop: (I(2n) − I(n)) / n is the
@@ -70,10 +71,12 @@ pub fn led_command(i: u32) -> String {
     )
 }
 
-fn drain(bridge: &mut Bridge, topics: &Topics, out: &mut Output) {
-    while let Some(p) = bridge.poll_transmit() {
-        let (id, data) = p.encode();
+fn drain(bridge: &mut Bridge, topics: &Topics, out: &mut Output, now: Instant) {
+    // As the gateway's shell does: the frame encoded, then confirmed by its echo.
+    while let Some(t) = bridge.poll_transmit(now) {
+        let (id, data) = t.packet.encode();
         black_box((id, &data));
+        bridge.handle_transmitted(t.packet, now);
         out.frames += 1;
     }
     // As the gateway's shell does: the topic resolved, the publication serialised once.
@@ -103,7 +106,7 @@ pub fn prepared_bridge(now: Instant) -> (Bridge, Topics) {
     for i in 0..u32::from(NODES) {
         bridge.handle_packet(boot_up(i), now);
     }
-    drain(&mut bridge, &topics, &mut sink);
+    drain(&mut bridge, &topics, &mut sink, now);
     (bridge, topics)
 }
 
@@ -128,14 +131,14 @@ pub fn run(path: Path, n: u32) -> Output {
                     Ok(p) => bridge.handle_packet(p, now),
                     Err(e) => bridge.handle_undecodable(*id, data.as_slice(), e, now),
                 }
-                drain(&mut bridge, &topics, &mut out);
+                drain(&mut bridge, &topics, &mut out, now);
             }
         }
         Path::CommandToFrame => {
             let commands: Vec<String> = (0..DISTINCT).map(led_command).collect();
             for i in 0..n {
                 bridge.handle_command(commands[(i % DISTINCT) as usize].as_bytes(), now);
-                drain(&mut bridge, &topics, &mut out);
+                drain(&mut bridge, &topics, &mut out, now);
             }
         }
     }
@@ -194,10 +197,11 @@ mod tests {
 
     #[test]
     fn led_command_is_accepted_json() {
-        let (mut bridge, topics) = prepared_bridge(Instant::now());
-        bridge.handle_command(led_command(300).as_bytes(), Instant::now());
+        let now = Instant::now();
+        let (mut bridge, topics) = prepared_bridge(now);
+        bridge.handle_command(led_command(300).as_bytes(), now);
         let mut out = Output::default();
-        drain(&mut bridge, &topics, &mut out);
+        drain(&mut bridge, &topics, &mut out, now);
         assert_eq!((out.frames, out.publications), (1, 0));
     }
 }

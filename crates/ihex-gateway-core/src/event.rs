@@ -162,10 +162,14 @@ pub enum Outcome {
     Ok,
     /// A node answered with a refusal; `reason` names the ack result.
     Refused,
-    /// No (or not every) answer within the command timeout.
+    /// Sent (or handed to the CAN interface, see the reason), but no (or not every) answer within
+    /// the command timeout: the node may or may not have acted on it.
     Timeout,
-    /// The frame could not be sent on the bus.
+    /// The frame was never sent on the bus (the transmit queue was full or behind, the interface
+    /// down, a write failed): the node did not act on it.
     Failed,
+    /// Its `ttl_ms` ended before it could be sent: never sent, the node did not act on it.
+    Expired,
 }
 
 /// One node's refusal of a broadcast command.
@@ -285,6 +289,19 @@ pub struct NodeList {
     pub nodes: Vec<NodeState>,
 }
 
+/// Payload of `publications_dropped`: events the gateway dropped because it could not publish them
+/// as fast as they came (never answers or state documents), reported at most once per
+/// [`crate::bridge::DROP_REPORT_PERIOD`].
+#[derive(Clone, PartialEq, Eq, Debug, Serialize, Deserialize)]
+pub struct PublicationsDropped {
+    /// Events dropped since the previous report.
+    pub dropped: u64,
+    /// Events dropped since the gateway started.
+    pub total: u64,
+    /// `dropped` by event name (`bus_error`, `node_online`, …).
+    pub events: std::collections::BTreeMap<String, u64>,
+}
+
 /// Payload of `sim_result` (demo only): how a control message on the `ihex/sim` topic ended.
 #[derive(Clone, PartialEq, Eq, Debug, Serialize, Deserialize)]
 pub struct SimResult {
@@ -324,6 +341,8 @@ pub enum Event {
     DockFailed(DockFailed),
     /// Answer to `list`.
     NodeList(NodeList),
+    /// Events were dropped because they could not be published as fast as they came.
+    PublicationsDropped(PublicationsDropped),
     /// Demo only: a simulated island control message was carried out or refused.
     SimResult(SimResult),
     /// Demo only: a simulated island control message was not understood.
@@ -345,6 +364,7 @@ impl Event {
             Event::BusError(_) => "bus_error",
             Event::DockFailed(_) => "dock_failed",
             Event::NodeList(_) => "node_list",
+            Event::PublicationsDropped(_) => "publications_dropped",
             Event::SimResult(_) => "sim_result",
             Event::SimRejected(_) => "sim_rejected",
         }

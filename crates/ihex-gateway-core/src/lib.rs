@@ -6,7 +6,11 @@
 //!
 //! The API follows quinn-proto's `Connection`: one `handle_*` method per kind of input, each taking
 //! `now`; [`Bridge::handle_timeout`] at [`Bridge::poll_timeout`]; [`Bridge::poll_transmit`] and
-//! [`Bridge::poll_publication`] for the outputs, in the order they were produced.
+//! [`Bridge::poll_publication`] for the outputs, in the order they were produced. Every frame taken
+//! from `poll_transmit` is answered by [`Bridge::handle_transmitted`] (its echo),
+//! [`Bridge::handle_send_failed`] or [`Bridge::handle_withdrawn`]; until then it holds one of the
+//! few places of the transmit window, so a command waiting for the bus waits where it can still be
+//! withdrawn. The adapter takes commands only while [`Bridge::wants_commands`] says so.
 //!
 //! ```
 //! use std::time::Instant;
@@ -15,8 +19,9 @@
 //! let now = Instant::now();
 //! let mut bridge = Bridge::new(BridgeConfig::default(), now);
 //! bridge.handle_timeout(now); // the first health check is due at once
-//! let health_check = bridge.poll_transmit().expect("a frame to send");
+//! let health_check = bridge.poll_transmit(now).expect("a frame to send").packet;
 //! assert_eq!(health_check.dest, ihex_proto::NodeId::BROADCAST);
+//! bridge.handle_transmitted(health_check, now); // its echo: the frame went on the bus
 //!
 //! bridge.handle_command(br#"{"cmd":"led","node":"2","color":"red"}"#, now);
 //! let Some(Publication::Event(event)) = bridge.poll_publication() else { panic!() };
@@ -39,5 +44,8 @@ pub mod registry;
 pub mod throttle;
 pub mod topic;
 
-pub use bridge::{Bridge, BridgeConfig, BusEvent, BusHealth, CommandCounters, Publication, Topic};
+pub use bridge::{
+    Bridge, BridgeConfig, BusEvent, BusHealth, CommandCounters, Delivery, Publication,
+    PublicationCounters, Topic, Transmit,
+};
 pub use event::{Event, NodeState};

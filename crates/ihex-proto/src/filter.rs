@@ -171,6 +171,19 @@ impl Filter {
     }
 }
 
+impl Filter {
+    /// Accepts extended data frames whose source field is `src`, to any destination and of any
+    /// kind (with `CAN_RAW_RECV_OWN_MSGS`, the gateway hears its own frames back this way: the
+    /// echo that confirms they were sent).
+    pub const fn from_node(src: NodeId) -> Self {
+        let shift = Header::SRC_SHIFT;
+        Self::accept(
+            EFF | ((src.get() as u32) << shift),
+            EFF | RTR | (Header::NODE_MASK << shift),
+        )
+    }
+}
+
 /// The seed's rule for a set: through when it matches some accept filter (or there is none) and no
 /// reject filter.
 pub fn accepts(filters: &[Filter], word: u32) -> bool {

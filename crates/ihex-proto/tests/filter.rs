@@ -4,7 +4,7 @@ use ihex_proto::filter::{
     self, accepts, bxcan_bits, kernel_bits, to_bxcan, to_kernel, BxcanBank, Filter, FilterError,
     KernelFilter, EFF, RTR, WORD_MASK,
 };
-use ihex_proto::NodeId;
+use ihex_proto::{Message, NodeId, Packet, Port};
 
 fn node(raw: u16) -> NodeId {
     NodeId::new(raw).unwrap()
@@ -24,6 +24,27 @@ fn to_node_filter_words() {
     assert_eq!((b.id, b.mask), (0x20FF_F000, 0x60FF_F000));
     let g = filter::gateway_filters();
     assert_eq!((g[0].id, g[0].mask), (0x2000_0000, 0x60FF_F000));
+}
+
+#[test]
+fn from_node_filter_words_and_what_they_accept() {
+    let f = Filter::from_node(NodeId::GATEWAY);
+    assert_eq!((f.id, f.mask), (0x2000_0000, 0x6000_0FFF));
+    let own = Packet::command(node(0x111), Message::HealthCheck { seq: 1 });
+    let report = Packet::report(
+        node(0x111),
+        Message::DockDetected {
+            port: Port::new(1).unwrap(),
+        },
+    );
+    let word = |p: &Packet| ext(p.header().to_raw());
+    assert!(filter::accepts(&[f], word(&own)));
+    assert!(!filter::accepts(&[f], word(&report)));
+    let k = to_kernel(&[f]).unwrap();
+    assert_eq!(
+        (k.filters[0].can_id, k.filters[0].can_mask),
+        (0x8000_0000, 0xC000_0FFF)
+    );
 }
 
 #[test]

@@ -4,18 +4,22 @@
 //! plugs its in-memory bus in that way).
 //!
 //! On SocketCAN the receive task owns the socket's life: it installs the gateway's kernel filters,
-//! enables error frames, sizes the receive buffer, and when a read fails (interface down or gone)
-//! reports [`BusEvent::InterfaceDown`], reopens with a capped back-off once the interface is up again,
-//! and reports [`BusEvent::Recovered`]. The transmit task always writes on the socket of the moment
-//! (shared through a `watch`), and reports every packet it cannot send.
+//! enables error frames and the echo of the gateway's own frames (`CAN_RAW_RECV_OWN_MSGS`: a frame
+//! comes back once the interface sent it, which confirms it to the core), sizes the receive buffer,
+//! and when a read fails (interface down or gone) reports [`BusEvent::InterfaceDown`], reopens with
+//! a capped back-off once the interface is up again, and reports [`BusEvent::Recovered`]. The
+//! transmit task always writes on the socket of the moment (shared through a `watch`), never writes
+//! a frame after its [`Transmit::not_after`] (reported as [`CanInput::Withdrawn`]), and reports every
+//! frame it cannot send. The core hands it at most `ihex_gateway_core::bridge::TRANSMIT_WINDOW`
+//! frames not yet confirmed, so few frames are ever beyond recall.
 
 use std::{future::Future, io, sync::Arc, time::Duration};
 
 use embedded_can::{Frame as _, Id};
-use ihex_gateway_core::BusEvent;
+use ihex_gateway_core::{BusEvent, Transmit};
 use ihex_proto::{
     filter::{self, Filter},
-    DecodeError, Packet,
+    DecodeError, NodeId, Packet,
 };
 use socketcan::{CanFilter, CanFrame, SocketOptions};
 use tokio::{
@@ -58,6 +62,10 @@ pub enum CanInput {
     Bus(BusEvent),
     /// A packet could not be transmitted.
     SendFailed(Packet, String),
+    /// A packet was written on a link that does not echo frames: as sent as it will ever be known.
+    Transmitted(Packet),
+    /// A packet was not written because its `not_after` had passed.
+    Withdrawn(Packet),
 }
 
 /// A frame link other than SocketCAN that the CAN tasks can run on (the demo's in-memory bus).
@@ -78,9 +86,19 @@ pub trait FrameSender: Send + Sync + 'static {
 }
 
 type Start = Box<
-    dyn FnOnce(mpsc::Receiver<Packet>, mpsc::Sender<CanInput>, &mut JoinSet<()>, CancellationToken)
-        + Send,
+    dyn FnOnce(
+            mpsc::Receiver<Transmit>,
+            mpsc::Sender<CanInput>,
+            &mut JoinSet<()>,
+            CancellationToken,
+        ) + Send,
 >;
+
+/// What the gateway's socket receives: frames addressed to the gateway, and the echo of its own.
+pub fn receive_filters() -> [Filter; 2] {
+    let [to_gateway] = filter::gateway_filters();
+    [to_gateway, Filter::from_node(NodeId::GATEWAY)]
+}
 
 /// How the CAN tasks reach the bus: built (and, for SocketCAN, first opened) before they run.
 pub struct CanLink {
@@ -100,7 +118,7 @@ impl CanLink {
     /// by the receive task. Fails only when the gateway's filters cannot be expressed for the kernel
     /// or the socket refuses them.
     pub fn socketcan(iface: &str, rx_buffer: usize) -> Result<CanLink, CanError> {
-        let filters = filter::gateway_filters();
+        let filters = receive_filters();
         let setup = SocketSetup {
             iface: iface.to_owned(),
             rx_buffer,
@@ -146,16 +164,16 @@ impl CanLink {
         &self.name
     }
 
-    /// Spawns the receive and transmit tasks into `tasks`; returns the transmit queue (bounded,
-    /// `tx_queue` frames).
+    /// Spawns the receive and transmit tasks into `tasks`; returns the transmit channel (bounded,
+    /// `capacity` frames: the core's transmit window).
     pub fn spawn(
         self,
-        tx_queue: usize,
+        capacity: usize,
         inputs: mpsc::Sender<CanInput>,
         tasks: &mut JoinSet<()>,
         cancel: CancellationToken,
-    ) -> mpsc::Sender<Packet> {
-        let (tx_packets, rx_packets) = mpsc::channel(tx_queue);
+    ) -> mpsc::Sender<Transmit> {
+        let (tx_packets, rx_packets) = mpsc::channel(capacity.max(1));
         (self.start)(rx_packets, inputs, tasks, cancel);
         tx_packets
     }
@@ -193,6 +211,8 @@ impl SocketSetup {
             .map_err(opt("CAN_RAW_JOIN_FILTERS"))?;
         sock.set_error_filter_accept_all()
             .map_err(opt("CAN_RAW_ERR_FILTER"))?;
+        sock.set_recv_own_msgs(true)
+            .map_err(opt("CAN_RAW_RECV_OWN_MSGS"))?;
         let got = set_receive_buffer(&sock, self.rx_buffer);
         info!(iface = %self.iface, rx_buffer = got, asked = self.rx_buffer, join = self.plan.join,
               software_check = self.plan.software_check, "CAN interface open");
@@ -403,9 +423,25 @@ pub fn classify(frame: &CanFrame, filters: &[Filter], software_check: bool) -> O
     })
 }
 
-/// Writes frames; on failure the reason and whether it means the link itself is gone.
+/// Why a frame was not written.
+enum WriteError {
+    /// It could not be written; true when that means the link itself is gone.
+    Failed(String, bool),
+    /// Its `not_after` passed before the interface took it.
+    Late,
+}
+
+/// Writes frames.
 trait Writer: Send + 'static {
-    fn write(&self, frame: CanFrame) -> impl Future<Output = Result<(), (String, bool)>> + Send;
+    /// Writes `frame` unless that cannot happen by `not_after`.
+    fn write(
+        &self,
+        frame: CanFrame,
+        not_after: Option<tokio::time::Instant>,
+    ) -> impl Future<Output = Result<(), WriteError>> + Send;
+    /// True when the link echoes written frames back through the receive task (the echo confirms
+    /// them); otherwise the transmit task reports a written frame as transmitted itself.
+    fn echoes(&self) -> bool;
 }
 
 /// Writes on the SocketCAN socket of the moment.
@@ -414,19 +450,32 @@ struct SocketWriter {
 }
 
 impl Writer for SocketWriter {
-    async fn write(&self, frame: CanFrame) -> Result<(), (String, bool)> {
+    async fn write(
+        &self,
+        frame: CanFrame,
+        not_after: Option<tokio::time::Instant>,
+    ) -> Result<(), WriteError> {
         let Some(sock) = self.link.borrow().clone() else {
-            return Err(("CAN interface down".into(), false));
+            return Err(WriteError::Failed("CAN interface down".into(), false));
         };
         // ENOBUFS means the interface's queue is full (the socket does not wait for room on its
-        // own): retry briefly, then give up so one stuck bus cannot stall the gateway.
-        let deadline = tokio::time::Instant::now() + WRITE_TIMEOUT;
+        // own): retry briefly, then give up so one stuck bus cannot stall the gateway — and never
+        // past the frame's own deadline.
+        let give_up = tokio::time::Instant::now() + WRITE_TIMEOUT;
+        let deadline = not_after.map_or(give_up, |d| d.min(give_up));
         loop {
+            if not_after.is_some_and(|d| tokio::time::Instant::now() >= d) {
+                return Err(WriteError::Late);
+            }
             match tokio::time::timeout_at(deadline, sock.write_frame(frame)).await {
                 Ok(Ok(())) => return Ok(()),
                 Ok(Err(e)) if e.raw_os_error() == Some(libc::ENOBUFS) => {
                     if tokio::time::Instant::now() >= deadline {
-                        return Err(("transmit queue full (ENOBUFS)".into(), false));
+                        if deadline < give_up {
+                            return Err(WriteError::Late);
+                        }
+                        let why = "transmit queue full (ENOBUFS)".into();
+                        return Err(WriteError::Failed(why, false));
                     }
                     tokio::time::sleep(Duration::from_millis(2)).await;
                 }
@@ -435,11 +484,16 @@ impl Writer for SocketWriter {
                         e.raw_os_error(),
                         Some(libc::ENETDOWN | libc::ENODEV | libc::ENXIO | libc::EBADF)
                     );
-                    return Err((e.to_string(), link_error));
+                    return Err(WriteError::Failed(e.to_string(), link_error));
                 }
-                Err(_) => return Err(("transmit timed out".into(), false)),
+                Err(_) if deadline < give_up => return Err(WriteError::Late),
+                Err(_) => return Err(WriteError::Failed("transmit timed out".into(), false)),
             }
         }
+    }
+
+    fn echoes(&self) -> bool {
+        true
     }
 }
 
@@ -447,40 +501,64 @@ impl Writer for SocketWriter {
 struct LinkWriter<S>(S);
 
 impl<S: FrameSender> Writer for LinkWriter<S> {
-    async fn write(&self, frame: CanFrame) -> Result<(), (String, bool)> {
-        self.0.send(frame).await.map_err(|e| (e, true))
+    async fn write(
+        &self,
+        frame: CanFrame,
+        not_after: Option<tokio::time::Instant>,
+    ) -> Result<(), WriteError> {
+        if not_after.is_some_and(|d| tokio::time::Instant::now() >= d) {
+            return Err(WriteError::Late);
+        }
+        self.0
+            .send(frame)
+            .await
+            .map_err(|e| WriteError::Failed(e, true))
+    }
+
+    fn echoes(&self) -> bool {
+        false
     }
 }
 
 #[tracing::instrument(name = "can_tx", skip_all)]
 async fn transmit<W: Writer>(
-    mut packets: mpsc::Receiver<Packet>,
+    mut packets: mpsc::Receiver<Transmit>,
     writer: W,
     inputs: mpsc::Sender<CanInput>,
     failed: Option<Arc<Notify>>,
     cancel: CancellationToken,
 ) {
     loop {
-        let packet = tokio::select! {
+        let t = tokio::select! {
             _ = cancel.cancelled() => return,
             p = packets.recv() => match p { Some(p) => p, None => return },
         };
+        let packet = t.packet;
+        let not_after = t.not_after.map(tokio::time::Instant::from_std);
         let written = match packet.to_frame::<CanFrame>() {
-            Some(frame) => writer.write(frame).await,
-            None => Err(("packet cannot be encoded".to_owned(), false)),
+            Some(frame) => writer.write(frame, not_after).await,
+            None => Err(WriteError::Failed(
+                "packet cannot be encoded".to_owned(),
+                false,
+            )),
         };
-        if let Err((reason, link_error)) = written {
-            debug!(?packet, %reason, "send failed");
-            if let (true, Some(failed)) = (link_error, &failed) {
-                failed.notify_one();
+        let report = match written {
+            Ok(()) if writer.echoes() => continue,
+            Ok(()) => CanInput::Transmitted(packet),
+            Err(WriteError::Late) => {
+                debug!(?packet, "not written: its deadline passed");
+                CanInput::Withdrawn(packet)
             }
-            if inputs
-                .send(CanInput::SendFailed(packet, reason))
-                .await
-                .is_err()
-            {
-                return;
+            Err(WriteError::Failed(reason, link_error)) => {
+                debug!(?packet, %reason, "send failed");
+                if let (true, Some(failed)) = (link_error, &failed) {
+                    failed.notify_one();
+                }
+                CanInput::SendFailed(packet, reason)
             }
+        };
+        if inputs.send(report).await.is_err() {
+            return;
         }
     }
 }

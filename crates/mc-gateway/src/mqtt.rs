@@ -2,25 +2,35 @@
 //! clean session and a retained `offline` last will, (re)subscribes the command topic on *every*
 //! ConnAck, publishes `online` (retained), forwards commands to the core and carries out its
 //! publications (QoS 1). rumqttc reconnects whenever `poll()` is called again but has no back-off, so
-//! this task sleeps with a capped exponential delay between failed polls.
+//! this task sleeps with a capped exponential delay between failed polls, and says why at the
+//! default log level, naming the broker and what to check — at the first failure, then at growing
+//! intervals ([`WARN_FIRST`] doubling to [`WARN_MAX`]), not at every attempt.
 //!
-//! Publications are never lost silently: while the broker is unreachable they wait in a bounded queue
-//! of [`crate::config::MqttConfig::queue`] entries (the oldest is dropped, logged and counted in
-//! [`MqttStats`] when it is full), and those rumqttc had accepted but the broker had not acknowledged
-//! when the connection broke are taken back from the event loop and sent again after reconnecting.
+//! Nothing is dropped here. Publications are taken from the core only while fewer than
+//! [`STAGING`] wait in this task (the core keeps the rest, coalesced, see
+//! `ihex_gateway_core::bridge`), and those rumqttc had accepted but the broker had not acknowledged
+//! when the connection broke are taken back and sent again after reconnecting. Commands are
+//! acknowledged to the broker (manual acks) only once the core took them, so while the core does
+//! not want commands the broker holds QoS 1 commands back (its in-flight window); QoS 0 commands,
+//! which MQTT cannot hold back, wait here up to [`HELD_MAX`] and beyond that are shed and counted
+//! ([`MqttStats::commands_shed`]).
+//!
+//! Every packet the broker delivers is read, up to the MQTT maximum ([`MAX_INCOMING`]), so an
+//! oversized command reaches the core and is answered instead of breaking the connection.
 
 use std::{
     collections::VecDeque,
     sync::{
-        atomic::{AtomicU64, Ordering},
-        Arc,
+        atomic::{AtomicBool, AtomicU64, Ordering},
+        Arc, Mutex,
     },
-    time::Duration,
+    time::{Duration, Instant},
 };
 
+use bytes::Bytes;
 use rumqttc::{
-    AsyncClient, ClientError, ConnectReturnCode, Event, EventLoop, Incoming, LastWill, MqttOptions,
-    NetworkOptions, Outgoing, QoS, Request, SubscribeReasonCode,
+    AsyncClient, ClientError, ConnectReturnCode, ConnectionError, Event, EventLoop, Incoming,
+    LastWill, MqttOptions, NetworkOptions, Outgoing, Publish, QoS, Request, SubscribeReasonCode,
 };
 use tokio::sync::mpsc;
 use tokio_util::sync::CancellationToken;
@@ -36,9 +46,23 @@ pub const OFFLINE: &str = "offline";
 pub const RECONNECT_MIN: Duration = Duration::from_millis(100);
 /// Longest delay between connection attempts.
 pub const RECONNECT_MAX: Duration = Duration::from_secs(5);
-/// Capacity of rumqttc's own request channel (our queue in front of it holds the backlog).
+/// After the first warning about an unreachable broker, the next comes this much later; the
+/// interval doubles up to [`WARN_MAX`].
+pub const WARN_FIRST: Duration = Duration::from_secs(5);
+/// Longest interval between two warnings about an unreachable broker.
+pub const WARN_MAX: Duration = Duration::from_secs(300);
+/// The largest packet MQTT allows (remaining length 268 435 455 plus a 5-byte fixed header): the
+/// incoming limit, so no packet a broker delivers can break the connection.
+pub const MAX_INCOMING: usize = 268_435_455 + 5;
+/// Largest outgoing packet (the gateway's own publications are small).
+const MAX_OUTGOING: usize = 1 << 20;
+/// Publications taken from the core and waiting here for rumqttc (the core holds the rest).
+pub const STAGING: usize = 64;
+/// Commands received and not yet taken by the core, beyond which QoS 0 commands are shed.
+pub const HELD_MAX: usize = 1024;
+/// Capacity of rumqttc's own request channel.
 const REQUEST_CHANNEL: usize = 64;
-/// How long shutdown waits for `offline` and the DISCONNECT to go out.
+/// How long shutdown waits for the last publications, `offline` and the DISCONNECT to go out.
 const SHUTDOWN_GRACE: Duration = Duration::from_secs(2);
 
 /// One message to publish with QoS 1: a serialised core publication under its concrete topic.
@@ -56,31 +80,74 @@ pub struct Outbound {
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub enum MqttInput {
     /// A message on the command topic (raw payload; the core validates it).
-    Command(Vec<u8>),
+    Command {
+        /// The payload as received.
+        payload: Bytes,
+        /// When this task read it off the connection (a command's `ttl_ms` counts from here).
+        received: Instant,
+        /// The broker delivered it as a retained message (never executed).
+        retained: bool,
+    },
     /// A ConnAck: the session is (re)established and subscribed.
     Connected,
 }
 
-/// Counters of the MQTT side, readable while the gateway runs.
+/// Counters and state of the MQTT side, readable while the gateway runs (tests, benchmarks, a web
+/// view).
 #[derive(Debug, Default)]
 pub struct MqttStats {
     /// Successful connections (ConnAck accepted).
     pub connects: AtomicU64,
-    /// Publications dropped because the queue was full while disconnected.
-    pub dropped: AtomicU64,
     /// Publications handed to rumqttc.
     pub published: AtomicU64,
     /// Messages received on the command topic.
     pub commands: AtomicU64,
+    /// Commands shed unanswered because [`HELD_MAX`] commands already waited for the core (only
+    /// QoS 0 floods get here: the broker holds QoS 1 commands back).
+    pub commands_shed: AtomicU64,
+    /// Events the core dropped because they could not be published as fast as they came (the
+    /// core's count, mirrored here; never answers or state documents).
+    pub publications_dropped: AtomicU64,
+    /// Connected to the broker now.
+    pub connected: AtomicBool,
+    /// Failed connection attempts since the last successful one.
+    pub failed_attempts: AtomicU64,
+    /// Why the last attempt failed, or the connection broke; `None` while connected.
+    last_error: Mutex<Option<String>>,
+}
+
+/// The broker link as a status view shows it.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct BrokerLink {
+    /// Connected now.
+    pub connected: bool,
+    /// Failed attempts since the last successful connection.
+    pub failed_attempts: u64,
+    /// What went wrong last (with what to check), while not connected.
+    pub last_error: Option<String>,
+}
+
+impl MqttStats {
+    /// The broker link now.
+    pub fn broker_link(&self) -> BrokerLink {
+        BrokerLink {
+            connected: self.connected.load(Ordering::Relaxed),
+            failed_attempts: self.failed_attempts.load(Ordering::Relaxed),
+            last_error: self.last_error.lock().map(|e| e.clone()).unwrap_or(None),
+        }
+    }
+
+    fn set_error(&self, e: Option<String>) {
+        if let Ok(mut last) = self.last_error.lock() {
+            *last = e;
+        }
+    }
 }
 
 /// The rumqttc options of the gateway's own client: [`client_options`] plus the retained `offline`
-/// last will and the incoming size limit.
-pub fn options(
-    cfg: &MqttConfig,
-    topics: &Topics,
-    max_incoming: usize,
-) -> Result<MqttOptions, MqttError> {
+/// last will, manual acks (a command is acknowledged once the core took it) and the incoming size
+/// limit.
+pub fn options(cfg: &MqttConfig, topics: &Topics) -> Result<MqttOptions, MqttError> {
     let mut o = client_options(cfg, cfg.client_id.clone())?;
     o.set_last_will(LastWill::new(
         &topics.availability,
@@ -88,9 +155,10 @@ pub fn options(
         QoS::AtLeastOnce,
         true,
     ))
+    .set_manual_acks(true)
     // An oversized command must reach the core (to be rejected with a reason) rather than
-    // break the connection, so the incoming limit sits well above the command limit.
-    .set_max_packet_size(max_incoming, 1 << 20);
+    // break the connection: nothing a broker can deliver is refused.
+    .set_max_packet_size(MAX_INCOMING, MAX_OUTGOING);
     Ok(o)
 }
 
@@ -141,14 +209,84 @@ pub struct MqttTask {
     pub options: MqttOptions,
     /// Topic names.
     pub topics: Topics,
-    /// Publications held while disconnected.
-    pub queue: usize,
+    /// The broker as messages name it (`host:port`).
+    pub broker: String,
     /// Counters.
     pub stats: Arc<MqttStats>,
 }
 
+/// A command the core has not taken yet, and how to acknowledge it.
+struct Held {
+    input: MqttInput,
+    /// The ack to send once the core took it (QoS 1), on the connection it came on.
+    ack: Option<(Publish, u64)>,
+}
+
+/// When to warn again about an unreachable broker.
+struct WarnSchedule {
+    next: Option<Instant>,
+    interval: Duration,
+}
+
+impl WarnSchedule {
+    fn new() -> Self {
+        WarnSchedule {
+            next: None,
+            interval: WARN_FIRST,
+        }
+    }
+
+    /// True when a failure now deserves a warning (the first one, then at growing intervals).
+    fn due(&mut self, now: Instant) -> bool {
+        if self.next.is_some_and(|n| now < n) {
+            return false;
+        }
+        self.next = Some(now + self.interval);
+        self.interval = (self.interval * 2).min(WARN_MAX);
+        true
+    }
+
+    fn reset(&mut self) {
+        *self = WarnSchedule::new();
+    }
+}
+
+/// Why a connection attempt failed, and what to check, in a person's words.
+pub fn explain(e: &ConnectionError, broker: &str, tls: bool) -> String {
+    let tls_hint = if tls {
+        "; with TLS also check --tls-ca and that the broker's certificate names this host"
+    } else {
+        ""
+    };
+    match e {
+        ConnectionError::ConnectionRefused(code) => match code {
+            ConnectReturnCode::BadUserNamePassword | ConnectReturnCode::NotAuthorized => format!(
+                "broker {broker} refused the login ({code:?}): check --username and --password \
+                 (IHEX_MQTT_USERNAME, IHEX_MQTT_PASSWORD) against the broker's password file and ACL"
+            ),
+            ConnectReturnCode::BadClientId => format!(
+                "broker {broker} refused the client id ({code:?}): check --client-id"
+            ),
+            other => format!("broker {broker} refused the connection ({other:?})"),
+        },
+        ConnectionError::Io(io) if io.kind() == std::io::ErrorKind::ConnectionRefused => format!(
+            "nothing accepts connections at {broker} ({io}): is the broker running, and is that \
+             its host and port (--broker)?"
+        ),
+        ConnectionError::Io(io) => format!(
+            "cannot reach broker {broker} ({io}): check --broker, the network and firewalls{tls_hint}"
+        ),
+        ConnectionError::NetworkTimeout => format!(
+            "no answer from broker {broker} within 5 s: check --broker, the network and \
+             firewalls{tls_hint}"
+        ),
+        other => format!("connection to broker {broker} failed ({other}){tls_hint}"),
+    }
+}
+
 impl MqttTask {
-    /// Runs until `cancel`: then publishes `offline` (retained) and disconnects.
+    /// Runs until `cancel`: then publishes what the core still hands over (until it closes the
+    /// channel, within the grace period), `offline` (retained), and disconnects.
     #[tracing::instrument(name = "mqtt", skip_all, fields(client_id = %self.options.client_id()))]
     pub async fn run(
         self,
@@ -162,60 +300,105 @@ impl MqttTask {
         net.set_tcp_nodelay(true);
         net.set_connection_timeout(5);
         el.set_network_options(net);
+        let tls = !matches!(self.options.transport(), rumqttc::Transport::Tcp);
 
         let mut backlog: VecDeque<Outbound> = VecDeque::new();
+        let mut held: VecDeque<Held> = VecDeque::new();
+        let mut acks: VecDeque<Publish> = VecDeque::new();
+        // Connection number: an ack only goes back on the connection its message came on.
+        let mut generation = 0u64;
         let mut connected = false;
         let mut delay = RECONNECT_MIN;
+        let mut warn_at = WarnSchedule::new();
         let mut inputs_open = true;
         'run: loop {
             // `poll()` is not cancel-safe (dropping it mid-connect or mid-write loses the
             // connection or part of a packet), so one poll future lives until it completes while
-            // publications keep arriving beside it.
+            // publications and the core's room for commands arrive beside it.
             let ev = {
                 let poll = el.poll();
                 tokio::pin!(poll);
                 loop {
                     if connected {
+                        flush_acks(&client, &mut acks);
                         self.flush(&client, &mut backlog);
                     }
                     tokio::select! {
                         _ = cancel.cancelled() => break 'run,
-                        p = publications.recv(), if inputs_open => match p {
-                            Some(p) => self.enqueue(&mut backlog, p),
+                        p = publications.recv(), if inputs_open && backlog.len() < STAGING => match p {
+                            Some(p) => backlog.push_back(p),
                             None => inputs_open = false,
                         },
+                        permit = inputs.reserve(), if !held.is_empty() => {
+                            let Ok(permit) = permit else { break 'run };
+                            if let Some(h) = held.pop_front() {
+                                permit.send(h.input);
+                                if let Some((ack, g)) = h.ack {
+                                    if g == generation && connected {
+                                        acks.push_back(ack);
+                                    }
+                                }
+                            }
+                        }
                         ev = &mut poll => break ev,
                     }
                 }
             };
             match ev {
-                Ok(Event::Incoming(Incoming::ConnAck(ack))) => {
-                    if ack.code != ConnectReturnCode::Success {
-                        warn!(code = ?ack.code, "broker refused the connection");
-                        continue;
-                    }
+                Ok(Event::Incoming(Incoming::ConnAck(_))) => {
+                    // rumqttc turns a refusing ConnAck into an error: this one is accepted.
                     connected = true;
+                    generation += 1;
                     delay = RECONNECT_MIN;
+                    let failed = self.stats.failed_attempts.swap(0, Ordering::Relaxed);
+                    self.stats.connected.store(true, Ordering::Relaxed);
+                    self.stats.set_error(None);
+                    warn_at.reset();
                     let n = self.stats.connects.fetch_add(1, Ordering::Relaxed) + 1;
                     info!(
+                        broker = %self.broker,
                         connects = n,
+                        failed_attempts = failed,
                         backlog = backlog.len(),
                         "connected to the broker"
                     );
                     self.on_connack(&client);
-                    if inputs.send(MqttInput::Connected).await.is_err() {
-                        break;
+                    // After the commands received before it, never shed.
+                    if held.is_empty() {
+                        match inputs.try_send(MqttInput::Connected) {
+                            Ok(()) => {}
+                            Err(mpsc::error::TrySendError::Full(input)) => {
+                                held.push_back(Held { input, ack: None })
+                            }
+                            Err(mpsc::error::TrySendError::Closed(_)) => break,
+                        }
+                    } else {
+                        held.push_back(Held {
+                            input: MqttInput::Connected,
+                            ack: None,
+                        });
                     }
                 }
                 Ok(Event::Incoming(Incoming::Publish(p))) => {
-                    let input = if p.topic == self.topics.commands {
-                        self.stats.commands.fetch_add(1, Ordering::Relaxed);
-                        MqttInput::Command(p.payload.to_vec())
-                    } else {
+                    if p.topic != self.topics.commands {
                         debug!(topic = %p.topic, "message on an unexpected topic ignored");
                         continue;
+                    }
+                    self.stats.commands.fetch_add(1, Ordering::Relaxed);
+                    let ack = (p.qos != QoS::AtMostOnce).then(|| {
+                        let mut a = Publish::new("", p.qos, Vec::new());
+                        a.pkid = p.pkid;
+                        (a, generation)
+                    });
+                    let h = Held {
+                        input: MqttInput::Command {
+                            payload: p.payload,
+                            received: Instant::now(),
+                            retained: p.retain,
+                        },
+                        ack,
                     };
-                    if inputs.send(input).await.is_err() {
+                    if !self.hold(&mut held, h, &inputs, &mut acks) {
                         break;
                     }
                 }
@@ -224,17 +407,29 @@ impl MqttTask {
                         .iter()
                         .any(|c| matches!(c, SubscribeReasonCode::Failure))
                     {
-                        warn!(?s, "broker refused a subscription");
+                        warn!(
+                            broker = %self.broker,
+                            topic = %self.topics.commands,
+                            "broker refused the subscription to the command topic: check the \
+                             broker's ACL for this user"
+                        );
                     }
                 }
                 Ok(_) => {}
                 Err(e) => {
+                    let why = explain(&e, &self.broker, tls);
+                    let attempts = self.stats.failed_attempts.fetch_add(1, Ordering::Relaxed) + 1;
                     if connected {
-                        warn!(error = %e, "connection to the broker lost");
+                        warn!(broker = %self.broker, error = %e, "connection to the broker lost; reconnecting");
+                    } else if warn_at.due(Instant::now()) {
+                        warn!(broker = %self.broker, attempts, retry_in = ?delay, "{why}");
                     } else {
-                        debug!(error = %e, retry_in = ?delay, "cannot reach the broker");
+                        debug!(broker = %self.broker, attempts, retry_in = ?delay, "{why}");
                     }
                     connected = false;
+                    self.stats.connected.store(false, Ordering::Relaxed);
+                    self.stats.set_error(Some(why));
+                    acks.clear();
                     self.take_back(&mut el, &mut backlog);
                     tokio::select! {
                         _ = cancel.cancelled() => break,
@@ -244,12 +439,62 @@ impl MqttTask {
                 }
             }
         }
+        self.stats.connected.store(false, Ordering::Relaxed);
         if connected {
             self.goodbye(&client, &mut el, &mut publications, &mut backlog)
                 .await;
         }
-        let dropped = self.stats.dropped.load(Ordering::Relaxed);
-        info!(dropped, unsent = backlog.len(), "MQTT task stopped");
+        info!(
+            unsent = backlog.len() + publications.len(),
+            commands_not_taken = held.len(),
+            "MQTT task stopped"
+        );
+    }
+
+    /// Hands a command to the core at once when it has room and nothing waits before it, else
+    /// keeps it (unacknowledged) until it has; sheds it beyond [`HELD_MAX`]. False when the core
+    /// is gone.
+    fn hold(
+        &self,
+        held: &mut VecDeque<Held>,
+        h: Held,
+        inputs: &mpsc::Sender<MqttInput>,
+        acks: &mut VecDeque<Publish>,
+    ) -> bool {
+        if held.is_empty() {
+            match inputs.try_send(h.input) {
+                Ok(()) => {
+                    if let Some((ack, _)) = h.ack {
+                        acks.push_back(ack);
+                    }
+                    return true;
+                }
+                Err(mpsc::error::TrySendError::Full(input)) => {
+                    held.push_back(Held { input, ack: h.ack });
+                    return true;
+                }
+                Err(mpsc::error::TrySendError::Closed(_)) => return false,
+            }
+        }
+        if held.len() < HELD_MAX {
+            held.push_back(h);
+            return true;
+        }
+        // Acknowledged all the same: an unacknowledged message would hold a place of the broker's
+        // in-flight window for the rest of the connection.
+        if let Some((ack, _)) = h.ack {
+            acks.push_back(ack);
+        }
+        let n = self.stats.commands_shed.fetch_add(1, Ordering::Relaxed) + 1;
+        if n.is_power_of_two() {
+            warn!(
+                commands_shed = n,
+                held = HELD_MAX,
+                "command intake full: a command was dropped unanswered (publish commands with QoS 1 \
+                 so that the broker holds them back while the gateway is busy)"
+            );
+        }
+        true
     }
 
     /// Subscribes and announces `online`; runs on every ConnAck (a clean session forgets both).
@@ -263,18 +508,6 @@ impl MqttTask {
         {
             warn!(error = %e, "cannot queue the online announcement");
         }
-    }
-
-    fn enqueue(&self, backlog: &mut VecDeque<Outbound>, p: Outbound) {
-        if backlog.len() >= self.queue {
-            let old = backlog.pop_front();
-            let n = self.stats.dropped.fetch_add(1, Ordering::Relaxed) + 1;
-            // One line per power of two keeps a long outage from flooding the log.
-            if n.is_power_of_two() {
-                warn!(dropped_total = n, topic = ?old.map(|o| o.topic), "MQTT queue full: oldest publication dropped");
-            }
-        }
-        backlog.push_back(p);
     }
 
     /// Hands queued publications to rumqttc until its channel is full.
@@ -299,7 +532,8 @@ impl MqttTask {
 
     /// After a broken connection rumqttc keeps unacknowledged and unsent requests in `pending`, but
     /// clears them when the next (clean) session starts: move the publications back to the front of
-    /// our queue, in order. Subscriptions and `online` are redone on ConnAck anyway.
+    /// our queue, in order. Subscriptions, acks and `online` are redone or void on the next
+    /// connection.
     fn take_back(&self, el: &mut EventLoop, backlog: &mut VecDeque<Outbound>) {
         let mut back: Vec<Outbound> = el
             .pending
@@ -325,14 +559,11 @@ impl MqttTask {
         while let Some(p) = back.pop() {
             backlog.push_front(p);
         }
-        while backlog.len() > self.queue {
-            backlog.pop_back();
-            self.stats.dropped.fetch_add(1, Ordering::Relaxed);
-        }
     }
 
-    /// Sends what is still queued, then `offline` (retained), then DISCONNECT, polling the event loop
-    /// until the DISCONNECT is written or [`SHUTDOWN_GRACE`] passes.
+    /// Sends what is still queued and what the core still hands over (until it closes the
+    /// channel), then `offline` (retained), then DISCONNECT, polling the event loop until the
+    /// DISCONNECT is written or [`SHUTDOWN_GRACE`] passes.
     async fn goodbye(
         &self,
         client: &AsyncClient,
@@ -340,20 +571,32 @@ impl MqttTask {
         publications: &mut mpsc::Receiver<Outbound>,
         backlog: &mut VecDeque<Outbound>,
     ) {
-        while let Ok(p) = publications.try_recv() {
-            self.enqueue(backlog, p);
-        }
         let deadline = tokio::time::Instant::now() + SHUTDOWN_GRACE;
         let mut said_goodbye = false;
+        let mut open = true;
         loop {
-            self.flush(client, backlog);
-            if backlog.is_empty() && !said_goodbye {
-                said_goodbye = client
-                    .try_publish(&self.topics.availability, QoS::AtLeastOnce, true, OFFLINE)
-                    .and_then(|()| client.try_disconnect())
-                    .is_ok();
-            }
-            match tokio::time::timeout_at(deadline, el.poll()).await {
+            // One poll future at a time, as in `run`: it is not cancel-safe.
+            let ev = {
+                let poll = el.poll();
+                tokio::pin!(poll);
+                loop {
+                    self.flush(client, backlog);
+                    if backlog.is_empty() && !open && !said_goodbye {
+                        said_goodbye = client
+                            .try_publish(&self.topics.availability, QoS::AtLeastOnce, true, OFFLINE)
+                            .and_then(|()| client.try_disconnect())
+                            .is_ok();
+                    }
+                    tokio::select! {
+                        p = publications.recv(), if open && backlog.len() < STAGING => match p {
+                            Some(p) => backlog.push_back(p),
+                            None => open = false,
+                        },
+                        ev = tokio::time::timeout_at(deadline, &mut poll) => break ev,
+                    }
+                }
+            };
+            match ev {
                 Ok(Ok(Event::Outgoing(Outgoing::Disconnect))) => {
                     info!("published offline and disconnected");
                     return;
@@ -372,12 +615,22 @@ impl MqttTask {
     }
 }
 
+/// Hands pending acks to rumqttc until its channel is full.
+fn flush_acks(client: &AsyncClient, acks: &mut VecDeque<Publish>) {
+    while let Some(a) = acks.front() {
+        if client.try_ack(a).is_err() {
+            return;
+        }
+        acks.pop_front();
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::config::{Broker, MqttConfig};
 
-    fn task(queue: usize) -> MqttTask {
+    fn task() -> MqttTask {
         let cfg = MqttConfig {
             broker: Broker::External {
                 host: "127.0.0.1".into(),
@@ -387,13 +640,12 @@ mod tests {
             credentials: Some(("u".into(), "p".into())),
             tls: None,
             keep_alive: Duration::from_secs(20),
-            queue,
         };
         let topics = Topics::seed();
         MqttTask {
-            options: options(&cfg, &topics, 1 << 20).unwrap(),
+            options: options(&cfg, &topics).unwrap(),
             topics,
-            queue,
+            broker: "127.0.0.1:1".into(),
             stats: Arc::default(),
         }
     }
@@ -408,7 +660,12 @@ mod tests {
 
     #[test]
     fn options_follow_the_seed() {
-        let t = task(4);
+        let t = task();
+        assert!(
+            t.options.manual_acks(),
+            "a command is acknowledged once the core took it"
+        );
+        assert_eq!(t.options.max_packet_size(), MAX_INCOMING);
         assert_eq!(t.options.keep_alive(), Duration::from_secs(20));
         assert!(t.options.clean_session());
         let will = t.options.last_will().expect("last will");
@@ -434,24 +691,160 @@ mod tests {
             credentials: None,
             tls: Some(None),
             keep_alive: Duration::from_secs(20),
-            queue: 1,
         };
         assert!(matches!(
-            options(&cfg, &Topics::seed(), 1024),
+            options(&cfg, &Topics::seed()),
             Err(MqttError::TlsUnavailable)
         ));
     }
 
     #[test]
-    fn a_full_queue_drops_the_oldest_and_counts() {
-        let t = task(3);
-        let mut q = VecDeque::new();
-        for n in 0..5 {
-            t.enqueue(&mut q, publication(n));
+    fn warnings_about_an_unreachable_broker_follow_a_growing_interval() {
+        let t0 = Instant::now();
+        let mut w = WarnSchedule::new();
+        // Attempts every 100 ms doubling to 5 s, for ten minutes: when is there a warning?
+        let mut at = Duration::ZERO;
+        let mut delay = RECONNECT_MIN;
+        let mut warned = Vec::new();
+        while at < Duration::from_secs(600) {
+            if w.due(t0 + at) {
+                warned.push(at.as_secs());
+            }
+            at += delay;
+            delay = (delay * 2).min(RECONNECT_MAX);
         }
-        let kept: Vec<u8> = q.iter().map(|p| p.payload[0]).collect();
-        assert_eq!(kept, vec![2, 3, 4]);
-        assert_eq!(t.stats.dropped.load(Ordering::Relaxed), 2);
+        assert_eq!(warned, [0, 6, 16, 36, 76, 156, 316]);
+        w.reset();
+        assert!(
+            w.due(t0 + at),
+            "after a success the next failure warns at once"
+        );
+    }
+
+    #[test]
+    fn connection_failures_say_which_broker_and_what_to_check() {
+        let refused = std::io::Error::from(std::io::ErrorKind::ConnectionRefused);
+        let e = explain(&ConnectionError::Io(refused), "10.0.0.9:1883", false);
+        assert_eq!(
+            e,
+            "nothing accepts connections at 10.0.0.9:1883 (connection refused): is the broker \
+             running, and is that its host and port (--broker)?"
+        );
+        let auth = ConnectionError::ConnectionRefused(ConnectReturnCode::NotAuthorized);
+        assert!(explain(&auth, "b:1883", false).starts_with(
+            "broker b:1883 refused the login (NotAuthorized): check --username and --password"
+        ));
+        let e = explain(&ConnectionError::NetworkTimeout, "b:8883", true);
+        assert!(
+            e.starts_with("no answer from broker b:8883 within 5 s"),
+            "{e}"
+        );
+        assert!(e.ends_with("check --tls-ca and that the broker's certificate names this host"));
+    }
+
+    #[test]
+    fn commands_wait_for_the_core_and_only_qos0_floods_are_shed() {
+        let t = task();
+        let (tx, mut rx) = mpsc::channel(1);
+        let mut held = VecDeque::new();
+        let mut acks = VecDeque::new();
+        let cmd = |n: u8, qos: Option<u16>| Held {
+            input: MqttInput::Command {
+                payload: Bytes::from(vec![n]),
+                received: Instant::now(),
+                retained: false,
+            },
+            ack: qos.map(|pkid| {
+                let mut a = Publish::new("", QoS::AtLeastOnce, Vec::new());
+                a.pkid = pkid;
+                (a, 1)
+            }),
+        };
+        // The core takes the first at once: acknowledged at once.
+        assert!(t.hold(&mut held, cmd(0, Some(1)), &tx, &mut acks));
+        assert_eq!((held.len(), acks.len()), (0, 1));
+        // The core is full: the next wait here, unacknowledged.
+        for n in 1..=HELD_MAX as u16 {
+            assert!(t.hold(&mut held, cmd(1, Some(n + 1)), &tx, &mut acks));
+        }
+        assert_eq!((held.len(), acks.len()), (HELD_MAX, 1));
+        // Beyond the limit a command is shed, counted and acknowledged (not left in the broker's
+        // window).
+        assert!(t.hold(&mut held, cmd(2, None), &tx, &mut acks));
+        assert_eq!(t.stats.commands_shed.load(Ordering::Relaxed), 1);
+        assert_eq!(held.len(), HELD_MAX);
+        assert!(matches!(rx.try_recv(), Ok(MqttInput::Command { .. })));
+        drop(rx);
+        assert!(
+            !t.hold(&mut VecDeque::new(), cmd(3, None), &tx, &mut acks),
+            "the core is gone"
+        );
+    }
+
+    /// A scripted broker: the gateway's client must not acknowledge a command before the core took
+    /// it, and must hand on the retain flag.
+    #[tokio::test]
+    async fn a_command_is_acknowledged_only_once_the_core_took_it() {
+        use tokio::io::{AsyncReadExt, AsyncWriteExt};
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let port = listener.local_addr().unwrap().port();
+        let (seen_tx, mut seen) = mpsc::unbounded_channel::<Vec<u8>>();
+        tokio::spawn(async move {
+            let (mut s, _) = listener.accept().await.unwrap();
+            let mut buf = [0u8; 4096];
+            let _ = s.read(&mut buf).await; // CONNECT
+            s.write_all(&[0x20, 0x02, 0x00, 0x00]).await.unwrap(); // CONNACK accepted
+                                                                   // A retained QoS 1 PUBLISH of `{}` on CommandsTopic, packet id 1.
+            let mut p = vec![0x33, 19, 0x00, 13];
+            p.extend_from_slice(b"CommandsTopic");
+            p.extend_from_slice(&[0x00, 0x01, b'{', b'}']);
+            s.write_all(&p).await.unwrap();
+            while let Ok(n) = s.read(&mut buf).await {
+                if n == 0 || seen_tx.send(buf[..n].to_vec()).is_err() {
+                    break;
+                }
+            }
+        });
+        let mut t = task();
+        t.options = MqttOptions::new("acks", "127.0.0.1", port);
+        t.options.set_manual_acks(true);
+        let (pub_tx, pub_rx) = mpsc::channel(4);
+        // The core's channel holds one input and nobody reads it yet.
+        let (in_tx, mut in_rx) = mpsc::channel(1);
+        let cancel = CancellationToken::new();
+        let run = tokio::spawn(t.run(pub_rx, in_tx, cancel.clone()));
+        let puback = [0x40, 0x02, 0x00, 0x01];
+        let mut bytes = Vec::new();
+        let quiet = tokio::time::sleep(Duration::from_millis(400));
+        tokio::pin!(quiet);
+        loop {
+            tokio::select! {
+                b = seen.recv() => bytes.extend(b.unwrap()),
+                _ = &mut quiet => break,
+            }
+        }
+        assert!(
+            !bytes.windows(4).any(|w| w == puback),
+            "acknowledged before the core took it: {bytes:02x?}"
+        );
+        assert_eq!(in_rx.recv().await, Some(MqttInput::Connected));
+        match in_rx.recv().await {
+            Some(MqttInput::Command {
+                payload, retained, ..
+            }) => {
+                assert_eq!(&payload[..], b"{}");
+                assert!(retained);
+            }
+            other => panic!("{other:?}"),
+        }
+        let deadline = tokio::time::Instant::now() + Duration::from_secs(5);
+        while !bytes.windows(4).any(|w| w == puback) {
+            let b = tokio::time::timeout_at(deadline, seen.recv()).await;
+            bytes.extend(b.expect("PUBACK after the core took the command").unwrap());
+        }
+        cancel.cancel();
+        drop(pub_tx);
+        run.await.unwrap();
     }
 
     /// A broker that answers CONNECT only after `delay` and counts connections: publications that
@@ -481,7 +874,7 @@ mod tests {
                 });
             }
         });
-        let mut t = task(100);
+        let mut t = task();
         t.options = MqttOptions::new("slow", "127.0.0.1", port);
         let stats = t.stats.clone();
         let (pub_tx, pub_rx) = mpsc::channel(100);
@@ -506,7 +899,7 @@ mod tests {
 
     #[tokio::test]
     async fn requests_of_a_broken_connection_are_taken_back_in_order() {
-        let t = task(10);
+        let t = task();
         let (client, mut el) = AsyncClient::new(t.options.clone(), 8);
         client
             .try_publish("EventsTopic", QoS::AtLeastOnce, false, vec![1])

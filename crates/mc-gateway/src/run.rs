@@ -3,12 +3,18 @@
 //! options, and in the demo the embedded broker, the simulated island and its control client — and
 //! [`Gateway::run`] only runs them: the CAN tasks, the MQTT task, and the core loop, one task that
 //! owns the [`Bridge`], feeds it inputs and timeouts and carries out its outputs without waiting.
-//! Every channel is bounded; one [`CancellationToken`] stops everything and a `JoinSet` awaits every
-//! task.
+//! Every channel is bounded, and what gives when one is full is the bridge's choice: frames wait in
+//! the bridge while its transmit window is full, publications wait in the bridge (answers kept,
+//! state documents coalesced, other events shed and counted) while the MQTT task has no room, and
+//! commands wait with the MQTT task (and the broker) while the bridge does not want them. One
+//! [`CancellationToken`] stops everything and a `JoinSet` awaits every task.
 
-use std::{sync::Arc, time::Instant};
+use std::{
+    sync::{atomic::Ordering, Arc},
+    time::{Duration, Instant},
+};
 
-use ihex_gateway_core::{Bridge, Publication};
+use ihex_gateway_core::{bridge::TRANSMIT_WINDOW, Bridge, Delivery, Publication, Transmit};
 use tokio::{sync::mpsc, task::JoinSet};
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, error, info, warn};
@@ -25,8 +31,10 @@ use crate::{
 const CAN_INPUTS: usize = 1024;
 /// Messages from the MQTT task waiting for the core.
 const MQTT_INPUTS: usize = 256;
-/// Publications from the core waiting for the MQTT task.
-const PUBLICATIONS: usize = 1024;
+/// Publications from the core waiting for the MQTT task (the bridge holds the rest, by its rules).
+const PUBLICATIONS: usize = 256;
+/// How long the core spends at shutdown handing its last publications to the MQTT task.
+const SHUTDOWN_FLUSH: Duration = Duration::from_secs(1);
 
 /// Runs the gateway until `shutdown` is cancelled (then stops every task, publishes `offline` and
 /// returns `Ok`), or until a task fails.
@@ -78,15 +86,10 @@ impl Gateway {
             (Link::Simulated { .. }, Some(link)) => link,
             (Link::Simulated { .. }, None) => return Err(GatewayError::DemoUnavailable),
         };
-        let max_incoming = config
-            .bridge
-            .max_command_bytes
-            .saturating_mul(4)
-            .max(1 << 20);
         let mqtt = MqttTask {
-            options: mqtt::options(&config.mqtt, &config.topics, max_incoming)?,
+            options: mqtt::options(&config.mqtt, &config.topics)?,
             topics: config.topics.clone(),
-            queue: config.mqtt.queue,
+            broker: config.mqtt.broker.to_string(),
             stats,
         };
         Ok(Gateway {
@@ -111,12 +114,13 @@ impl Gateway {
         #[cfg(not(feature = "demo"))]
         let Gateway { config, link, mqtt } = self;
         let cancel = shutdown.child_token();
+        let mqtt_stats = mqtt.stats.clone();
         let mut tasks = JoinSet::new();
         let (can_in_tx, can_in) = mpsc::channel(CAN_INPUTS);
         let (mqtt_in_tx, mqtt_in) = mpsc::channel(MQTT_INPUTS);
         let (pub_tx, pub_rx) = mpsc::channel(PUBLICATIONS);
 
-        let can_tx = link.spawn(config.can.tx_queue, can_in_tx, &mut tasks, cancel.clone());
+        let can_tx = link.spawn(TRANSMIT_WINDOW, can_in_tx, &mut tasks, cancel.clone());
         tasks.spawn(mqtt.run(pub_rx, mqtt_in_tx, cancel.clone()));
         #[cfg(feature = "demo")]
         demo.spawn(&config, &mut tasks, cancel.clone());
@@ -134,7 +138,7 @@ impl Gateway {
             can_tx,
             pub_tx,
             topics: config.topics.clone(),
-            dropped: 0,
+            stats: mqtt_stats,
         };
         let result = core.run(can_in, mqtt_in, &mut tasks, &cancel).await;
 
@@ -156,10 +160,10 @@ impl Gateway {
 /// The task that owns the bridge.
 struct Core {
     bridge: Bridge,
-    can_tx: mpsc::Sender<ihex_proto::Packet>,
+    can_tx: mpsc::Sender<Transmit>,
     pub_tx: mpsc::Sender<Outbound>,
     topics: Topics,
-    dropped: u64,
+    stats: Arc<MqttStats>,
 }
 
 impl Core {
@@ -173,14 +177,16 @@ impl Core {
         loop {
             self.carry_out();
             let deadline = tokio::time::Instant::from_std(self.bridge.poll_timeout());
+            let publications_waiting = self.bridge.publications_waiting();
+            let wants_commands = self.bridge.wants_commands();
             // Unbiased on purpose: a timer that is always due must not starve the inputs, nor a
             // flood of frames the timers.
             tokio::select! {
-                _ = cancel.cancelled() => return Ok(()),
+                _ = cancel.cancelled() => break,
                 r = tasks.join_next() => {
                     if cancel.is_cancelled() {
                         // Tasks end on cancellation; the caller joins the rest.
-                        return Ok(());
+                        break;
                     }
                     // No task ends on its own while the gateway runs.
                     let why = match r {
@@ -198,57 +204,79 @@ impl Core {
                         CanInput::Undecodable { raw_id, data, err } => self.bridge.handle_undecodable(raw_id, &data, err, now),
                         CanInput::Bus(ev) => self.bridge.handle_bus_event(ev, now),
                         CanInput::SendFailed(p, reason) => self.bridge.handle_send_failed(p, &reason, now),
+                        CanInput::Transmitted(p) => self.bridge.handle_transmitted(p, now),
+                        CanInput::Withdrawn(p) => self.bridge.handle_withdrawn(p, now),
                     }
                 }
-                Some(input) = mqtt_in.recv() => match input {
-                    MqttInput::Command(payload) => self.bridge.handle_command(&payload, Instant::now()),
+                // While answers cannot be handed on, commands stay with the MQTT task (unacknowledged,
+                // so the broker holds back more): answers are never dropped and stay bounded.
+                Some(input) = mqtt_in.recv(), if wants_commands => match input {
+                    MqttInput::Command { payload, received, retained } => {
+                        let delivery = Delivery { received, retained };
+                        self.bridge.handle_delivered_command(&payload, delivery, Instant::now());
+                    }
                     MqttInput::Connected => self.bridge.handle_mqtt_connected(Instant::now()),
                 },
+                // Room for publications again: the loop's top hands them on.
+                _ = self.pub_tx.reserve(), if publications_waiting => {}
             }
         }
+        self.flush_at_shutdown().await;
+        Ok(())
     }
 
-    /// Drains the bridge's outputs without ever waiting: a full CAN queue is a failed send the bridge
-    /// hears about, a full publication queue a counted drop.
+    /// Drains the bridge's outputs without ever waiting: frames while its transmit window has room
+    /// (the channel holds a whole window, so a full channel is a failed send the bridge hears
+    /// about), publications while the MQTT task has room (the bridge keeps the rest).
     fn carry_out(&mut self) {
-        loop {
-            while let Some(packet) = self.bridge.poll_transmit() {
-                let reason = match self.can_tx.try_send(packet) {
-                    Ok(()) => continue,
-                    Err(mpsc::error::TrySendError::Full(_)) => "CAN transmit queue full",
-                    Err(mpsc::error::TrySendError::Closed(_)) => "CAN transmitter stopped",
-                };
-                self.bridge
-                    .handle_send_failed(packet, reason, Instant::now());
-            }
-            let Some(publication) = self.bridge.poll_publication() else {
-                return;
+        let now = Instant::now();
+        while let Some(t) = self.bridge.poll_transmit(now) {
+            let reason = match self.can_tx.try_send(t) {
+                Ok(()) => continue,
+                Err(mpsc::error::TrySendError::Full(_)) => "CAN transmit channel full",
+                Err(mpsc::error::TrySendError::Closed(_)) => "CAN transmitter stopped",
             };
-            self.publish(publication);
+            self.bridge.handle_send_failed(t.packet, reason, now);
         }
+        while let Ok(permit) = self.pub_tx.try_reserve() {
+            let Some(publication) = self.bridge.poll_publication() else {
+                break;
+            };
+            permit.send(outbound(&self.topics, publication));
+        }
+        self.stats
+            .publications_dropped
+            .store(self.bridge.publications_dropped(), Ordering::Relaxed);
     }
 
-    /// The one place publications leave the core: serialised once, logged (every event at info, so
-    /// the log alone tells the island's story), handed to the MQTT task.
-    fn publish(&mut self, publication: Publication) {
-        let json = publication.to_json();
-        match &publication {
-            Publication::Event(e) => info!(event = e.name(), payload = %json, "event published"),
-            Publication::State(s) => debug!(node = %s.id, payload = %json, "state published"),
-        }
-        let p = Outbound {
-            topic: self.topics.resolve(publication.topic()),
-            payload: json.into_bytes(),
-            retain: publication.retain(),
-        };
-        if self.pub_tx.try_send(p).is_err() {
-            self.dropped += 1;
-            if self.dropped.is_power_of_two() {
-                warn!(
-                    dropped_total = self.dropped,
-                    "publication queue full: event dropped"
-                );
+    /// Hands the publications the bridge still holds to the MQTT task (which sends them within
+    /// its own grace period), for at most [`SHUTDOWN_FLUSH`].
+    async fn flush_at_shutdown(&mut self) {
+        let deadline = tokio::time::Instant::now() + SHUTDOWN_FLUSH;
+        while let Some(publication) = self.bridge.poll_publication() {
+            let p = outbound(&self.topics, publication);
+            match tokio::time::timeout_at(deadline, self.pub_tx.send(p)).await {
+                Ok(Ok(())) => {}
+                _ => {
+                    warn!("shutdown: publications the MQTT task could not take were not sent");
+                    return;
+                }
             }
         }
+    }
+}
+
+/// The one place publications leave the core: serialised once, logged (every event at info, so
+/// the log alone tells the island's story), addressed for the MQTT task.
+fn outbound(topics: &Topics, publication: Publication) -> Outbound {
+    let json = publication.to_json();
+    match &publication {
+        Publication::Event(e) => info!(event = e.name(), payload = %json, "event published"),
+        Publication::State(s) => debug!(node = %s.id, payload = %json, "state published"),
+    }
+    Outbound {
+        topic: topics.resolve(publication.topic()),
+        payload: json.into_bytes(),
+        retain: publication.retain(),
     }
 }

@@ -206,7 +206,8 @@ async fn a_taken_broker_port_is_a_clear_error() {
 }
 
 /// The MQTT task started before its broker exists: it retries with back-off, and what it was asked to
-/// publish meanwhile (held in its queue) reaches the broker once it appears.
+/// publish meanwhile (held in its queue) reaches the broker once it appears; meanwhile its status
+/// says why it is not connected.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn publications_queued_before_the_broker_exists_are_delivered() {
     use mc_gateway::{
@@ -224,14 +225,13 @@ async fn publications_queued_before_the_broker_exists_are_delivered() {
         credentials: None,
         tls: None,
         keep_alive: Duration::from_secs(20),
-        queue: 16,
     };
     let topics = Topics::seed();
     let stats = std::sync::Arc::new(MqttStats::default());
     let task = MqttTask {
-        options: mqtt::options(&cfg, &topics, 1 << 20).unwrap(),
+        options: mqtt::options(&cfg, &topics).unwrap(),
         topics,
-        queue: cfg.queue,
+        broker: format!("127.0.0.1:{port}"),
         stats: stats.clone(),
     };
     let (pub_tx, pub_rx) = mpsc::channel(16);
@@ -249,6 +249,13 @@ async fn publications_queued_before_the_broker_exists_are_delivered() {
     // Let a few connection attempts fail.
     tokio::time::sleep(Duration::from_millis(700)).await;
     assert_eq!(stats.connects.load(std::sync::atomic::Ordering::Relaxed), 0);
+    let link = stats.broker_link();
+    assert!(!link.connected && link.failed_attempts >= 2, "{link:?}");
+    let why = link.last_error.expect("the reason it is not connected");
+    assert!(
+        why.starts_with(&format!("nothing accepts connections at 127.0.0.1:{port}")),
+        "{why}"
+    );
     let addr = format!("127.0.0.1:{port}").parse().unwrap();
     tokio::task::spawn_blocking(move || mc_gateway::demo::broker::start(addr))
         .await
@@ -258,6 +265,8 @@ async fn publications_queued_before_the_broker_exists_are_delivered() {
         .await
         .expect("connects");
     assert_eq!(connected, Some(MqttInput::Connected));
+    let link = stats.broker_link();
+    assert!(link.connected && link.last_error.is_none(), "{link:?}");
 
     // A client arriving later finds every queued (retained) publication.
     let (_c, mut rx) = client(port, "late-reader");
@@ -273,7 +282,10 @@ async fn publications_queued_before_the_broker_exists_are_delivered() {
         seen.into_iter().collect::<Vec<_>>(),
         vec!["0", "1", "2", "3", "4"]
     );
-    assert_eq!(stats.dropped.load(std::sync::atomic::Ordering::Relaxed), 0);
+    assert_eq!(
+        stats.published.load(std::sync::atomic::Ordering::Relaxed),
+        5
+    );
     stop.cancel();
     run.await.unwrap();
 }

@@ -1,6 +1,20 @@
 //! Command and acknowledgement tracking: sequence numbers, the commands sent and not yet answered
-//! (indexed by key and by deadline), acks and assign replies matched to them, timeouts, and the one
+//! (indexed by key and by deadline), what became of each command's frame (queued, handed to the
+//! adapter, confirmed on the bus), acks and assign replies matched to them, and the one
 //! `command_result` each accepted command ends with.
+//!
+//! A command's frame waits in the bridge's transmit queue until the adapter has room. If its
+//! deadline — `ttl_ms` after the gateway received it, or `command_timeout` after it was accepted,
+//! whichever is first — passes while it still waits there, it is withdrawn and never sent: the
+//! result is `expired` (the ttl) or `failed` (the timeout). Once the adapter confirmed the frame on
+//! the bus, the node has `command_timeout` to acknowledge it; without an ack the result is
+//! `timeout` (the node may or may not have acted: an ack can be lost). A frame handed to the
+//! adapter but never confirmed (no echo within [`super::TRANSMIT_CONFIRM_TIMEOUT`], or the
+//! interface went down) also ends `timeout`, with a reason saying it may still reach the bus.
+//!
+//! Frames the bridge sends on its own and that nodes acknowledge (docking confirms, refusals, relay
+//! off, dock links) are tracked here too, without a result, so that no sequence number is ever in
+//! use twice: the allocator refuses rather than reuse a live one.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::time::{Duration, Instant};
@@ -8,16 +22,17 @@ use std::time::{Duration, Instant};
 use ihex_proto::{AckResult, Kind, Message, NodeId, Packet, Seq, Uid};
 
 use super::output::Outputs;
+use super::TRANSMIT_CONFIRM_TIMEOUT;
 use crate::command::{CommandError, NodeAction};
 use crate::event::{CommandResult, Event, HexId, Outcome, Refusal, Target};
-use crate::registry::Registry;
+use crate::registry::{millis, Registry};
 
 /// How many commands are in flight, and how the finished ones ended (since start).
 #[derive(Clone, Copy, PartialEq, Eq, Debug, Default)]
 pub struct CommandCounters {
-    /// Sent and not answered yet.
+    /// Accepted and not answered yet.
     pub in_flight: usize,
-    /// Accepted and sent on the bus.
+    /// Accepted (queued for the bus).
     pub sent: u64,
     /// Ended `ok`.
     pub ok: u64,
@@ -27,8 +42,23 @@ pub struct CommandCounters {
     pub timeout: u64,
     /// Ended `failed` (not sent).
     pub failed: u64,
+    /// Ended `expired` (its `ttl_ms` passed before it could be sent).
+    pub expired: u64,
     /// Answered with `command_rejected` (never sent).
     pub rejected: u64,
+}
+
+/// What became of a command's frame.
+#[derive(Clone, Copy, PartialEq, Eq, Debug)]
+enum Fate {
+    /// In the bridge's transmit queue: can still be withdrawn.
+    Queued,
+    /// Handed to the adapter at this time, not confirmed yet.
+    Handed(Instant),
+    /// Confirmed on the bus at this time.
+    OnBus(Instant),
+    /// Handed to the adapter, which could not confirm it (the reason): it may still be sent.
+    Unconfirmed(&'static str),
 }
 
 /// A command sent and not yet answered.
@@ -38,6 +68,15 @@ struct PendingCommand {
     target: Target,
     deadline: Instant,
     what: What,
+    /// The frame that carries it (for `assign`, the commit).
+    frame: Packet,
+    /// `assign`'s select, queued before `frame`.
+    select: Option<Packet>,
+    /// When the bridge accepted it.
+    accepted: Instant,
+    /// When its `ttl_ms` ends, if it has one.
+    expires: Option<Instant>,
+    fate: Fate,
 }
 
 #[derive(Debug)]
@@ -53,6 +92,9 @@ enum What {
     },
     /// `assign`: answered by an `AssignReply` carrying the UID's tail.
     Assign { uid: Uid, new_id: NodeId },
+    /// A frame of the bridge's own (docking): keeps its sequence number reserved until it is
+    /// acknowledged or its time is up; no result.
+    Internal,
 }
 
 impl What {
@@ -60,12 +102,21 @@ impl What {
         match self {
             What::Node(a) | What::Broadcast { action: a, .. } => a.name(),
             What::Assign { .. } => "assign",
+            What::Internal => "internal",
         }
     }
 }
 
 /// Key of a pending command: (destination, command kind, seq).
 type PendingKey = (NodeId, Kind, Seq);
+
+/// The key a frame's acknowledgement is matched by, if it is acknowledged.
+fn key_of(p: &Packet) -> Option<PendingKey> {
+    match p.msg {
+        Message::AssignCommit { seq, .. } => Some((NodeId::BROADCAST, Kind::AssignCommit, seq)),
+        ref m => m.ack_seq().map(|seq| (p.dest, m.kind(), seq)),
+    }
+}
 
 /// The pending commands, also indexed by deadline: the core loop asks for the next deadline on every
 /// turn, and a scan of thousands of unanswered commands (a node that never acks, a flood of commands)
@@ -94,9 +145,18 @@ impl Pending {
         self.by_key.get(key)
     }
 
-    /// Mutable access for progress (acks of a broadcast); the deadline must not change.
+    /// Mutable access for progress (acks of a broadcast, the frame's fate); the deadline changes
+    /// only through [`Pending::set_deadline`].
     fn get_mut(&mut self, key: &PendingKey) -> Option<&mut PendingCommand> {
         self.by_key.get_mut(key)
+    }
+
+    fn set_deadline(&mut self, key: &PendingKey, deadline: Instant) {
+        if let Some(p) = self.by_key.get_mut(key) {
+            self.by_deadline.remove(&(p.deadline, *key));
+            p.deadline = deadline;
+            self.by_deadline.insert((deadline, *key));
+        }
     }
 
     fn contains_key(&self, key: &PendingKey) -> bool {
@@ -105,10 +165,6 @@ impl Pending {
 
     fn iter(&self) -> impl Iterator<Item = (&PendingKey, &PendingCommand)> {
         self.by_key.iter()
-    }
-
-    fn len(&self) -> usize {
-        self.by_key.len()
     }
 
     fn next_deadline(&self) -> Option<Instant> {
@@ -125,6 +181,15 @@ impl Pending {
     }
 }
 
+/// When and how a command reached the bridge.
+#[derive(Clone, Copy, Debug)]
+pub(super) struct Accepted {
+    /// Accepted now.
+    pub(super) now: Instant,
+    /// Its ttl ends then, if it has one.
+    pub(super) expires: Option<Instant>,
+}
+
 /// Sequence numbers and the commands waiting for their answer.
 #[derive(Debug)]
 pub(super) struct Commands {
@@ -133,6 +198,8 @@ pub(super) struct Commands {
     pending: Pending,
     next_seq: Seq,
     counters: CommandCounters,
+    /// Commands (not internal frames) pending.
+    commands_pending: usize,
 }
 
 impl Commands {
@@ -142,13 +209,14 @@ impl Commands {
             pending: Pending::default(),
             next_seq: 0,
             counters: CommandCounters::default(),
+            commands_pending: 0,
         }
     }
 
     /// The counters, with the number in flight as of now.
     pub(super) fn counters(&self) -> CommandCounters {
         CommandCounters {
-            in_flight: self.pending.len(),
+            in_flight: self.commands_pending,
             ..self.counters
         }
     }
@@ -158,18 +226,19 @@ impl Commands {
         self.counters.rejected += 1;
     }
 
+    /// Counts a command answered `expired` before it was queued.
+    pub(super) fn count_expired(&mut self) {
+        self.counters.expired += 1;
+    }
+
     /// The earliest command deadline.
     pub(super) fn next_deadline(&self) -> Option<Instant> {
         self.pending.next_deadline()
     }
 
-    #[cfg(test)]
-    pub(super) fn is_empty(&self) -> bool {
-        self.pending.by_key.is_empty()
-    }
-
-    /// A sequence number not in use by a pending command of this kind to this destination.
-    pub(super) fn alloc_seq(&mut self, dest: NodeId, kind: Kind) -> Option<Seq> {
+    /// A sequence number not in use by a pending frame of this kind to this destination; `None`
+    /// when all 256 are in use.
+    fn alloc_seq(&mut self, dest: NodeId, kind: Kind) -> Option<Seq> {
         for _ in 0..=u8::MAX {
             let seq = self.next_seq;
             self.next_seq = seq.wrapping_add(1);
@@ -180,10 +249,25 @@ impl Commands {
         None
     }
 
-    /// A sequence number for a frame nobody waits an answer for in this table (docking frames):
-    /// a free one if there is one, else the next in turn.
-    pub(super) fn any_seq(&mut self, dest: NodeId, kind: Kind) -> Seq {
-        self.alloc_seq(dest, kind).unwrap_or(self.next_seq)
+    fn insert(&mut self, key: PendingKey, p: PendingCommand) {
+        if !matches!(p.what, What::Internal) {
+            self.commands_pending += 1;
+        }
+        self.pending.insert(key, p);
+    }
+
+    fn remove(&mut self, key: &PendingKey) -> Option<PendingCommand> {
+        let p = self.pending.remove(key)?;
+        if !matches!(p.what, What::Internal) {
+            self.commands_pending -= 1;
+        }
+        Some(p)
+    }
+
+    /// The latest moment a command accepted as `acc` may still be written to the bus.
+    fn not_after(&self, acc: Accepted) -> Instant {
+        let by_timeout = acc.now + self.timeout;
+        acc.expires.map_or(by_timeout, |e| e.min(by_timeout))
     }
 
     /// Sends `action` to `target` and waits for its answer; `expected` are the nodes online now
@@ -194,7 +278,7 @@ impl Commands {
         target: Target,
         action: NodeAction,
         expected: impl FnOnce() -> Vec<NodeId>,
-        now: Instant,
+        acc: Accepted,
         out: &mut Outputs,
     ) -> Result<(), (Option<String>, CommandError)> {
         let kind = action.to_message(0).kind();
@@ -206,7 +290,7 @@ impl Commands {
             return Err((request_id, error));
         };
         // The parser built `action` from checked values: no second range check here.
-        let packet = Packet::command(target.dest(), action.to_message(seq));
+        let frame = Packet::command(target.dest(), action.to_message(seq));
         let what = match target {
             Target::Node(_) => What::Node(action),
             Target::All => What::Broadcast {
@@ -216,18 +300,23 @@ impl Commands {
                 refused: BTreeMap::new(),
             },
         };
-        let deadline = now + self.timeout;
-        self.pending.insert(
+        let not_after = self.not_after(acc);
+        self.insert(
             (target.dest(), kind, seq),
             PendingCommand {
                 request_id,
                 target,
-                deadline,
+                deadline: not_after,
                 what,
+                frame,
+                select: None,
+                accepted: acc.now,
+                expires: acc.expires,
+                fate: Fate::Queued,
             },
         );
         self.counters.sent += 1;
-        out.send(packet);
+        out.send_until(frame, not_after);
         Ok(())
     }
 
@@ -237,7 +326,7 @@ impl Commands {
         request_id: Option<String>,
         uid: Uid,
         new_id: NodeId,
-        now: Instant,
+        acc: Accepted,
         out: &mut Outputs,
     ) -> Result<(), (Option<String>, CommandError)> {
         let Some(seq) = self.alloc_seq(NodeId::BROADCAST, Kind::AssignCommit) else {
@@ -262,24 +351,63 @@ impl Commands {
                 seq,
             },
         );
-        let deadline = now + self.timeout;
-        self.pending.insert(
+        let not_after = self.not_after(acc);
+        self.insert(
             (NodeId::BROADCAST, Kind::AssignCommit, seq),
             PendingCommand {
                 request_id,
                 target: Target::Node(new_id),
-                deadline,
+                deadline: not_after,
                 what: What::Assign { uid, new_id },
+                frame: commit,
+                select: Some(select),
+                accepted: acc.now,
+                expires: acc.expires,
+                fate: Fate::Queued,
             },
         );
         self.counters.sent += 1;
         // Select before commit: a node only takes the commit after the matching select.
-        out.send(select);
-        out.send(commit);
+        out.send_until(select, not_after);
+        out.send_until(commit, not_after);
         Ok(())
     }
 
-    /// An `Ack` from `src` (not for a `DockConfirm`: the docking sequence owns those).
+    /// Queues an acknowledged frame of the bridge's own to `dest`, built by `msg` from a free
+    /// sequence number (returned); `None`, and nothing sent, when every number is in use.
+    pub(super) fn send_internal(
+        &mut self,
+        dest: NodeId,
+        kind: Kind,
+        msg: impl FnOnce(Seq) -> Message,
+        now: Instant,
+        out: &mut Outputs,
+    ) -> Option<Seq> {
+        let Some(seq) = self.alloc_seq(dest, kind) else {
+            tracing::warn!(%dest, ?kind, "every sequence number is in use: frame not sent");
+            return None;
+        };
+        let frame = Packet::command(dest, msg(seq));
+        self.insert(
+            (dest, kind, seq),
+            PendingCommand {
+                request_id: None,
+                target: Target::from_dest(dest),
+                deadline: now + self.timeout,
+                what: What::Internal,
+                frame,
+                select: None,
+                accepted: now,
+                expires: None,
+                fate: Fate::Queued,
+            },
+        );
+        out.send(frame);
+        Some(seq)
+    }
+
+    /// An `Ack` from `src`. Ends the command it answers; for a frame of the bridge's own, frees its
+    /// sequence number and returns true (the caller routes the ack, e.g. to the docking sequence).
     pub(super) fn on_ack(
         &mut self,
         src: NodeId,
@@ -288,21 +416,34 @@ impl Commands {
         result: AckResult,
         registry: &mut Registry,
         out: &mut Outputs,
-    ) {
-        if let Some(p) = self.pending.remove(&(src, kind, seq)) {
-            let What::Node(action) = p.what else { return };
+    ) -> bool {
+        let key = (src, kind, seq);
+        if let Some(p) = self.pending.get(&key) {
+            if matches!(p.what, What::Internal) {
+                self.remove(&key);
+                if result != AckResult::Ok {
+                    tracing::debug!(%src, ?kind, seq, %result, "the node refused a frame of the gateway's own");
+                }
+                return true;
+            }
+            let Some(p) = self.remove(&key) else {
+                return false;
+            };
+            let What::Node(action) = p.what else {
+                return false;
+            };
             if result == AckResult::Ok {
                 apply_action_state(registry, out, src, action);
                 self.emit_result(p, Outcome::Ok, None, out);
             } else {
                 self.emit_result(p, Outcome::Refused, Some(result.to_string()), out);
             }
-            return;
+            return false;
         }
         let key = (NodeId::BROADCAST, kind, seq);
         let Some(p) = self.pending.get_mut(&key) else {
             tracing::debug!(%src, ?kind, seq, "ack for no pending command (late or not ours)");
-            return;
+            return false;
         };
         let What::Broadcast {
             action,
@@ -311,7 +452,7 @@ impl Commands {
             refused,
         } = &mut p.what
         else {
-            return;
+            return false;
         };
         let action = *action;
         if result == AckResult::Ok {
@@ -327,13 +468,15 @@ impl Commands {
             apply_action_state(registry, out, src, action);
         }
         if complete {
-            if let Some(p) = self.pending.remove(&key) {
-                self.finish_broadcast(p, out);
+            if let Some(p) = self.remove(&key) {
+                self.finish_broadcast(p, None, out);
             }
         }
+        false
     }
 
-    /// An `AssignReply` (from the board's new ID, or from an unconfigured board).
+    /// An `AssignReply` (from the board's new ID, or from an unconfigured board); true when it
+    /// ended a pending `assign` with `ok`.
     pub(super) fn on_assign_reply(
         &mut self,
         seq: Seq,
@@ -341,82 +484,236 @@ impl Commands {
         new_id: NodeId,
         uid_tail: [u8; 4],
         out: &mut Outputs,
-    ) {
+    ) -> bool {
         let key = (NodeId::BROADCAST, Kind::AssignCommit, seq);
         let matches = matches!(self.pending.get(&key), Some(PendingCommand { what: What::Assign { uid, .. }, .. }) if uid.tail() == uid_tail);
         if !matches {
             tracing::debug!(seq, %new_id, "assign reply for no pending assign");
+            return false;
+        }
+        let Some(p) = self.remove(&key) else {
+            return false;
+        };
+        let wanted = match p.what {
+            What::Assign { new_id, .. } => new_id,
+            _ => new_id,
+        };
+        if result == AckResult::Ok && new_id != wanted {
+            let reason = format!("the board answered with id {new_id} instead of {wanted}");
+            self.emit_result(p, Outcome::Refused, Some(reason), out);
+            false
+        } else if result == AckResult::Ok {
+            self.emit_result(p, Outcome::Ok, None, out);
+            true
+        } else {
+            self.emit_result(p, Outcome::Refused, Some(result.to_string()), out);
+            false
+        }
+    }
+
+    /// The pending entry `packet` carries: its key, if any.
+    fn carrier(&self, packet: &Packet) -> Option<PendingKey> {
+        match packet.msg {
+            Message::AssignSelect { .. } => self
+                .pending
+                .iter()
+                .find(|(_, p)| p.select.as_ref() == Some(packet))
+                .map(|(k, _)| *k),
+            _ => key_of(packet).filter(|k| {
+                self.pending
+                    .get(k)
+                    .is_some_and(|p| p.frame == *packet || p.select.as_ref() == Some(packet))
+            }),
+        }
+    }
+
+    /// `packet` left the bridge's queue for the adapter.
+    pub(super) fn on_handed(&mut self, packet: &Packet, now: Instant) {
+        if matches!(packet.msg, Message::AssignSelect { .. }) {
             return;
         }
-        if let Some(p) = self.pending.remove(&key) {
-            let wanted = match p.what {
-                What::Assign { new_id, .. } => new_id,
-                _ => new_id,
-            };
-            if result == AckResult::Ok && new_id != wanted {
-                let reason = format!("the board answered with id {new_id} instead of {wanted}");
-                self.emit_result(p, Outcome::Refused, Some(reason), out);
-            } else if result == AckResult::Ok {
-                self.emit_result(p, Outcome::Ok, None, out);
-            } else {
-                self.emit_result(p, Outcome::Refused, Some(result.to_string()), out);
+        if let Some(p) = self.carrier(packet).and_then(|k| self.pending.get_mut(&k)) {
+            if p.fate == Fate::Queued {
+                p.fate = Fate::Handed(now);
             }
         }
     }
 
-    /// `packet` could not be sent: if it carried a pending command, that command ends `failed`
-    /// (returns true); otherwise the caller reports it.
+    /// The adapter confirmed `packet` on the bus: the node has `command_timeout` from now to answer.
+    pub(super) fn on_transmitted(&mut self, packet: &Packet, now: Instant) {
+        if matches!(packet.msg, Message::AssignSelect { .. }) {
+            return;
+        }
+        let Some(key) = self.carrier(packet) else {
+            return;
+        };
+        if let Some(p) = self.pending.get_mut(&key) {
+            if matches!(p.fate, Fate::OnBus(_)) {
+                return;
+            }
+            p.fate = Fate::OnBus(now);
+        }
+        self.pending.set_deadline(&key, now + self.timeout);
+    }
+
+    /// The adapter can no longer tell whether `packet` reaches the bus (`why`); a command past its
+    /// deadline ends now.
+    pub(super) fn on_unconfirmed(
+        &mut self,
+        packet: &Packet,
+        why: &'static str,
+        now: Instant,
+        out: &mut Outputs,
+    ) {
+        if matches!(packet.msg, Message::AssignSelect { .. }) {
+            return;
+        }
+        let Some(key) = self.carrier(packet) else {
+            return;
+        };
+        let overdue = match self.pending.get_mut(&key) {
+            Some(p) if matches!(p.fate, Fate::Handed(_) | Fate::Queued) => {
+                p.fate = Fate::Unconfirmed(why);
+                p.accepted + self.timeout <= now
+            }
+            _ => return,
+        };
+        if overdue {
+            self.pending.set_deadline(&key, now);
+            self.expire(now, out);
+        } else {
+            let d = self.pending.get(&key).map(|p| p.accepted + self.timeout);
+            if let Some(d) = d {
+                self.pending.set_deadline(&key, d);
+            }
+        }
+    }
+
+    /// `packet` could not be sent: if it carried a command, that command ends `failed` (returns
+    /// true); otherwise the caller reports it (a frame of the bridge's own frees its number).
     pub(super) fn on_send_failed(
         &mut self,
         packet: &Packet,
         reason: &str,
         out: &mut Outputs,
     ) -> bool {
-        let key = match packet.msg {
-            Message::AssignSelect { uid_head } => self
-                .pending
-                .iter()
-                .find(|(_, p)| matches!(p.what, What::Assign { uid, .. } if uid.head() == uid_head))
-                .map(|(k, _)| *k),
-            Message::AssignCommit { seq, .. } => Some((NodeId::BROADCAST, Kind::AssignCommit, seq)),
-            ref m => m.ack_seq().map(|seq| (packet.dest, m.kind(), seq)),
+        let Some(key) = self.carrier(packet) else {
+            return false;
         };
-        match key.and_then(|k| self.pending.remove(&k)) {
-            Some(p) => {
-                self.emit_result(p, Outcome::Failed, Some(format!("not sent: {reason}")), out);
-                true
-            }
-            None => false,
+        let Some(p) = self.remove(&key) else {
+            return false;
+        };
+        if matches!(p.what, What::Internal) {
+            return false;
+        }
+        // The commit must not follow a select that failed, nor the other way round.
+        withdraw(&p, out);
+        self.emit_result(p, Outcome::Failed, Some(format!("not sent: {reason}")), out);
+        true
+    }
+
+    /// The adapter did not write `packet` because its `not_after` had passed.
+    pub(super) fn on_withdrawn(&mut self, packet: &Packet, now: Instant, out: &mut Outputs) {
+        let Some(key) = self.carrier(packet) else {
+            return;
+        };
+        if let Some(p) = self.remove(&key) {
+            self.end_unsent(p, 0, now, out);
         }
     }
 
-    /// Ends every command whose deadline passed.
+    /// Ends every command whose deadline passed: a frame still queued is withdrawn (`expired` or
+    /// `failed`), a frame on the bus without an answer is a `timeout`.
     pub(super) fn expire(&mut self, now: Instant, out: &mut Outputs) {
         for k in self.pending.overdue(now) {
-            if let Some(p) = self.pending.remove(&k) {
-                self.finish_timed_out(p, out);
+            let Some(p) = self.pending.get(&k) else {
+                continue;
+            };
+            let internal = matches!(p.what, What::Internal);
+            match p.fate {
+                // Its fate is the adapter's to tell (echo, failure, or no echo in time).
+                Fate::Handed(t) if t + TRANSMIT_CONFIRM_TIMEOUT > now => {
+                    self.pending.set_deadline(&k, t + TRANSMIT_CONFIRM_TIMEOUT)
+                }
+                // A frame of our own keeps its number while it may still reach the bus.
+                Fate::Queued | Fate::Handed(_) if internal => {
+                    self.pending.set_deadline(&k, now + self.timeout)
+                }
+                _ if internal => {
+                    self.remove(&k);
+                }
+                Fate::Queued => {
+                    if let Some(p) = self.remove(&k) {
+                        let ahead = out.transmit.ahead_of(&p.frame);
+                        withdraw(&p, out);
+                        self.end_unsent(p, ahead, now, out);
+                    }
+                }
+                Fate::Handed(_) => {
+                    if let Some(p) = self.remove(&k) {
+                        let why = "the CAN interface did not confirm sending it";
+                        self.finish_timed_out(p, Some(why), out);
+                    }
+                }
+                Fate::OnBus(_) => {
+                    if let Some(p) = self.remove(&k) {
+                        self.finish_timed_out(p, None, out);
+                    }
+                }
+                Fate::Unconfirmed(why) => {
+                    if let Some(p) = self.remove(&k) {
+                        self.finish_timed_out(p, Some(why), out);
+                    }
+                }
             }
         }
     }
 
-    fn finish_timed_out(&mut self, p: PendingCommand, out: &mut Outputs) {
+    /// A command whose frame never left the gateway: `expired` if its ttl is over, else `failed`.
+    fn end_unsent(&mut self, p: PendingCommand, ahead: usize, now: Instant, out: &mut Outputs) {
+        if let Some(expires) = p.expires.filter(|&e| e <= now) {
+            let waited = millis(now.saturating_duration_since(p.accepted));
+            let ttl = millis(expires.saturating_duration_since(p.accepted));
+            let reason = format!(
+                "not sent: its ttl ({ttl} ms after it was accepted) ended while it waited {waited} ms for the CAN bus"
+            );
+            self.emit_result(p, Outcome::Expired, Some(reason), out);
+        } else {
+            let reason = format!(
+                "not sent within {} ms: the CAN transmit queue was behind ({ahead} frames ahead of it)",
+                self.timeout.as_millis()
+            );
+            self.emit_result(p, Outcome::Failed, Some(reason), out);
+        }
+    }
+
+    fn finish_timed_out(
+        &mut self,
+        p: PendingCommand,
+        unconfirmed: Option<&str>,
+        out: &mut Outputs,
+    ) {
+        let tail = unconfirmed
+            .map(|why| format!("; {why}, so it may still reach the bus"))
+            .unwrap_or_default();
         match &p.what {
-            What::Broadcast { .. } => self.finish_broadcast(p, out),
+            What::Broadcast { .. } => self.finish_broadcast(p, unconfirmed.map(|_| tail), out),
             What::Assign { .. } => {
                 let reason = format!(
-                    "no AssignReply within {} ms (is a board with this uid on the bus?)",
+                    "no AssignReply within {} ms (is a board with this uid on the bus?){tail}",
                     self.timeout.as_millis()
                 );
                 self.emit_result(p, Outcome::Timeout, Some(reason), out);
             }
             What::Node(_) => {
-                let reason = format!("no ack within {} ms", self.timeout.as_millis());
+                let reason = format!("no ack within {} ms{tail}", self.timeout.as_millis());
                 self.emit_result(p, Outcome::Timeout, Some(reason), out);
             }
+            What::Internal => {}
         }
     }
 
-    fn finish_broadcast(&mut self, p: PendingCommand, out: &mut Outputs) {
+    fn finish_broadcast(&mut self, p: PendingCommand, tail: Option<String>, out: &mut Outputs) {
         let What::Broadcast {
             expected,
             acked,
@@ -432,6 +729,7 @@ impl Commands {
             .map(|&id| HexId(id))
             .collect();
         let answered = acked.len() + refused.len();
+        let tail = tail.unwrap_or_default();
         let (outcome, reason) = if !refused.is_empty() {
             (
                 Outcome::Refused,
@@ -444,13 +742,13 @@ impl Commands {
             (
                 Outcome::Timeout,
                 Some(format!(
-                    "{} of {} online nodes did not answer",
+                    "{} of {} online nodes did not answer{tail}",
                     missing.len(),
                     expected.len()
                 )),
             )
         } else if acked.is_empty() {
-            (Outcome::Timeout, Some("no node answered".to_string()))
+            (Outcome::Timeout, Some(format!("no node answered{tail}")))
         } else {
             (Outcome::Ok, None)
         };
@@ -484,8 +782,8 @@ impl Commands {
         out: &mut Outputs,
     ) {
         if let What::Broadcast { .. } = p.what {
-            if result != Outcome::Failed {
-                return self.finish_broadcast(p, out);
+            if matches!(result, Outcome::Ok | Outcome::Refused | Outcome::Timeout) {
+                return self.finish_broadcast(p, None, out);
             }
         }
         self.count(result);
@@ -508,8 +806,17 @@ impl Commands {
             Outcome::Refused => c.refused += 1,
             Outcome::Timeout => c.timeout += 1,
             Outcome::Failed => c.failed += 1,
+            Outcome::Expired => c.expired += 1,
         }
     }
+}
+
+/// Takes a command's frames out of the transmit queue (those still there).
+fn withdraw(p: &PendingCommand, out: &mut Outputs) {
+    if let Some(s) = &p.select {
+        out.transmit.withdraw(s);
+    }
+    out.transmit.withdraw(&p.frame);
 }
 
 /// Records what a node acknowledged in its state document.
@@ -844,5 +1151,264 @@ mod tests {
         assert_eq!(r["reason"], "1 of 2 answering nodes refused");
         let (_, st) = out.states.iter().find(|(n, _)| *n == id(0x111)).unwrap();
         assert_eq!(st["relay"], true);
+    }
+
+    /// Fills the transmit window with frames nobody confirms: later frames wait in the bridge.
+    fn fill_window(b: &mut Bridge, now: Instant) {
+        for n in 0..TRANSMIT_WINDOW {
+            let cmd = json!({"cmd": "identify", "node": "3", "seconds": n as u64 + 1});
+            b.handle_command(cmd.to_string().as_bytes(), now);
+        }
+        assert_eq!(drain_unconfirmed(b).sent.len(), TRANSMIT_WINDOW);
+        assert_eq!(b.transmit_backlog(), (0, TRANSMIT_WINDOW));
+    }
+
+    #[test]
+    fn a_command_still_queued_at_its_deadline_is_withdrawn_and_never_sent() {
+        let (mut b, t0) = with_nodes(&[2, 3]);
+        fill_window(&mut b, t0);
+        b.handle_command(
+            json!({"cmd": "power", "node": "2", "on": true, "request_id": "p"})
+                .to_string()
+                .as_bytes(),
+            t0,
+        );
+        assert!(
+            drain_unconfirmed(&mut b).sent.is_empty(),
+            "the window is full"
+        );
+        let timeout = BridgeConfig::default().command_timeout;
+        assert_eq!(b.poll_timeout(), t0 + timeout);
+        b.handle_timeout(t0 + timeout);
+        let out = drain_unconfirmed(&mut b);
+        let r = out
+            .named("command_result")
+            .into_iter()
+            .find(|r| r["payload"]["request_id"] == "p")
+            .expect("the power command's result")["payload"]
+            .clone();
+        assert_eq!(r["result"], "failed");
+        assert_eq!(
+            r["reason"],
+            "not sent within 500 ms: the CAN transmit queue was behind (0 frames ahead of it)"
+        );
+        // The window's frames were never confirmed: their commands end `timeout`, saying so.
+        let unconfirmed: Vec<_> = out
+            .named("command_result")
+            .into_iter()
+            .filter(|r| r["payload"]["cmd"] == "identify")
+            .collect();
+        assert!(unconfirmed.is_empty(), "they wait for their echo first");
+        b.handle_timeout(t0 + TRANSMIT_CONFIRM_TIMEOUT);
+        let out = drain_unconfirmed(&mut b);
+        let results = out.named("command_result");
+        assert_eq!(results.len(), TRANSMIT_WINDOW);
+        for r in results {
+            assert_eq!(r["payload"]["result"], "timeout");
+            assert_eq!(
+                r["payload"]["reason"],
+                "no ack within 500 ms; the CAN interface did not confirm sending it, so it may still reach the bus"
+            );
+        }
+        // The window is free again, and the withdrawn power frame is never handed out.
+        assert!(out
+            .sent
+            .iter()
+            .all(|p| !matches!(p.msg, Message::PowerSet { .. })));
+        assert_eq!(b.transmit_backlog().0, 0);
+        let c = b.command_counters();
+        assert_eq!((c.failed, c.timeout, c.in_flight), (1, 8, 0));
+    }
+
+    #[test]
+    fn ttl_expires_a_command_that_could_not_be_sent_in_time() {
+        let (mut b, t0) = with_nodes(&[2, 3]);
+        fill_window(&mut b, t0);
+        let cmd =
+            json!({"cmd": "led", "node": "2", "color": "red", "ttl_ms": 100, "request_id": "t"});
+        b.handle_command(cmd.to_string().as_bytes(), t0);
+        assert!(drain(&mut b).events.is_empty());
+        assert_eq!(
+            b.poll_timeout(),
+            t0 + 100 * MS,
+            "the ttl is the first deadline"
+        );
+        // The adapter has room again just after the ttl: the frame is not handed out any more.
+        b.handle_transmitted(
+            Packet::command(id(3), Message::Identify { seq: 0, seconds: 1 }),
+            t0 + 100 * MS,
+        );
+        let t = b.poll_transmit(t0 + 100 * MS);
+        assert!(t.is_none(), "{t:?}");
+        let out = drain(&mut b);
+        let r = out.one("command_result");
+        assert_eq!(
+            (r["result"].as_str(), r["request_id"].as_str()),
+            (Some("expired"), Some("t"))
+        );
+        assert_eq!(
+            r["reason"],
+            "not sent: its ttl (100 ms after it was accepted) ended while it waited 100 ms for the CAN bus"
+        );
+        assert_eq!(b.command_counters().expired, 1);
+
+        // A command whose ttl ended before the bridge got it is never queued.
+        let received = t0 + S;
+        let late = Delivery {
+            received,
+            retained: false,
+        };
+        let cmd = json!({"cmd": "power", "node": "2", "on": true, "ttl_ms": 50});
+        b.handle_delivered_command(cmd.to_string().as_bytes(), late, received + 50 * MS);
+        let out = drain(&mut b);
+        assert!(out.sent.is_empty());
+        let r = out.one("command_result");
+        assert_eq!(r["result"], "expired");
+        assert_eq!(
+            r["reason"],
+            "not sent: its ttl (50 ms after the gateway received it) ended before it could be queued (50 ms)"
+        );
+
+        // Once on the bus, a ttl changes nothing: the node has its full timeout to answer.
+        let (mut b, t0) = with_nodes(&[2]);
+        let out = command(
+            &mut b,
+            json!({"cmd": "led", "node": "2", "off": true, "ttl_ms": 10}),
+            t0,
+        );
+        let seq = out.sent[0].msg.ack_seq().unwrap();
+        b.handle_packet(
+            Packet::report(id(2), ack(Kind::LedSet, seq, AckResult::Ok)),
+            t0 + 400 * MS,
+        );
+        assert_eq!(drain(&mut b).one("command_result")["result"], "ok");
+    }
+
+    #[test]
+    fn the_ack_window_starts_when_the_frame_is_on_the_bus() {
+        let (mut b, t0) = with_nodes(&[2]);
+        b.handle_command(
+            json!({"cmd": "led", "node": "2", "off": true})
+                .to_string()
+                .as_bytes(),
+            t0,
+        );
+        let frame = b.poll_transmit(t0).unwrap().packet;
+        let timeout = BridgeConfig::default().command_timeout;
+        // Written, echoed late (a busy bus): no verdict before the echo plus the timeout.
+        b.handle_timeout(t0 + timeout);
+        assert!(drain_unconfirmed(&mut b).events.is_empty());
+        b.handle_transmitted(frame, t0 + 600 * MS);
+        b.handle_timeout(t0 + 600 * MS + timeout - MS);
+        assert!(drain(&mut b).named("command_result").is_empty());
+        b.handle_timeout(t0 + 600 * MS + timeout);
+        let out = drain(&mut b);
+        assert_eq!(out.one("command_result")["reason"], "no ack within 500 ms");
+    }
+
+    #[test]
+    fn frames_the_adapter_withdrew_or_lost_with_the_interface() {
+        let (mut b, t0) = with_nodes(&[2]);
+        b.handle_command(
+            json!({"cmd": "power", "node": "2", "on": false, "ttl_ms": 20})
+                .to_string()
+                .as_bytes(),
+            t0,
+        );
+        let t = b.poll_transmit(t0).unwrap();
+        assert_eq!(t.not_after, Some(t0 + 20 * MS));
+        // The adapter could not write it before `not_after`: never sent.
+        b.handle_withdrawn(t.packet, t0 + 30 * MS);
+        assert_eq!(drain(&mut b).one("command_result")["result"], "expired");
+
+        b.handle_command(
+            json!({"cmd": "power", "node": "2", "on": false})
+                .to_string()
+                .as_bytes(),
+            t0 + S,
+        );
+        let t = b.poll_transmit(t0 + S).unwrap();
+        assert_eq!(
+            t.not_after,
+            Some(t0 + S + BridgeConfig::default().command_timeout)
+        );
+        b.handle_bus_event(BusEvent::InterfaceDown, t0 + S + MS);
+        assert_eq!(b.transmit_backlog(), (0, 0), "the window is cleared");
+        b.handle_timeout(t0 + S + BridgeConfig::default().command_timeout);
+        let out = drain(&mut b);
+        let r = out.one("command_result");
+        assert_eq!(r["result"], "timeout");
+        assert_eq!(
+            r["reason"],
+            "no ack within 500 ms; the CAN interface went down before confirming it was sent, so it may still reach the bus"
+        );
+    }
+
+    #[test]
+    fn sequence_numbers_of_the_bridges_own_frames_are_never_reused() {
+        // Unanswered power commands stay pending for a minute.
+        let (mut b, t0) = {
+            let t0 = Instant::now();
+            let config = BridgeConfig {
+                command_timeout: Duration::from_secs(60),
+                ..BridgeConfig::default()
+            };
+            let mut b = Bridge::new(config, t0);
+            b.handle_timeout(t0);
+            drain(&mut b);
+            b.handle_packet(Packet::report(id(0x10), reply(0, 0)), t0);
+            drain(&mut b);
+            (b, t0)
+        };
+        let mut seqs = std::collections::BTreeSet::new();
+        for _ in 0..255 {
+            let out = command(
+                &mut b,
+                json!({"cmd": "power", "node": "10", "on": true}),
+                t0,
+            );
+            assert!(seqs.insert(out.sent[0].msg.ack_seq().unwrap()));
+        }
+        b.handle_packet(
+            Packet::report(id(0x10), Message::DockDetected { port: port(1) }),
+            t0,
+        );
+        drain(&mut b);
+        b.handle_timeout(t0 + BridgeConfig::default().dock_timeout);
+        let out = drain(&mut b);
+        let off = out
+            .sent
+            .iter()
+            .find_map(|p| match p.msg {
+                Message::PowerSet { seq, on: false } => Some(seq),
+                _ => None,
+            })
+            .expect("relay off after the failed docking");
+        assert!(
+            seqs.insert(off),
+            "the relay-off frame took the one free number"
+        );
+        // Every number is in use now: a command is refused, none is reused.
+        let out = command(
+            &mut b,
+            json!({"cmd": "power", "node": "10", "on": true}),
+            t0 + 6 * S,
+        );
+        assert!(out.sent.is_empty());
+        assert_eq!(
+            out.one("command_rejected")["reason"],
+            "power: 256 power commands to node 10 are still unanswered; wait for their results"
+        );
+        // The node acknowledges the relay-off: that number is free again, and only that one.
+        b.handle_packet(
+            Packet::report(id(0x10), ack(Kind::PowerSet, off, AckResult::Ok)),
+            t0 + 6 * S,
+        );
+        let out = command(
+            &mut b,
+            json!({"cmd": "power", "node": "10", "on": true}),
+            t0 + 6 * S,
+        );
+        assert_eq!(out.sent[0].msg.ack_seq(), Some(off));
     }
 }

@@ -4,7 +4,7 @@
 
 use std::time::Instant;
 
-use ihex_proto::{DockRefuseReason, Kind, Message, NodeId, Packet, Port};
+use ihex_proto::{DockRefuseReason, Kind, Message, NodeId, Port};
 
 use super::commands::Commands;
 use super::diagnostics::Diagnostics;
@@ -32,19 +32,22 @@ pub(super) fn apply(steps: Vec<Step>, parts: DockParts<'_>, now: Instant, out: &
     for step in steps {
         match step {
             Step::Confirm { node, port } => {
-                let seq = commands.any_seq(node, Kind::DockConfirm);
-                docking.confirm_sent(seq);
-                out.send(Packet::command(node, Message::DockConfirm { seq, port }));
+                let msg = |seq| Message::DockConfirm { seq, port };
+                // Without a free sequence number the confirm is not sent; the docking then ends
+                // with its handshake timeout.
+                if let Some(seq) = commands.send_internal(node, Kind::DockConfirm, msg, now, out) {
+                    docking.confirm_sent(seq);
+                }
             }
             Step::RefuseBusy { node, port } => {
-                send_dock_refuse(commands, out, node, port, DockRefuseReason::Busy)
+                send_dock_refuse(commands, out, node, port, DockRefuseReason::Busy, now)
             }
             Step::Withdraw { node, port } => {
-                send_dock_refuse(commands, out, node, port, DockRefuseReason::NotAllowed)
+                send_dock_refuse(commands, out, node, port, DockRefuseReason::NotAllowed, now)
             }
             Step::PowerOff { node } => {
-                let seq = commands.any_seq(node, Kind::PowerSet);
-                out.send(Packet::command(node, Message::PowerSet { seq, on: false }));
+                let msg = |seq| Message::PowerSet { seq, on: false };
+                commands.send_internal(node, Kind::PowerSet, msg, now, out);
             }
             Step::Connected(c) => {
                 out.touch(c.n.id.0);
@@ -77,12 +80,10 @@ fn send_dock_refuse(
     node: NodeId,
     port: Port,
     reason: DockRefuseReason,
+    now: Instant,
 ) {
-    let seq = commands.any_seq(node, Kind::DockRefuse);
-    out.send(Packet::command(
-        node,
-        Message::DockRefuse { seq, port, reason },
-    ));
+    let msg = |seq| Message::DockRefuse { seq, port, reason };
+    commands.send_internal(node, Kind::DockRefuse, msg, now, out);
 }
 
 #[cfg(test)]

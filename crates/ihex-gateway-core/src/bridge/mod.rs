@@ -8,7 +8,8 @@
 //! This file only routes each input to the concern that owns it, one submodule each: `commands`
 //! (pending commands, sequence numbers, acks and timeouts), `health` (health checks, presence, lost
 //! detection), `diagnostics` (error frames, drops, undecodable frames, faults, rate limits), `dock`
-//! (the docking sequence's frames and events), `output` (the queues the adapters drain).
+//! (the docking sequence's frames and events), `output` (the queues the adapters drain, and what
+//! gives when they cannot keep up).
 
 mod commands;
 mod diagnostics;
@@ -24,17 +25,22 @@ use ihex_proto::{AckResult, DecodeError, Kind, Message, NodeId, Packet};
 
 pub use commands::CommandCounters;
 pub use diagnostics::{BusEvent, BusHealth, ERROR_EVENT_WINDOW};
-pub use output::{Publication, Topic};
+pub use output::{
+    Publication, PublicationCounters, Topic, Transmit, ANSWER_BACKLOG, TRANSMIT_WINDOW,
+};
 
 use crate::command::{self, Command, CommandError};
 use crate::docking::Docking;
-use crate::event::{CommandRejected, Connection, Event, HexId, NodeList, NodeState, Target};
-use crate::registry::Registry;
-use commands::Commands;
+use crate::event::{
+    CommandRejected, CommandResult, Connection, Event, HexId, NodeList, NodeState, Outcome,
+    PublicationsDropped, Target,
+};
+use crate::registry::{millis, Registry};
+use commands::{Accepted, Commands};
 use diagnostics::Diagnostics;
 use dock::DockParts;
 use health::Health;
-use output::Outputs;
+use output::{Next, Outputs};
 
 /// Tunables of the bridge (the CLI/TOML configuration fills these in).
 #[derive(Clone, Debug)]
@@ -45,10 +51,15 @@ pub struct BridgeConfig {
     pub lost_after_misses: u32,
     /// How long to wait for the mobile element's handshake after confirming a docking.
     pub dock_timeout: Duration,
-    /// How long to wait for a node's ack before a `command_result` with `"timeout"`.
+    /// How long a command may wait for the bus, and then for the node's ack, before its
+    /// `command_result` says `failed` (never sent) or `timeout` (sent, not acknowledged).
     pub command_timeout: Duration,
     /// Largest accepted command payload in bytes; larger ones are `command_rejected`.
     pub max_command_bytes: usize,
+    /// Frames the transmit queue holds before further frames fail (`CAN transmit queue full`).
+    pub tx_queue: usize,
+    /// Events (other than answers) held for the adapter before the oldest is dropped and counted.
+    pub event_queue: usize,
 }
 
 /// Default period of the broadcast health check (the seed's 1 s).
@@ -61,6 +72,18 @@ pub const DEFAULT_DOCK_TIMEOUT: Duration = Duration::from_secs(5);
 pub const DEFAULT_COMMAND_TIMEOUT: Duration = Duration::from_millis(500);
 /// Default largest command payload, bytes.
 pub const DEFAULT_MAX_COMMAND_BYTES: usize = 4096;
+/// Default bound of the transmit queue, frames.
+pub const DEFAULT_TX_QUEUE: usize = 256;
+/// Default bound of the event queue, events.
+pub const DEFAULT_EVENT_QUEUE: usize = 1024;
+
+/// How long a frame handed to the adapter may stay unconfirmed (no echo, no failure) before the
+/// bridge stops waiting for it: its command then ends `timeout` with a reason saying the frame may
+/// still reach the bus, and its place in the [`TRANSMIT_WINDOW`] is given to the next frame.
+pub const TRANSMIT_CONFIRM_TIMEOUT: Duration = Duration::from_secs(1);
+
+/// Shortest time between two `publications_dropped` events.
+pub const DROP_REPORT_PERIOD: Duration = Duration::from_secs(10);
 
 impl Default for BridgeConfig {
     fn default() -> Self {
@@ -70,12 +93,33 @@ impl Default for BridgeConfig {
             dock_timeout: DEFAULT_DOCK_TIMEOUT,
             command_timeout: DEFAULT_COMMAND_TIMEOUT,
             max_command_bytes: DEFAULT_MAX_COMMAND_BYTES,
+            tx_queue: DEFAULT_TX_QUEUE,
+            event_queue: DEFAULT_EVENT_QUEUE,
         }
     }
 }
 
 /// Shortest accepted health period: a zero period would make the gateway do nothing but health checks.
 pub const MIN_HEALTH_PERIOD: Duration = Duration::from_millis(10);
+
+/// How a command reached the gateway.
+#[derive(Clone, Copy, PartialEq, Eq, Debug)]
+pub struct Delivery {
+    /// When the adapter received it (its `ttl_ms` counts from here).
+    pub received: Instant,
+    /// It was a retained message (the broker replays those on every subscription): never executed.
+    pub retained: bool,
+}
+
+impl Delivery {
+    /// A live message received at `now`.
+    pub fn live(now: Instant) -> Self {
+        Delivery {
+            received: now,
+            retained: false,
+        }
+    }
+}
 
 /// The gateway state machine.
 #[derive(Debug)]
@@ -87,6 +131,10 @@ pub struct Bridge {
     commands: Commands,
     health: Health,
     diagnostics: Diagnostics,
+    /// The time of the last input (state documents taken later are built as of it).
+    now: Instant,
+    /// When the next `publications_dropped` may go out.
+    next_drop_report: Instant,
 }
 
 impl Bridge {
@@ -94,13 +142,15 @@ impl Bridge {
     pub fn new(mut config: BridgeConfig, now: Instant) -> Self {
         config.health_period = config.health_period.max(MIN_HEALTH_PERIOD);
         Bridge {
-            out: Outputs::default(),
+            out: Outputs::new(config.tx_queue, config.event_queue),
             registry: Registry::new(),
             docking: Docking::new(config.dock_timeout, Docking::DEFAULT_QUEUE),
             commands: Commands::new(config.command_timeout),
             health: Health::new(config.health_period, config.lost_after_misses, now),
             diagnostics: Diagnostics::new(),
             config,
+            now,
+            next_drop_report: now,
         }
     }
 
@@ -152,14 +202,65 @@ impl Bridge {
         self.commands.counters()
     }
 
-    /// A message arrived on `CommandsTopic` (raw bytes: the bridge parses and validates them and answers
-    /// bad input with a `command_rejected` event).
+    /// Publications taken and dropped since start, and what waits now.
+    pub fn publication_counters(&self) -> PublicationCounters {
+        self.out.publish.counters()
+    }
+
+    /// True when publications wait for [`Bridge::poll_publication`].
+    pub fn publications_waiting(&self) -> bool {
+        self.out.publish.waiting()
+    }
+
+    /// Events dropped since start because the event queue was full.
+    pub fn publications_dropped(&self) -> u64 {
+        self.out.publish.total_dropped()
+    }
+
+    /// Frames waiting in the transmit queue, and frames handed out and not yet confirmed.
+    pub fn transmit_backlog(&self) -> (usize, usize) {
+        (self.out.transmit.queued(), self.out.transmit.in_flight())
+    }
+
+    /// False while [`ANSWER_BACKLOG`] answers wait for the adapter: it should then stop taking
+    /// commands (and leave them with the broker) until it has taken publications, so that answers
+    /// are never dropped and their queue stays bounded.
+    pub fn wants_commands(&self) -> bool {
+        self.out.publish.answers_waiting() < ANSWER_BACKLOG
+    }
+
+    fn advance(&mut self, now: Instant) {
+        self.now = now;
+    }
+
+    /// A message arrived on `CommandsTopic` just now (raw bytes: the bridge parses and validates
+    /// them and answers bad input with a `command_rejected` event). See
+    /// [`Bridge::handle_delivered_command`].
     pub fn handle_command(&mut self, payload: &[u8], now: Instant) {
+        self.handle_delivered_command(payload, Delivery::live(now), now);
+    }
+
+    /// A message arrived on `CommandsTopic` as `delivery` says. Every message gets exactly one
+    /// answer: `command_rejected` (invalid, retained, unknown node, …), `node_list`, or later one
+    /// `command_result`.
+    pub fn handle_delivered_command(&mut self, payload: &[u8], delivery: Delivery, now: Instant) {
+        self.advance(now);
+        if delivery.retained {
+            let request_id = command::request_id(payload);
+            return self.reject(request_id, CommandError::Retained);
+        }
         let req = match command::parse(payload, self.config.max_command_bytes) {
             Ok(req) => req,
             Err(rej) => return self.reject(rej.request_id, rej.error),
         };
         let request_id = req.request_id;
+        let expires = req.ttl.map(|ttl| delivery.received + ttl);
+        if let (Some(expires), Some(ttl)) = (expires, req.ttl) {
+            if expires <= now && !matches!(req.command, Command::List) {
+                return self.expired_on_arrival(request_id, &req.command, ttl, delivery, now);
+            }
+        }
+        let acc = Accepted { now, expires };
         let sent = match req.command {
             Command::List => {
                 let nodes = self.node_states(now);
@@ -184,7 +285,7 @@ impl Bridge {
                     target,
                     action,
                     || registry.online_ids(),
-                    now,
+                    acc,
                     &mut self.out,
                 )
             }
@@ -193,16 +294,54 @@ impl Bridge {
                     return self.reject(request_id, CommandError::IdInUse(HexId(new_id)));
                 }
                 self.commands
-                    .send_assign(request_id, uid, new_id, now, &mut self.out)
+                    .send_assign(request_id, uid, new_id, acc, &mut self.out)
             }
         };
         if let Err((request_id, error)) = sent {
             self.reject(request_id, error);
         }
+        self.settle(now);
     }
 
-    /// A valid iHEX packet arrived on the bus.
+    /// A command whose ttl ended before the bridge got it: `expired`, never queued.
+    fn expired_on_arrival(
+        &mut self,
+        request_id: Option<String>,
+        cmd: &Command,
+        ttl: Duration,
+        delivery: Delivery,
+        now: Instant,
+    ) {
+        let node = match *cmd {
+            Command::Node { target, .. } => target,
+            Command::Assign { new_id, .. } => Target::Node(new_id),
+            Command::List => Target::All,
+        };
+        let waited = millis(now.saturating_duration_since(delivery.received));
+        self.commands.count_expired();
+        self.out.emit(Event::CommandResult(CommandResult {
+            request_id,
+            cmd: cmd.name().into(),
+            node,
+            result: Outcome::Expired,
+            reason: Some(format!(
+                "not sent: its ttl ({} ms after the gateway received it) ended before it could be \
+                 queued ({waited} ms)",
+                ttl.as_millis()
+            )),
+            acked: None,
+            refused: None,
+            missing: None,
+        }));
+    }
+
+    /// A valid iHEX packet arrived on the bus (including the echo of one of our own frames, which
+    /// confirms it was sent).
     pub fn handle_packet(&mut self, packet: Packet, now: Instant) {
+        self.advance(now);
+        if packet.src == NodeId::GATEWAY {
+            return self.handle_transmitted(packet, now);
+        }
         if packet.dest != NodeId::GATEWAY {
             // Another controller's command seen on the bus: not ours to act on.
             tracing::debug!(?packet, "ignoring packet not addressed to the gateway");
@@ -221,7 +360,7 @@ impl Bridge {
                 self.commands
                     .on_assign_reply(seq, result, new_id, uid_tail, &mut self.out);
             }
-            self.flush_states(now);
+            self.settle(now);
             return;
         }
         self.health
@@ -259,41 +398,85 @@ impl Bridge {
                 result,
                 new_id,
                 uid_tail,
-            } => self
-                .commands
-                .on_assign_reply(seq, result, new_id, uid_tail, &mut self.out),
+            } => {
+                self.commands
+                    .on_assign_reply(seq, result, new_id, uid_tail, &mut self.out);
+            }
             // Command kinds never come addressed to the gateway (the decoder checks addresses).
             _ => tracing::debug!(?packet, "ignoring unexpected packet"),
         }
-        self.flush_states(now);
+        self.settle(now);
     }
 
     /// A frame arrived that passed the filters but is not a valid iHEX packet.
     pub fn handle_undecodable(&mut self, raw_id: u32, data: &[u8], err: DecodeError, now: Instant) {
+        self.advance(now);
         self.diagnostics
             .on_undecodable(raw_id, data, err, now, &mut self.out);
     }
 
     /// A bus condition (error frame, bus-off, interface down/up, drops).
     pub fn handle_bus_event(&mut self, event: BusEvent, now: Instant) {
+        self.advance(now);
         match event {
-            BusEvent::BusOff | BusEvent::InterfaceDown => self.health.on_bus_down(),
+            BusEvent::BusOff => self.health.on_bus_down(),
+            BusEvent::InterfaceDown => {
+                self.health.on_bus_down();
+                // The kernel drops what a downed interface had queued — or it went out just before:
+                // nobody can tell any more.
+                for p in self.out.transmit.clear_in_flight() {
+                    let why = "the CAN interface went down before confirming it was sent";
+                    self.commands.on_unconfirmed(&p, why, now, &mut self.out);
+                }
+            }
             BusEvent::Recovered => self.health.on_recovered(now),
             _ => {}
         }
         self.diagnostics.on_bus_event(event, now, &mut self.out);
+        self.settle(now);
+    }
+
+    /// The adapter confirms that a frame from [`Bridge::poll_transmit`] went on the bus: its echo
+    /// arrived (SocketCAN with `CAN_RAW_RECV_OWN_MSGS`), or, on a link that cannot tell, it was
+    /// written. [`Bridge::handle_packet`] calls this for frames from the gateway's own address.
+    pub fn handle_transmitted(&mut self, packet: Packet, now: Instant) {
+        self.advance(now);
+        if !self.out.transmit.settle(&packet) {
+            tracing::debug!(
+                ?packet,
+                "echo of a frame not waiting for one (late, or another gateway's)"
+            );
+        }
+        self.commands.on_transmitted(&packet, now);
+        self.settle(now);
+    }
+
+    /// The adapter did not write a frame because its [`Transmit::not_after`] had passed: its
+    /// command ends `expired` or `failed`, and the frame is never sent.
+    pub fn handle_withdrawn(&mut self, packet: Packet, now: Instant) {
+        self.advance(now);
+        self.out.transmit.settle(&packet);
+        self.commands.on_withdrawn(&packet, now, &mut self.out);
+        self.settle(now);
     }
 
     /// A frame from [`Bridge::poll_transmit`] could not be transmitted.
     pub fn handle_send_failed(&mut self, packet: Packet, reason: &str, now: Instant) {
+        self.advance(now);
+        self.out.transmit.settle(&packet);
+        self.send_failed(packet, reason, now);
+        self.settle(now);
+    }
+
+    fn send_failed(&mut self, packet: Packet, reason: &str, now: Instant) {
         self.diagnostics.count_send_failure();
         if let Message::DockConfirm { seq, .. } = packet.msg {
+            self.commands.on_send_failed(&packet, reason, &mut self.out);
             let steps = self
                 .docking
                 .on_confirm_failed(packet.dest, seq, reason, now);
             if !steps.is_empty() {
                 self.apply(steps, now);
-                self.flush_states(now);
                 return;
             }
         } else if self.commands.on_send_failed(&packet, reason, &mut self.out) {
@@ -306,15 +489,29 @@ impl Bridge {
     /// The MQTT session is (re)established: queue the retained node states again (a restarted broker
     /// may have lost them).
     pub fn handle_mqtt_connected(&mut self, now: Instant) {
+        self.advance(now);
         let ids: Vec<NodeId> = self.registry.iter().map(|e| e.id).collect();
         for id in ids {
-            self.publish_state(id, now, true);
+            self.out.publish.push_state(id, true);
         }
         self.out.dirty.clear();
     }
 
-    /// Advances timers: ack and docking timeouts, the health broadcast and lost nodes.
+    /// Advances timers: withdrawals, ack and docking timeouts, frames never confirmed, the health
+    /// broadcast and lost nodes, the report of dropped publications.
     pub fn handle_timeout(&mut self, now: Instant) {
+        self.advance(now);
+        if let Some(cutoff) = now.checked_sub(TRANSMIT_CONFIRM_TIMEOUT) {
+            for p in self.out.transmit.expire_in_flight(cutoff) {
+                tracing::warn!(
+                    ?p,
+                    "frame not confirmed on the bus within {} ms",
+                    TRANSMIT_CONFIRM_TIMEOUT.as_millis()
+                );
+                let why = "the CAN interface did not confirm sending it";
+                self.commands.on_unconfirmed(&p, why, now, &mut self.out);
+            }
+        }
         self.commands.expire(now, &mut self.out);
         let steps = self.docking.tick(now);
         self.apply(steps, now);
@@ -336,29 +533,83 @@ impl Bridge {
             };
             dock::apply(steps, parts, now, out);
         });
-        self.flush_states(now);
+        if self.out.publish.has_unreported() && now >= self.next_drop_report {
+            let (dropped, events) = self.out.publish.take_unreported();
+            let total = self.out.publish.total_dropped();
+            self.out
+                .emit(Event::PublicationsDropped(PublicationsDropped {
+                    dropped,
+                    total,
+                    events,
+                }));
+            self.next_drop_report = now + DROP_REPORT_PERIOD;
+        }
+        self.settle(now);
     }
 
     /// When [`Bridge::handle_timeout`] must run next.
     pub fn poll_timeout(&self) -> Instant {
         let mut next = self.health.next_deadline();
-        if let Some(d) = self.commands.next_deadline() {
-            next = next.min(d);
-        }
-        if let Some(d) = self.docking.deadline() {
-            next = next.min(d);
+        let mut at = |d: Option<Instant>| {
+            if let Some(d) = d {
+                next = next.min(d);
+            }
+        };
+        at(self.commands.next_deadline());
+        at(self.docking.deadline());
+        at(self
+            .out
+            .transmit
+            .oldest_in_flight()
+            .map(|t| t + TRANSMIT_CONFIRM_TIMEOUT));
+        at(self.out.transmit.next_not_after());
+        if self.out.publish.has_unreported() {
+            at(Some(self.next_drop_report));
         }
         next
     }
 
-    /// The next frame to transmit, `None` when there is none.
-    pub fn poll_transmit(&mut self) -> Option<Packet> {
-        self.out.transmit.pop_front()
+    /// The next frame to transmit at `now`, `None` when there is none or when
+    /// [`TRANSMIT_WINDOW`] frames are already handed out and not yet confirmed (each must be
+    /// answered by [`Bridge::handle_transmitted`], [`Bridge::handle_send_failed`] or
+    /// [`Bridge::handle_withdrawn`]).
+    pub fn poll_transmit(&mut self, now: Instant) -> Option<Transmit> {
+        self.advance(now);
+        loop {
+            match self.out.transmit.pop(now)? {
+                Ok(t) => {
+                    self.commands.on_handed(&t.packet, now);
+                    return Some(t);
+                }
+                Err(late) => {
+                    // Its command's deadline passed: answering it withdraws the frame.
+                    self.commands.expire(now, &mut self.out);
+                    self.out.transmit.withdraw(&late);
+                    self.settle(now);
+                }
+            }
+        }
     }
 
-    /// The next event or state document to publish, `None` when there is none.
+    /// The next event or state document to publish, `None` when there is none. State documents are
+    /// built when taken (the latest, as of the last input), at most one per node waits, and one
+    /// that has not changed since it was last published is skipped.
     pub fn poll_publication(&mut self) -> Option<Publication> {
-        self.out.publish.pop_front()
+        loop {
+            match self.out.publish.pop()? {
+                Next::Event(e) => return Some(Publication::Event(e)),
+                Next::State { id, forced } => {
+                    let Some(doc) = self.node_state(id, self.now) else {
+                        continue;
+                    };
+                    let changed = self.registry.state_changed(id, &doc);
+                    if changed || forced {
+                        self.out.publish.count_state();
+                        return Some(Publication::State(doc));
+                    }
+                }
+            }
+        }
     }
 
     fn reject(&mut self, request_id: Option<String>, error: CommandError) {
@@ -371,17 +622,14 @@ impl Bridge {
     }
 
     fn on_ack(&mut self, src: NodeId, kind: Kind, seq: u8, result: AckResult, now: Instant) {
-        if kind == Kind::DockConfirm {
-            if result != AckResult::Ok {
-                let steps = self
-                    .docking
-                    .on_confirm_refused(src, seq, &result.to_string(), now);
-                self.apply(steps, now);
-            }
-            return;
-        }
         self.commands
             .on_ack(src, kind, seq, result, &mut self.registry, &mut self.out);
+        if kind == Kind::DockConfirm && result != AckResult::Ok {
+            let steps = self
+                .docking
+                .on_confirm_refused(src, seq, &result.to_string(), now);
+            self.apply(steps, now);
+        }
     }
 
     /// Carries out docking steps.
@@ -394,19 +642,24 @@ impl Bridge {
         dock::apply(steps, parts, now, &mut self.out);
     }
 
-    fn publish_state(&mut self, id: NodeId, now: Instant, force: bool) {
-        let Some(doc) = self.node_state(id, now) else {
-            return;
-        };
-        let changed = self.registry.state_changed(id, &doc);
-        if changed || force {
-            self.out.publish.push_back(Publication::State(doc));
+    /// Ends an input: frames the full transmit queue refused fail, and every node whose state may
+    /// have changed gets its (coalesced) state document queued.
+    fn settle(&mut self, now: Instant) {
+        loop {
+            let refused = self.out.transmit.take_refused();
+            if refused.is_empty() {
+                break;
+            }
+            let reason = format!(
+                "CAN transmit queue full ({} frames)",
+                self.out.transmit.cap()
+            );
+            for p in refused {
+                self.send_failed(p, &reason, now);
+            }
         }
-    }
-
-    fn flush_states(&mut self, now: Instant) {
         for id in std::mem::take(&mut self.out.dirty) {
-            self.publish_state(id, now, false);
+            self.out.publish.push_state(id, false);
         }
     }
 }
@@ -415,8 +668,8 @@ impl Bridge {
 mod tests {
     use super::test_support::*;
     use super::*;
-    use ihex_proto::{AckResult, DecodeError, Kind, Message, NodeId, Packet};
-    use serde_json::json;
+    use ihex_proto::{AckResult, DecodeError, HealthFlags, Kind, Message, NodeId, Packet};
+    use serde_json::{json, Value};
     use std::collections::BTreeMap;
     use std::time::{Duration, Instant};
 
@@ -659,7 +912,7 @@ mod tests {
         b.handle_timeout(now);
         let out = drain(&mut b);
         results += out.named("command_result").len();
-        assert!(b.commands.is_empty());
+        assert_eq!(b.command_counters().in_flight, 0);
         for name in [
             "new_connection",
             "connection_removed",
@@ -854,5 +1107,156 @@ mod tests {
                 wrong.join("\n")
             );
         }
+    }
+
+    #[test]
+    fn retained_commands_are_never_executed() {
+        let (mut b, t0) = with_nodes(&[2]);
+        let retained = Delivery {
+            received: t0,
+            retained: true,
+        };
+        let cmd = json!({"cmd": "power", "node": "2", "on": true, "request_id": "old"});
+        b.handle_delivered_command(cmd.to_string().as_bytes(), retained, t0);
+        let out = drain(&mut b);
+        assert!(out.sent.is_empty());
+        let r = out.one("command_rejected");
+        assert_eq!(r["request_id"], "old");
+        assert!(r["reason"]
+            .as_str()
+            .unwrap()
+            .starts_with("retained message on the command topic: not executed"));
+        // Even a retained `list` or a broken retained message gets its one answer.
+        b.handle_delivered_command(b"{\"cmd\":\"list\"}", retained, t0);
+        b.handle_delivered_command(b"garbage", retained, t0);
+        let out = drain(&mut b);
+        assert_eq!(out.named("command_rejected").len(), 2);
+        assert!(out.named("node_list").is_empty());
+    }
+
+    #[test]
+    fn rejections_echo_the_request_id_whenever_it_can_be_read() {
+        let (mut b, t0) = with_nodes(&[2]);
+        let big = format!(
+            r#"{{"request_id":"big","cmd":"led","node":"2","color":"red","pad":"{}"}}"#,
+            "x".repeat(5000)
+        );
+        for (payload, id) in [
+            (big.into_bytes(), json!("big")),
+            (
+                br#"{"request_id":"cut","cmd":"led","node":"#.to_vec(),
+                json!("cut"),
+            ),
+            (
+                [
+                    br#"{"request_id":"bin","x":""#.as_slice(),
+                    &[0xc3, 0x28],
+                    br#""}"#,
+                ]
+                .concat(),
+                json!("bin"),
+            ),
+            (
+                br#"{"request_id":"ttl","cmd":"led","node":"2","off":true,"ttl_ms":0}"#.to_vec(),
+                json!("ttl"),
+            ),
+            (br#"["request_id","no"]"#.to_vec(), Value::Null),
+        ] {
+            b.handle_command(&payload, t0);
+            let out = drain(&mut b);
+            assert_eq!(
+                out.one("command_rejected")["request_id"],
+                id,
+                "{}",
+                String::from_utf8_lossy(&payload[..40.min(payload.len())])
+            );
+        }
+        b.handle_command(
+            br#"{"cmd":"led","node":"2","off":true,"ttl_ms":"soon"}"#,
+            t0,
+        );
+        assert_eq!(
+            drain(&mut b).one("command_rejected")["reason"],
+            "led: `ttl_ms` must be an integer 1 to 3600000, in ms; got \"soon\""
+        );
+    }
+
+    #[test]
+    fn under_overload_answers_are_kept_states_coalesced_and_drops_reported() {
+        let t0 = Instant::now();
+        let config = BridgeConfig {
+            event_queue: 4,
+            ..BridgeConfig::default()
+        };
+        let mut b = Bridge::new(config, t0);
+        b.handle_timeout(t0);
+        // Nobody takes publications: 20 nodes come online (20 events, 20 state documents), every
+        // command is answered (rejections here: the nodes are unknown).
+        for n in 1..=20u16 {
+            b.handle_packet(Packet::report(id(n), reply(0, 0)), t0 + MS);
+        }
+        for n in 0..(ANSWER_BACKLOG - 1) {
+            assert!(b.wants_commands());
+            let cmd =
+                json!({"cmd": "led", "node": "fff", "off": true, "request_id": n.to_string()});
+            b.handle_command(cmd.to_string().as_bytes(), t0 + MS);
+        }
+        // Node 5's state changes twice meanwhile: one document, the latest.
+        b.handle_packet(
+            Packet::report(id(5), reply(1, HealthFlags::RELAY)),
+            t0 + 2 * MS,
+        );
+        b.handle_command(br#"{"cmd":"list","request_id":"L"}"#, t0 + 2 * MS);
+        assert!(!b.wants_commands(), "the answer backlog is full");
+        let c = b.publication_counters();
+        assert_eq!(
+            (c.answers_waiting, c.events_waiting, c.states_waiting),
+            (ANSWER_BACKLOG, 4, 20)
+        );
+        assert_eq!(c.dropped, 16);
+        assert_eq!(c.dropped_by_event.get("node_online"), Some(&16));
+        b.handle_timeout(t0 + 3 * MS);
+        let out = drain(&mut b);
+        assert_eq!(out.named("command_rejected").len(), ANSWER_BACKLOG - 1);
+        assert_eq!(out.named("node_list").len(), 1);
+        let online: Vec<_> = out
+            .named("node_online")
+            .iter()
+            .map(|e| e["payload"]["id"].clone())
+            .collect();
+        assert_eq!(
+            online,
+            [json!("11"), json!("12"), json!("13"), json!("14")],
+            "the newest events are kept"
+        );
+        assert_eq!(out.states.len(), 20);
+        let (_, five) = out.states.iter().find(|(n, _)| *n == id(5)).unwrap();
+        assert_eq!(five["relay"], true, "the latest document");
+        let d = out.one("publications_dropped");
+        assert_eq!(
+            d,
+            &json!({"dropped": 16, "total": 16, "events": {"node_online": 16}})
+        );
+        assert!(b.wants_commands());
+        // One report per period at most; nothing to report, nothing sent.
+        b.handle_timeout(t0 + DROP_REPORT_PERIOD);
+        assert!(drain(&mut b).named("publications_dropped").is_empty());
+    }
+
+    #[test]
+    fn echoes_of_our_own_frames_confirm_them() {
+        let (mut b, t0) = with_nodes(&[2]);
+        b.handle_command(br#"{"cmd":"identify","node":"2","seconds":1}"#, t0);
+        let frame = b.poll_transmit(t0).unwrap().packet;
+        assert_eq!(b.transmit_backlog(), (0, 1));
+        assert_eq!(frame.src, NodeId::GATEWAY);
+        b.handle_packet(frame, t0 + MS);
+        assert_eq!(b.transmit_backlog(), (0, 0));
+        let out = drain(&mut b);
+        assert!(
+            out.events.is_empty(),
+            "an echo is no event: {:?}",
+            out.events
+        );
     }
 }

@@ -1,13 +1,33 @@
-//! What the bridge hands to the adapters: frames to transmit, and publications (events and retained
-//! node state documents) as typed values, each queue in the order the bridge produced it. The
-//! adapter serialises a publication exactly once ([`Publication::to_json`]) and sends it on
-//! [`Publication::topic`].
+//! What the bridge hands to the adapters, and what gives when they cannot keep up.
+//!
+//! Frames: a bounded queue of frames not yet handed to the adapter, in front of a small window of
+//! frames handed to it and not yet confirmed on the bus (its echo, or its failure). A frame is
+//! handed out only while the window has room, so a command waiting for the bus waits *here*, where
+//! it can still be withdrawn when its deadline passes; at most [`TRANSMIT_WINDOW`] frames are ever
+//! beyond recall.
+//!
+//! Publications, by class: *answers* (`command_result`, `command_rejected`, `node_list`, and the
+//! `publications_dropped` report) are never dropped — the adapter stops taking commands instead
+//! ([`super::Bridge::wants_commands`]); *retained state documents* are coalesced, one entry per node
+//! whose document is built when it is taken, so the latest is always published and none is ever
+//! dropped; *other events* wait in a queue of `event_queue` entries whose oldest is dropped and
+//! counted when it is full. The adapter serialises a publication exactly once
+//! ([`Publication::to_json`]) and sends it on [`Publication::topic`].
 
-use std::collections::{BTreeSet, VecDeque};
+use std::collections::{BTreeMap, BTreeSet, VecDeque};
+use std::time::Instant;
 
 use ihex_proto::{NodeId, Packet};
 
 use crate::event::{self, Event, NodeState};
+
+/// Frames handed to the adapter and not yet confirmed sent or failed: the most that can still
+/// reach the bus after their command was answered (a CAN controller and the kernel's queue keep
+/// a frame until the bus takes it).
+pub const TRANSMIT_WINDOW: usize = 8;
+
+/// Answers waiting for the adapter beyond which [`super::Bridge::wants_commands`] says no.
+pub const ANSWER_BACKLOG: usize = 256;
 
 /// Logical MQTT topics; the adapter maps them to names under the island prefix
 /// ([`crate::topic::Topics::resolve`]).
@@ -51,31 +71,461 @@ impl Publication {
     }
 }
 
+/// A frame to transmit, with the latest moment it may still be written to the bus.
+#[derive(Clone, Copy, PartialEq, Eq, Debug)]
+pub struct Transmit {
+    /// The frame.
+    pub packet: Packet,
+    /// A command's frame must not be written after this (its command was answered `expired` or
+    /// `failed` by then): the adapter reports it with [`super::Bridge::handle_withdrawn`] instead.
+    /// `None` for frames without a deadline (health checks, docking).
+    pub not_after: Option<Instant>,
+}
+
+/// How publications fared since start, and what waits now.
+#[derive(Clone, PartialEq, Eq, Debug, Default)]
+pub struct PublicationCounters {
+    /// Events taken by the adapter (answers included).
+    pub events: u64,
+    /// State documents taken by the adapter.
+    pub states: u64,
+    /// Events dropped because the event queue was full (never answers or state documents).
+    pub dropped: u64,
+    /// Dropped events by name.
+    pub dropped_by_event: BTreeMap<&'static str, u64>,
+    /// Answers waiting now.
+    pub answers_waiting: usize,
+    /// Other events waiting now.
+    pub events_waiting: usize,
+    /// Nodes whose state document waits to be published now.
+    pub states_waiting: usize,
+}
+
+/// The next publication in order: an event, or a node whose state document is to be built now.
+pub(super) enum Next {
+    Event(Event),
+    State { id: NodeId, forced: bool },
+}
+
+/// The publication queues: answers, coalesced state documents, other events; taken in the order
+/// they were first queued.
+#[derive(Debug)]
+pub(super) struct PublishQueue {
+    stamp: u64,
+    answers: VecDeque<(u64, Event)>,
+    events: VecDeque<(u64, Event)>,
+    states: VecDeque<(u64, NodeId)>,
+    /// Nodes with an entry in `states`, and whether it must be published even if unchanged.
+    queued: BTreeMap<NodeId, bool>,
+    event_cap: usize,
+    counters: PublicationCounters,
+    /// Drops not reported by a `publications_dropped` event yet, by event name.
+    unreported: BTreeMap<&'static str, u64>,
+}
+
+/// Events that answer a command: never dropped.
+fn is_answer(e: &Event) -> bool {
+    matches!(
+        e,
+        Event::CommandResult(_)
+            | Event::CommandRejected(_)
+            | Event::NodeList(_)
+            | Event::PublicationsDropped(_)
+    )
+}
+
+impl PublishQueue {
+    pub(super) fn new(event_cap: usize) -> Self {
+        PublishQueue {
+            stamp: 0,
+            answers: VecDeque::new(),
+            events: VecDeque::new(),
+            states: VecDeque::new(),
+            queued: BTreeMap::new(),
+            event_cap: event_cap.max(1),
+            counters: PublicationCounters::default(),
+            unreported: BTreeMap::new(),
+        }
+    }
+
+    fn next_stamp(&mut self) -> u64 {
+        self.stamp += 1;
+        self.stamp
+    }
+
+    pub(super) fn push_event(&mut self, event: Event) {
+        let stamp = self.next_stamp();
+        if is_answer(&event) {
+            self.answers.push_back((stamp, event));
+            return;
+        }
+        if self.events.len() >= self.event_cap {
+            if let Some((_, old)) = self.events.pop_front() {
+                let name = old.name();
+                self.counters.dropped += 1;
+                *self.counters.dropped_by_event.entry(name).or_default() += 1;
+                *self.unreported.entry(name).or_default() += 1;
+                // One line per power of two keeps a long overload from flooding the log.
+                if self.counters.dropped.is_power_of_two() {
+                    tracing::warn!(
+                        publications_dropped = self.counters.dropped,
+                        event = name,
+                        queue = self.event_cap,
+                        "event queue full: oldest event dropped (answers and state documents are kept)"
+                    );
+                }
+            }
+        }
+        self.events.push_back((stamp, event));
+    }
+
+    /// Queues `id`'s state document (built when taken); `forced` publishes it even if unchanged.
+    pub(super) fn push_state(&mut self, id: NodeId, forced: bool) {
+        match self.queued.get_mut(&id) {
+            Some(f) => *f |= forced,
+            None => {
+                let stamp = self.next_stamp();
+                self.queued.insert(id, forced);
+                self.states.push_back((stamp, id));
+            }
+        }
+    }
+
+    pub(super) fn pop(&mut self) -> Option<Next> {
+        let head = |q: &VecDeque<(u64, Event)>| q.front().map_or(u64::MAX, |(s, _)| *s);
+        let a = head(&self.answers);
+        let e = head(&self.events);
+        let s = self.states.front().map_or(u64::MAX, |(s, _)| *s);
+        if a == u64::MAX && e == u64::MAX && s == u64::MAX {
+            return None;
+        }
+        if s < a && s < e {
+            let (_, id) = self.states.pop_front()?;
+            let forced = self.queued.remove(&id).unwrap_or(false);
+            return Some(Next::State { id, forced });
+        }
+        let (_, event) = if a < e {
+            self.answers.pop_front()?
+        } else {
+            self.events.pop_front()?
+        };
+        self.counters.events += 1;
+        Some(Next::Event(event))
+    }
+
+    pub(super) fn count_state(&mut self) {
+        self.counters.states += 1;
+    }
+
+    pub(super) fn waiting(&self) -> bool {
+        !(self.answers.is_empty() && self.events.is_empty() && self.states.is_empty())
+    }
+
+    pub(super) fn answers_waiting(&self) -> usize {
+        self.answers.len()
+    }
+
+    pub(super) fn counters(&self) -> PublicationCounters {
+        PublicationCounters {
+            answers_waiting: self.answers.len(),
+            events_waiting: self.events.len(),
+            states_waiting: self.states.len(),
+            ..self.counters.clone()
+        }
+    }
+
+    /// True when drops wait to be reported.
+    pub(super) fn has_unreported(&self) -> bool {
+        !self.unreported.is_empty()
+    }
+
+    /// The drops since the last report, by name, and their sum; clears them.
+    pub(super) fn take_unreported(&mut self) -> (u64, BTreeMap<String, u64>) {
+        let by_name = std::mem::take(&mut self.unreported);
+        let n = by_name.values().sum();
+        (
+            n,
+            by_name
+                .into_iter()
+                .map(|(k, v)| (k.to_owned(), v))
+                .collect(),
+        )
+    }
+
+    pub(super) fn total_dropped(&self) -> u64 {
+        self.counters.dropped
+    }
+}
+
+/// A frame waiting in the bridge.
+#[derive(Clone, Copy, Debug)]
+struct Queued {
+    packet: Packet,
+    not_after: Option<Instant>,
+}
+
+/// Frames not yet handed to the adapter, and those handed and not yet confirmed.
+#[derive(Debug)]
+pub(super) struct TransmitQueue {
+    queue: VecDeque<Queued>,
+    cap: usize,
+    /// Handed to the adapter at the given time, waiting for its echo or failure.
+    in_flight: Vec<(Packet, Instant)>,
+    /// Frames refused because the queue was full: the bridge reports them as failed sends.
+    refused: Vec<Packet>,
+}
+
+impl TransmitQueue {
+    pub(super) fn new(cap: usize) -> Self {
+        TransmitQueue {
+            queue: VecDeque::new(),
+            cap: cap.max(1),
+            in_flight: Vec::new(),
+            refused: Vec::new(),
+        }
+    }
+
+    /// Queues a frame; when the queue is full it is refused (the bridge then fails it).
+    pub(super) fn push(&mut self, packet: Packet, not_after: Option<Instant>) {
+        if self.queue.len() >= self.cap {
+            self.refused.push(packet);
+        } else {
+            self.queue.push_back(Queued { packet, not_after });
+        }
+    }
+
+    /// The capacity of the queue.
+    pub(super) fn cap(&self) -> usize {
+        self.cap
+    }
+
+    pub(super) fn take_refused(&mut self) -> Vec<Packet> {
+        std::mem::take(&mut self.refused)
+    }
+
+    /// The next frame, if the window has room; `Err` with the frame when its deadline passed (it
+    /// stays queued for the caller to withdraw).
+    pub(super) fn pop(&mut self, now: Instant) -> Option<Result<Transmit, Packet>> {
+        if self.in_flight.len() >= TRANSMIT_WINDOW {
+            return None;
+        }
+        let q = *self.queue.front()?;
+        if q.not_after.is_some_and(|d| d <= now) {
+            return Some(Err(q.packet));
+        }
+        self.queue.pop_front();
+        self.in_flight.push((q.packet, now));
+        Some(Ok(Transmit {
+            packet: q.packet,
+            not_after: q.not_after,
+        }))
+    }
+
+    /// Removes a queued frame equal to `packet`; true if there was one.
+    pub(super) fn withdraw(&mut self, packet: &Packet) -> bool {
+        match self.queue.iter().position(|q| q.packet == *packet) {
+            Some(i) => {
+                self.queue.remove(i);
+                true
+            }
+            None => false,
+        }
+    }
+
+    /// Frames ahead of `packet` in the queue (all of them if it is not queued).
+    pub(super) fn ahead_of(&self, packet: &Packet) -> usize {
+        self.queue
+            .iter()
+            .position(|q| q.packet == *packet)
+            .unwrap_or(self.queue.len())
+    }
+
+    /// The frame's fate is known (echoed, failed): its place in the window is free. True if it was
+    /// in the window.
+    pub(super) fn settle(&mut self, packet: &Packet) -> bool {
+        match self.in_flight.iter().position(|(p, _)| p == packet) {
+            Some(i) => {
+                self.in_flight.swap_remove(i);
+                true
+            }
+            None => false,
+        }
+    }
+
+    /// Frames in the window handed out at or before `cutoff`: removed and returned.
+    pub(super) fn expire_in_flight(&mut self, cutoff: Instant) -> Vec<Packet> {
+        let mut gone = Vec::new();
+        self.in_flight.retain(|&(p, t)| {
+            let keep = t > cutoff;
+            if !keep {
+                gone.push(p);
+            }
+            keep
+        });
+        gone
+    }
+
+    /// Every frame in the window: removed and returned (the interface went down).
+    pub(super) fn clear_in_flight(&mut self) -> Vec<Packet> {
+        self.in_flight.drain(..).map(|(p, _)| p).collect()
+    }
+
+    /// When the oldest frame in the window was handed out.
+    pub(super) fn oldest_in_flight(&self) -> Option<Instant> {
+        self.in_flight.iter().map(|&(_, t)| t).min()
+    }
+
+    /// The earliest deadline of a queued frame.
+    pub(super) fn next_not_after(&self) -> Option<Instant> {
+        self.queue.iter().filter_map(|q| q.not_after).min()
+    }
+
+    pub(super) fn queued(&self) -> usize {
+        self.queue.len()
+    }
+
+    pub(super) fn in_flight(&self) -> usize {
+        self.in_flight.len()
+    }
+}
+
 /// The bridge's output queues, filled by every concern and drained by the adapters.
-#[derive(Debug, Default)]
+#[derive(Debug)]
 pub(super) struct Outputs {
-    /// Frames to transmit, oldest first.
-    pub(super) transmit: VecDeque<Packet>,
-    /// Publications, oldest first.
-    pub(super) publish: VecDeque<Publication>,
+    /// Frames to transmit.
+    pub(super) transmit: TransmitQueue,
+    /// Publications.
+    pub(super) publish: PublishQueue,
     /// Nodes whose state document may have changed since it was last published.
     pub(super) dirty: BTreeSet<NodeId>,
 }
 
 impl Outputs {
-    /// Queues a frame.
+    pub(super) fn new(tx_queue: usize, event_queue: usize) -> Self {
+        Outputs {
+            transmit: TransmitQueue::new(tx_queue),
+            publish: PublishQueue::new(event_queue),
+            dirty: BTreeSet::new(),
+        }
+    }
+
+    /// Queues a frame without a deadline.
     pub(super) fn send(&mut self, packet: Packet) {
-        self.transmit.push_back(packet);
+        self.transmit.push(packet, None);
+    }
+
+    /// Queues a command's frame that must not be written after `not_after`.
+    pub(super) fn send_until(&mut self, packet: Packet, not_after: Instant) {
+        self.transmit.push(packet, Some(not_after));
     }
 
     /// Queues an event.
     pub(super) fn emit(&mut self, event: Event) {
         tracing::debug!(event = event.name(), "event");
-        self.publish.push_back(Publication::Event(event));
+        self.publish.push_event(event);
     }
 
     /// Marks a node's state document for publication (if it changed) at the end of the input.
     pub(super) fn touch(&mut self, id: NodeId) {
         self.dirty.insert(id);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::event::{BusError, CommandRejected};
+
+    fn bus_error(n: u64) -> Event {
+        Event::BusError(BusError {
+            error: "rx_dropped".into(),
+            count: Some(n),
+            ..BusError::default()
+        })
+    }
+
+    fn rejected(n: u32) -> Event {
+        Event::CommandRejected(CommandRejected {
+            request_id: Some(n.to_string()),
+            reason: "x".into(),
+        })
+    }
+
+    fn id(raw: u16) -> NodeId {
+        NodeId::new(raw).unwrap()
+    }
+
+    #[test]
+    fn answers_are_kept_states_coalesced_events_shed_oldest_first() {
+        let mut q = PublishQueue::new(2);
+        for n in 0..5 {
+            q.push_event(bus_error(n));
+            q.push_event(rejected(n as u32));
+            q.push_state(id(7), false);
+        }
+        q.push_state(id(8), true);
+        q.push_state(id(7), true);
+        let c = q.counters();
+        assert_eq!(
+            (
+                c.dropped,
+                c.answers_waiting,
+                c.events_waiting,
+                c.states_waiting
+            ),
+            (3, 5, 2, 2)
+        );
+        assert_eq!(c.dropped_by_event.get("bus_error"), Some(&3));
+        let mut order = Vec::new();
+        while let Some(n) = q.pop() {
+            order.push(match n {
+                Next::Event(Event::BusError(b)) => format!("e{}", b.count.unwrap()),
+                Next::Event(Event::CommandRejected(r)) => format!("a{}", r.request_id.unwrap()),
+                Next::Event(e) => panic!("{e:?}"),
+                Next::State { id, forced } => format!("s{id}{}", if forced { "!" } else { "" }),
+            });
+        }
+        // Node 7's one entry keeps its first place and became forced; the kept events are the newest.
+        assert_eq!(
+            order,
+            ["a0", "s7!", "a1", "a2", "e3", "a3", "e4", "a4", "s8!"]
+        );
+        let (n, by) = q.take_unreported();
+        assert_eq!((n, by.get("bus_error")), (3, Some(&3)));
+        assert!(!q.has_unreported());
+    }
+
+    #[test]
+    fn transmit_window_bounds_frames_beyond_recall() {
+        use ihex_proto::Message;
+        let t0 = Instant::now();
+        let mut t = TransmitQueue::new(3);
+        let frame = |seq| Packet::command(id(2), Message::Identify { seq, seconds: 1 });
+        for seq in 0..(TRANSMIT_WINDOW as u8 + 4) {
+            t.push(frame(seq), None);
+        }
+        assert_eq!(t.queued(), 3);
+        assert_eq!(t.take_refused().len(), TRANSMIT_WINDOW + 1);
+        let mut t = TransmitQueue::new(64);
+        for seq in 0..(TRANSMIT_WINDOW as u8 + 2) {
+            t.push(frame(seq), None);
+        }
+        for _ in 0..TRANSMIT_WINDOW {
+            assert!(matches!(t.pop(t0), Some(Ok(_))));
+        }
+        assert!(t.pop(t0).is_none(), "the window is full");
+        assert!(t.settle(&frame(0)));
+        assert!(!t.settle(&frame(0)), "settled once");
+        assert_eq!(
+            t.pop(t0).unwrap().unwrap().packet,
+            frame(TRANSMIT_WINDOW as u8)
+        );
+        // A frame past its deadline is not handed out; it waits to be withdrawn.
+        let late = frame(200);
+        let mut t = TransmitQueue::new(4);
+        t.push(late, Some(t0));
+        assert_eq!(t.pop(t0), Some(Err(late)));
+        assert!(t.withdraw(&late));
+        assert!(t.pop(t0).is_none());
     }
 }

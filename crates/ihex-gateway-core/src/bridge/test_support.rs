@@ -36,12 +36,27 @@ impl Out {
     }
 }
 
-/// Drains every output, serialising publications the way the adapter does (once, `to_json`).
+/// Drains every output as a healthy adapter does: every frame is written and confirmed on the bus
+/// at once (at the time of the last input), publications are serialised once (`to_json`).
 pub(super) fn drain(b: &mut Bridge) -> Out {
+    drain_with(b, true)
+}
+
+/// [`drain`], but the frames are handed out and left unconfirmed (the window fills).
+pub(super) fn drain_unconfirmed(b: &mut Bridge) -> Out {
+    drain_with(b, false)
+}
+
+fn drain_with(b: &mut Bridge, confirm: bool) -> Out {
     let mut out = Out::default();
-    while let Some(p) = b.poll_transmit() {
+    let now = b.now;
+    while let Some(t) = b.poll_transmit(now) {
+        let p = t.packet;
         p.validate().expect("the bridge only sends valid packets");
-        out.sent.push(p)
+        out.sent.push(p);
+        if confirm {
+            b.handle_transmitted(p, now);
+        }
     }
     while let Some(p) = b.poll_publication() {
         let payload = p.to_json();

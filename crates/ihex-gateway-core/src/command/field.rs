@@ -2,6 +2,8 @@
 //! it is read, every mistake a [`CommandError`] worded for the person who sent the command (the
 //! field, what it accepts, what it got) — never a parser's internals.
 
+use std::time::Duration;
+
 use ihex_proto::unit;
 
 use super::json::{Json, Quote};
@@ -15,6 +17,29 @@ pub(super) struct Fields<'a> {
     members: &'a [(String, Json)],
 }
 
+/// Fields every command may have: `cmd`, then those listed as accepted besides its own.
+pub(super) const COMMON: [&str; 3] = ["cmd", "request_id", "ttl_ms"];
+
+/// `ttl_ms` of `cmd`'s object (already checked for repeats by [`Fields::new`]).
+pub(super) fn ttl(
+    cmd: &'static str,
+    members: &[(String, Json)],
+) -> Result<Option<Duration>, CommandError> {
+    let f = Fields {
+        cmd,
+        prefix: "",
+        members,
+    };
+    let max = i64::from(super::MAX_TTL_MS);
+    let ms = f.int("ttl_ms", 1, max).map_err(|_| {
+        let got = f.get("ttl_ms").unwrap_or(&Json::Null);
+        f.bad("ttl_ms", &format!("an integer 1 to {max}, in ms"), got)
+    })?;
+    Ok(ms
+        .and_then(|ms| u64::try_from(ms).ok())
+        .map(Duration::from_millis))
+}
+
 /// What a duration field accepts.
 pub(super) fn ms_expected() -> String {
     format!(
@@ -26,8 +51,8 @@ pub(super) fn ms_expected() -> String {
 
 impl<'a> Fields<'a> {
     /// The members of `cmd`'s object; refuses a repeated name, and any name not in `allowed`
-    /// (`cmd` and `request_id` are read before and allowed everywhere; `hint` follows the list of
-    /// accepted names in the reason).
+    /// (the [`COMMON`] fields are allowed in every command; `hint` follows the list of accepted
+    /// names in the reason).
     pub(super) fn new(
         cmd: &'static str,
         prefix: &'static str,
@@ -45,11 +70,11 @@ impl<'a> Fields<'a> {
                     ),
                 });
             }
-            let common = top && (name == "cmd" || name == "request_id");
+            let common = top && COMMON.contains(&name.as_str());
             if !common && !allowed.contains(&name.as_str()) {
                 let mut accepted = allowed.to_vec();
                 if top {
-                    accepted.push("request_id");
+                    accepted.extend(&COMMON[1..]);
                 }
                 return Err(CommandError::Invalid {
                     cmd,

@@ -5,7 +5,9 @@
 
 use std::fmt;
 
-use serde::de::{self, Deserialize, Deserializer, MapAccess, SeqAccess, Visitor};
+use serde::de::{
+    self, Deserialize, DeserializeSeed, Deserializer, IgnoredAny, MapAccess, SeqAccess, Visitor,
+};
 use serde_json::Number;
 
 /// A JSON value, objects as member lists.
@@ -161,6 +163,99 @@ impl<'de> Visitor<'de> for JsonVisitor {
     }
 }
 
+/// The first string-valued member `key` of the top-level object in `bytes`, read as far as the
+/// text is valid JSON (a syntax error after it, or a cut, does not lose it). Other values are
+/// skipped without being stored, so this costs no memory whatever the size.
+pub fn top_level_string(bytes: &[u8], key: &str) -> Option<String> {
+    let mut found = None;
+    let mut de = serde_json::Deserializer::from_slice(bytes);
+    // An error only ends the scan: what was found before it stands.
+    let _ = de.deserialize_any(Finder {
+        key,
+        found: &mut found,
+    });
+    found
+}
+
+/// Visits the top-level object, keeping the first string value of `key`.
+struct Finder<'a> {
+    key: &'a str,
+    found: &'a mut Option<String>,
+}
+
+impl<'de> Visitor<'de> for Finder<'_> {
+    type Value = ();
+
+    fn expecting(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str("a JSON object")
+    }
+
+    fn visit_map<A: MapAccess<'de>>(self, mut map: A) -> Result<(), A::Error> {
+        while let Some(k) = map.next_key::<std::borrow::Cow<'de, str>>()? {
+            if k == self.key && self.found.is_none() {
+                map.next_value_seed(StringOrSkip(self.found))?;
+            } else {
+                map.next_value::<IgnoredAny>()?;
+            }
+        }
+        Ok(())
+    }
+}
+
+/// A value that is stored when it is a string and skipped otherwise.
+struct StringOrSkip<'a>(&'a mut Option<String>);
+
+impl<'de> DeserializeSeed<'de> for StringOrSkip<'_> {
+    type Value = ();
+
+    fn deserialize<D: Deserializer<'de>>(self, d: D) -> Result<(), D::Error> {
+        d.deserialize_any(self)
+    }
+}
+
+impl<'de> Visitor<'de> for StringOrSkip<'_> {
+    type Value = ();
+
+    fn expecting(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str("any JSON value")
+    }
+
+    fn visit_str<E: de::Error>(self, v: &str) -> Result<(), E> {
+        *self.0 = Some(v.to_owned());
+        Ok(())
+    }
+
+    fn visit_bool<E: de::Error>(self, _: bool) -> Result<(), E> {
+        Ok(())
+    }
+
+    fn visit_i64<E: de::Error>(self, _: i64) -> Result<(), E> {
+        Ok(())
+    }
+
+    fn visit_u64<E: de::Error>(self, _: u64) -> Result<(), E> {
+        Ok(())
+    }
+
+    fn visit_f64<E: de::Error>(self, _: f64) -> Result<(), E> {
+        Ok(())
+    }
+
+    fn visit_unit<E: de::Error>(self) -> Result<(), E> {
+        Ok(())
+    }
+
+    fn visit_seq<A: SeqAccess<'de>>(self, mut seq: A) -> Result<(), A::Error> {
+        while seq.next_element::<IgnoredAny>()?.is_some() {}
+        Ok(())
+    }
+
+    fn visit_map<A: MapAccess<'de>>(self, mut map: A) -> Result<(), A::Error> {
+        while map.next_entry::<IgnoredAny, IgnoredAny>()?.is_some() {}
+        Ok(())
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -181,6 +276,46 @@ mod tests {
         assert_eq!(q.chars().count(), QUOTE_MAX + 1);
         assert!(q.ends_with('…'));
         assert_eq!(Quote(&Json::Number(7.into())).to_string(), "7");
+    }
+
+    #[test]
+    fn a_top_level_string_is_found_before_any_error() {
+        let find = |t: &str| top_level_string(t.as_bytes(), "request_id");
+        assert_eq!(
+            find(r#"{"a":[1,{"request_id":"inner"}],"request_id":"r1"}"#).as_deref(),
+            Some("r1")
+        );
+        assert_eq!(
+            find(r#"{"request_id":"r2","cmd": oops"#).as_deref(),
+            Some("r2")
+        );
+        assert_eq!(
+            find(r#"{"request_id":"r3","request_id":"r4"}"#).as_deref(),
+            Some("r3")
+        );
+        assert_eq!(
+            find(r#"{"request_id":7,"request_id":"r5"}"#).as_deref(),
+            Some("r5")
+        );
+        assert_eq!(find(r#"{"cmd":"led","#), None);
+        assert_eq!(find(r#"["request_id","x"]"#), None);
+        assert_eq!(find("not json"), None);
+        let big = format!(r#"{{"request_id":"big","pad":"{}"}}"#, "x".repeat(1 << 20));
+        assert_eq!(
+            find(&big[..1 << 19]).as_deref(),
+            Some("big"),
+            "a cut text keeps what was read"
+        );
+        let bytes = [
+            br#"{"request_id":"r6","x":""#.as_slice(),
+            &[0xff, 0xfe],
+            br#""}"#,
+        ]
+        .concat();
+        assert_eq!(
+            top_level_string(&bytes, "request_id").as_deref(),
+            Some("r6")
+        );
     }
 
     #[test]

@@ -8,6 +8,8 @@
 mod field;
 pub mod json;
 
+use std::time::Duration;
+
 use ihex_proto::{BuzzerCommand, LedCommand, Message, NodeId, Rgb, Seq, Uid};
 
 use crate::event::{HexId, Target};
@@ -83,6 +85,14 @@ pub enum CommandError {
          with one id on the bus (add \"force\": true to assign anyway)"
     )]
     IdInUse(HexId),
+    /// A retained message on the command topic: never executed, because the broker hands it out
+    /// again on every subscription (each gateway start and reconnect).
+    #[error(
+        "retained message on the command topic: not executed (a retained command would run again \
+         at every gateway start and reconnect); publish commands without the retain flag, and clear \
+         this one by publishing an empty retained message to the topic"
+    )]
+    Retained,
     /// Too many unanswered commands of one kind to one node: every sequence number is in use.
     #[error(
         "{cmd}: 256 {cmd} commands to node {node} are still unanswered; wait for their results"
@@ -164,11 +174,13 @@ impl Command {
     }
 }
 
-/// A command and its optional request id.
+/// A command and its optional request id and time to live.
 #[derive(Clone, PartialEq, Eq, Debug)]
 pub struct Request {
     /// Echoed in `command_result` / `node_list`.
     pub request_id: Option<String>,
+    /// `ttl_ms`: after this long from its receipt the command is never sent (`expired`).
+    pub ttl: Option<Duration>,
     /// What to do.
     pub command: Command,
 }
@@ -201,13 +213,26 @@ const POWER_FIELDS: &[&str] = &["node", "on"];
 const IDENTIFY_FIELDS: &[&str] = &["node", "seconds"];
 const ASSIGN_FIELDS: &[&str] = &["uid", "new_id", "force"];
 
+/// Largest `ttl_ms`, ms (an hour: a command that may wait longer has no deadline worth the name).
+pub const MAX_TTL_MS: u32 = 3_600_000;
+
+/// How much of a payload [`request_id`] reads at most.
+pub const REQUEST_ID_SCAN: usize = 1 << 20;
+
+/// The `request_id` of a payload that is not (or not only) a valid command, when it can be read:
+/// the first string-valued top-level member `request_id` of a JSON object among the first
+/// [`REQUEST_ID_SCAN`] bytes, before any syntax error (the rest is skipped, not stored).
+pub fn request_id(payload: &[u8]) -> Option<String> {
+    json::top_level_string(&payload[..payload.len().min(REQUEST_ID_SCAN)], "request_id")
+}
+
 /// Parses and validates one command payload. Node existence is not checked here (the registry is the
 /// bridge's); everything else is.
 pub fn parse(payload: &[u8], max_bytes: usize) -> Result<Request, Rejection> {
     let reject = |request_id: Option<String>, error| Rejection { request_id, error };
     if payload.len() > max_bytes {
         return Err(reject(
-            None,
+            request_id(payload),
             CommandError::TooLarge {
                 len: payload.len(),
                 max: max_bytes,
@@ -215,8 +240,9 @@ pub fn parse(payload: &[u8], max_bytes: usize) -> Result<Request, Rejection> {
         ));
     }
     let text = std::str::from_utf8(payload)
-        .map_err(|e| reject(None, CommandError::NotUtf8(e.valid_up_to())))?;
-    let value = Json::parse(text).map_err(|e| reject(None, CommandError::Json(e.to_string())))?;
+        .map_err(|e| reject(request_id(payload), CommandError::NotUtf8(e.valid_up_to())))?;
+    let value = Json::parse(text)
+        .map_err(|e| reject(request_id(payload), CommandError::Json(e.to_string())))?;
     let Json::Object(members) = value else {
         return Err(reject(None, CommandError::NotObject(value.kind())));
     };
@@ -242,9 +268,11 @@ pub fn parse(payload: &[u8], max_bytes: usize) -> Result<Request, Rejection> {
         Ok(Some(Json::String(cmd))) => command(cmd, &members),
         Ok(Some(other)) => Err(CommandError::UnknownCmd(Quote(other).to_string())),
     };
-    match command {
-        Ok(command) => Ok(Request {
+    let ttl = command.and_then(|c| Ok((c, field::ttl(c.name(), &members)?)));
+    match ttl {
+        Ok((command, ttl)) => Ok(Request {
             request_id,
+            ttl,
             command,
         }),
         Err(error) => Err(reject(request_id, error)),

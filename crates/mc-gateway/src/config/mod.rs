@@ -83,7 +83,7 @@ options! {
     /// How long to wait for a mobile element's handshake after confirming a docking, ms.
     dock_timeout_ms: u64 = {ms(bridge::DEFAULT_DOCK_TIMEOUT)}, env "IHEX_DOCK_TIMEOUT_MS",
         value "MS", range 10..=600000;
-    /// How long to wait for a node's acknowledgement of a command, ms.
+    /// How long a command may wait for the bus, and then for the node's acknowledgement, ms.
     command_timeout_ms: u64 = {ms(bridge::DEFAULT_COMMAND_TIMEOUT)},
         env "IHEX_COMMAND_TIMEOUT_MS", value "MS", range 1..=600000;
     /// Largest accepted command payload, bytes (larger ones are `command_rejected`).
@@ -92,11 +92,14 @@ options! {
     /// Receive buffer asked for on the CAN socket (`SO_RCVBUFFORCE` as root, else `SO_RCVBUF`),
     /// bytes.
     rx_buffer: usize = 4194304, env "IHEX_RX_BUFFER", value "BYTES", range 4096..=268435456;
-    /// Frames the CAN transmit queue holds before sends fail.
-    tx_queue: usize = 256, env "IHEX_TX_QUEUE", value "FRAMES", range 1..=65536;
-    /// Publications held while the broker is unreachable before the oldest are dropped (and
-    /// counted).
-    mqtt_queue: usize = 1024, env "IHEX_MQTT_QUEUE", value "N", range 1..=1048576;
+    /// Frames the CAN transmit queue holds before further frames fail (`not sent: CAN transmit
+    /// queue full`).
+    tx_queue: usize = {bridge::DEFAULT_TX_QUEUE}, env "IHEX_TX_QUEUE", value "FRAMES",
+        range 1..=65536;
+    /// Events held while the broker is slow or unreachable before the oldest are dropped (counted,
+    /// reported as `publications_dropped`); answers and state documents are never dropped.
+    mqtt_queue: usize = {bridge::DEFAULT_EVENT_QUEUE}, env "IHEX_MQTT_QUEUE", value "N",
+        range 1..=1048576;
     /// Directory of the JSON-lines log (`mc-gateway.<date>.jsonl`, rotated); `-` = no file (the
     /// Pi's service uses `/var/log/ihex`).
     log_dir: String = (text "`$XDG_STATE_HOME/ihex`, else `~/.local/state/ihex`"),
@@ -237,8 +240,6 @@ pub struct MqttConfig {
     pub tls: Option<Option<PathBuf>>,
     /// Keep-alive interval.
     pub keep_alive: Duration,
-    /// Publications held while disconnected.
-    pub queue: usize,
 }
 
 /// CAN side settings.
@@ -250,8 +251,6 @@ pub struct CanConfig {
     pub bitrate: u32,
     /// Receive buffer asked for, bytes.
     pub rx_buffer: usize,
-    /// Transmit queue length, frames.
-    pub tx_queue: usize,
 }
 
 /// When the log file rotates.
@@ -449,6 +448,8 @@ impl Config {
             dock_timeout: Duration::from_millis(s.dock_timeout_ms),
             command_timeout: Duration::from_millis(s.command_timeout_ms),
             max_command_bytes: s.max_command_bytes,
+            tx_queue: s.tx_queue,
+            event_queue: s.mqtt_queue,
         };
 
         let dir = match s.log_dir.as_deref() {
@@ -484,13 +485,11 @@ impl Config {
                 credentials,
                 tls,
                 keep_alive: Duration::from_secs(s.keep_alive),
-                queue: s.mqtt_queue,
             },
             can: CanConfig {
                 link,
                 bitrate: s.bitrate,
                 rx_buffer: s.rx_buffer,
-                tx_queue: s.tx_queue,
             },
             island: s.island.clone(),
             topics,
