@@ -114,14 +114,14 @@ pub fn native_interfaces(create: bool) -> Option<Vec<String>> {
     (!names.is_empty()).then_some(names)
 }
 
-/// The `vcan` stage.
-pub fn stage(mode: Mode, vm: VmSettings) -> Result<()> {
+/// The `vcan` stage: every SocketCAN test binary, or only the integration test `only`.
+pub fn stage(mode: Mode, vm: VmSettings, only: Option<&str>) -> Result<()> {
     let native = match mode {
         Mode::Vm => None,
         _ => native_interfaces(true),
     };
     match (native, mode) {
-        (Some(ifaces), _) => run_native(&ifaces),
+        (Some(ifaces), _) => run_native(&ifaces, only),
         (None, Mode::Native) => bail!(
             "IHEX_VCAN=native but this kernel cannot create vcan interfaces \
              (try `sudo modprobe vcan`, or unset IHEX_VCAN to use the microVM)"
@@ -130,18 +130,27 @@ pub fn stage(mode: Mode, vm: VmSettings) -> Result<()> {
             println!(
                 "xtask: no vcan on this kernel: running the SocketCAN tests in a QEMU microVM"
             );
-            run_in_vm(vm)
+            run_in_vm(vm, only)
         }
     }
 }
 
-fn run_native(ifaces: &[String]) -> Result<()> {
+fn run_native(ifaces: &[String], only: Option<&str>) -> Result<()> {
     println!("xtask: native SocketCAN on {}", ifaces.join(","));
+    // The fault suite runs the gateway binary; the tests find it beside their `deps/` folder.
+    cmd::run(
+        cmd::cargo()
+            .current_dir(cmd::root())
+            .args(["build", "-p", "mc-gateway"]),
+    )?;
     let broker = HostBroker::start()?;
     let mut c = cmd::cargo();
     c.current_dir(cmd::root())
         .args(["test", "-p", "ihex-tests", "--features", "vcan"])
         .env("IHEX_TEST_CAN", ifaces.join(","));
+    if let Some(test) = only {
+        c.args(["--test", test]);
+    }
     if let Some(b) = &broker {
         c.env("IHEX_TEST_MQTT", b.addr.to_string());
     }
@@ -227,6 +236,26 @@ fn guest_env(broker: Option<&HostBroker>) -> Vec<(String, String)> {
     env
 }
 
+/// Builds the `mc-gateway` binary for the musl target (the fault suite runs it in the VM) and
+/// returns its path.
+fn build_musl_gateway() -> Result<PathBuf> {
+    cmd::run(cmd::cargo().current_dir(cmd::root()).args([
+        "build",
+        "-p",
+        "mc-gateway",
+        "--target",
+        MUSL,
+    ]))?;
+    let bin = cmd::target_dir()
+        .join(MUSL)
+        .join("debug")
+        .join("mc-gateway");
+    if !bin.is_file() {
+        bail!("cargo built no {}", bin.display());
+    }
+    Ok(bin)
+}
+
 /// Builds the SocketCAN test binaries for the musl target and returns them (name, path).
 fn build_musl_tests() -> Result<Vec<(String, PathBuf)>> {
     let mut c = cmd::cargo();
@@ -270,22 +299,28 @@ fn build_musl_tests() -> Result<Vec<(String, PathBuf)>> {
     Ok(bins)
 }
 
-fn run_in_vm(settings: VmSettings) -> Result<()> {
+fn run_in_vm(settings: VmSettings, only: Option<&str>) -> Result<()> {
+    let gateway = build_musl_gateway()?;
     let bins = build_musl_tests()?;
     let vm = test_vm(settings)?;
     let broker = HostBroker::start()?;
+    let mut env = guest_env(broker.as_ref());
+    env.push(("IHEX_GATEWAY_BIN".into(), gateway.display().to_string()));
+    let mut files = repo_files();
+    files.push(gateway);
     let payload = Payload {
         programs: bins
             .into_iter()
+            .filter(|(name, _)| only.is_none_or(|t| name == &format!("{t} (test)")))
             .map(|(name, path)| Program {
                 name,
                 path,
                 args: Vec::new(),
             })
             .collect(),
-        env: guest_env(broker.as_ref()),
+        env,
         cwd: Some(cmd::root().join("tests")),
-        files: repo_files(),
+        files,
     };
     let outcomes = vm.run(&payload)?;
     let failed: Vec<String> = outcomes

@@ -254,8 +254,9 @@ pub fn check(trace: &Trace) -> Report {
         .collect();
     report.commands = sent.len();
 
-    // Answers, in order.
+    // Answers, in order; and the failed dockings (the gateway then turns the relay off itself).
     let mut answers: Vec<Answered> = Vec::new();
+    let mut dock_failed: Vec<(Ms, NodeId)> = Vec::new();
     for r in &trace.records {
         let Entry::Received { topic, payload, .. } = &r.entry else {
             continue;
@@ -274,6 +275,10 @@ pub fn check(trace: &Trace) -> Report {
             ),
             Event::CommandRejected(c) => (c.request_id, None, Answer::Rejected(c.reason)),
             Event::NodeList(l) => (l.request_id, None, Answer::List),
+            Event::DockFailed(d) => {
+                dock_failed.push((r.at, d.node.0));
+                continue;
+            }
             _ => continue,
         };
         answers.push(Answered {
@@ -311,7 +316,18 @@ pub fn check(trace: &Trace) -> Report {
             by_rid.insert(rid, s.n);
         }
     }
-    // Answers without a request_id go to the oldest unanswered command of the same cmd and node.
+    // Answers without a request_id: a `command_result` goes to the oldest unanswered command of
+    // the same cmd and node that can still be answered; a rejection names no command, and comes
+    // at once, so it goes to the newest unanswered one sent before it.
+    let answerable = |at: Ms, s: &Sent, answer_at: Ms| {
+        s.request_id.is_none()
+            && at <= answer_at
+            && answer_at
+                <= windows.reached_gateway_by(at)
+                    + p.command_timeout_ms
+                    + 2 * p.slack_ms
+                    + 2 * windows.delay_at(at)
+    };
     let mut unmatched_null: Vec<&Answered> = Vec::new();
     for a in &answers {
         match &a.request_id {
@@ -327,14 +343,16 @@ pub fn check(trace: &Trace) -> Report {
                 }),
             },
             None => {
-                let target = sent.iter().find(|(at, s)| {
-                    s.request_id.is_none()
-                        && *at <= a.at
-                        && !answer_of.contains_key(&s.n)
-                        && a.what
-                            .as_ref()
-                            .is_some_and(|w| Some(w) == cmd_and_node(s).as_ref())
-                });
+                let open = |(at, s): &&(Ms, &Sent)| {
+                    answerable(*at, s, a.at) && !answer_of.contains_key(&s.n)
+                };
+                let target = match &a.what {
+                    Some(w) => sent
+                        .iter()
+                        .filter(open)
+                        .find(|(_, s)| Some(w) == cmd_and_node(s).as_ref()),
+                    None => sent.iter().filter(open).next_back(),
+                };
                 match target {
                     Some((_, s)) => answer_of.entry(s.n).or_default().push(a),
                     None => unmatched_null.push(a),
@@ -410,7 +428,14 @@ pub fn check(trace: &Trace) -> Report {
         }
     }
 
-    check_frames(trace, &sent, &answer_of, &windows, &mut report);
+    check_frames(
+        trace,
+        &sent,
+        &answer_of,
+        &windows,
+        &dock_failed,
+        &mut report,
+    );
     check_availability(trace, &faults, &recovered, &mut report);
     check_checkpoints(trace, &mut report);
     report.violations.sort_by_key(|v| (v.at, v.rule));
@@ -445,6 +470,7 @@ fn check_frames(
     sent: &[(Ms, &Sent)],
     answer_of: &BTreeMap<u32, Vec<&Answered>>,
     windows: &Windows,
+    dock_failed: &[(Ms, NodeId)],
     report: &mut Report,
 ) {
     let slack = trace.params.slack_ms;
@@ -471,6 +497,17 @@ fn check_frames(
             _ => continue,
         };
         report.frames += 1;
+        // A failed docking: the gateway turns the static element's relay off on its own and
+        // publishes `dock_failed` with it (delayed, like any event, while the session is broken).
+        if matches!(packet.msg, Message::PowerSet { on: false, .. })
+            && dock_failed.iter().any(|(at, node)| {
+                *node == packet.dest
+                    && r.at <= at + slack
+                    && *at <= windows.reached_gateway_by(r.at) + slack
+            })
+        {
+            continue;
+        }
         let candidates: Vec<&(Ms, &Sent, NodeId, NodeAction)> = actions
             .iter()
             .filter(|(at, _, dest, a)| {

@@ -85,7 +85,11 @@ pub struct Command {
 impl Command {
     /// The payload as published.
     pub fn payload(&self) -> String {
-        let mut p = self.action.strip_suffix('}').unwrap_or(&self.action).to_string();
+        let mut p = self
+            .action
+            .strip_suffix('}')
+            .unwrap_or(&self.action)
+            .to_string();
         if let Some(r) = &self.request_id {
             p.push_str(&format!(",\"request_id\":\"{r}\""));
         }

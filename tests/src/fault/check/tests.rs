@@ -295,6 +295,66 @@ fn answers_without_request_id_are_counted_per_command() {
 }
 
 #[test]
+fn a_rejection_without_request_id_goes_to_the_newest_open_command() {
+    let reject =
+        r#"{"event":"command_rejected","payload":{"request_id":null,"reason":"unknown node 2"}}"#;
+    // #1 is still waiting for its result when #2 is rejected: each gets one answer.
+    let mut t = T::new();
+    t.led(100, 1, [1, 0, 0], None)
+        .led(200, 2, [2, 0, 0], None)
+        .received(220, EVENTS, reject)
+        .result(900, None, "timeout");
+    assert!(t.check().ok(), "{}", t.check());
+    // A second rejection has no command left to own it.
+    t.received(230, EVENTS, reject);
+    t.trace.records.sort_by_key(|r| r.at);
+    assert_eq!(rules(&t.check()), [Rule::OneAnswer]);
+}
+
+#[test]
+fn a_late_answer_is_not_given_to_a_command_long_past_its_deadline() {
+    // #1 (lost: sent at 100, deadline 100 + 1000 + 2 × 500) cannot own an answer at 5000; #2 does.
+    let mut t = T::new();
+    t.led(100, 1, [1, 0, 0], None)
+        .led(4500, 2, [2, 0, 0], None)
+        .result(5000, None, "ok");
+    let r = t.check();
+    assert_eq!(rules(&r), [Rule::OneAnswer], "{r}");
+    assert!(r.violations[0].message.contains("#1"), "{r}");
+}
+
+#[test]
+fn a_relay_off_after_a_failed_docking_is_the_gateways_own() {
+    let off = |t: &mut T, at: Ms| {
+        let p = Packet {
+            src: NodeId::GATEWAY,
+            dest: id(0x111),
+            msg: Message::PowerSet { seq: 7, on: false },
+        };
+        let (raw, data) = p.encode();
+        t.at(
+            at,
+            Entry::Frame {
+                id: raw,
+                data: data.to_vec(),
+            },
+        );
+    };
+    let mut t = T::new();
+    off(&mut t, 1000);
+    assert_eq!(rules(&t.check()), [Rule::NoLateExecution]);
+    t.received(
+        1010,
+        EVENTS,
+        r#"{"event":"dock_failed","payload":{"node":"111","port":3,"reason":"handshake timeout"}}"#,
+    );
+    assert!(t.check().ok(), "{}", t.check());
+    // Not to another node, and not long after.
+    off(&mut t, 5000);
+    assert_eq!(rules(&t.check()), [Rule::NoLateExecution]);
+}
+
+#[test]
 fn an_answer_to_an_unknown_request_id_is_found() {
     let mut t = T::new();
     t.result(200, Some("ghost"), "ok");
