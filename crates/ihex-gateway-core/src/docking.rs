@@ -1,11 +1,17 @@
 //! The one-docking-at-a-time sequence (the seed's new-member mutex) and the record of docking
-//! connections. Inputs are dock reports, handshakes, confirm acks and time; outputs are [`Step`]s that
-//! the bridge turns into frames and events.
+//! connections. Inputs are dock reports, handshakes, confirm acks, time, and what static elements
+//! report of their ports when asked (state read-back); outputs are [`Step`]s that the bridge turns
+//! into frames and events.
+//!
+//! A connection becomes known in two ways: a docking completes (handshake: `new_connection`, and the
+//! static element is told its partner with `DockLink`), or a static element reports a link it was
+//! given earlier (read-back after a gateway restart or a bus outage: recorded *silently*, because
+//! that docking already existed and its `new_connection` was published when it happened).
 
 use std::collections::{BTreeMap, VecDeque};
 use std::time::{Duration, Instant};
 
-use ihex_proto::{NodeId, Port};
+use ihex_proto::{DockState, NodeId, Port};
 
 use crate::event::{Connection, End, HexId, Link};
 
@@ -44,6 +50,17 @@ pub enum Step {
     Connected(Connection),
     /// Publish `connection_removed`.
     Removed(Connection),
+    /// A connection learnt from a static element's report: recorded without an event (both
+    /// elements' state documents change).
+    Restored(Connection),
+    /// Send `DockLink { port, partner: none }` to the static `node`: the link it holds for that
+    /// port is no longer true (its mobile element was lost, or docked elsewhere).
+    Unlink {
+        /// The static element.
+        node: NodeId,
+        /// Its dock port.
+        port: Port,
+    },
     /// Publish `dock_failed`.
     Failed {
         /// The static element.
@@ -84,8 +101,15 @@ pub struct Docking {
     queue_cap: usize,
     pending: Option<Pending>,
     queue: VecDeque<(NodeId, Port)>,
-    /// (static, its port) -> (mobile, its port).
-    connections: BTreeMap<(NodeId, Port), (NodeId, Port)>,
+    /// (static, its port) -> the mobile element and its port, and when it was recorded.
+    connections: BTreeMap<(NodeId, Port), Record>,
+}
+
+/// A recorded connection, seen from its static element's port.
+#[derive(Clone, Copy, PartialEq, Eq, Debug)]
+struct Record {
+    mobile: (NodeId, Port),
+    since: Instant,
 }
 
 fn conn(stat: (NodeId, Port), mobile: (NodeId, Port)) -> Connection {
@@ -141,7 +165,13 @@ impl Docking {
     /// The connections of `id`, seen from `id` (as static or as mobile element).
     pub fn links_of(&self, id: NodeId) -> Vec<Link> {
         let mut links = Vec::new();
-        for (&(s, sp), &(m, mp)) in &self.connections {
+        for (
+            &(s, sp),
+            &Record {
+                mobile: (m, mp), ..
+            },
+        ) in &self.connections
+        {
             if s == id {
                 links.push(Link {
                     port: sp.get(),
@@ -162,14 +192,17 @@ impl Docking {
 
     /// Every recorded connection.
     pub fn connections(&self) -> Vec<Connection> {
-        self.connections.iter().map(|(&s, &m)| conn(s, m)).collect()
+        self.connections
+            .iter()
+            .map(|(&s, r)| conn(s, r.mobile))
+            .collect()
     }
 
     fn start(&mut self, node: NodeId, port: Port, now: Instant, out: &mut Vec<Step>) {
         // A new docking on a port that still has a recorded connection means the old element left
         // without a DockRemoved reaching us.
-        if let Some(m) = self.connections.remove(&(node, port)) {
-            out.push(Step::Removed(conn((node, port), m)));
+        if let Some(r) = self.connections.remove(&(node, port)) {
+            out.push(Step::Removed(conn((node, port), r.mobile)));
         }
         self.pending = Some(Pending {
             node,
@@ -205,8 +238,8 @@ impl Docking {
     pub fn on_removed(&mut self, node: NodeId, port: Port, now: Instant) -> Vec<Step> {
         let mut out = Vec::new();
         self.queue.retain(|&q| q != (node, port));
-        if let Some(m) = self.connections.remove(&(node, port)) {
-            out.push(Step::Removed(conn((node, port), m)));
+        if let Some(r) = self.connections.remove(&(node, port)) {
+            out.push(Step::Removed(conn((node, port), r.mobile)));
         }
         if let Some(p) = self.pending {
             if p.node == node && p.port == port {
@@ -240,18 +273,16 @@ impl Docking {
             });
             return out;
         }
-        // A mobile element is docked by one port at a time: a previous record of that port is stale.
-        let stale: Vec<_> = self
-            .connections
-            .iter()
-            .filter(|(_, &m)| m == (node, port))
-            .map(|(&s, &m)| (s, m))
-            .collect();
-        for (s, m) in stale {
-            self.connections.remove(&s);
-            out.push(Step::Removed(conn(s, m)));
-        }
-        self.connections.insert((p.node, p.port), (node, port));
+        // A mobile element is docked by one port at a time: a previous record of that port is stale,
+        // and so is the link its static element may still hold.
+        self.forget_mobile((node, port), &mut out);
+        self.connections.insert(
+            (p.node, p.port),
+            Record {
+                mobile: (node, port),
+                since: now,
+            },
+        );
         out.push(Step::Connected(conn((p.node, p.port), (node, port))));
         self.next(now, &mut out);
         out
@@ -301,15 +332,91 @@ impl Docking {
         let gone: Vec<_> = self
             .connections
             .iter()
-            .filter(|(_, &(m, _))| m == node)
-            .map(|(&s, &m)| (s, m))
+            .filter(|(_, r)| r.mobile.0 == node)
+            .map(|(&s, r)| (s, r.mobile))
             .collect();
-        gone.into_iter()
-            .map(|(s, m)| {
-                self.connections.remove(&s);
-                Step::Removed(conn(s, m))
+        let mut out = Vec::new();
+        for (s, m) in gone {
+            self.connections.remove(&s);
+            out.push(Step::Removed(conn(s, m)));
+            out.push(Step::Unlink {
+                node: s.0,
+                port: s.1,
+            });
+        }
+        out
+    }
+
+    /// Removes every record of the mobile element's `end` (it is docked once at most), asking the
+    /// static elements concerned to forget their link.
+    fn forget_mobile(&mut self, end: (NodeId, Port), out: &mut Vec<Step>) {
+        let stale: Vec<_> = self
+            .connections
+            .iter()
+            .filter(|(_, r)| r.mobile.0 == end.0)
+            .map(|(&s, r)| (s, r.mobile))
+            .collect();
+        for (s, m) in stale {
+            self.connections.remove(&s);
+            out.push(Step::Removed(conn(s, m)));
+            out.push(Step::Unlink {
+                node: s.0,
+                port: s.1,
+            });
+        }
+    }
+
+    /// What the static element `node` reported of its ports when asked at `asked` (every port it
+    /// did not list is open, unconfirmed and unlinked): a link it holds that the record lacks is
+    /// restored silently; a record of a port that is no longer linked, made before the question,
+    /// ends (`connection_removed`). The docking in progress is left alone.
+    pub fn reconcile(
+        &mut self,
+        node: NodeId,
+        reported: &[(Port, DockState)],
+        asked: Instant,
+    ) -> Vec<Step> {
+        let mut out = Vec::new();
+        let pending = self.pending.map(|p| (p.node, p.port));
+        let gone: Vec<_> = self
+            .connections
+            .iter()
+            .filter(|(&(s, sp), r)| {
+                s == node
+                    && r.since < asked
+                    && Some((s, sp)) != pending
+                    && !reported.iter().any(|(p, st)| {
+                        *p == sp && st.partner.map(|m| (m.node, m.port)) == Some(r.mobile)
+                    })
             })
-            .collect()
+            .map(|(&s, r)| (s, r.mobile))
+            .collect();
+        for (s, m) in gone {
+            self.connections.remove(&s);
+            out.push(Step::Removed(conn(s, m)));
+        }
+        for &(port, state) in reported {
+            let Some(m) = state.partner else { continue };
+            let mobile = (m.node, m.port);
+            let known = self.connections.get(&(node, port)).map(|r| r.mobile);
+            if known == Some(mobile) || Some((node, port)) == pending {
+                continue;
+            }
+            if let Some(old) = known {
+                self.connections.remove(&(node, port));
+                out.push(Step::Removed(conn((node, port), old)));
+            }
+            self.forget_mobile(mobile, &mut out);
+            self.connections.insert(
+                (node, port),
+                Record {
+                    mobile,
+                    since: asked,
+                },
+            );
+            out.push(Step::Restored(conn((node, port), mobile)));
+        }
+        out
     }
 
     /// Handshake timeout.
@@ -554,8 +661,78 @@ mod tests {
         );
         assert_eq!(
             d.on_lost(id(3)),
-            vec![Step::Removed(conn((id(1), port(0)), (id(3), port(1))))]
+            vec![
+                Step::Removed(conn((id(1), port(0)), (id(3), port(1)))),
+                Step::Unlink {
+                    node: id(1),
+                    port: port(0)
+                }
+            ]
         );
         assert!(d.connections().is_empty());
+    }
+
+    fn linked(m: u16, mp: u8) -> DockState {
+        DockState {
+            closed: true,
+            confirmed: true,
+            partner: Some(ihex_proto::DockPartner {
+                node: id(m),
+                port: port(mp),
+            }),
+        }
+    }
+
+    #[test]
+    fn a_static_elements_report_restores_links_silently_and_ends_stale_records() {
+        let t0 = Instant::now();
+        let later = t0 + Duration::from_secs(1);
+        let mut d = Docking::new(T, 4);
+        // A restarted gateway knows nothing; 0x111 reports mobile 2 (port 0) on its port 3.
+        let steps = d.reconcile(id(0x111), &[(port(3), linked(2, 0))], t0);
+        let c = conn((id(0x111), port(3)), (id(2), port(0)));
+        assert_eq!(steps, vec![Step::Restored(c)]);
+        assert_eq!(d.connections(), vec![c]);
+        // The same report again changes nothing.
+        assert!(d
+            .reconcile(id(0x111), &[(port(3), linked(2, 0))], later)
+            .is_empty());
+        // A closed port without a link is not a connection; the recorded one is gone.
+        let open = DockState {
+            closed: true,
+            confirmed: true,
+            partner: None,
+        };
+        assert_eq!(
+            d.reconcile(id(0x111), &[(port(3), open)], later),
+            vec![Step::Removed(c)]
+        );
+        // A record made after the question was asked is not judged by its answer.
+        d.on_detected(id(0x111), port(1), later);
+        d.on_handshake(id(5), port(0), later);
+        assert!(d.reconcile(id(0x111), &[], t0).is_empty());
+        assert_eq!(d.connections().len(), 1);
+        // A mobile element reported on a new port is no longer where it was recorded.
+        let steps = d.reconcile(id(0x112), &[(port(0), linked(5, 0))], later + T);
+        assert_eq!(
+            steps,
+            vec![
+                Step::Removed(conn((id(0x111), port(1)), (id(5), port(0)))),
+                Step::Unlink {
+                    node: id(0x111),
+                    port: port(1)
+                },
+                Step::Restored(conn((id(0x112), port(0)), (id(5), port(0)))),
+            ]
+        );
+        // The docking in progress is left alone.
+        d.on_detected(id(0x112), port(4), later + T);
+        assert!(d
+            .reconcile(
+                id(0x112),
+                &[(port(0), linked(5, 0)), (port(4), linked(9, 0))],
+                later + T
+            )
+            .is_empty());
     }
 }

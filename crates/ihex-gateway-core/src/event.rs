@@ -512,6 +512,17 @@ pub struct Reported {
     pub uptime_s: u32,
 }
 
+/// The firmware a node runs, as it reports it.
+#[derive(Clone, PartialEq, Eq, Debug, Serialize, Deserialize)]
+pub struct Firmware {
+    /// `"major.minor.patch"`.
+    pub version: String,
+    /// Running a trial image that has not confirmed itself yet.
+    pub trial: bool,
+    /// The first 7 bytes of the running image's hash, 14 hex digits (all zero: unknown).
+    pub image_hash: String,
+}
+
 /// A docking connection seen from one element: its port, and who is at the other end on which port.
 #[derive(Clone, PartialEq, Eq, Debug, Serialize, Deserialize)]
 pub struct Link {
@@ -534,13 +545,20 @@ pub struct NodeState {
     pub role: Option<Role>,
     /// Number of dock ports, from its `BootUp`.
     pub ports: Option<u8>,
-    /// Firmware/protocol version `"major.minor"`, from its `BootUp`.
+    /// Protocol version `"major.minor"`, from its `BootUp`.
     pub version: Option<String>,
-    /// LED state last acknowledged by the node.
+    /// The firmware it runs, read back from the node (`null` until read, or from a node that
+    /// cannot be asked).
+    pub firmware: Option<Firmware>,
+    /// The board's 96-bit unique ID, 24 hex digits, read back from the node (what `assign`
+    /// selects a board by).
+    pub uid: Option<String>,
+    /// The LED state: read back from the node, or last acknowledged by it, whichever is newer.
     pub led: Option<LedState>,
-    /// Buzzer state last acknowledged by the node.
+    /// The buzzer state: read back from the node, or last acknowledged by it, whichever is newer.
     pub buzzer: Option<BuzzerState>,
-    /// Relay state: last acknowledged `power` command or last health report, whichever is newer.
+    /// Relay state: read back, last acknowledged `power` command or last health report, whichever
+    /// is newer.
     pub relay: Option<bool>,
     /// Dock ports whose signal loop is closed (something docked), ascending.
     pub loops: Vec<u8>,

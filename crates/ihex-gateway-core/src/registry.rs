@@ -4,9 +4,11 @@
 use std::collections::BTreeMap;
 use std::time::Instant;
 
-use ihex_proto::{BootRole, BuzzerCommand, HealthFlags, HealthReply, LedCommand, NodeId};
+use ihex_proto::{
+    BootRole, BuzzerCommand, FirmwareVersion, HealthFlags, HealthReply, LedCommand, NodeId, Uid,
+};
 
-use crate::event::{HexId, Link, NodeState, Reported, Role};
+use crate::event::{Firmware, HexId, Link, NodeState, Reported, Role};
 
 /// How a frame from a node changed its standing.
 #[derive(Clone, Copy, PartialEq, Eq, Debug)]
@@ -38,8 +40,14 @@ pub struct NodeEntry {
     pub role: Option<BootRole>,
     /// Dock port count from `BootUp`.
     pub ports: Option<u8>,
-    /// Version from `BootUp`.
+    /// Protocol version from `BootUp`.
     pub version: Option<(u8, u8)>,
+    /// Firmware version and trial flag, read back.
+    pub firmware: Option<(FirmwareVersion, bool)>,
+    /// First 7 bytes of the running image's hash, read back.
+    pub image_hash: Option<[u8; 7]>,
+    /// Unique ID, read back.
+    pub uid: Option<Uid>,
     /// The last health report.
     pub health: Option<HealthReply>,
     /// LED command last acknowledged.
@@ -50,6 +58,8 @@ pub struct NodeEntry {
     pub relay: Option<bool>,
     /// Signal-loop bitmap (bit n = port n closed).
     pub loops: u8,
+    /// When an acknowledgement last changed `led`, `buzzer` or `relay`.
+    pub acked_at: Option<Instant>,
     /// The stable part of the state document last published (see [`Registry::state_changed`]).
     published: Option<NodeState>,
 }
@@ -67,11 +77,15 @@ impl NodeEntry {
             role: None,
             ports: None,
             version: None,
+            firmware: None,
+            image_hash: None,
+            uid: None,
             health: None,
             led: None,
             buzzer: None,
             relay: None,
             loops: 0,
+            acked_at: None,
             published: None,
         }
     }
@@ -99,6 +113,17 @@ impl NodeEntry {
             role: self.role(),
             ports: self.ports,
             version: self.version.map(|(a, b)| format!("{a}.{b}")),
+            firmware: self.firmware.map(|(version, trial)| Firmware {
+                version: version.to_string(),
+                trial,
+                image_hash: self
+                    .image_hash
+                    .unwrap_or_default()
+                    .iter()
+                    .map(|b| format!("{b:02x}"))
+                    .collect(),
+            }),
+            uid: self.uid.map(|u| u.to_string()),
             led: self.led.map(Into::into),
             buzzer: self.buzzer.map(Into::into),
             relay: self.relay,

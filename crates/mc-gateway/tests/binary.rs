@@ -281,6 +281,38 @@ fn a_can_interface_alone_warns_that_the_lab_broker_is_used() {
     assert!(warned.is_some(), "no warning naming the lab broker");
 }
 
+/// A broker nobody listens on is a warning at the default log level that names it and what to
+/// check (it was a debug line: the gateway said "running" and then nothing).
+#[test]
+fn an_unreachable_broker_is_a_warning_at_the_default_level() {
+    // A port that was free a moment ago: nothing accepts connections there.
+    let port = TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let broker = format!("127.0.0.1:{port}");
+    let mut child = Command::new(BIN)
+        .args(["--can", "ihexnone0", "--broker", &broker, "--log-dir", "-"])
+        .env_remove("IHEX_CONFIG")
+        .env_remove("RUST_LOG")
+        .env_remove("IHEX_LOG")
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let stderr = BufReader::new(child.stderr.take().unwrap());
+    let want = format!("nothing accepts connections at {broker}");
+    let warned = stderr
+        .lines()
+        .map_while(Result::ok)
+        .find(|l| l.contains("WARN") && l.contains(&want) && l.contains("--broker"));
+    // SAFETY: plain kill(2) on our own child's pid.
+    assert_eq!(unsafe { libc::kill(child.id() as i32, libc::SIGTERM) }, 0);
+    child.wait().unwrap();
+    assert!(warned.is_some(), "no warning naming the unreachable broker");
+}
+
 /// Every event the gateway publishes is also a line of its JSON log, at info, with the payload as
 /// published: command answers, rejections, the node list and the simulator's answers included.
 #[test]

@@ -408,6 +408,7 @@ impl Commands {
 
     /// An `Ack` from `src`. Ends the command it answers; for a frame of the bridge's own, frees its
     /// sequence number and returns true (the caller routes the ack, e.g. to the docking sequence).
+    #[allow(clippy::too_many_arguments)]
     pub(super) fn on_ack(
         &mut self,
         src: NodeId,
@@ -415,6 +416,7 @@ impl Commands {
         seq: Seq,
         result: AckResult,
         registry: &mut Registry,
+        now: Instant,
         out: &mut Outputs,
     ) -> bool {
         let key = (src, kind, seq);
@@ -433,7 +435,7 @@ impl Commands {
                 return false;
             };
             if result == AckResult::Ok {
-                apply_action_state(registry, out, src, action);
+                apply_action_state(registry, out, src, action, now);
                 self.emit_result(p, Outcome::Ok, None, out);
             } else {
                 self.emit_result(p, Outcome::Refused, Some(result.to_string()), out);
@@ -465,7 +467,7 @@ impl Commands {
                 .iter()
                 .all(|id| acked.contains(id) || refused.contains_key(id));
         if result == AckResult::Ok {
-            apply_action_state(registry, out, src, action);
+            apply_action_state(registry, out, src, action, now);
         }
         if complete {
             if let Some(p) = self.remove(&key) {
@@ -687,12 +689,31 @@ impl Commands {
         }
     }
 
+    /// A command that may or may not have been carried out: its nodes' state is read back.
     fn finish_timed_out(
         &mut self,
         p: PendingCommand,
         unconfirmed: Option<&str>,
         out: &mut Outputs,
     ) {
+        match &p.what {
+            What::Node(_) => {
+                if let Target::Node(id) = p.target {
+                    out.unsure.insert(id);
+                }
+            }
+            What::Broadcast {
+                expected,
+                acked,
+                refused,
+                ..
+            } => out.unsure.extend(
+                expected
+                    .iter()
+                    .filter(|id| !acked.contains(id) && !refused.contains_key(id)),
+            ),
+            What::Assign { .. } | What::Internal => {}
+        }
         let tail = unconfirmed
             .map(|why| format!("; {why}, so it may still reach the bus"))
             .unwrap_or_default();
@@ -819,20 +840,22 @@ fn withdraw(p: &PendingCommand, out: &mut Outputs) {
     out.transmit.withdraw(&p.frame);
 }
 
-/// Records what a node acknowledged in its state document.
+/// Records what a node acknowledged at `now` in its state document.
 fn apply_action_state(
     registry: &mut Registry,
     out: &mut Outputs,
     node: NodeId,
     action: NodeAction,
+    now: Instant,
 ) {
     if let Some(e) = registry.get_mut(node) {
         match action {
             NodeAction::Led(cmd) => e.led = Some(cmd),
             NodeAction::Buzzer(cmd) => e.buzzer = Some(cmd),
             NodeAction::Power(on) => e.relay = Some(on),
-            NodeAction::Identify(_) => {}
+            NodeAction::Identify(_) => return,
         }
+        e.acked_at = Some(now);
         out.touch(node);
     }
 }

@@ -1,14 +1,19 @@
 //! Docking glue: carries out the [`Step`]s of the one-at-a-time docking sequence
-//! ([`crate::docking`]) as frames (confirm, refuse, relay off) and events (`new_connection`,
-//! `connection_removed`, `dock_failed`, the `unexpected_handshake` fault).
+//! ([`crate::docking`]) as frames (confirm, refuse, relay off, dock links) and events
+//! (`new_connection`, `connection_removed`, `dock_failed`, the `unexpected_handshake` fault).
+//!
+//! Once a docking completes, the static element is told who docked on its port (`DockLink`), so
+//! that it can report the connection to a gateway that restarts; a link that is no longer true is
+//! cleared the same way. Nodes known to speak protocol 1.0 are not sent links.
 
 use std::time::Instant;
 
-use ihex_proto::{DockRefuseReason, Kind, Message, NodeId, Port};
+use ihex_proto::{DockPartner, DockRefuseReason, Kind, Message, NodeId, Port};
 
 use super::commands::Commands;
 use super::diagnostics::Diagnostics;
 use super::output::Outputs;
+use super::readback::ReadBack;
 use crate::docking::{Docking, Step};
 use crate::event::{DockFailed, Event, HexId};
 
@@ -20,6 +25,8 @@ pub(super) struct DockParts<'a> {
     pub(super) docking: &'a mut Docking,
     /// The rate limit of the `unexpected_handshake` fault.
     pub(super) diagnostics: &'a mut Diagnostics,
+    /// Which nodes understand dock links.
+    pub(super) readback: &'a ReadBack,
 }
 
 /// Carries out the docking sequence's steps.
@@ -28,6 +35,7 @@ pub(super) fn apply(steps: Vec<Step>, parts: DockParts<'_>, now: Instant, out: &
         commands,
         docking,
         diagnostics,
+        readback,
     } = parts;
     for step in steps {
         match step {
@@ -53,6 +61,28 @@ pub(super) fn apply(steps: Vec<Step>, parts: DockParts<'_>, now: Instant, out: &
                 out.touch(c.n.id.0);
                 out.touch(c.n_1.id.0);
                 out.emit(Event::NewConnection(c));
+                if let (Some(port), Some(mport)) = (Port::new(c.n_1.port), Port::new(c.n.port)) {
+                    let partner = DockPartner {
+                        node: c.n.id.0,
+                        port: mport,
+                    };
+                    send_dock_link(
+                        commands,
+                        readback,
+                        out,
+                        c.n_1.id.0,
+                        port,
+                        Some(partner),
+                        now,
+                    );
+                }
+            }
+            Step::Restored(c) => {
+                out.touch(c.n.id.0);
+                out.touch(c.n_1.id.0);
+            }
+            Step::Unlink { node, port } => {
+                send_dock_link(commands, readback, out, node, port, None, now);
             }
             Step::Removed(c) => {
                 out.touch(c.n.id.0);
@@ -70,6 +100,22 @@ pub(super) fn apply(steps: Vec<Step>, parts: DockParts<'_>, now: Instant, out: &
                 diagnostics.on_unexpected_handshake(node, port, why, now, out);
             }
         }
+    }
+}
+
+/// Tells static `node` which mobile element is docked on its `port` (`None`: none any more).
+fn send_dock_link(
+    commands: &mut Commands,
+    readback: &ReadBack,
+    out: &mut Outputs,
+    node: NodeId,
+    port: Port,
+    partner: Option<DockPartner>,
+    now: Instant,
+) {
+    if readback.supports(node) {
+        let msg = |seq| Message::DockLink { seq, port, partner };
+        commands.send_internal(node, Kind::DockLink, msg, now, out);
     }
 }
 

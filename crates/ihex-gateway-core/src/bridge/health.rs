@@ -1,7 +1,11 @@
 //! Node presence: the broadcast health check every period, lost detection after missed replies,
 //! `node_online` / `node_lost` / `node_rebooted`, the role a node announces, and the pause of all of
 //! it while the gateway's own interface is down (the silence is then ours, not the nodes').
+//!
+//! A `BootUp` from a known node is a reboot — except the one a board sends when `assign` gave it
+//! its ID: it announces itself under the new ID without restarting.
 
+use std::collections::BTreeMap;
 use std::time::{Duration, Instant};
 
 use ihex_proto::{BootRole, HealthFlags, Message, NodeId, Packet, Seq};
@@ -21,6 +25,8 @@ pub(super) struct Health {
     next: Instant,
     /// Our own interface is bus-off or down: nodes cannot answer, so nobody is counted as lost.
     bus_down: bool,
+    /// IDs just given by `assign`, until when their announcement (a `BootUp`) is expected.
+    announcing: BTreeMap<NodeId, Instant>,
 }
 
 impl Health {
@@ -33,7 +39,16 @@ impl Health {
             outstanding: None,
             next: now,
             bus_down: false,
+            announcing: BTreeMap::new(),
         }
+    }
+
+    /// `assign` gave a board the ID `id` at `now`: the `BootUp` it sends within `within`
+    /// announces the new ID and is no reboot.
+    pub(super) fn expect_announcement(&mut self, id: NodeId, now: Instant, within: Duration) {
+        // Announcements that never came are forgotten, so they cannot hide a real reboot later.
+        self.announcing.retain(|_, until| *until > now);
+        self.announcing.insert(id, now + within);
     }
 
     /// When the next health check is due.
@@ -47,7 +62,7 @@ impl Health {
     }
 
     /// A valid frame from the node `src`: registers or revives it, learns its role, and publishes
-    /// `node_online` / `node_rebooted` as due; stores its health report.
+    /// `node_online` / `node_rebooted` as due; stores its health report. Returns how it was seen.
     pub(super) fn on_heard(
         &mut self,
         registry: &mut Registry,
@@ -55,7 +70,7 @@ impl Health {
         msg: &Message,
         now: Instant,
         out: &mut Outputs,
-    ) {
+    ) -> Seen {
         let seen = registry.touch(src, now);
         if let Some(e) = registry.get_mut(src) {
             // Learn the role first, so that `node_online` can already tell it.
@@ -93,7 +108,11 @@ impl Health {
         out.touch(src);
         match *msg {
             Message::BootUp { version, reset, .. } => {
-                if seen == Seen::Known {
+                let announced = self
+                    .announcing
+                    .remove(&src)
+                    .is_some_and(|until| now <= until);
+                if seen == Seen::Known && !announced {
                     out.emit(Event::NodeRebooted(NodeRebooted {
                         id: HexId(src),
                         reset: reset.to_string(),
@@ -110,6 +129,7 @@ impl Health {
             }
             _ => {}
         }
+        seen
     }
 
     /// Our interface went bus-off or down: stop health checks (and with them lost detection).

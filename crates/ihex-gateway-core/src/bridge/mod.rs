@@ -8,26 +8,32 @@
 //! This file only routes each input to the concern that owns it, one submodule each: `commands`
 //! (pending commands, sequence numbers, acks and timeouts), `health` (health checks, presence, lost
 //! detection), `diagnostics` (error frames, drops, undecodable frames, faults, rate limits), `dock`
-//! (the docking sequence's frames and events), `output` (the queues the adapters drain, and what
-//! gives when they cannot keep up).
+//! (the docking sequence's frames and events), `readback` (asking nodes for their state and
+//! applying their answers), `output` (the queues the adapters drain, and what gives when they
+//! cannot keep up).
 
 mod commands;
 mod diagnostics;
 mod dock;
 mod health;
 mod output;
+mod readback;
 #[cfg(test)]
 mod test_support;
 
 use std::time::{Duration, Instant};
 
-use ihex_proto::{AckResult, DecodeError, Kind, Message, NodeId, Packet};
+use ihex_proto::{
+    AckResult, BootRole, DecodeError, FaultCode, Kind, Message, NodeId, Packet, StateParts,
+    StateReport, Uid,
+};
 
 pub use commands::CommandCounters;
 pub use diagnostics::{BusEvent, BusHealth, ERROR_EVENT_WINDOW};
 pub use output::{
     Publication, PublicationCounters, Topic, Transmit, ANSWER_BACKLOG, TRANSMIT_WINDOW,
 };
+pub use readback::{INCOMPLETE_LIMIT, MAX_QUERIES, READ_BACK_VERSION, SILENT_LIMIT};
 
 use crate::command::{self, Command, CommandError};
 use crate::docking::Docking;
@@ -35,12 +41,13 @@ use crate::event::{
     CommandRejected, CommandResult, Connection, Event, HexId, NodeList, NodeState, Outcome,
     PublicationsDropped, Target,
 };
-use crate::registry::{millis, Registry};
+use crate::registry::{millis, Registry, Seen};
 use commands::{Accepted, Commands};
 use diagnostics::Diagnostics;
 use dock::DockParts;
 use health::Health;
 use output::{Next, Outputs};
+use readback::{ReadBack, Reply};
 
 /// Tunables of the bridge (the CLI/TOML configuration fills these in).
 #[derive(Clone, Debug)]
@@ -131,6 +138,7 @@ pub struct Bridge {
     commands: Commands,
     health: Health,
     diagnostics: Diagnostics,
+    readback: ReadBack,
     /// The time of the last input (state documents taken later are built as of it).
     now: Instant,
     /// When the next `publications_dropped` may go out.
@@ -148,6 +156,7 @@ impl Bridge {
             commands: Commands::new(config.command_timeout),
             health: Health::new(config.health_period, config.lost_after_misses, now),
             diagnostics: Diagnostics::new(),
+            readback: ReadBack::new(config.command_timeout),
             config,
             now,
             next_drop_report: now,
@@ -215,6 +224,17 @@ impl Bridge {
     /// Events dropped since start because the event queue was full.
     pub fn publications_dropped(&self) -> u64 {
         self.out.publish.total_dropped()
+    }
+
+    /// True while the bridge is about to ask `id` for its state, or waits for its answer (its
+    /// state document may still change without anything happening on the node).
+    pub fn reading_back(&self, id: NodeId) -> bool {
+        self.readback.pending(id)
+    }
+
+    /// Complete state replies applied since start.
+    pub fn read_backs(&self) -> u64 {
+        self.readback.replies()
     }
 
     /// Frames waiting in the transmit queue, and frames handed out and not yet confirmed.
@@ -357,23 +377,40 @@ impl Bridge {
                 uid_tail,
             } = packet.msg
             {
-                self.commands
-                    .on_assign_reply(seq, result, new_id, uid_tail, &mut self.out);
+                self.on_assign_reply(seq, result, new_id, uid_tail, now);
             }
             self.settle(now);
             return;
         }
-        self.health
+        let seen = self
+            .health
             .on_heard(&mut self.registry, src, &packet.msg, now, &mut self.out);
+        if matches!(seen, Seen::New | Seen::Back) {
+            self.readback.want(src);
+        }
         match packet.msg {
             // Handled by `on_heard`.
-            Message::BootUp { .. } | Message::HealthReply(_) => {}
+            Message::HealthReply(_) => {}
+            Message::BootUp { version, .. } => self.readback.on_boot(src, version),
             Message::Ack {
                 kind, seq, result, ..
             } => self.on_ack(src, kind, seq, result, now),
+            Message::Fault {
+                code: FaultCode::BadFrame,
+                arg,
+                detail,
+            } if is_read_back_kind(arg) && detail & 0xff == BAD_FRAME_UNKNOWN_KIND => {
+                // Our question to a node of protocol 1.0: the answer is that it cannot be asked.
+                self.readback.on_unknown_kind(src);
+            }
             Message::Fault { code, arg, detail } => {
                 self.diagnostics
                     .on_fault(src, code, arg, detail, now, &mut self.out)
+            }
+            Message::StateReport(report) => {
+                if let Some(reply) = self.readback.on_report(src, report) {
+                    self.apply_reply(reply, now);
+                }
             }
             Message::DockDetected { port } => {
                 if let Some(e) = self.registry.get_mut(src) {
@@ -398,10 +435,7 @@ impl Bridge {
                 result,
                 new_id,
                 uid_tail,
-            } => {
-                self.commands
-                    .on_assign_reply(seq, result, new_id, uid_tail, &mut self.out);
-            }
+            } => self.on_assign_reply(seq, result, new_id, uid_tail, now),
             // Command kinds never come addressed to the gateway (the decoder checks addresses).
             _ => tracing::debug!(?packet, "ignoring unexpected packet"),
         }
@@ -429,7 +463,15 @@ impl Bridge {
                     self.commands.on_unconfirmed(&p, why, now, &mut self.out);
                 }
             }
-            BusEvent::Recovered => self.health.on_recovered(now),
+            BusEvent::Recovered => {
+                if self.health.bus_down() {
+                    // Whatever changed while the bus was away, nobody heard it: ask everyone.
+                    for e in self.registry.iter() {
+                        self.readback.want(e.id);
+                    }
+                }
+                self.health.on_recovered(now);
+            }
             _ => {}
         }
         self.diagnostics.on_bus_event(event, now, &mut self.out);
@@ -513,6 +555,7 @@ impl Bridge {
             }
         }
         self.commands.expire(now, &mut self.out);
+        self.readback.expire(now);
         let steps = self.docking.tick(now);
         self.apply(steps, now);
         let Bridge {
@@ -521,15 +564,18 @@ impl Bridge {
             commands,
             health,
             diagnostics,
+            readback,
             out,
             ..
         } = self;
         health.tick(registry, now, out, |id, out| {
+            readback.on_lost(id);
             let steps = docking.on_lost(id);
             let parts = DockParts {
                 commands: &mut *commands,
                 docking: &mut *docking,
                 diagnostics: &mut *diagnostics,
+                readback: &*readback,
             };
             dock::apply(steps, parts, now, out);
         });
@@ -556,6 +602,7 @@ impl Bridge {
             }
         };
         at(self.commands.next_deadline());
+        at(self.readback.next_deadline());
         at(self.docking.deadline());
         at(self
             .out
@@ -622,8 +669,15 @@ impl Bridge {
     }
 
     fn on_ack(&mut self, src: NodeId, kind: Kind, seq: u8, result: AckResult, now: Instant) {
-        self.commands
-            .on_ack(src, kind, seq, result, &mut self.registry, &mut self.out);
+        self.commands.on_ack(
+            src,
+            kind,
+            seq,
+            result,
+            &mut self.registry,
+            now,
+            &mut self.out,
+        );
         if kind == Kind::DockConfirm && result != AckResult::Ok {
             let steps = self
                 .docking
@@ -638,8 +692,74 @@ impl Bridge {
             commands: &mut self.commands,
             docking: &mut self.docking,
             diagnostics: &mut self.diagnostics,
+            readback: &self.readback,
         };
         dock::apply(steps, parts, now, &mut self.out);
+    }
+
+    fn on_assign_reply(
+        &mut self,
+        seq: u8,
+        result: AckResult,
+        new_id: NodeId,
+        uid_tail: [u8; 4],
+        now: Instant,
+    ) {
+        if self
+            .commands
+            .on_assign_reply(seq, result, new_id, uid_tail, &mut self.out)
+        {
+            // The board announces its new ID with a BootUp without restarting.
+            self.health
+                .expect_announcement(new_id, now, self.config.command_timeout);
+        }
+    }
+
+    /// A node's complete answer to a state query: what it reports replaces what the bridge
+    /// assumed, except what a node acknowledged after the question (that is newer); a static
+    /// element's ports reconcile the docking record.
+    fn apply_reply(&mut self, reply: Reply, now: Instant) {
+        let Reply {
+            node,
+            parts,
+            reports,
+            asked,
+        } = reply;
+        let Some(e) = self.registry.get_mut(node) else {
+            return;
+        };
+        let fresher_acks = e.acked_at.is_some_and(|t| t >= asked);
+        let mut docks = Vec::new();
+        let (mut low, mut high) = (None, None);
+        for r in reports {
+            match r {
+                StateReport::Led(cmd) if !fresher_acks => e.led = Some(cmd),
+                StateReport::Buzzer(cmd) if !fresher_acks => e.buzzer = Some(cmd),
+                StateReport::Power(p) => {
+                    if !fresher_acks {
+                        e.relay = Some(p.relay);
+                    }
+                    e.loops = p.loops;
+                    e.role = Some(p.role);
+                    e.ports = Some(p.ports);
+                }
+                StateReport::Dock { port, state } => docks.push((port, state)),
+                StateReport::Firmware { version, trial } => e.firmware = Some((version, trial)),
+                StateReport::ImageHash(h) => e.image_hash = Some(h),
+                StateReport::UidLow(l) => low = Some(l),
+                StateReport::UidHigh(h) => high = Some(h),
+                _ => {}
+            }
+        }
+        if let (Some(l), Some(h)) = (low, high) {
+            e.uid = Some(Uid::from_low_high(l, h));
+        }
+        let is_static = e.role == Some(BootRole::Static);
+        self.out.touch(node);
+        if parts.contains(StateParts::DOCKING) && is_static {
+            let steps = self.docking.reconcile(node, &docks, asked);
+            self.apply(steps, now);
+        }
     }
 
     /// Ends an input: frames the full transmit queue refused fail, and every node whose state may
@@ -658,10 +778,26 @@ impl Bridge {
                 self.send_failed(p, &reason, now);
             }
         }
+        for id in std::mem::take(&mut self.out.unsure) {
+            self.readback.want(id);
+        }
+        if !self.health.bus_down() {
+            let registry = &self.registry;
+            let online = |id| registry.get(id).is_some_and(|e| e.online);
+            self.readback.poll(online, now, &mut self.out);
+        }
         for id in std::mem::take(&mut self.out.dirty) {
             self.out.publish.push_state(id, false);
         }
     }
+}
+
+/// `BadFrame` detail class of a frame whose kind the node does not know.
+const BAD_FRAME_UNKNOWN_KIND: u32 = 1;
+
+/// The kinds protocol 1.1 added: a 1.0 node refuses them as unknown.
+fn is_read_back_kind(kind: u8) -> bool {
+    kind == Kind::StateQuery as u8 || kind == Kind::DockLink as u8
 }
 
 #[cfg(test)]

@@ -398,6 +398,8 @@ pub(super) struct Outputs {
     pub(super) publish: PublishQueue,
     /// Nodes whose state document may have changed since it was last published.
     pub(super) dirty: BTreeSet<NodeId>,
+    /// Nodes whose real state the bridge is no longer sure of (a command to them timed out).
+    pub(super) unsure: BTreeSet<NodeId>,
 }
 
 impl Outputs {
@@ -406,6 +408,7 @@ impl Outputs {
             transmit: TransmitQueue::new(tx_queue),
             publish: PublishQueue::new(event_queue),
             dirty: BTreeSet::new(),
+            unsure: BTreeSet::new(),
         }
     }
 

@@ -2,7 +2,9 @@
 
 use std::time::{Duration, Instant};
 
-use ihex_proto::{AckResult, HealthFlags, HealthReply, Kind, Message, NodeId, Packet, Port};
+use ihex_proto::{
+    AckResult, HealthFlags, HealthReply, Kind, Message, NodeId, Packet, Port, StateReport,
+};
 use serde_json::Value;
 
 use super::{Bridge, BridgeConfig, Publication};
@@ -19,7 +21,10 @@ pub(super) const S: Duration = Duration::from_secs(1);
 /// What one call made the bridge do.
 #[derive(Default, Debug)]
 pub(super) struct Out {
+    /// Frames sent, state queries aside.
     pub(super) sent: Vec<Packet>,
+    /// State queries sent.
+    pub(super) queries: Vec<Packet>,
     pub(super) events: Vec<Value>,
     pub(super) raw_events: Vec<String>,
     pub(super) states: Vec<(NodeId, Value)>,
@@ -53,7 +58,11 @@ fn drain_with(b: &mut Bridge, confirm: bool) -> Out {
     while let Some(t) = b.poll_transmit(now) {
         let p = t.packet;
         p.validate().expect("the bridge only sends valid packets");
-        out.sent.push(p);
+        if matches!(p.msg, Message::StateQuery { .. }) {
+            out.queries.push(p);
+        } else {
+            out.sent.push(p);
+        }
         if confirm {
             b.handle_transmitted(p, now);
         }
@@ -96,7 +105,24 @@ pub(super) fn ack(kind: Kind, seq: u8, result: AckResult) -> Message {
     }
 }
 
-/// A bridge at `t0` whose first health check went out and was answered by `nodes`.
+/// Answers every state query in `out` at `now` with an empty, complete reply (a node with nothing
+/// to report beyond what the bridge knows).
+pub(super) fn answer_queries(b: &mut Bridge, out: &Out, now: Instant) {
+    for q in &out.queries {
+        let Message::StateQuery { seq, parts } = q.msg else {
+            continue;
+        };
+        let end = StateReport::End {
+            seq,
+            parts,
+            count: 0,
+        };
+        b.handle_packet(Packet::report(q.dest, Message::StateReport(end)), now);
+    }
+}
+
+/// A bridge at `t0` whose first health check went out and was answered by `nodes` (and their
+/// state queries by empty replies).
 pub(super) fn with_nodes(nodes: &[u16]) -> (Bridge, Instant) {
     let t0 = Instant::now();
     let mut b = Bridge::new(BridgeConfig::default(), t0);
@@ -112,7 +138,14 @@ pub(super) fn with_nodes(nodes: &[u16]) -> (Bridge, Instant) {
     for &n in nodes {
         b.handle_packet(Packet::report(id(n), reply(0, 0)), t0 + MS);
     }
-    drain(&mut b);
+    // Four questions at a time: answer until none is left.
+    loop {
+        let out = drain(&mut b);
+        if out.queries.is_empty() {
+            break;
+        }
+        answer_queries(&mut b, &out, t0 + MS);
+    }
     (b, t0)
 }
 
