@@ -143,6 +143,46 @@ pub fn excerpt(trace: &Trace, at: Ms, window_ms: Ms) -> String {
         .join("\n")
 }
 
+/// The island's story in a run, one line per record: faults and recoveries, island actions,
+/// harness notes, availability and the lifecycle and docking events — what a convergence
+/// violation is read against (the excerpts around it rarely reach back to the cause).
+pub fn story(trace: &Trace) -> String {
+    const EVENTS: [&str; 8] = [
+        "new_connection",
+        "connection_removed",
+        "dock_failed",
+        "fault",
+        "node_lost",
+        "node_online",
+        "node_rebooted",
+        "bus_error",
+    ];
+    trace
+        .records
+        .iter()
+        .filter_map(|r| {
+            let what = match &r.entry {
+                Entry::FaultBegin { .. }
+                | Entry::FaultEnd { .. }
+                | Entry::Recovered { .. }
+                | Entry::Island(_)
+                | Entry::Note(_) => serde_json::to_string(&r.entry).unwrap_or_default(),
+                Entry::Received { topic, payload, .. }
+                    if topic.ends_with("availability")
+                        || EVENTS
+                            .iter()
+                            .any(|e| payload.starts_with(&format!(r#"{{"event":"{e}""#))) =>
+                {
+                    payload.clone()
+                }
+                _ => return None,
+            };
+            Some(format!("  {:>7} {}", r.at, what.chars().take(240).collect::<String>()))
+        })
+        .collect::<Vec<_>>()
+        .join("\n")
+}
+
 /// How a command was answered.
 #[derive(Clone, Debug, PartialEq)]
 enum Answer {
@@ -956,6 +996,7 @@ pub fn assert_contract(trace: &Trace) -> Result<Report, String> {
             excerpt(trace, v.at, 2 * trace.params.health_period_ms)
         ));
     }
+    text.push_str(&format!("\nthe island's story:\n{}\n", story(trace)));
     Err(text)
 }
 

@@ -647,9 +647,17 @@ fn the_report_names_the_trace_around_a_violation() {
     let mut t = T::new();
     t.led(100, 1, [9, 9, 9], Some("a"))
         .result(1100, Some("a"), "timeout")
-        .frame(1200, [9, 9, 9], 1);
+        .frame(1200, [9, 9, 9], 1)
+        .received(
+            1300,
+            EVENTS,
+            r#"{"event":"node_lost","payload":{"id":"111","missed":3,"last_seen_ms":1}}"#,
+        );
     let text = assert_contract(&t.trace).unwrap_err();
     assert!(text.contains("1 violations"), "{text}");
     assert!(text.contains("trace around 1200 ms"), "{text}");
     assert!(text.contains(r#""kind":"frame""#), "{text}");
+    let story = text.split("the island's story:").nth(1).unwrap_or_default();
+    assert!(story.contains("1300 {\"event\":\"node_lost\""), "{text}");
+    assert!(!story.contains("command_result"), "{text}");
 }
