@@ -1,5 +1,9 @@
 //! The SocketCAN stage: `ihex-tests --features vcan` on native vcan interfaces when the host has
 //! them, otherwise inside the x86_64 microVM; and `vm-run`, the cargo runner of the musl target.
+//!
+//! The VM runs the host-target test binaries the way the host stage built them (one workspace
+//! build, the `vcan` feature only adds ihex-tests itself), with the glibc libraries they link
+//! copied in: no second build of every dependency for another target.
 
 use std::fs;
 use std::path::{Path, PathBuf};
@@ -10,12 +14,12 @@ use anyhow::{anyhow, bail, Context, Result};
 
 use crate::broker::HostBroker;
 use crate::cmd;
-use crate::vm::{Payload, Program, Vm};
+use crate::vm::{shared_libraries, Payload, Program, Vm};
 
 /// Number of vcan interfaces the tests get.
 pub const COUNT: usize = 16;
 
-/// The static target the VM runs.
+/// The static target `vm-run` serves as cargo runner (and the benchmark builds for the VM).
 pub const MUSL: &str = "x86_64-unknown-linux-musl";
 
 /// Modules the VM loads (dependencies are resolved with modinfo).
@@ -236,38 +240,17 @@ fn guest_env(broker: Option<&HostBroker>) -> Vec<(String, String)> {
     env
 }
 
-/// Builds the `mc-gateway` binary for the musl target (the fault suite runs it in the VM) and
-/// returns its path.
-fn build_musl_gateway() -> Result<PathBuf> {
-    cmd::run(cmd::cargo().current_dir(cmd::root()).args([
-        "build",
-        "-p",
-        "mc-gateway",
-        "--target",
-        MUSL,
-    ]))?;
-    let bin = cmd::target_dir()
-        .join(MUSL)
-        .join("debug")
-        .join("mc-gateway");
-    if !bin.is_file() {
-        bail!("cargo built no {}", bin.display());
-    }
-    Ok(bin)
-}
-
-/// Builds the SocketCAN test binaries for the musl target and returns them (name, path).
-fn build_musl_tests() -> Result<Vec<(String, PathBuf)>> {
+/// Builds the SocketCAN test binaries for the host and returns them (name, path). `--workspace`
+/// and `ihex-tests/tls` resolve features as the host stage does, so after it only ihex-tests
+/// compiles again, and the `mc-gateway` binary the fault suite runs is the host stage's.
+fn build_tests() -> Result<Vec<(String, PathBuf)>> {
     let mut c = cmd::cargo();
     c.current_dir(cmd::root())
         .args([
             "test",
-            "-p",
-            "ihex-tests",
+            "--workspace",
             "--features",
-            "vcan",
-            "--target",
-            MUSL,
+            "ihex-tests/vcan,ihex-tests/tls",
             "--no-run",
         ])
         .arg("--message-format=json-render-diagnostics")
@@ -275,14 +258,22 @@ fn build_musl_tests() -> Result<Vec<(String, PathBuf)>> {
     println!("$ {}", cmd::display(&c));
     let out = c.output().context("running cargo")?;
     if !out.status.success() {
-        bail!("building the musl test binaries failed ({})", out.status);
+        bail!(
+            "building the SocketCAN test binaries failed ({})",
+            out.status
+        );
     }
+    let manifest = cmd::root().join("tests/Cargo.toml");
     let mut bins = Vec::new();
     for line in String::from_utf8_lossy(&out.stdout).lines() {
         let Ok(msg) = serde_json::from_str::<serde_json::Value>(line) else {
             continue;
         };
-        if msg["reason"] != "compiler-artifact" || msg["profile"]["test"] != true {
+        // Only ihex-tests' test binaries: the workspace build lists every package's.
+        if msg["reason"] != "compiler-artifact"
+            || msg["profile"]["test"] != true
+            || msg["manifest_path"].as_str().map(Path::new) != Some(&manifest)
+        {
             continue;
         }
         let Some(exe) = msg["executable"].as_str() else {
@@ -299,26 +290,50 @@ fn build_musl_tests() -> Result<Vec<(String, PathBuf)>> {
     Ok(bins)
 }
 
+/// Test binaries of `ihex-tests` that need no CAN: the host stage runs them.
+const HOST_ONLY: [&str; 2] = ["security (test)", "bridge (test)"];
+
 fn run_in_vm(settings: VmSettings, only: Option<&str>) -> Result<()> {
-    let gateway = build_musl_gateway()?;
-    let bins = build_musl_tests()?;
+    let bins: Vec<(String, PathBuf)> = build_tests()?
+        .into_iter()
+        .filter(|(name, _)| match only {
+            Some(t) => *name == format!("{t} (test)"),
+            None => !HOST_ONLY.contains(&name.as_str()),
+        })
+        .collect();
+    // The fault suite runs the gateway binary (built with the tests: mc-gateway has tests of its
+    // own binary), found beside the test binaries' `deps/` folder.
+    let gateway = cmd::target_dir().join("debug").join("mc-gateway");
+    if !gateway.is_file() {
+        bail!("no {} after building the tests", gateway.display());
+    }
+    let gateway = stripped_copy(&gateway);
     let vm = test_vm(settings)?;
     let broker = HostBroker::start()?;
-    let mut env = guest_env(broker.as_ref());
-    env.push(("IHEX_GATEWAY_BIN".into(), gateway.display().to_string()));
+    // The binaries are dynamically linked: their libraries (glibc) go in at the host's paths.
     let mut files = repo_files();
-    files.push(gateway);
+    files.push(gateway.clone());
+    for path in bins.iter().map(|(_, p)| p).chain([&gateway]) {
+        for lib in shared_libraries(path)? {
+            if !files.contains(&lib) {
+                files.push(lib);
+            }
+        }
+    }
     let payload = Payload {
         programs: bins
             .into_iter()
-            .filter(|(name, _)| only.is_none_or(|t| name == &format!("{t} (test)")))
             .map(|(name, path)| Program {
                 name,
                 path,
                 args: Vec::new(),
             })
             .collect(),
-        env,
+        env: {
+            let mut env = guest_env(broker.as_ref());
+            env.push(("IHEX_GATEWAY_BIN".into(), gateway.display().to_string()));
+            env
+        },
         cwd: Some(cmd::root().join("tests")),
         files,
     };
@@ -345,6 +360,33 @@ fn run_in_vm(settings: VmSettings, only: Option<&str>) -> Result<()> {
     Ok(())
 }
 
+/// A copy of `program` without debug info in `target/vm/` (the VM strips the programs it runs,
+/// not the files it carries; a debug `mc-gateway` would add 100 MB to the initrd), or `program`
+/// itself when `strip` is missing, fails, or `IHEX_VM_KEEP_DEBUG` is set.
+fn stripped_copy(program: &Path) -> PathBuf {
+    let Some(strip) =
+        cmd::find("strip").filter(|_| std::env::var_os("IHEX_VM_KEEP_DEBUG").is_none())
+    else {
+        return program.to_path_buf();
+    };
+    let out = cmd::target_dir()
+        .join("vm")
+        .join(program.file_name().unwrap_or_default());
+    let ok = fs::create_dir_all(cmd::target_dir().join("vm")).is_ok()
+        && Command::new(strip)
+            .arg("--strip-debug")
+            .arg("-o")
+            .arg(&out)
+            .arg(program)
+            .status()
+            .is_ok_and(|s| s.success());
+    if ok {
+        out
+    } else {
+        program.to_path_buf()
+    }
+}
+
 /// `vm-run`: runs one program (a musl test binary) in the VM and returns its exit code. Meant as
 /// `CARGO_TARGET_X86_64_UNKNOWN_LINUX_MUSL_RUNNER`, so `cargo test --target x86_64-unknown-linux-musl`
 /// works unchanged.
@@ -365,7 +407,9 @@ pub fn vm_run(settings: VmSettings, binary: &Path, args: &[String]) -> Result<i3
     let mut files = repo_files();
     // The fault suite runs this gateway binary as a child process: it must be in the VM too.
     if let Some(gw) = std::env::var_os("IHEX_GATEWAY_BIN") {
-        files.push(PathBuf::from(gw));
+        let gw = PathBuf::from(gw);
+        files.extend(shared_libraries(&gw)?);
+        files.push(gw);
     }
     let payload = Payload {
         programs: vec![Program {

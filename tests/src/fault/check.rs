@@ -177,7 +177,11 @@ pub fn story(trace: &Trace) -> String {
                 }
                 _ => return None,
             };
-            Some(format!("  {:>7} {}", r.at, what.chars().take(240).collect::<String>()))
+            Some(format!(
+                "  {:>7} {}",
+                r.at,
+                what.chars().take(240).collect::<String>()
+            ))
         })
         .collect::<Vec<_>>()
         .join("\n")
