@@ -23,7 +23,6 @@ async fn the_gateway_keeps_its_contract_under_faults() {
     let started = Instant::now();
     match plan::soak_from_env() {
         None => {
-            rig.without_docking();
             for f in rig.every_fault_once() {
                 eprintln!("fault suite: {f:?}");
                 rig.fault(f).await;

@@ -107,7 +107,7 @@ struct SoakArgs {
     /// Repeat the plan of this seed (printed by every run; default: a fresh one).
     #[arg(long, env = "IHEX_FAULT_SEED")]
     seed: Option<u64>,
-    /// How long to inject faults.
+    /// How long to inject random faults (0: every kind of fault once, the bounded run).
     #[arg(long, default_value_t = 10)]
     minutes: u64,
     /// Run in the microVM even where native vcan exists (IHEX_VCAN=vm).

@@ -182,8 +182,6 @@ pub struct Rig {
     topics: Topics,
     commander: AsyncClient,
     docked: Vec<Option<(String, u8)>>,
-    /// Mobile elements dock and undock during the activity (see [`Rig::without_docking`]).
-    docking: bool,
     faults: u32,
     sent: u32,
     tasks: Vec<JoinHandle<()>>,
@@ -357,7 +355,6 @@ impl Rig {
             topics,
             commander,
             docked,
-            docking: true,
             faults: 0,
             sent: 0,
             tasks,
@@ -377,16 +374,6 @@ impl Rig {
         rig.quiet(2 * rig.timing.health_period_ms).await;
         rig.checkpoint(None).await;
         Ok(rig)
-    }
-
-    /// No docking and undocking during the activity: the run of the normal test command, while a
-    /// mobile element docking on a port whose relay is already on is not converged by the gateway
-    /// (docs/testing.md, "The fault suite"); the soak keeps it.
-    pub fn without_docking(&mut self) {
-        self.docking = false;
-        self.rec.record(Entry::Note(
-            "no docking or undocking in this run (the bounded run)".into(),
-        ));
     }
 
     /// How long a recovery may take before the run calls it failed.
@@ -414,10 +401,7 @@ impl Rig {
             self.send_command().await;
             let docked = self.docked.clone();
             if let Some(a) = self.plan.island_action(&self.island, &docked) {
-                // Drawn either way: the random sequence of a seed stays the same length.
-                if self.docking {
-                    self.island_action(a).await;
-                }
+                self.island_action(a).await;
             }
             let pause = self.plan.pause_ms(&self.timing);
             tokio::time::sleep(Duration::from_millis(pause)).await;
