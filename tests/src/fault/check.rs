@@ -395,7 +395,7 @@ pub fn check(trace: &Trace) -> Report {
                         .iter()
                         .filter(open)
                         .find(|(_, s)| Some(w) == cmd_and_node(s).as_ref()),
-                    None => sent.iter().filter(open).next_back(),
+                    None => sent.iter().rfind(open),
                 };
                 match target {
                     Some((_, s)) => answer_of.entry(s.n).or_default().push(a),
