@@ -54,6 +54,8 @@ pub fn run() -> Result<()> {
     cmd::run(cmd::cargo().current_dir(cmd::root()).args([
         "test",
         "--workspace",
+        "--features",
+        cmd::HOST_FEATURES,
         "--test",
         "web",
         "--",

@@ -47,7 +47,8 @@ pub fn round_trip(vectors: &Path) -> Result<()> {
             // `--workspace`, not `-p ihex-proto`: the features resolve as in the host stage's
             // `cargo test --workspace`, so its build is reused instead of ihex-proto and its
             // dependencies compiling again (2 min of a cold run).
-            .args(["test", "--workspace", "--test", "dbc", "--", "--ignored"]),
+            .args(["test", "--workspace", "--features", cmd::HOST_FEATURES])
+            .args(["--test", "dbc", "--", "--ignored"]),
     )?;
     // The test writes its report only when it ran to the end: no report, no round trip.
     let done = std::fs::read_to_string(&report).with_context(|| {

@@ -6,6 +6,11 @@ use std::process::{Command, Stdio};
 
 use anyhow::{bail, Context, Result};
 
+/// The features of the host stage's `cargo test --workspace`: every later `cargo test` of the
+/// stage passes the same, so that it reuses that build instead of compiling again. `ihex-tests/tls`:
+/// the TLS, ACL and bridged-broker tests, which need no CAN.
+pub const HOST_FEATURES: &str = "ihex-tests/tls";
+
 /// The cargo that started us (`$CARGO`), so nested builds use the same toolchain.
 pub fn cargo() -> Command {
     Command::new(std::env::var_os("CARGO").unwrap_or_else(|| OsString::from("cargo")))

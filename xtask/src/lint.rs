@@ -60,7 +60,8 @@ pub const STEPS: &[Step] = &[
         args: &["fmt", "--check"],
         env: &[],
     },
-    // The SocketCAN tests of ihex-tests are compiled only with its `vcan` feature.
+    // The SocketCAN tests of ihex-tests are compiled only with its `vcan` feature, the TLS and
+    // bridge tests only with `tls`.
     Step {
         what: "clippy: host workspace",
         dir: ".",
@@ -70,7 +71,7 @@ pub const STEPS: &[Step] = &[
             "--workspace",
             "--all-targets",
             "--features",
-            "ihex-tests/vcan",
+            "ihex-tests/vcan,ihex-tests/tls",
             DENY[0],
             DENY[1],
             DENY[2],

@@ -70,6 +70,9 @@ enum Task {
     /// Benchmarks (not a test): gateway rates, latency, CPU, RSS, instructions per frame, firmware
     /// size; writes target/bench/results.json (docs/benchmarks.md).
     Bench(bench::BenchArgs),
+    /// The fault suite as a soak: random faults for M minutes against the real gateway (in the
+    /// microVM where vcan is missing), then the contract checker's verdict (docs/testing.md).
+    Soak(SoakArgs),
     /// Boot the SocketCAN microVM to an interactive shell (vcan0..15 up).
     VmShell {
         #[command(flatten)]
@@ -98,6 +101,21 @@ impl VmArgs {
             memory_mb: self.memory,
         }
     }
+}
+
+#[derive(Args)]
+struct SoakArgs {
+    /// Repeat the plan of this seed (printed by every run; default: a fresh one).
+    #[arg(long, env = "IHEX_FAULT_SEED")]
+    seed: Option<u64>,
+    /// How long to inject random faults (0: every kind of fault once, the bounded run).
+    #[arg(long, default_value_t = 10)]
+    minutes: u64,
+    /// Run in the microVM even where native vcan exists (IHEX_VCAN=vm).
+    #[arg(long)]
+    vm: bool,
+    #[command(flatten)]
+    vm_args: VmArgs,
 }
 
 #[derive(Args)]
@@ -168,6 +186,7 @@ fn main() -> ExitCode {
             Err(e) => Err(e),
         },
         Task::VmShell { vm } => vcan::vm_shell(vm.settings()),
+        Task::Soak(args) => soak(args),
         Task::Bench(args) => bench::run(args, &firmware_release_dir()),
         Task::Dbc { check: true, .. } => dbc::check(),
         Task::Dbc { island, .. } if !island.is_empty() => dbc::island(&island),
@@ -181,6 +200,32 @@ fn main() -> ExitCode {
         }
     }
 }
+
+/// `cargo xtask soak`: the fault suite's test binary with `IHEX_FAULT_MINUTES` (and the seed),
+/// which the VM passes on like every `IHEX_*` variable.
+fn soak(args: SoakArgs) -> Result<()> {
+    // Read by the child processes started below (the VM passes `IHEX_*` on).
+    std::env::set_var(FAULT_MINUTES_ENV, args.minutes.to_string());
+    if let Some(seed) = args.seed {
+        std::env::set_var(FAULT_SEED_ENV, seed.to_string());
+    }
+    let mut vm = args.vm_args.settings();
+    // The soak, then the wait for recovery and the checker, well inside the VM's lifetime.
+    vm.timeout = vm
+        .timeout
+        .max(Duration::from_secs(args.minutes * 60 * 2 + 600));
+    vcan::stage(vcan::Mode::from_env(args.vm)?, vm, Some("faults"))
+}
+
+/// Turns the fault suite into a soak of that many minutes (read by `tests/tests/faults.rs`).
+const FAULT_MINUTES_ENV: &str = "IHEX_FAULT_MINUTES";
+/// The fault suite's seed.
+const FAULT_SEED_ENV: &str = "IHEX_FAULT_SEED";
+
+/// How long the host stage cuts the bridge in `tests/tests/bridge.rs` unless `IHEX_BRIDGE_CUT_S`
+/// says otherwise: long enough for the bridge's keep-alive to notice, short enough for CI; the
+/// 60 s of the reference scenario is the test's own default (docs/testing.md).
+const CI_BRIDGE_CUT_S: &str = "8";
 
 fn test(args: TestArgs) -> ExitCode {
     let selected: Vec<Stage> = Stage::all()
@@ -269,7 +314,14 @@ fn run_stage(stage: Stage, args: &TestArgs) -> Result<Done> {
                 cmd::cargo()
                     .current_dir(&root)
                     .env("IHEX_GOLDEN_VECTORS", &vectors)
-                    .args(["test", "--workspace"]),
+                    .env(
+                        "IHEX_BRIDGE_CUT_S",
+                        std::env::var("IHEX_BRIDGE_CUT_S")
+                            .unwrap_or_else(|_| CI_BRIDGE_CUT_S.to_string()),
+                    )
+                    // The vcan stage builds with the same features and leaves the TLS tests to
+                    // this one.
+                    .args(["test", "--workspace", "--features", cmd::HOST_FEATURES]),
             ) {
                 failures.push(format!("{e:#}"));
             }
@@ -330,7 +382,11 @@ fn run_stage(stage: Stage, args: &TestArgs) -> Result<Done> {
             Ok(Done::Ran)
         }
         Stage::Vcan => {
-            vcan::stage(vcan::Mode::from_env(args.vm)?, args.vm_args.settings())?;
+            vcan::stage(
+                vcan::Mode::from_env(args.vm)?,
+                args.vm_args.settings(),
+                None,
+            )?;
             Ok(Done::Ran)
         }
         Stage::Arm64 => {

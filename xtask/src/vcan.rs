@@ -118,14 +118,14 @@ pub fn native_interfaces(create: bool) -> Option<Vec<String>> {
     (!names.is_empty()).then_some(names)
 }
 
-/// The `vcan` stage.
-pub fn stage(mode: Mode, vm: VmSettings) -> Result<()> {
+/// The `vcan` stage: every SocketCAN test binary, or only the integration test `only`.
+pub fn stage(mode: Mode, vm: VmSettings, only: Option<&str>) -> Result<()> {
     let native = match mode {
         Mode::Vm => None,
         _ => native_interfaces(true),
     };
     match (native, mode) {
-        (Some(ifaces), _) => run_native(&ifaces),
+        (Some(ifaces), _) => run_native(&ifaces, only),
         (None, Mode::Native) => bail!(
             "IHEX_VCAN=native but this kernel cannot create vcan interfaces \
              (try `sudo modprobe vcan`, or unset IHEX_VCAN to use the microVM)"
@@ -134,18 +134,28 @@ pub fn stage(mode: Mode, vm: VmSettings) -> Result<()> {
             println!(
                 "xtask: no vcan on this kernel: running the SocketCAN tests in a QEMU microVM"
             );
-            run_in_vm(vm)
+            run_in_vm(vm, only)
         }
     }
 }
 
-fn run_native(ifaces: &[String]) -> Result<()> {
+fn run_native(ifaces: &[String], only: Option<&str>) -> Result<()> {
     println!("xtask: native SocketCAN on {}", ifaces.join(","));
+    // The fault suite runs the gateway binary; the tests find it beside their `deps/` folder.
+    cmd::run(
+        cmd::cargo()
+            .current_dir(cmd::root())
+            .args(["build", "-p", "mc-gateway"]),
+    )?;
     let broker = HostBroker::start()?;
     let mut c = cmd::cargo();
     c.current_dir(cmd::root())
         .args(["test", "-p", "ihex-tests", "--features", "vcan"])
         .env("IHEX_TEST_CAN", ifaces.join(","));
+    match only {
+        Some(test) => c.args(["--test", test]),
+        None => c.args(["--", "--skip", FAULT_SUITE_TEST]),
+    };
     if let Some(b) = &broker {
         c.env("IHEX_TEST_MQTT", b.addr.to_string());
     }
@@ -232,7 +242,8 @@ fn guest_env(broker: Option<&HostBroker>) -> Vec<(String, String)> {
 }
 
 /// Builds the SocketCAN test binaries for the host and returns them (name, path). `--workspace`
-/// resolves features as the host stage does, so after it only ihex-tests compiles again.
+/// and `ihex-tests/tls` resolve features as the host stage does, so after it only ihex-tests
+/// compiles again, and the `mc-gateway` binary the fault suite runs is the host stage's.
 fn build_tests() -> Result<Vec<(String, PathBuf)>> {
     let mut c = cmd::cargo();
     c.current_dir(cmd::root())
@@ -240,7 +251,7 @@ fn build_tests() -> Result<Vec<(String, PathBuf)>> {
             "test",
             "--workspace",
             "--features",
-            "ihex-tests/vcan",
+            "ihex-tests/vcan,ihex-tests/tls",
             "--no-run",
         ])
         .arg("--message-format=json-render-diagnostics")
@@ -280,13 +291,34 @@ fn build_tests() -> Result<Vec<(String, PathBuf)>> {
     Ok(bins)
 }
 
-fn run_in_vm(settings: VmSettings) -> Result<()> {
-    let bins = build_tests()?;
+/// Test binaries of `ihex-tests` the stage leaves out: `security` and `bridge` need no CAN (the
+/// host stage runs them); `faults`, the fault suite, finds contract violations in the gateway that
+/// lands with it (docs/testing.md, "Known violations"), so it runs in `cargo xtask soak` only.
+const NOT_IN_STAGE: [&str; 3] = ["security (test)", "bridge (test)", "faults (test)"];
+/// The fault suite's test, skipped by name where the stage runs `cargo test` natively.
+const FAULT_SUITE_TEST: &str = "the_gateway_keeps_its_contract_under_faults";
+
+fn run_in_vm(settings: VmSettings, only: Option<&str>) -> Result<()> {
+    let bins: Vec<(String, PathBuf)> = build_tests()?
+        .into_iter()
+        .filter(|(name, _)| match only {
+            Some(t) => *name == format!("{t} (test)"),
+            None => !NOT_IN_STAGE.contains(&name.as_str()),
+        })
+        .collect();
+    // The fault suite runs the gateway binary (built with the tests: mc-gateway has tests of its
+    // own binary), found beside the test binaries' `deps/` folder.
+    let gateway = cmd::target_dir().join("debug").join("mc-gateway");
+    if !gateway.is_file() {
+        bail!("no {} after building the tests", gateway.display());
+    }
+    let gateway = stripped_copy(&gateway);
     let vm = test_vm(settings)?;
     let broker = HostBroker::start()?;
     // The binaries are dynamically linked: their libraries (glibc) go in at the host's paths.
     let mut files = repo_files();
-    for (_, path) in &bins {
+    files.push(gateway.clone());
+    for path in bins.iter().map(|(_, p)| p).chain([&gateway]) {
         for lib in shared_libraries(path)? {
             if !files.contains(&lib) {
                 files.push(lib);
@@ -302,7 +334,11 @@ fn run_in_vm(settings: VmSettings) -> Result<()> {
                 args: Vec::new(),
             })
             .collect(),
-        env: guest_env(broker.as_ref()),
+        env: {
+            let mut env = guest_env(broker.as_ref());
+            env.push(("IHEX_GATEWAY_BIN".into(), gateway.display().to_string()));
+            env
+        },
         cwd: Some(cmd::root().join("tests")),
         files,
     };
@@ -329,6 +365,33 @@ fn run_in_vm(settings: VmSettings) -> Result<()> {
     Ok(())
 }
 
+/// A copy of `program` without debug info in `target/vm/` (the VM strips the programs it runs,
+/// not the files it carries; a debug `mc-gateway` would add 100 MB to the initrd), or `program`
+/// itself when `strip` is missing, fails, or `IHEX_VM_KEEP_DEBUG` is set.
+fn stripped_copy(program: &Path) -> PathBuf {
+    let Some(strip) =
+        cmd::find("strip").filter(|_| std::env::var_os("IHEX_VM_KEEP_DEBUG").is_none())
+    else {
+        return program.to_path_buf();
+    };
+    let out = cmd::target_dir()
+        .join("vm")
+        .join(program.file_name().unwrap_or_default());
+    let ok = fs::create_dir_all(cmd::target_dir().join("vm")).is_ok()
+        && Command::new(strip)
+            .arg("--strip-debug")
+            .arg("-o")
+            .arg(&out)
+            .arg(program)
+            .status()
+            .is_ok_and(|s| s.success());
+    if ok {
+        out
+    } else {
+        program.to_path_buf()
+    }
+}
+
 /// `vm-run`: runs one program (a musl test binary) in the VM and returns its exit code. Meant as
 /// `CARGO_TARGET_X86_64_UNKNOWN_LINUX_MUSL_RUNNER`, so `cargo test --target x86_64-unknown-linux-musl`
 /// works unchanged.
@@ -346,6 +409,13 @@ pub fn vm_run(settings: VmSettings, binary: &Path, args: &[String]) -> Result<i3
         .unwrap_or_default()
         .to_string_lossy()
         .into_owned();
+    let mut files = repo_files();
+    // The fault suite runs this gateway binary as a child process: it must be in the VM too.
+    if let Some(gw) = std::env::var_os("IHEX_GATEWAY_BIN") {
+        let gw = PathBuf::from(gw);
+        files.extend(shared_libraries(&gw)?);
+        files.push(gw);
+    }
     let payload = Payload {
         programs: vec![Program {
             name,
@@ -354,7 +424,7 @@ pub fn vm_run(settings: VmSettings, binary: &Path, args: &[String]) -> Result<i3
         }],
         env: guest_env(broker.as_ref()),
         cwd: std::env::current_dir().ok(),
-        files: repo_files(),
+        files,
     };
     let outcome = vm.run(&payload)?;
     outcome

@@ -190,6 +190,9 @@ pub fn client_options(cfg: &MqttConfig, client_id: String) -> Result<MqttOptions
 
 #[cfg(feature = "tls")]
 fn set_tls(o: &mut MqttOptions, ca: Option<&std::path::Path>) -> Result<(), MqttError> {
+    // rumqttc builds its rustls configuration with the process's default crypto provider; ours
+    // is ring (the `tls` feature). Installing it fails harmlessly when one is installed already.
+    let _ = rustls::crypto::ring::default_provider().install_default();
     let transport = match ca {
         Some(path) => {
             let pem = std::fs::read(path).map_err(|source| MqttError::TlsCa {
