@@ -1,0 +1,185 @@
+//! Flattening a firmware ELF into a slot payload, on hand-made ELF files.
+
+use ihex_image::elf::{flatten, ElfError};
+use ihex_image::{Board, FwInfo, Version};
+
+const PT_LOAD: u32 = 1;
+const BASE: u32 = 0x0800_7200;
+
+struct Seg {
+    vaddr: u32,
+    paddr: u32,
+    data: Vec<u8>,
+    memsz: u32,
+}
+
+/// A little-endian ELF32 ARM executable with these segments and, optionally, the symbol
+/// `IHEX_FW_INFO` at `sym`.
+fn elf(segs: &[Seg], sym: Option<u32>) -> Vec<u8> {
+    let phoff = 52u32;
+    let mut data_off = phoff + 32 * segs.len() as u32;
+    let mut body = Vec::new();
+    let mut phs = Vec::new();
+    for s in segs {
+        phs.push([
+            PT_LOAD,
+            data_off,
+            s.vaddr,
+            s.paddr,
+            s.data.len() as u32,
+            s.memsz,
+            5,
+            4,
+        ]);
+        body.extend_from_slice(&s.data);
+        data_off += s.data.len() as u32;
+    }
+    // .strtab, .symtab, .shstrtab
+    let strtab = b"\0IHEX_FW_INFO\0".to_vec();
+    let mut symtab = vec![0u8; 16];
+    if let Some(a) = sym {
+        for w in [1u32, a, 12] {
+            symtab.extend_from_slice(&w.to_le_bytes());
+        }
+        symtab.extend_from_slice(&[1, 0]); // STB_LOCAL STT_OBJECT, other
+        symtab.extend_from_slice(&1u16.to_le_bytes()); // shndx: any defined section
+    }
+    let shstr = b"\0.strtab\0.symtab\0.shstrtab\0".to_vec();
+    let strtab_off = data_off;
+    let symtab_off = strtab_off + strtab.len() as u32;
+    let shstr_off = symtab_off + symtab.len() as u32;
+    body.extend_from_slice(&strtab);
+    body.extend_from_slice(&symtab);
+    body.extend_from_slice(&shstr);
+    while body.len() % 4 != 0 {
+        body.push(0);
+    }
+    let shoff = data_off + (strtab.len() + symtab.len() + shstr.len()) as u32;
+    let shoff = (shoff + 3) & !3;
+    let mut f = vec![0x7f, b'E', b'L', b'F', 1, 1, 1];
+    f.resize(16, 0);
+    for v in [2u16, 40] {
+        f.extend_from_slice(&v.to_le_bytes());
+    }
+    for v in [1u32, BASE, phoff, shoff, 0x0500_0400] {
+        f.extend_from_slice(&v.to_le_bytes());
+    }
+    for v in [52u16, 32, segs.len() as u16, 40, 4, 3] {
+        f.extend_from_slice(&v.to_le_bytes());
+    }
+    for ph in phs {
+        for w in ph {
+            f.extend_from_slice(&w.to_le_bytes());
+        }
+    }
+    f.extend_from_slice(&body);
+    f.resize(shoff as usize, 0);
+    let sh = |f: &mut Vec<u8>, w: [u32; 10]| {
+        w.iter().for_each(|x| f.extend_from_slice(&x.to_le_bytes()))
+    };
+    sh(&mut f, [0; 10]);
+    sh(
+        &mut f,
+        [1, 3, 0, 0, strtab_off, strtab.len() as u32, 0, 0, 1, 0],
+    );
+    sh(
+        &mut f,
+        [9, 2, 0, 0, symtab_off, symtab.len() as u32, 1, 1, 4, 16],
+    );
+    sh(
+        &mut f,
+        [17, 3, 0, 0, shstr_off, shstr.len() as u32, 0, 0, 1, 0],
+    );
+    f
+}
+
+fn info() -> FwInfo {
+    FwInfo {
+        board: Board::NUCLEO_F303RE,
+        protocol: (1, 0),
+        version: Version::new(0, 3, 1),
+    }
+}
+
+#[test]
+fn code_then_data_at_their_load_addresses() {
+    let mut text = vec![0xAB; 0x100];
+    text[0x40..0x4C].copy_from_slice(&info().encode());
+    let segs = [
+        Seg {
+            vaddr: BASE,
+            paddr: BASE,
+            data: text,
+            memsz: 0x100,
+        },
+        // .data: runs in RAM, stored in flash after a gap.
+        Seg {
+            vaddr: 0x2000_0000,
+            paddr: BASE + 0x108,
+            data: vec![0xCD; 8],
+            memsz: 8,
+        },
+        // .bss: no file content, left out.
+        Seg {
+            vaddr: 0x2000_0008,
+            paddr: 0x2000_0008,
+            data: vec![],
+            memsz: 64,
+        },
+    ];
+    let flat = flatten(&elf(&segs, Some(BASE + 0x40)), BASE, 4096).unwrap();
+    assert_eq!(flat.bytes.len(), 0x110);
+    assert_eq!(flat.bytes[..0x40], [0xAB; 0x40]);
+    assert_eq!(
+        flat.bytes[0x100..0x108],
+        [0xFF; 8],
+        "gaps read as erased flash"
+    );
+    assert_eq!(flat.bytes[0x108..], [0xCD; 8]);
+    assert_eq!(flat.info, Some(info()));
+}
+
+#[test]
+fn misplaced_segments_are_refused() {
+    let seg = |paddr: u32, len: usize| Seg {
+        vaddr: paddr,
+        paddr,
+        data: vec![1; len],
+        memsz: len as u32,
+    };
+    assert_eq!(
+        flatten(&elf(&[seg(0x0800_0000, 16)], None), BASE, 4096),
+        Err(ElfError::OutOfSlot {
+            addr: 0x0800_0000,
+            len: 16,
+            base: BASE,
+            end: BASE + 4096
+        })
+    );
+    assert!(matches!(
+        flatten(
+            &elf(&[seg(BASE, 16), seg(BASE + 4090, 16)], None),
+            BASE,
+            4096
+        ),
+        Err(ElfError::OutOfSlot { .. })
+    ));
+    assert_eq!(
+        flatten(&elf(&[seg(BASE + 0x200, 16)], None), BASE, 4096),
+        Err(ElfError::NotAtBase {
+            lowest: BASE + 0x200,
+            base: BASE
+        })
+    );
+    assert_eq!(
+        flatten(&elf(&[seg(BASE, 16), seg(BASE + 8, 16)], None), BASE, 4096),
+        Err(ElfError::Overlap(BASE + 8))
+    );
+    assert_eq!(flatten(&elf(&[], None), BASE, 4096), Err(ElfError::Empty));
+    assert!(matches!(
+        flatten(b"not an elf", BASE, 4096),
+        Err(ElfError::Parse(_))
+    ));
+    let flat = flatten(&elf(&[seg(BASE, 16)], None), BASE, 4096).unwrap();
+    assert_eq!(flat.info, None);
+}
