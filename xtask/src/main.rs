@@ -30,7 +30,8 @@ enum Task {
     Test(TestArgs),
     /// Install the rust targets and system packages the tests need (apt on Debian/Ubuntu).
     Setup,
-    /// Print flash/RAM use of the release firmware against the 64 KiB / 16 KiB budget.
+    /// Print flash/RAM use of the release firmware (bootloader, application) against the budgets:
+    /// 96 KiB flash per application, 24 KiB for the bootloader, 16 KiB static RAM each.
     FwSize {
         /// Folder with the firmware ELFs.
         #[arg(long)]

@@ -13,6 +13,8 @@
 //! | `dfu`        | `0x0802_7000`| 130 KiB | incoming image (one page more than `active`, for the swap) |
 //! | free         | `0x0804_7800`| 224 KiB | unused: room to grow the slots (a layout change needs a probe) |
 //! | `config`     | `0x0807_F800`|   2 KiB | node configuration record (node ID), outside every partition |
+//!
+//! RAM: the 64 KiB SRAM at `0x2000_0000` (the 16 KiB CCM RAM is not used).
 
 use core::fmt;
 use core::str::FromStr;
@@ -136,6 +138,8 @@ pub struct Layout {
     pub dfu: Region,
     /// The node configuration record.
     pub config: Region,
+    /// The RAM the firmware and the bootloader use (each on its own: only one runs at a time).
+    pub ram: Region,
 }
 
 const KIB: u32 = 1024;
@@ -167,6 +171,11 @@ pub const F303RE: Layout = Layout {
     config: Region {
         start: 0x0807_F800,
         len: 2 * KIB,
+    },
+    // SRAM; the 16 KiB CCM RAM is not used.
+    ram: Region {
+        start: 0x2000_0000,
+        len: 64 * KIB,
     },
 };
 

@@ -17,7 +17,7 @@ use ihex_proto::{BootRole, Port, Uid};
 use ihex_sc_core::Node;
 use ihex_sc_fw::board::{self, ExtiIrqs};
 use ihex_sc_fw::tasks::{self, led::PWM_HZ, node::now};
-use ihex_sc_fw::{can as sc_can, clock, config, reset, take_board};
+use ihex_sc_fw::{can as sc_can, clock, config, image, reset, take_board};
 use static_cell::StaticCell;
 use {defmt_rtt as _, panic_probe as _};
 
@@ -63,6 +63,16 @@ async fn main(spawner: Spawner) {
     drop(role_pin);
 
     let mut flash = Flash::new_blocking(p.FLASH);
+    match (image::running_header(&mut flash), image::stored_info()) {
+        (Some(h), _) => info!(
+            "image: {} {}, protocol {}.{}, sha512 {}",
+            h.board, h.version, h.protocol.0, h.protocol.1, h.payload_hash
+        ),
+        (None, info) => info!(
+            "image: no header in the active slot (flashed by probe-rs), built as {}",
+            info
+        ),
+    }
     let record = config::load(&mut flash);
     if let Some(r) = &record {
         config::check_role(r, role);
