@@ -113,6 +113,33 @@ pub fn binaries(dir: &Path) -> Result<Vec<(PathBuf, Sizes)>> {
     Ok(out)
 }
 
+/// The application every update image is made from.
+pub const APP: &str = "ihex-sc-fw";
+
+/// Packs the release application in `dir` into an update image signed with the committed test key
+/// (`ihex-sc-fw.img` next to it) and checks it as a node would: proves on the real ELF that the
+/// packer finds its identity record and that it is linked at the slot's load address.
+pub fn pack_check(dir: &Path) -> Result<()> {
+    use ihex_image::{board::F303RE, pack_elf, verify_image, Board, PackOverrides, Policy};
+    let elf_path = dir.join(APP);
+    let elf = fs::read(&elf_path).with_context(|| format!("reading {}", elf_path.display()))?;
+    let key = ihex_image::SigningKey::test_key();
+    let image = pack_elf(&elf, PackOverrides::default(), &key)
+        .with_context(|| format!("packing {}", elf_path.display()))?;
+    let info = ihex_image::elf::fw_info(&elf)?.context("no IHEX_FW_INFO in the firmware")?;
+    let policy = Policy::new(Board::NUCLEO_F303RE, &F303RE, info.protocol.0, info.version);
+    let header = verify_image(&image, &key.public(), &policy).context("the packed image")?;
+    let out = dir.join(format!("{APP}.img"));
+    fs::write(&out, &image).with_context(|| format!("writing {}", out.display()))?;
+    println!(
+        "{APP}.img: version {}, {} bytes, sha512 {}..., test-key signed, verifies",
+        header.version,
+        image.len(),
+        &header.payload_hash.to_string()[..16]
+    );
+    Ok(())
+}
+
 fn pct(used: u64, budget: u64) -> f64 {
     used as f64 * 100.0 / budget as f64
 }

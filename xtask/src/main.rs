@@ -249,6 +249,7 @@ fn run_stage(stage: Stage, args: &TestArgs) -> Result<Done> {
                     .args(["build", "--release"]),
             )?;
             fwsize::report(&firmware_release_dir())?;
+            fwsize::pack_check(&firmware_release_dir())?;
             // The firmware's own checks: the pin map cannot disagree with the code (broken copies
             // must fail the build), its pure modules on the host, and the SC core on Cortex-M4
             // instructions in QEMU mps2-an386. Each is its own workspace, so it runs from its folder.

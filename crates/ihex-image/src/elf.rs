@@ -3,7 +3,7 @@
 //! address on, gaps filled with `0xFF` like erased flash. Also reads the firmware's [`FwInfo`].
 
 use object::read::elf::{ElfFile32, FileHeader, ProgramHeader};
-use object::{Endianness, Object, ObjectSymbol};
+use object::{Endianness, Object, ObjectSection, ObjectSymbol, SymbolSection};
 
 use crate::header::FwInfo;
 
@@ -52,13 +52,32 @@ pub struct Flat {
     pub base: u32,
     /// The bytes.
     pub bytes: Vec<u8>,
-    /// The firmware's identity record, when the ELF has an `IHEX_FW_INFO` symbol.
-    pub info: Option<FwInfo>,
+}
+
+fn parse(elf: &[u8]) -> Result<ElfFile32<'_, Endianness>, ElfError> {
+    ElfFile32::<Endianness>::parse(elf).map_err(|e| ElfError::Parse(e.to_string()))
+}
+
+/// The firmware's identity record ([`FwInfo`], symbol `IHEX_FW_INFO`), `None` if the ELF has none
+/// (or a malformed one).
+pub fn fw_info(elf: &[u8]) -> Result<Option<FwInfo>, ElfError> {
+    let file = parse(elf)?;
+    let Some(sym) = file.symbols().find(|s| s.name() == Ok(FwInfo::SYMBOL)) else {
+        return Ok(None);
+    };
+    let SymbolSection::Section(index) = sym.section() else {
+        return Ok(None);
+    };
+    let bytes = file
+        .section_by_index(index)
+        .and_then(|sec| sec.data_range(sym.address(), FwInfo::LEN as u64))
+        .map_err(|e| ElfError::Parse(e.to_string()))?;
+    Ok(bytes.and_then(FwInfo::parse))
 }
 
 /// Flattens `elf` into a payload starting at `base` of at most `max_len` bytes.
 pub fn flatten(elf: &[u8], base: u32, max_len: u32) -> Result<Flat, ElfError> {
-    let file = ElfFile32::<Endianness>::parse(elf).map_err(|e| ElfError::Parse(e.to_string()))?;
+    let file = parse(elf)?;
     let endian = file.endian();
     let headers = file
         .elf_header()
@@ -99,12 +118,5 @@ pub fn flatten(elf: &[u8], base: u32, max_len: u32) -> Result<Flat, ElfError> {
         bytes.resize(off, 0xFF);
         bytes.extend_from_slice(data);
     }
-    let info = file
-        .symbols()
-        .find(|s| s.name() == Ok(FwInfo::SYMBOL))
-        .and_then(|s| {
-            let off = u32::try_from(s.address()).ok()?.checked_sub(base)? as usize;
-            bytes.get(off..off + FwInfo::LEN).and_then(FwInfo::parse)
-        });
-    Ok(Flat { base, bytes, info })
+    Ok(Flat { base, bytes })
 }

@@ -35,8 +35,9 @@
 //! # For tools (`std` feature)
 //!
 //! [`SigningKey`] (generate, load, save, sign), [`pack`] (sign a payload into an image file),
-//! [`elf::flatten`] (the firmware ELF's loadable segments as a flat binary at the slot's load
-//! address), [`Inspection`] (what an image says about itself, and whether it verifies).
+//! [`pack_elf`] (the same from a firmware ELF: [`elf::flatten`] lays its loadable segments out as a
+//! flat binary at the slot's load address, [`elf::fw_info`] reads the firmware's own [`FwInfo`] for
+//! the header), [`Inspection`] (what an image says about itself, and whether it verifies).
 //!
 //! The committed [`test_key`] signs images for tests and the simulator only.
 #![cfg_attr(not(any(test, feature = "std")), no_std)]
@@ -65,4 +66,4 @@ pub use header::{
 pub use key::{KeyId, PublicKey, SIGNATURE_LEN};
 
 #[cfg(feature = "std")]
-pub use tool::{load_public, pack, Inspection, SigningKey, ToolError};
+pub use tool::{load_public, pack, pack_elf, Inspection, PackOverrides, SigningKey, ToolError};

@@ -53,6 +53,19 @@ pub enum ToolError {
     /// The firmware ELF cannot be flattened.
     #[error("ELF: {0}")]
     Elf(#[from] crate::elf::ElfError),
+    /// The ELF has no identity record and no value was given for this header field.
+    #[error("the ELF has no IHEX_FW_INFO record: give the {0}")]
+    InfoMissing(&'static str),
+    /// A given header field contradicts the ELF's identity record.
+    #[error("the ELF was built as {field} {elf}, not {given} (change the firmware's crate version instead)")]
+    InfoMismatch {
+        /// The field.
+        field: &'static str,
+        /// What the ELF says.
+        elf: String,
+        /// What was given.
+        given: String,
+    },
     /// An image that cannot be read at all.
     #[error("not an image: {0}")]
     Image(ImageError),
@@ -213,6 +226,64 @@ pub fn pack(
     image.resize(HEADER_BLOCK, 0);
     image.extend_from_slice(payload);
     Ok(image)
+}
+
+/// Header fields for [`pack_elf`] where the ELF has no [`crate::FwInfo`] record; where it has one,
+/// they must agree with it (an image never claims another version than its code was built as).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct PackOverrides {
+    /// The board.
+    pub board: Option<Board>,
+    /// The protocol version (major, minor).
+    pub protocol: Option<(u8, u8)>,
+    /// The firmware version.
+    pub version: Option<Version>,
+}
+
+/// Packs a firmware ELF: its [`crate::FwInfo`] record (or `overrides`) gives board, protocol and
+/// version; its loadable segments, flattened at the board's load address, are the payload.
+pub fn pack_elf(
+    elf: &[u8],
+    overrides: PackOverrides,
+    key: &SigningKey,
+) -> Result<Vec<u8>, ToolError> {
+    let info = crate::elf::fw_info(elf)?;
+    fn pick<T: Copy + PartialEq + fmt::Display>(
+        field: &'static str,
+        from_elf: Option<T>,
+        given: Option<T>,
+    ) -> Result<T, ToolError> {
+        match (from_elf, given) {
+            (Some(e), Some(g)) if e != g => Err(ToolError::InfoMismatch {
+                field,
+                elf: e.to_string(),
+                given: g.to_string(),
+            }),
+            (Some(v), _) | (None, Some(v)) => Ok(v),
+            (None, None) => Err(ToolError::InfoMissing(field)),
+        }
+    }
+    let board = pick("board", info.map(|i| i.board), overrides.board)?;
+    let version = pick("version", info.map(|i| i.version), overrides.version)?;
+    let protocol = pick(
+        "protocol",
+        info.map(|i| ProtocolVersion(i.protocol)),
+        overrides.protocol.map(ProtocolVersion),
+    )?
+    .0;
+    let layout = board.layout().ok_or(ToolError::UnknownBoard(board))?;
+    let flat = crate::elf::flatten(elf, layout.app_start(), layout.max_payload_len())?;
+    pack(board, protocol, version, &flat.bytes, key)
+}
+
+/// `major.minor`, for messages.
+#[derive(Clone, Copy, PartialEq, Eq)]
+struct ProtocolVersion((u8, u8));
+
+impl fmt::Display for ProtocolVersion {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "{}.{}", self.0 .0, self.0 .1)
+    }
 }
 
 /// What an image says about itself, and which of its checks pass. Unlike

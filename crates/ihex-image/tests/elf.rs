@@ -1,10 +1,13 @@
 //! Flattening a firmware ELF into a slot payload, on hand-made ELF files.
 
-use ihex_image::elf::{flatten, ElfError};
-use ihex_image::{Board, FwInfo, Version};
+use ihex_image::elf::{flatten, fw_info, ElfError};
+use ihex_image::{
+    board::F303RE, pack_elf, verify_image, Board, FwInfo, PackOverrides, Policy, SigningKey,
+    ToolError, Version,
+};
 
 const PT_LOAD: u32 = 1;
-const BASE: u32 = 0x0800_7200;
+const BASE: u32 = F303RE.app_start();
 
 struct Seg {
     vaddr: u32,
@@ -42,9 +45,9 @@ fn elf(segs: &[Seg], sym: Option<u32>) -> Vec<u8> {
             symtab.extend_from_slice(&w.to_le_bytes());
         }
         symtab.extend_from_slice(&[1, 0]); // STB_LOCAL STT_OBJECT, other
-        symtab.extend_from_slice(&1u16.to_le_bytes()); // shndx: any defined section
+        symtab.extend_from_slice(&4u16.to_le_bytes()); // shndx: .text
     }
-    let shstr = b"\0.strtab\0.symtab\0.shstrtab\0".to_vec();
+    let shstr = b"\0.strtab\0.symtab\0.shstrtab\0.text\0".to_vec();
     let strtab_off = data_off;
     let symtab_off = strtab_off + strtab.len() as u32;
     let shstr_off = symtab_off + symtab.len() as u32;
@@ -64,7 +67,7 @@ fn elf(segs: &[Seg], sym: Option<u32>) -> Vec<u8> {
     for v in [1u32, BASE, phoff, shoff, 0x0500_0400] {
         f.extend_from_slice(&v.to_le_bytes());
     }
-    for v in [52u16, 32, segs.len() as u16, 40, 4, 3] {
+    for v in [52u16, 32, segs.len() as u16, 40, 5, 3] {
         f.extend_from_slice(&v.to_le_bytes());
     }
     for ph in phs {
@@ -89,6 +92,25 @@ fn elf(segs: &[Seg], sym: Option<u32>) -> Vec<u8> {
     sh(
         &mut f,
         [17, 3, 0, 0, shstr_off, shstr.len() as u32, 0, 0, 1, 0],
+    );
+    // .text: the first segment's bytes, where the symbol lives.
+    let (addr, len) = segs
+        .first()
+        .map_or((0, 0), |s| (s.vaddr, s.data.len() as u32));
+    sh(
+        &mut f,
+        [
+            27,
+            1,
+            6,
+            addr,
+            phoff + 32 * segs.len() as u32,
+            len,
+            0,
+            0,
+            4,
+            0,
+        ],
     );
     f
 }
@@ -127,7 +149,8 @@ fn code_then_data_at_their_load_addresses() {
             memsz: 64,
         },
     ];
-    let flat = flatten(&elf(&segs, Some(BASE + 0x40)), BASE, 4096).unwrap();
+    let file = elf(&segs, Some(BASE + 0x40));
+    let flat = flatten(&file, BASE, 4096).unwrap();
     assert_eq!(flat.bytes.len(), 0x110);
     assert_eq!(flat.bytes[..0x40], [0xAB; 0x40]);
     assert_eq!(
@@ -136,7 +159,59 @@ fn code_then_data_at_their_load_addresses() {
         "gaps read as erased flash"
     );
     assert_eq!(flat.bytes[0x108..], [0xCD; 8]);
-    assert_eq!(flat.info, Some(info()));
+    assert_eq!(fw_info(&file), Ok(Some(info())));
+
+    // Packed: the header takes board, protocol and version from the record.
+    let key = SigningKey::test_key();
+    let img = pack_elf(&file, PackOverrides::default(), &key).unwrap();
+    let policy = Policy::new(Board::NUCLEO_F303RE, &F303RE, 1, Version::new(0, 1, 0));
+    let h = verify_image(&img, &key.public(), &policy).unwrap();
+    assert_eq!(
+        (h.version, h.protocol, h.payload_len),
+        (Version::new(0, 3, 1), (1, 0), 0x110)
+    );
+    assert_eq!(&img[512..], &flat.bytes[..]);
+    // Overrides that agree are fine; one that contradicts the record is refused.
+    let same = PackOverrides {
+        version: Some(Version::new(0, 3, 1)),
+        ..Default::default()
+    };
+    assert_eq!(pack_elf(&file, same, &key).unwrap(), img);
+    let other = PackOverrides {
+        version: Some(Version::new(0, 4, 0)),
+        ..Default::default()
+    };
+    assert!(matches!(
+        pack_elf(&file, other, &key),
+        Err(ToolError::InfoMismatch {
+            field: "version",
+            ..
+        })
+    ));
+}
+
+#[test]
+fn without_a_record_the_fields_must_be_given() {
+    let segs = [Seg {
+        vaddr: BASE,
+        paddr: BASE,
+        data: vec![1; 64],
+        memsz: 64,
+    }];
+    let file = elf(&segs, None);
+    assert_eq!(fw_info(&file), Ok(None));
+    let key = SigningKey::test_key();
+    assert!(matches!(
+        pack_elf(&file, PackOverrides::default(), &key),
+        Err(ToolError::InfoMissing("board"))
+    ));
+    let given = PackOverrides {
+        board: Some(Board::NUCLEO_F303RE),
+        protocol: Some((1, 0)),
+        version: Some(Version::new(2, 0, 0)),
+    };
+    let img = pack_elf(&file, given, &key).unwrap();
+    assert_eq!(img.len(), 512 + 64);
 }
 
 #[test]
@@ -180,6 +255,10 @@ fn misplaced_segments_are_refused() {
         flatten(b"not an elf", BASE, 4096),
         Err(ElfError::Parse(_))
     ));
-    let flat = flatten(&elf(&[seg(BASE, 16)], None), BASE, 4096).unwrap();
-    assert_eq!(flat.info, None);
+    assert_eq!(
+        flatten(&elf(&[seg(BASE, 16)], None), BASE, 4096)
+            .unwrap()
+            .bytes,
+        vec![1; 16]
+    );
 }

@@ -1,4 +1,7 @@
-//! `ihex-provision`: give sub-controllers their node IDs (serial or CAN) and watch the gateway's events.
+//! `ihex-provision`: give sub-controllers their node IDs (serial or CAN), watch the gateway's events,
+//! and make signed firmware images (`fw`).
+
+mod fw;
 
 use std::{path::PathBuf, process::ExitCode, time::Duration};
 
@@ -31,6 +34,11 @@ enum Cmd {
     Can(CanArgs),
     /// Wait for an event from the gateway (optionally after sending a command); exit 0 once it arrives.
     WaitEvent(WaitArgs),
+    /// Firmware images: make a signing key, pack and sign the firmware, inspect an image.
+    Fw {
+        #[command(subcommand)]
+        cmd: fw::FwCmd,
+    },
 }
 
 #[derive(Args)]
@@ -156,6 +164,11 @@ fn main() -> ExitCode {
         Cmd::Serial(a) => run_serial(a),
         Cmd::Can(a) => tokio_main(run_can(a)),
         Cmd::WaitEvent(a) => tokio_main(run_wait(a)),
+        Cmd::Fw { cmd } => match fw::run(cmd) {
+            Ok(true) => Ok(()),
+            Ok(false) => return ExitCode::FAILURE,
+            Err(e) => Err(e),
+        },
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
