@@ -271,6 +271,51 @@ fn firmware_modules(s: &mut Suite) {
     );
 }
 
+/// An update image packed on the host with the test key (build.rs): the node's checks, run with
+/// salty's Cortex-M4 field arithmetic, must agree with the host's.
+fn image_checks(s: &mut Suite) {
+    use ihex_image::{
+        board::F303RE, check_signed, test_key, verify_image, Board, Hasher, ImageError, Policy,
+        Version, HEADER_BLOCK,
+    };
+    static IMAGE: &[u8] = include_bytes!(concat!(env!("OUT_DIR"), "/test-image.img"));
+    let policy = Policy::new(Board::NUCLEO_F303RE, &F303RE, 1, Version::new(1, 0, 0));
+    let key = test_key::PUBLIC;
+    s.check(
+        "host-signed image verifies (ed25519 + SHA-512)",
+        verify_image(IMAGE, &key, &policy).is_ok_and(|h| h.version == Version::new(1, 2, 3)),
+    );
+    let mut buf = [0u8; 4512];
+    buf.copy_from_slice(IMAGE);
+    buf[HEADER_BLOCK + 17] ^= 0x40;
+    s.check(
+        "a changed payload byte is Corrupted",
+        verify_image(&buf, &key, &policy) == Err(ImageError::Corrupted),
+    );
+    buf.copy_from_slice(IMAGE);
+    buf[130] ^= 0x01;
+    s.check(
+        "a changed signature byte is BadSignature",
+        check_signed(&buf, &key, &policy) == Err(ImageError::BadSignature),
+    );
+    let mut older = policy;
+    older.running = Version::new(2, 0, 0);
+    s.check(
+        "an older image is a Downgrade",
+        matches!(
+            check_signed(IMAGE, &key, &older),
+            Err(ImageError::Downgrade { .. })
+        ),
+    );
+    let mut h = Hasher::new();
+    h.update(b"a");
+    h.update(b"bc");
+    s.check(
+        "SHA-512(abc) in pieces",
+        h.finish().prefix::<4>() == [0xdd, 0xaf, 0x35, 0xa1],
+    );
+}
+
 #[entry]
 fn main() -> ! {
     let mut s = Suite {
@@ -280,6 +325,7 @@ fn main() -> ! {
     static_node(&mut s);
     unconfigured_node_gets_id_over_uart(&mut s);
     firmware_modules(&mut s);
+    image_checks(&mut s);
     hprintln!(
         "{} passed, {} failed (Cortex-M4, QEMU mps2-an386)",
         s.passed,
