@@ -203,15 +203,15 @@ fn unconfigured_node_gets_id_over_uart(s: &mut Suite) {
     let new = id(0x122);
     s.check(
         "UART set-ID asks to store it",
-        outs.iter().any(|o| *o == Output::StoreId(new)),
+        outs.contains(&Output::StoreId(new)),
     );
     s.check(
         "UART set-ID asks for new filters",
-        outs.iter().any(|o| *o == Output::FiltersChanged),
+        outs.contains(&Output::FiltersChanged),
     );
     s.check(
         "UART set-ID replies 51 22",
-        outs.iter().any(|o| *o == Output::Uart([0x51, 0x22])),
+        outs.contains(&Output::Uart([0x51, 0x22])),
     );
     s.check(
         "BootUp from the new ID",
@@ -223,7 +223,7 @@ fn unconfigured_node_gets_id_over_uart(s: &mut Suite) {
     let outs = drain(&mut n);
     s.check(
         "a stray byte is answered Malformed (E0 02)",
-        outs.iter().any(|o| *o == Output::Uart([0xE0, 0x02])),
+        outs.contains(&Output::Uart([0xE0, 0x02])),
     );
 }
 
@@ -336,12 +336,16 @@ fn main() -> ! {
     } else {
         debug::EXIT_FAILURE
     });
-    loop {}
+    loop {
+        cortex_m::asm::wfi();
+    }
 }
 
 #[panic_handler]
 fn panic(info: &core::panic::PanicInfo) -> ! {
     hprintln!("PANIC {}", info);
     debug::exit(debug::EXIT_FAILURE);
-    loop {}
+    loop {
+        cortex_m::asm::wfi();
+    }
 }
