@@ -1,11 +1,10 @@
-//! The firmware's own image: what it is built as ([`IHEX_FW_INFO`], read back by the packer), the
-//! key it trusts ([`FW_PUBLIC_KEY`], from `IHEX_FW_PUBKEY` at build time), and the identity of the
-//! image it runs — the signed header at the start of the active slot, which moves with the image
-//! when the bootloader swaps or reverts.
+//! The firmware's own identity: what it is built as ([`IHEX_FW_INFO`], read back by the packer) and
+//! the key it trusts ([`FW_PUBLIC_KEY`], from `IHEX_FW_PUBKEY` at build time). The identity of the
+//! image it *runs* is the signed header at the start of the active slot
+//! ([`crate::update::running_header`]), which moves with the image when the bootloader swaps or
+//! reverts.
 
-use embassy_stm32::flash::{Blocking, Flash, FLASH_BASE};
-use ihex_image::board::F303RE;
-use ihex_image::{Board, FwInfo, Header, Version, HEADER_LEN};
+use ihex_image::{Board, FwInfo, Version};
 
 include!(concat!(env!("OUT_DIR"), "/pubkey.rs"));
 
@@ -31,16 +30,6 @@ pub const INFO: FwInfo = FwInfo {
 #[used]
 #[no_mangle]
 pub static IHEX_FW_INFO: [u8; FwInfo::LEN] = INFO.encode();
-
-/// The header in front of the running application; `None` when the slot holds none (an
-/// application flashed directly with probe-rs: its first page, header included, was erased).
-pub fn running_header(flash: &mut Flash<'_, Blocking>) -> Option<Header> {
-    let mut b = [0u8; HEADER_LEN];
-    flash
-        .blocking_read(F303RE.active.start - FLASH_BASE as u32, &mut b)
-        .ok()?;
-    Header::parse(&b).ok()
-}
 
 /// The build record as stored (read through a volatile load so the linker keeps the symbol).
 pub fn stored_info() -> Option<FwInfo> {

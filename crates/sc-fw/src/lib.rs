@@ -18,3 +18,4 @@ pub mod image;
 pub mod record;
 pub mod reset;
 pub mod tasks;
+pub mod update;

@@ -17,7 +17,7 @@ use ihex_proto::{BootRole, Port, Uid};
 use ihex_sc_core::Node;
 use ihex_sc_fw::board::{self, ExtiIrqs};
 use ihex_sc_fw::tasks::{self, led::PWM_HZ, node::now};
-use ihex_sc_fw::{can as sc_can, clock, config, image, reset, take_board};
+use ihex_sc_fw::{can as sc_can, clock, config, image, reset, take_board, update};
 use static_cell::StaticCell;
 use {defmt_rtt as _, panic_probe as _};
 
@@ -62,18 +62,23 @@ async fn main(spawner: Spawner) {
     };
     drop(role_pin);
 
-    let mut flash = Flash::new_blocking(p.FLASH);
-    match (image::running_header(&mut flash), image::stored_info()) {
+    let mut parts = update::split(Flash::new_blocking(p.FLASH));
+    let mut updater = update::Updater::new(parts.dfu, parts.state);
+    let boot_state = updater.boot_state();
+    match (
+        update::running_header(&mut parts.active),
+        image::stored_info(),
+    ) {
         (Some(h), _) => info!(
-            "image: {} {}, protocol {}.{}, sha512 {}",
-            h.board, h.version, h.protocol.0, h.protocol.1, h.payload_hash
+            "image: {} {}, protocol {}.{}, sha512 {}, {}",
+            h.board, h.version, h.protocol.0, h.protocol.1, h.payload_hash, boot_state
         ),
         (None, info) => info!(
-            "image: no header in the active slot (flashed by probe-rs), built as {}",
-            info
+            "image: no header in the active slot (flashed by probe-rs), built as {}, {}",
+            info, boot_state
         ),
     }
-    let record = config::load(&mut flash);
+    let record = config::load(&mut parts.config);
     if let Some(r) = &record {
         config::check_role(r, role);
     }
@@ -189,5 +194,5 @@ async fn main(spawner: Spawner) {
         )));
     }
     let relay = tasks::relay::Relay::new(relay, board::RELAY_ACTIVE_LOW);
-    spawner.spawn(unwrap!(tasks::node::node(node, flash, relay, role)));
+    spawner.spawn(unwrap!(tasks::node::node(node, parts.config, relay, role)));
 }

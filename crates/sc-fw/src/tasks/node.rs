@@ -3,7 +3,6 @@
 
 use defmt::{info, warn};
 use embassy_futures::select::{select, Either};
-use embassy_stm32::flash::{Blocking, Flash};
 use embassy_time::{with_timeout, Duration, Instant, Timer};
 use ihex_proto::BootRole;
 use ihex_sc_core::{Millis, Node, Output};
@@ -13,6 +12,7 @@ use super::watchdog::{beat, Beat};
 use crate::config;
 use crate::event::{Event, BUZZER, CAN_TX, EVENTS, FILTERS, FILTERS_DONE, LED, UART_TX};
 use crate::record::Record;
+use crate::update::Part;
 
 /// Longest sleep between two passes (keeps the heartbeat going when the core has no timer pending).
 pub const MAX_SLEEP_MS: u64 = 100;
@@ -26,12 +26,7 @@ pub fn now() -> Millis {
 
 /// Runs the node forever.
 #[embassy_executor::task]
-pub async fn node(
-    mut node: Node,
-    mut flash: Flash<'static, Blocking>,
-    mut relay: Relay,
-    role: BootRole,
-) {
+pub async fn node(mut node: Node, mut flash: Part, mut relay: Relay, role: BootRole) {
     let mut dropped_frames = 0u32;
     // The core reports its actuators as changed on the first call after `Node::new`.
     publish(&mut node, &mut relay);
@@ -81,12 +76,7 @@ fn publish(node: &mut Node, relay: &mut Relay) {
     }
 }
 
-async fn drain(
-    node: &mut Node,
-    flash: &mut Flash<'static, Blocking>,
-    role: BootRole,
-    dropped: &mut u32,
-) {
+async fn drain(node: &mut Node, flash: &mut Part, role: BootRole, dropped: &mut u32) {
     while let Some(out) = node.poll_output() {
         match out {
             Output::Frame(p) => {
