@@ -53,9 +53,15 @@ fn main() -> ! {
         state: part(F303RE.state),
     };
     let bl = BootLoader::prepare::<_, _, _, PAGE>(config);
+    // `state` is what the bootloader found: `Swap` means it has just swapped, either a new image in
+    // (now on trial) or, after a trial that did not confirm itself, the previous one back.
     match bl.state {
-        State::Swap => info!("bootloader: new image swapped in, starting it on trial"),
-        State::Revert => info!("bootloader: starting the previous image (reverted or kept)"),
+        State::Swap => {
+            info!("bootloader: images swapped (a new image on trial, or the previous one back)")
+        }
+        State::Revert => {
+            info!("bootloader: starting the application (its last update was reverted)")
+        }
         _ => info!("bootloader: starting the application"),
     }
     let app = F303RE.app_start();
