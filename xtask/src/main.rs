@@ -3,8 +3,10 @@
 
 mod bench;
 mod broker;
+mod cantools;
 mod cmd;
 mod cpio;
+mod dbc;
 mod fwsize;
 mod setup;
 mod vcan;
@@ -47,6 +49,16 @@ enum Task {
         /// Its arguments.
         #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
         args: Vec<String>,
+    },
+    /// Write docs/ihex.dbc (the CAN protocol for cantools, SavvyCAN, ...) from ihex-proto's schema.
+    Dbc {
+        /// Only check that docs/ihex.dbc is what the generator writes (the host stage does).
+        #[arg(long, conflicts_with = "island")]
+        check: bool,
+        /// Print instead a DBC with exact IDs for these sub-controllers (hex IDs: 111,112,2), for
+        /// tools that cannot mask IDs (SavvyCAN).
+        #[arg(long, value_delimiter = ',', num_args = 1..)]
+        island: Vec<ihex_proto::NodeId>,
     },
     /// Benchmarks (not a test): gateway rates, latency, CPU, RSS, instructions per frame, firmware
     /// size; writes target/bench/results.json (docs/benchmarks.md).
@@ -146,6 +158,9 @@ fn main() -> ExitCode {
         },
         Task::VmShell { vm } => vcan::vm_shell(vm.settings()),
         Task::Bench(args) => bench::run(args, &firmware_release_dir()),
+        Task::Dbc { check: true, .. } => dbc::check(),
+        Task::Dbc { island, .. } if !island.is_empty() => dbc::island(&island),
+        Task::Dbc { .. } => dbc::write(),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -210,11 +225,30 @@ fn run_stage(stage: Stage, args: &TestArgs) -> Result<Done> {
     match stage {
         Stage::Setup => setup::run().map(|()| Done::Ran),
         Stage::Host => {
-            cmd::run(
+            // golden.rs appends every vector it checks here; cantools then decodes them all.
+            let vectors = cmd::target_dir().join("dbc/golden-vectors.txt");
+            if let Some(dir) = vectors.parent() {
+                std::fs::create_dir_all(dir)?;
+            }
+            if vectors.exists() {
+                std::fs::remove_file(&vectors)?;
+            }
+            let mut failures = Vec::new();
+            if let Err(e) = cmd::run(
                 cmd::cargo()
                     .current_dir(&root)
+                    .env("IHEX_GOLDEN_VECTORS", &vectors)
                     .args(["test", "--workspace"]),
-            )?;
+            ) {
+                failures.push(format!("{e:#}"));
+            }
+            println!("==> xtask: host: DBC round trip through cantools");
+            if let Err(e) = cantools::round_trip(&vectors) {
+                failures.push(format!("cantools round trip: {e:#}"));
+            }
+            if !failures.is_empty() {
+                anyhow::bail!("{}", failures.join("; "));
+            }
             Ok(Done::Ran)
         }
         Stage::ProtoMcu => {

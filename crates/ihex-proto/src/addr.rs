@@ -154,5 +154,5 @@ impl fmt::Display for Port {
     }
 }
 
-/// Command sequence number, echoed in the [`Message::Ack`] that answers the command. Wraps at 255.
+/// Command sequence number, echoed in the [`crate::Message::Ack`] that answers the command. Wraps at 255.
 pub type Seq = u8;

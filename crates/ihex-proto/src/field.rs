@@ -1,5 +1,6 @@
 //! Byte offsets of every field in the data of each message (smoltcp-style), as tabled in
-//! `docs/protocol.md`. Single bytes are `usize` offsets, multi-byte little-endian fields ranges.
+//! `docs/protocol.md`. Single bytes are `usize` offsets, multi-byte little-endian fields ranges;
+//! the wire values of the mode and role bytes are `u8` constants beside them.
 //!
 //! The codec in [`crate::Message`] reads and writes through these constants, so they are the
 //! layout; an [`crate::Message::Ack`]'s `detail` for `InvalidValue`/`InvalidState` is one of them.
@@ -99,12 +100,17 @@ pub mod boot_up {
     pub const MAJOR: usize = 0;
     /// Protocol minor version.
     pub const MINOR: usize = 1;
-    /// Role, `0` static / `1` mobile.
+    /// Role, [`ROLE_STATIC`] / [`ROLE_MOBILE`].
     pub const ROLE: usize = 2;
     /// Number of dock ports.
     pub const PORTS: usize = 3;
     /// Reset reason.
     pub const RESET: usize = 4;
+
+    /// `ROLE` of a static element ([`crate::BootRole::Static`]).
+    pub const ROLE_STATIC: u8 = 0;
+    /// `ROLE` of a mobile element ([`crate::BootRole::Mobile`]).
+    pub const ROLE_MOBILE: u8 = 1;
 }
 
 /// [`crate::Message::BuzzerSet`].
@@ -112,7 +118,7 @@ pub mod buzzer_set {
     use super::Field;
     /// Sequence number.
     pub const SEQ: usize = 0;
-    /// Mode: `0` off, `1` continuous, `2` pattern.
+    /// Mode: [`MODE_OFF`], [`MODE_CONTINUOUS`], [`MODE_PATTERN`].
     pub const MODE: usize = 1;
     /// Tone frequency in Hz, `u16` LE.
     pub const FREQ: Field = 2..4;
@@ -122,13 +128,20 @@ pub mod buzzer_set {
     pub const OFF: usize = 5;
     /// Number of beeps.
     pub const COUNT: usize = 6;
+
+    /// `MODE` of [`crate::BuzzerCommand::Off`].
+    pub const MODE_OFF: u8 = 0;
+    /// `MODE` of [`crate::BuzzerCommand::Continuous`].
+    pub const MODE_CONTINUOUS: u8 = 1;
+    /// `MODE` of [`crate::BuzzerCommand::Pattern`].
+    pub const MODE_PATTERN: u8 = 2;
 }
 
 /// [`crate::Message::LedSet`].
 pub mod led_set {
     /// Sequence number.
     pub const SEQ: usize = 0;
-    /// Mode: `0` off, `1` steady, `2` blink.
+    /// Mode: [`MODE_OFF`], [`MODE_STEADY`], [`MODE_BLINK`].
     pub const MODE: usize = 1;
     /// Red.
     pub const R: usize = 2;
@@ -142,6 +155,13 @@ pub mod led_set {
     pub const PERIOD: usize = 6;
     /// Blink duty, %.
     pub const DUTY: usize = 7;
+
+    /// `MODE` of [`crate::LedCommand::Off`].
+    pub const MODE_OFF: u8 = 0;
+    /// `MODE` of [`crate::LedCommand::Steady`].
+    pub const MODE_STEADY: u8 = 1;
+    /// `MODE` of [`crate::LedCommand::Blink`].
+    pub const MODE_BLINK: u8 = 2;
 }
 
 /// [`crate::Message::Identify`].

@@ -77,6 +77,30 @@ impl Kind {
         }
     }
 
+    /// The kind's name as in `docs/protocol.md` (`"PowerSet"`): the DBC message name and the
+    /// value names of an [`crate::Message::Ack`]'s `kind`.
+    pub const fn name(self) -> &'static str {
+        match self {
+            Kind::PowerSet => "PowerSet",
+            Kind::Fault => "Fault",
+            Kind::DockDetected => "DockDetected",
+            Kind::DockRemoved => "DockRemoved",
+            Kind::DockConfirm => "DockConfirm",
+            Kind::DockRefuse => "DockRefuse",
+            Kind::Handshake => "Handshake",
+            Kind::Ack => "Ack",
+            Kind::AssignSelect => "AssignSelect",
+            Kind::AssignCommit => "AssignCommit",
+            Kind::AssignReply => "AssignReply",
+            Kind::BootUp => "BootUp",
+            Kind::BuzzerSet => "BuzzerSet",
+            Kind::LedSet => "LedSet",
+            Kind::Identify => "Identify",
+            Kind::HealthCheck => "HealthCheck",
+            Kind::HealthReply => "HealthReply",
+        }
+    }
+
     /// True for kinds the gateway sends (commands); false for node reports.
     pub const fn is_command(self) -> bool {
         matches!(

@@ -17,6 +17,8 @@
 //!   SocketCAN kernel filters and bxCAN filter banks.
 //! * [`timing`] — bxCAN bit timing from a peripheral clock and a bitrate.
 //! * [`uart`] — the 2-byte node-ID configuration message spoken over the ST-Link virtual COM port.
+//! * [`schema`] — every message described as data (signals, units, value names), and [`dbc`] — that
+//!   description as a DBC file for CAN tools (`docs/ihex.dbc`).
 //!
 //! The full byte layout of every message, the kind table, the address rules, the filter and bit-timing
 //! worked examples and the UART exchange are in `docs/protocol.md` (repository root); every byte
@@ -29,11 +31,13 @@
 #[macro_use]
 mod macros;
 mod addr;
+pub mod dbc;
 mod error;
 pub mod field;
 pub mod filter;
 mod header;
 mod message;
+pub mod schema;
 pub mod timing;
 pub mod uart;
 pub mod unit;

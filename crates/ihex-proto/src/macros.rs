@@ -4,9 +4,9 @@
 /// Declares a `u8` wire enumeration with an `Other(u8)` arm for values this version does not know,
 /// so a newer peer never breaks an older one.
 ///
-/// Each variant is `Name = raw => "snake_name"`. Generated: `to_raw`, `from_raw` (unknown →
-/// `Other`), `name` (`None` for `Other`) and `Display` (the snake name, or `other_<n>`), the form
-/// the gateway publishes.
+/// Each variant is `Name = raw => "snake_name"`. Generated: `KNOWN`, `TABLE`, `to_raw`,
+/// `from_raw` (unknown → `Other`), `name` (`None` for `Other`) and `Display` (the snake name, or
+/// `other_<n>`), the form the gateway publishes.
 macro_rules! enum_with_unknown {
     (
         $(#[$attr:meta])*
@@ -26,6 +26,9 @@ macro_rules! enum_with_unknown {
         impl $name {
             /// Every known value, in wire order.
             pub const KNOWN: &'static [$name] = &[$($name::$variant),+];
+
+            /// Every known wire value with its name, in wire order (the DBC value tables).
+            pub const TABLE: &'static [(u8, &'static str)] = &[$(($raw, $text)),+];
 
             /// Wire value.
             pub const fn to_raw(self) -> u8 {

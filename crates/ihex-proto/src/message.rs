@@ -54,6 +54,11 @@ pub enum LedCommand {
     },
 }
 
+impl LedCommand {
+    /// Highest blink duty, in % (a duty of 100 would be steady).
+    pub const MAX_DUTY_PCT: u8 = 99;
+}
+
 /// What the buzzer should do.
 #[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
@@ -476,7 +481,7 @@ impl Message {
                 if period_10ms == 0 {
                     return bad("period", 0);
                 }
-                if duty_pct == 0 || duty_pct > 99 {
+                if duty_pct == 0 || duty_pct > LedCommand::MAX_DUTY_PCT {
                     return bad("duty", duty_pct as u32);
                 }
             }
@@ -591,16 +596,22 @@ impl Message {
             } => {
                 b[boot_up::MAJOR] = version.0;
                 b[boot_up::MINOR] = version.1;
-                b[boot_up::ROLE] = matches!(role, BootRole::Mobile) as u8;
+                b[boot_up::ROLE] = match role {
+                    BootRole::Static => boot_up::ROLE_STATIC,
+                    BootRole::Mobile => boot_up::ROLE_MOBILE,
+                };
                 b[boot_up::PORTS] = ports;
                 b[boot_up::RESET] = reset.to_raw();
             }
             Message::BuzzerSet { seq, cmd } => {
                 b[buzzer_set::SEQ] = seq;
                 let freq = match cmd {
-                    BuzzerCommand::Off => None,
+                    BuzzerCommand::Off => {
+                        b[buzzer_set::MODE] = buzzer_set::MODE_OFF;
+                        None
+                    }
                     BuzzerCommand::Continuous { freq_hz } => {
-                        b[buzzer_set::MODE] = 1;
+                        b[buzzer_set::MODE] = buzzer_set::MODE_CONTINUOUS;
                         Some(freq_hz)
                     }
                     BuzzerCommand::Pattern {
@@ -609,7 +620,7 @@ impl Message {
                         off_10ms,
                         count,
                     } => {
-                        b[buzzer_set::MODE] = 2;
+                        b[buzzer_set::MODE] = buzzer_set::MODE_PATTERN;
                         b[buzzer_set::ON] = on_10ms;
                         b[buzzer_set::OFF] = off_10ms;
                         b[buzzer_set::COUNT] = count;
@@ -623,9 +634,12 @@ impl Message {
             Message::LedSet { seq, cmd } => {
                 b[led_set::SEQ] = seq;
                 let (color, brightness) = match cmd {
-                    LedCommand::Off => (None, 0),
+                    LedCommand::Off => {
+                        b[led_set::MODE] = led_set::MODE_OFF;
+                        (None, 0)
+                    }
                     LedCommand::Steady { color, brightness } => {
-                        b[led_set::MODE] = 1;
+                        b[led_set::MODE] = led_set::MODE_STEADY;
                         (Some(color), brightness)
                     }
                     LedCommand::Blink {
@@ -634,7 +648,7 @@ impl Message {
                         period_10ms,
                         duty_pct,
                     } => {
-                        b[led_set::MODE] = 2;
+                        b[led_set::MODE] = led_set::MODE_BLINK;
                         b[led_set::PERIOD] = period_10ms;
                         b[led_set::DUTY] = duty_pct;
                         (Some(color), brightness)
@@ -777,8 +791,8 @@ impl Message {
             Kind::BootUp => Message::BootUp {
                 version: (d[boot_up::MAJOR], d[boot_up::MINOR]),
                 role: match d[boot_up::ROLE] {
-                    0 => BootRole::Static,
-                    1 => BootRole::Mobile,
+                    boot_up::ROLE_STATIC => BootRole::Static,
+                    boot_up::ROLE_MOBILE => BootRole::Mobile,
                     v => return Err(bad("role", v)),
                 },
                 ports: d[boot_up::PORTS],
@@ -790,15 +804,15 @@ impl Message {
                 Message::BuzzerSet {
                     seq: d[buzzer_set::SEQ],
                     cmd: match d[buzzer_set::MODE] {
-                        0 => {
+                        buzzer_set::MODE_OFF => {
                             reserved(f.start)?;
                             BuzzerCommand::Off
                         }
-                        1 => {
+                        buzzer_set::MODE_CONTINUOUS => {
                             reserved(buzzer_set::ON)?;
                             BuzzerCommand::Continuous { freq_hz }
                         }
-                        2 => BuzzerCommand::Pattern {
+                        buzzer_set::MODE_PATTERN => BuzzerCommand::Pattern {
                             freq_hz,
                             on_10ms: d[buzzer_set::ON],
                             off_10ms: d[buzzer_set::OFF],
@@ -814,15 +828,15 @@ impl Message {
                 Message::LedSet {
                     seq: d[led_set::SEQ],
                     cmd: match d[led_set::MODE] {
-                        0 => {
+                        led_set::MODE_OFF => {
                             reserved(led_set::R)?;
                             LedCommand::Off
                         }
-                        1 => {
+                        led_set::MODE_STEADY => {
                             reserved(led_set::PERIOD)?;
                             LedCommand::Steady { color, brightness }
                         }
-                        2 => LedCommand::Blink {
+                        led_set::MODE_BLINK => LedCommand::Blink {
                             color,
                             brightness,
                             period_10ms: d[led_set::PERIOD],

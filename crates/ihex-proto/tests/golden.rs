@@ -38,6 +38,24 @@ fn golden(p: Packet, id: u32, data: &[u8]) {
     assert_eq!(frame.data(), data);
     assert!(!frame.is_remote_frame());
     assert_eq!(Packet::from_frame(&frame), Ok(p));
+    record(id, data);
+}
+
+/// With `IHEX_GOLDEN_VECTORS=<file>` set, appends the vector to that file as a candump log line
+/// (`ID#DATA`): `cargo xtask test` has cantools decode every one of them (`tests/dbc.rs`).
+fn record(id: u32, data: &[u8]) {
+    use std::io::Write;
+    let Some(path) = std::env::var_os("IHEX_GOLDEN_VECTORS") else {
+        return;
+    };
+    let hex: String = data.iter().map(|b| format!("{b:02X}")).collect();
+    // One short write per line to a file opened for appending: lines of parallel tests do not mix.
+    std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(&path)
+        .and_then(|mut f| f.write_all(format!("{id:08X}#{hex}\n").as_bytes()))
+        .unwrap_or_else(|e| panic!("IHEX_GOLDEN_VECTORS={}: {e}", path.to_string_lossy()));
 }
 
 /// Checks that a raw identifier and payload are refused with exactly `err`, also as a frame.

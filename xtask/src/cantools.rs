@@ -1,0 +1,102 @@
+//! The host stage's cantools round trip: a virtual environment in `target/venv` with the pinned
+//! cantools (`crates/ihex-proto/tests/dbc/requirements.txt`), then the ignored cantools test of
+//! `crates/ihex-proto/tests/dbc.rs` run with it and with the golden vectors of the same stage.
+//!
+//! pip runs only when the requirements changed since the last install (a stamp file in the
+//! environment), so a warm run costs the test alone. Where Python or PyPI is missing the round trip
+//! is skipped with a warning — except in CI (`CI=true`), where that is a failure.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use anyhow::{bail, Context, Result};
+
+use crate::cmd;
+
+/// The pinned requirements, relative to the workspace root.
+const REQUIREMENTS: &str = "crates/ihex-proto/tests/dbc/requirements.txt";
+
+/// True under CI, where nothing may be skipped for want of a tool.
+fn in_ci() -> bool {
+    std::env::var("CI").is_ok_and(|v| v == "true")
+}
+
+/// Runs the round trip on the vectors `golden.rs` wrote to `vectors`.
+pub fn round_trip(vectors: &Path) -> Result<()> {
+    let python = match venv() {
+        Ok(p) => p,
+        Err(e) if !in_ci() => {
+            println!(
+                "xtask: WARNING: cantools round trip SKIPPED: {e:#}\n\
+                 xtask: (with CI=true this fails the host stage)"
+            );
+            return Ok(());
+        }
+        Err(e) => return Err(e.context("CI=true: the cantools round trip must run")),
+    };
+    let report = vectors.with_file_name("cantools-report.txt");
+    if report.exists() {
+        std::fs::remove_file(&report)?;
+    }
+    cmd::run(
+        cmd::cargo()
+            .current_dir(cmd::root())
+            .env("IHEX_CANTOOLS_PYTHON", &python)
+            .env("IHEX_GOLDEN_VECTORS", vectors)
+            .env("IHEX_CANTOOLS_REPORT", &report)
+            .args([
+                "test",
+                "-p",
+                "ihex-proto",
+                "--test",
+                "dbc",
+                "--",
+                "--ignored",
+            ]),
+    )?;
+    // The test writes its report only when it ran to the end: no report, no round trip.
+    let done = std::fs::read_to_string(&report).with_context(|| {
+        format!(
+            "the cantools test did not run (no {}): was it renamed or filtered out?",
+            report.display()
+        )
+    })?;
+    print!("xtask: {done}");
+    Ok(())
+}
+
+/// The environment's Python, created and filled when needed.
+fn venv() -> Result<PathBuf> {
+    let root = cmd::root();
+    let dir = cmd::target_dir().join("venv");
+    let python = dir.join("bin/python");
+    let wanted = std::fs::read_to_string(root.join(REQUIREMENTS))
+        .with_context(|| format!("reading {REQUIREMENTS}"))?;
+    let stamp = dir.join("ihex-requirements.txt");
+    if python.is_file() && std::fs::read_to_string(&stamp).is_ok_and(|s| s == wanted) {
+        return Ok(python);
+    }
+    if !python.is_file() {
+        let Some(system) = cmd::find("python3") else {
+            bail!("python3 not found (install Python 3 with pip and venv)");
+        };
+        cmd::run(Command::new(system).arg("-m").arg("venv").arg(&dir)).context(
+            "creating the virtual environment (on Debian/Ubuntu: apt-get install python3-venv)",
+        )?;
+    }
+    cmd::run(
+        Command::new(&python)
+            .args([
+                "-m",
+                "pip",
+                "install",
+                "--disable-pip-version-check",
+                "-q",
+                "-r",
+            ])
+            .arg(root.join(REQUIREMENTS)),
+    )
+    .context("installing cantools from PyPI")?;
+    std::fs::write(&stamp, wanted).with_context(|| format!("writing {}", stamp.display()))?;
+    Ok(python)
+}
