@@ -18,6 +18,7 @@ use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, bail, Context, Result};
+use ihex_gateway_core::event::{Event, Outcome};
 use ihex_proto::{
     AckResult, BootRole, HealthFlags, HealthReply, Kind, LedCommand, Message, NodeId, Packet,
     ResetReason,
@@ -127,13 +128,12 @@ fn report(i: u32) -> Packet {
 }
 
 /// Index of a `node_rebooted` event, or `None` for other events.
-fn report_index(event: &serde_json::Value) -> Option<u32> {
-    if event["event"] != "node_rebooted" {
+fn report_index(event: &Event) -> Option<u32> {
+    let Event::NodeRebooted(r) = event else {
         return None;
-    }
-    let p = &event["payload"];
-    let id = u32::from(p["id"].as_str()?.parse::<ihex_proto::NodeId>().ok()?.get());
-    let code: u32 = p["reset"].as_str()?.strip_prefix("other_")?.parse().ok()?;
+    };
+    let id = u32::from(r.id.0.get());
+    let code: u32 = r.reset.strip_prefix("other_")?.parse().ok()?;
     (1..=u32::from(NODES)).contains(&id).then_some(())?;
     Some((code.checked_sub(4)?) * u32::from(NODES) + (id - 1))
 }
@@ -186,17 +186,17 @@ fn led_filter() -> CanFilter {
 /// Counts `command_result` failures and `command_rejected` events; the first reason seen.
 fn failures(mqtt: &Mqtt, quiet: Duration) -> Option<String> {
     let (mut n, mut first) = (0usize, None);
-    while let Some((_, v)) = mqtt.next_event(quiet) {
-        let p = &v["payload"];
-        let reason = match v["event"].as_str() {
-            Some("command_result") if p["result"] != "ok" => {
+    while let Some((_, ev)) = mqtt.next_event(quiet) {
+        let reason = match ev {
+            Event::CommandResult(r) if r.result != Outcome::Ok => {
+                let outcome = serde_json::to_value(r.result).unwrap_or_default();
                 format!(
                     "{}: {}",
-                    p["result"].as_str().unwrap_or("?"),
-                    p["reason"].as_str().unwrap_or("")
+                    outcome.as_str().unwrap_or("?"),
+                    r.reason.unwrap_or_default()
                 )
             }
-            Some("command_rejected") => format!("rejected: {}", p["reason"].as_str().unwrap_or("")),
+            Event::CommandRejected(r) => format!("rejected: {}", r.reason),
             _ => continue,
         };
         n += 1;
@@ -401,8 +401,8 @@ impl Mqtt {
         while self.rx.try_recv().is_ok() {}
     }
 
-    /// The next event on `EventsTopic`, parsed.
-    fn next_event(&self, timeout: Duration) -> Option<(Instant, serde_json::Value)> {
+    /// The next event on `EventsTopic`, read as the gateway core's typed event (others are skipped).
+    fn next_event(&self, timeout: Duration) -> Option<(Instant, Event)> {
         let deadline = Instant::now() + timeout;
         loop {
             let left = deadline.checked_duration_since(Instant::now())?;
@@ -1004,7 +1004,7 @@ pub fn run(s: Settings) -> Result<LiveResults> {
     let mut online = 0;
     while online < NODES {
         match b.mqtt.next_event(Duration::from_secs(10)) {
-            Some((_, v)) if v["event"] == "node_online" => online += 1,
+            Some((_, Event::NodeOnline(_))) => online += 1,
             Some(_) => {}
             None => bail!("only {online} of {NODES} nodes came online at the gateway"),
         }
@@ -1122,11 +1122,16 @@ mod tests {
             let ResetReason::Other(code) = reset else {
                 panic!("index {i} must use an unknown reset code")
             };
-            let ev = serde_json::json!({"event": "node_rebooted", "payload": {
+            // The event as the gateway publishes it, read back as the bench reads it.
+            let json = serde_json::json!({"event": "node_rebooted", "payload": {
                 "id": p.src.to_string(), "reset": format!("other_{code}"), "version": "1.0", "role": "static"}});
+            let ev: Event = serde_json::from_value(json).unwrap();
             assert_eq!(report_index(&ev), Some(i));
         }
-        let other = serde_json::json!({"event": "node_online", "payload": {"id": "1"}});
+        let other: Event = serde_json::from_str(
+            r#"{"event":"node_online","payload":{"id":"1","role":null,"first_seen":true}}"#,
+        )
+        .unwrap();
         assert_eq!(report_index(&other), None);
     }
 

@@ -1,11 +1,11 @@
 //! A fixed, deterministic workload for the gateway's sans-IO [`Bridge`]: the work the gateway does
 //! per bridged frame without any I/O, for instruction counting (callgrind).
 //!
-//! * CAN → event: raw frame (id + bytes) → [`Packet::decode`] → [`Bridge::on_packet`] → the
-//!   `node_rebooted` event serialised to JSON by the bridge → topic name resolved as the MQTT
-//!   adapter does. `BootUp` from a known node is used because it maps 1:1 to an event and is not
+//! * CAN → event: raw frame (id + bytes) → [`Packet::decode`] → [`Bridge::handle_packet`] → the
+//!   `node_rebooted` event, serialised to JSON and its topic name resolved as the MQTT adapter
+//!   does. `BootUp` from a known node is used because it maps 1:1 to an event and is not
 //!   rate-limited (`Fault` is: one event per node and code per second).
-//! * command → frame: JSON `led` command bytes → [`Bridge::on_command`] (parse, validate, track the
+//! * command → frame: JSON `led` command bytes → [`Bridge::handle_command`] (parse, validate, track the
 //!   pending ack) → [`Packet::encode`] to the frame's id and bytes.
 //!
 //! Inputs are prepared once, before the measured loop, and reused round-robin, so that running
@@ -15,9 +15,9 @@
 use std::hint::black_box;
 use std::time::{Duration, Instant};
 
+use ihex_gateway_core::topic::Topics;
+use ihex_gateway_core::{Bridge, BridgeConfig};
 use ihex_proto::{BootRole, Message, NodeId, Packet, ResetReason};
-use mc_gateway::bridge::{Action, Bridge, BridgeConfig};
-use mc_gateway::topic::Topics;
 
 /// Nodes made known before the loop (commands and reports rotate over them).
 pub const NODES: u16 = 64;
@@ -71,19 +71,17 @@ pub fn led_command(i: u32) -> String {
 }
 
 fn drain(bridge: &mut Bridge, topics: &Topics, out: &mut Output) {
-    while let Some(a) = bridge.poll_action() {
-        match a {
-            Action::Send(p) => {
-                let (id, data) = p.encode();
-                black_box((id, &data));
-                out.frames += 1;
-            }
-            Action::Publish { topic, payload, .. } => {
-                let name = topics.resolve(topic);
-                out.bytes += black_box(name.len() + payload.len());
-                out.publications += 1;
-            }
-        }
+    while let Some(p) = bridge.poll_transmit() {
+        let (id, data) = p.encode();
+        black_box((id, &data));
+        out.frames += 1;
+    }
+    // As the gateway's shell does: the topic resolved, the publication serialised once.
+    while let Some(p) = bridge.poll_publication() {
+        let name = topics.resolve(p.topic());
+        let payload = p.to_json();
+        out.bytes += black_box(name.len() + payload.len());
+        out.publications += 1;
     }
 }
 
@@ -99,11 +97,11 @@ pub fn prepared_bridge(now: Instant) -> (Bridge, Topics) {
     let topics = Topics::seed();
     let mut sink = Output::default();
     for i in 0..u32::from(NODES) {
-        bridge.on_packet(boot_up(i), now);
+        bridge.handle_packet(boot_up(i), now);
     }
     // A first reboot of each node settles its state document (actuators reset).
     for i in 0..u32::from(NODES) {
-        bridge.on_packet(boot_up(i), now);
+        bridge.handle_packet(boot_up(i), now);
     }
     drain(&mut bridge, &topics, &mut sink);
     (bridge, topics)
@@ -127,8 +125,8 @@ pub fn run(path: Path, n: u32) -> Output {
             for i in 0..n {
                 let (id, data) = &frames[(i % DISTINCT) as usize];
                 match Packet::decode(*id, data.as_slice()) {
-                    Ok(p) => bridge.on_packet(p, now),
-                    Err(e) => bridge.on_undecodable(*id, data.as_slice(), e, now),
+                    Ok(p) => bridge.handle_packet(p, now),
+                    Err(e) => bridge.handle_undecodable(*id, data.as_slice(), e, now),
                 }
                 drain(&mut bridge, &topics, &mut out);
             }
@@ -136,7 +134,7 @@ pub fn run(path: Path, n: u32) -> Output {
         Path::CommandToFrame => {
             let commands: Vec<String> = (0..DISTINCT).map(led_command).collect();
             for i in 0..n {
-                bridge.on_command(commands[(i % DISTINCT) as usize].as_bytes(), now);
+                bridge.handle_command(commands[(i % DISTINCT) as usize].as_bytes(), now);
                 drain(&mut bridge, &topics, &mut out);
             }
         }
@@ -197,7 +195,7 @@ mod tests {
     #[test]
     fn led_command_is_accepted_json() {
         let (mut bridge, topics) = prepared_bridge(Instant::now());
-        bridge.on_command(led_command(300).as_bytes(), Instant::now());
+        bridge.handle_command(led_command(300).as_bytes(), Instant::now());
         let mut out = Output::default();
         drain(&mut bridge, &topics, &mut out);
         assert_eq!((out.frames, out.publications), (1, 0));

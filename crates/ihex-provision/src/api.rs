@@ -2,11 +2,14 @@
 //! `list` commands, and reading the events that answer them.
 //!
 //! Commands go to the commands topic (`CommandsTopic` by default), answers come back on the events
-//! topic: `{"event": "command_result", "payload": {"request_id": …, "result": "ok" | "refused" |
-//! "timeout" | "failed", "reason": …}}`, `command_rejected` for invalid commands, and `node_list`
-//! (`{"request_id": …, "nodes": [{"id": "111", "online": true, …}]}`) for `list` (docs/mqtt-api.md).
-//! The readers are lenient about fields they do not need, so a gateway that adds fields keeps working.
+//! topic (docs/mqtt-api.md): `command_result`, `command_rejected` for invalid commands, `node_list`
+//! for `list`. They are read as the gateway core's own event types ([`GatewayEvent`]), so the tool
+//! and the gateway cannot disagree on their shape; fields a newer gateway adds are ignored.
+//! [`Event`] keeps any event as a name and an untyped payload, for `wait-event`'s `key=value`
+//! filters.
 
+pub use ihex_gateway_core::event::Event as GatewayEvent;
+use ihex_gateway_core::event::{self as gateway, CommandResult};
 use ihex_proto::{NodeId, Uid};
 use serde_json::{json, Value};
 
@@ -95,78 +98,48 @@ impl Event {
 /// How the gateway answered a command carrying our request ID.
 #[derive(Clone, Debug, PartialEq)]
 pub enum Outcome {
-    /// The node acknowledged.
-    Ok(Value),
+    /// The node acknowledged: the gateway's `command_result`.
+    Ok(CommandResult),
     /// The node refused, did not answer in time, or the gateway rejected the command.
     Failed {
-        /// `"timeout"`, the refusal reason, or the rejection reason.
+        /// The refusal, timeout or rejection reason.
         reason: String,
-        /// The whole payload, for the user.
-        payload: Value,
+        /// The gateway's whole answer.
+        answer: Box<GatewayEvent>,
     },
 }
 
-/// If `event` answers `request_id`, how: a `command_result` whose status is `ok` succeeded; any other
-/// status, or a `command_rejected`, failed.
-pub fn outcome(event: &Event, request_id: &str) -> Option<Outcome> {
-    if event.request_id() != Some(request_id) {
-        return None;
-    }
-    let text = |k: &str| {
-        event
-            .payload
-            .get(k)
-            .and_then(Value::as_str)
-            .map(str::to_owned)
+/// If `event` answers `request_id`, how: a `command_result` with `ok` succeeded; any other result, or
+/// a `command_rejected`, failed.
+pub fn outcome(event: &GatewayEvent, request_id: &str) -> Option<Outcome> {
+    let failed = |reason: String| Outcome::Failed {
+        reason,
+        answer: Box::new(event.clone()),
     };
-    match event.name.as_str() {
-        "command_result" => {
-            let status = text("status")
-                .or_else(|| text("result"))
-                .unwrap_or_default();
-            if matches!(status.as_str(), "ok" | "acked" | "success") {
-                Some(Outcome::Ok(event.payload.clone()))
-            } else {
-                let reason = text("reason").or_else(|| text("error")).unwrap_or(status);
-                Some(Outcome::Failed {
-                    reason,
-                    payload: event.payload.clone(),
-                })
-            }
+    match event {
+        GatewayEvent::CommandResult(r) if r.request_id.as_deref() == Some(request_id) => {
+            Some(match (r.result, &r.reason) {
+                (gateway::Outcome::Ok, _) => Outcome::Ok(r.clone()),
+                (_, Some(reason)) => failed(reason.clone()),
+                (_, None) => failed("the gateway gave no reason".into()),
+            })
         }
-        "command_rejected" => Some(Outcome::Failed {
-            reason: text("reason").unwrap_or_else(|| "rejected".into()),
-            payload: event.payload.clone(),
-        }),
+        GatewayEvent::CommandRejected(r) if r.request_id.as_deref() == Some(request_id) => {
+            Some(failed(r.reason.clone()))
+        }
         _ => None,
     }
 }
 
-/// The node IDs in a `list` answer: every `id` in the payload's `nodes` array (objects with an `"id"`
-/// field, or bare ID strings) or the keys of a `nodes` object. `None` when there is no `nodes` field.
-pub fn listed_ids(payload: &Value) -> Option<Vec<NodeId>> {
-    let parse = |s: &str| s.parse::<NodeId>().ok();
-    match payload.get("nodes")? {
-        Value::Array(nodes) => Some(
-            nodes
-                .iter()
-                .filter_map(|n| n.get("id").unwrap_or(n).as_str())
-                .filter_map(parse)
-                .collect(),
-        ),
-        // `{"111": {...}, "2": {...}}`: a map keyed by ID.
-        Value::Object(map) => Some(map.keys().filter_map(|k| parse(k)).collect()),
+/// If `event` is the gateway's answer to our `list` (`node_list` with our request ID), the IDs it
+/// lists (online or lost: both own their ID).
+pub fn list_answer(event: &GatewayEvent, request_id: &str) -> Option<Vec<NodeId>> {
+    match event {
+        GatewayEvent::NodeList(l) if l.request_id.as_deref() == Some(request_id) => {
+            Some(l.nodes.iter().map(|n| n.id.0).collect())
+        }
         _ => None,
     }
-}
-
-/// If `event` is the gateway's answer to our `list` (`node_list` with our request ID), the IDs it lists.
-/// A `node_list` without a readable `nodes` array yields an empty list rather than a guess.
-pub fn list_answer(event: &Event, request_id: &str) -> Option<Vec<NodeId>> {
-    if event.name != "node_list" || event.request_id() != Some(request_id) {
-        return None;
-    }
-    Some(listed_ids(&event.payload).unwrap_or_default())
 }
 
 /// The node ID in a retained node-state topic name (`<root>/<id>/state`).
@@ -218,26 +191,32 @@ mod tests {
         assert_ne!(new_request_id("a"), new_request_id("a"));
     }
 
+    fn gateway_event(json: &str) -> GatewayEvent {
+        serde_json::from_str(json).unwrap()
+    }
+
     #[test]
     fn outcomes_follow_the_request_id() {
-        let ok = Event::parse(
-            br#"{"event":"command_result","payload":{"request_id":"r1","status":"ok"}}"#,
-        )
-        .unwrap();
-        assert!(matches!(outcome(&ok, "r1"), Some(Outcome::Ok(_))));
+        let ok = gateway_event(
+            r#"{"event":"command_result","payload":{"request_id":"r1","cmd":"assign","node":"5","result":"ok","reason":null}}"#,
+        );
+        assert!(matches!(outcome(&ok, "r1"), Some(Outcome::Ok(r)) if r.node.to_string() == "5"));
         assert_eq!(outcome(&ok, "r2"), None);
-        let to = Event::parse(
-            br#"{"event":"command_result","payload":{"request_id":"r1","status":"timeout"}}"#,
-        )
-        .unwrap();
-        assert!(
-            matches!(outcome(&to, "r1"), Some(Outcome::Failed { reason, .. }) if reason == "timeout")
+        let to = gateway_event(
+            r#"{"event":"command_result","payload":{"request_id":"r1","cmd":"assign","node":"5","result":"timeout","reason":"no AssignReply within 500 ms"}}"#,
         );
-        let rej = Event::parse(br#"{"event":"command_rejected","payload":{"request_id":"r1","reason":"unknown node"}}"#).unwrap();
         assert!(
-            matches!(outcome(&rej, "r1"), Some(Outcome::Failed { reason, .. }) if reason == "unknown node")
+            matches!(outcome(&to, "r1"), Some(Outcome::Failed { reason, .. }) if reason == "no AssignReply within 500 ms")
         );
-        let other = Event::parse(br#"{"event":"node_online","payload":{"id":"111"}}"#).unwrap();
+        let rej = gateway_event(
+            r#"{"event":"command_rejected","payload":{"request_id":"r1","reason":"unknown node 9; known: 2"}}"#,
+        );
+        assert!(
+            matches!(outcome(&rej, "r1"), Some(Outcome::Failed { reason, .. }) if reason == "unknown node 9; known: 2")
+        );
+        let other = gateway_event(
+            r#"{"event":"node_online","payload":{"id":"111","role":"static","first_seen":true}}"#,
+        );
         assert_eq!(outcome(&other, "r1"), None);
     }
 
@@ -255,19 +234,21 @@ mod tests {
 
     #[test]
     fn list_answers_and_state_topics() {
-        let p = json!({"request_id":"r","nodes":[{"id":"111","online":true},{"id":"2"},"abc",{"id":"zz"}]});
-        let ids: Vec<u16> = listed_ids(&p).unwrap().iter().map(|i| i.get()).collect();
-        assert_eq!(ids, [0x111, 0x2, 0xabc]);
-        assert_eq!(listed_ids(&json!({"status":"ok"})), None);
-        let e = Event::parse(br#"{"event":"node_list","payload":{"request_id":"q","nodes":[{"id":"111","online":true}]}}"#).unwrap();
-        assert_eq!(list_answer(&e, "q").unwrap(), [NodeId::new(0x111).unwrap()]);
-        assert_eq!(list_answer(&e, "other"), None);
-        let ids: Vec<u16> = listed_ids(&json!({"nodes":{"5":{},"fd":{}}}))
+        let state = |id: &str, online: bool| {
+            json!({"id": id, "online": online, "role": null, "ports": null, "version": null,
+                   "led": null, "buzzer": null, "relay": null, "loops": [], "connections": [],
+                   "reported": null, "last_seen_ms": 0, "first_seen_ms": 0})
+        };
+        let list = json!({"event": "node_list", "payload": {"request_id": "q",
+                          "nodes": [state("111", true), state("2", false)]}});
+        let e: GatewayEvent = serde_json::from_value(list).unwrap();
+        let ids: Vec<u16> = list_answer(&e, "q")
             .unwrap()
             .iter()
             .map(|i| i.get())
             .collect();
-        assert_eq!(ids, [0x5, 0xfd]);
+        assert_eq!(ids, [0x111, 0x2]);
+        assert_eq!(list_answer(&e, "other"), None);
         assert_eq!(
             id_from_state_topic("ihex/node", "ihex/node/1a/state")
                 .unwrap()

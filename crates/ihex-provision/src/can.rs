@@ -6,12 +6,12 @@
 
 use std::{collections::BTreeSet, time::Duration};
 
+use ihex_gateway_core::event::CommandResult;
 use ihex_proto::{NodeId, Uid};
-use serde_json::Value;
 use tokio::time::Instant;
 
 use crate::{
-    api::{self, Event, Outcome},
+    api::{self, GatewayEvent, Outcome},
     id::IdError,
     mqtt::{Broker, MqttError, Session},
 };
@@ -57,12 +57,12 @@ pub enum AssignError {
     #[error("the gateway did not answer the node list within {0:?}; refusing to assign without the duplicate check (pass --skip-duplicate-check to override)")]
     NoList(Duration),
     /// The gateway or the node refused the assignment.
-    #[error("assignment failed: {reason} ({payload})")]
+    #[error("assignment failed: {reason} ({})", answer.to_json())]
     Failed {
         /// Why.
         reason: String,
         /// The gateway's whole answer.
-        payload: Value,
+        answer: Box<GatewayEvent>,
     },
     /// No `command_result` in time.
     #[error("no command_result for request {0} within {1:?} (is the gateway running on this broker and island?)")]
@@ -82,12 +82,12 @@ pub struct Assignment {
     pub timeout: Duration,
 }
 
-/// Runs one assignment; returns the gateway's `command_result` payload on success.
+/// Runs one assignment; returns the gateway's `command_result` on success.
 pub async fn assign(
     broker: &Broker,
     topics: &Topics,
     a: &Assignment,
-) -> Result<Value, AssignError> {
+) -> Result<CommandResult, AssignError> {
     let state_filter = format!("{}/+/state", topics.node_state_root);
     let mut session =
         Session::connect(broker, &[topics.events.clone(), state_filter], a.timeout).await?;
@@ -96,7 +96,11 @@ pub async fn assign(
     result
 }
 
-async fn run(session: &mut Session, topics: &Topics, a: &Assignment) -> Result<Value, AssignError> {
+async fn run(
+    session: &mut Session,
+    topics: &Topics,
+    a: &Assignment,
+) -> Result<CommandResult, AssignError> {
     if !a.skip_duplicate_check {
         let taken = taken_ids(session, topics, a.timeout).await?;
         if taken.contains(&a.new_id) {
@@ -119,13 +123,14 @@ async fn run(session: &mut Session, topics: &Topics, a: &Assignment) -> Result<V
         if msg.topic != topics.events {
             continue;
         }
-        let Ok(event) = Event::parse(&msg.payload) else {
+        // Anything that is not one of the gateway's events is not an answer.
+        let Ok(event) = serde_json::from_slice::<GatewayEvent>(&msg.payload) else {
             continue;
         };
         match api::outcome(&event, &request_id) {
-            Some(Outcome::Ok(payload)) => return Ok(payload),
-            Some(Outcome::Failed { reason, payload }) => {
-                return Err(AssignError::Failed { reason, payload })
+            Some(Outcome::Ok(result)) => return Ok(result),
+            Some(Outcome::Failed { reason, answer }) => {
+                return Err(AssignError::Failed { reason, answer })
             }
             None => {}
         }
@@ -154,26 +159,18 @@ async fn taken_ids(
             }
             continue;
         }
-        let Ok(event) = Event::parse(&msg.payload) else {
+        let Ok(event) = serde_json::from_slice::<GatewayEvent>(&msg.payload) else {
             continue;
         };
         if let Some(listed) = api::list_answer(&event, &request_id) {
             taken.extend(listed);
             return Ok(taken);
         }
-        match api::outcome(&event, &request_id) {
-            Some(Outcome::Ok(payload)) => {
-                let listed = api::listed_ids(&payload).ok_or(AssignError::NoList(timeout))?;
-                taken.extend(listed);
-                return Ok(taken);
-            }
-            Some(Outcome::Failed { reason, payload }) => {
-                return Err(AssignError::Failed {
-                    reason: format!("node list: {reason}"),
-                    payload,
-                })
-            }
-            None => {}
+        if let Some(Outcome::Failed { reason, answer }) = api::outcome(&event, &request_id) {
+            return Err(AssignError::Failed {
+                reason: format!("node list: {reason}"),
+                answer,
+            });
         }
     }
     Err(AssignError::NoList(timeout))

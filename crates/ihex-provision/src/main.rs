@@ -243,8 +243,9 @@ async fn run_can(a: CanArgs) -> Result<()> {
         skip_duplicate_check: a.skip_duplicate_check,
         timeout: Duration::from_secs(a.timeout_secs),
     };
-    let payload = can::assign(&broker, &a.broker.topics(), &assignment).await?;
-    println!("node {uid} assigned ID {new_id}: {payload}");
+    let result = can::assign(&broker, &a.broker.topics(), &assignment).await?;
+    let answer = ihex_gateway_core::event::Event::CommandResult(result);
+    println!("node {uid} assigned ID {new_id}: {}", answer.to_json());
     if let Some(reg) = registry.as_mut() {
         reg.record(
             new_id,

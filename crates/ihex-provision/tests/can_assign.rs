@@ -10,9 +10,10 @@ use std::{
     time::{Duration, Instant},
 };
 
+use ihex_gateway_core::event::Outcome;
 use ihex_proto::NodeId;
 use ihex_provision::{
-    api::parse_uid,
+    api::{parse_uid, GatewayEvent},
     can::{assign, AssignError, Assignment, Topics},
     id::IdError,
     mqtt::Broker,
@@ -92,8 +93,8 @@ impl Drop for Mosquitto {
 /// What the stand-in gateway knows and how it answers.
 #[derive(Clone)]
 struct Script {
-    /// `node_list` entries.
-    nodes: Vec<Value>,
+    /// `node_list` entries: (id, online).
+    nodes: Vec<(&'static str, bool)>,
     /// Answer `list` at all.
     answer_list: bool,
     /// The `result` for an assignment of this UID (default "ok").
@@ -142,7 +143,12 @@ async fn fake_gateway(port: u16, topics: Topics, script: Script) -> Arc<Mutex<Ve
             let rid = cmd["request_id"].clone();
             let answer = match cmd["cmd"].as_str() {
                 Some("list") if script.answer_list => {
-                    json!({"event":"node_list","payload":{"request_id":rid,"nodes":script.nodes}})
+                    let nodes: Vec<Value> = script
+                        .nodes
+                        .iter()
+                        .map(|&(id, online)| state(id, online))
+                        .collect();
+                    json!({"event":"node_list","payload":{"request_id":rid,"nodes":nodes}})
                 }
                 Some("assign") => {
                     let uid = cmd["uid"].as_str().unwrap_or_default();
@@ -175,16 +181,20 @@ async fn fake_gateway(port: u16, topics: Topics, script: Script) -> Arc<Mutex<Ve
     seen
 }
 
+/// A node's state document as the gateway publishes it (docs/mqtt-api.md), before any command.
+fn state(id: &str, online: bool) -> Value {
+    json!({"id": id, "online": online, "role": "static", "ports": 6, "version": "1.0",
+           "led": null, "buzzer": null, "relay": false, "loops": [], "connections": [],
+           "reported": null, "last_seen_ms": 10, "first_seen_ms": 1000})
+}
+
 fn topics(island: Option<&str>) -> Topics {
     Topics::new(island, "CommandsTopic", "EventsTopic", "ihex/node")
 }
 
 fn script() -> Script {
     Script {
-        nodes: vec![
-            json!({"id":"111","online":true}),
-            json!({"id":"2","online":false}),
-        ],
+        nodes: vec![("111", true), ("2", false)],
         answer_list: true,
         results: vec![(
             "ffffffffffffffffffffffff".into(),
@@ -223,8 +233,8 @@ async fn assigns_a_free_id_and_refuses_taken_ones() {
     let ok = assign(&mosq.broker(), &t, &assignment(UID, 0x123))
         .await
         .unwrap();
-    assert_eq!(ok["result"], "ok");
-    assert_eq!(ok["node"], "123");
+    assert_eq!(ok.result, Outcome::Ok);
+    assert_eq!(ok.node.to_string(), "123");
     let sent = assigns(&seen);
     assert_eq!(sent.len(), 1);
     assert_eq!(sent[0]["uid"], UID);
@@ -264,9 +274,12 @@ async fn a_failed_assignment_is_an_error_with_the_reason() {
     .await
     .unwrap_err();
     match &err {
-        AssignError::Failed { reason, payload } => {
+        AssignError::Failed { reason, answer } => {
             assert_eq!(reason, "no reply from the selected board");
-            assert_eq!(payload["result"], "timeout");
+            assert!(
+                matches!(&**answer, GatewayEvent::CommandResult(r) if r.result == Outcome::Timeout),
+                "{answer:?}"
+            );
         }
         other => panic!("{other}"),
     }

@@ -1,6 +1,7 @@
-//! The CAN side: a receive task and a transmit task around one link (a SocketCAN socket, or an
-//! in-memory bus endpoint for the demo), turning frames into [`CanInput`]s for the bridge and the
-//! bridge's packets into frames.
+//! The CAN side: a receive task and a transmit task around one link, turning frames into
+//! [`CanInput`]s for the core and the core's packets into frames. The link is SocketCAN
+//! ([`CanLink::socketcan`]) or anything implementing [`FrameLink`] ([`CanLink::frames`]; the demo
+//! plugs its in-memory bus in that way).
 //!
 //! On SocketCAN the receive task owns the socket's life: it installs the gateway's kernel filters,
 //! enables error frames, sizes the receive buffer, and when a read fails (interface down or gone)
@@ -8,20 +9,23 @@
 //! and reports [`BusEvent::Recovered`]. The transmit task always writes on the socket of the moment
 //! (shared through a `watch`), and reports every packet it cannot send.
 
-use std::{io, sync::Arc, time::Duration};
+use std::{future::Future, io, sync::Arc, time::Duration};
 
 use embedded_can::{Frame as _, Id};
+use ihex_gateway_core::BusEvent;
 use ihex_proto::{
     filter::{self, Filter},
     DecodeError, Packet,
 };
-use sim_node::bus::{MemEndpoint, MemSender};
 use socketcan::{CanFilter, CanFrame, SocketOptions};
-use tokio::sync::{mpsc, watch, Notify};
+use tokio::{
+    sync::{mpsc, watch, Notify},
+    task::JoinSet,
+};
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, info, warn};
 
-use crate::{bridge::BusEvent, error::CanError};
+use crate::error::CanError;
 
 /// `CAN_ERR_BUSOFF` (linux/can/error.h): the controller went bus-off.
 pub const CAN_ERR_BUSOFF: u32 = 0x0000_0040;
@@ -36,7 +40,7 @@ const WRITE_TIMEOUT: Duration = Duration::from_millis(200);
 /// How often the receive task looks at the interface's flags while the socket is quiet.
 const LINK_CHECK: Duration = Duration::from_secs(1);
 
-/// What the CAN tasks report to the bridge.
+/// What the CAN tasks report to the core.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub enum CanInput {
     /// A valid iHEX packet.
@@ -56,55 +60,57 @@ pub enum CanInput {
     SendFailed(Packet, String),
 }
 
-/// How to reach the bus.
-#[derive(Debug)]
-pub enum LinkSpec {
-    /// A SocketCAN interface.
-    SocketCan {
-        /// Interface name.
-        iface: String,
-        /// Receive buffer to ask for, bytes.
-        rx_buffer: usize,
-    },
-    /// An endpoint on the in-memory bus of the simulated island.
-    Mem(MemEndpoint),
+/// A frame link other than SocketCAN that the CAN tasks can run on (the demo's in-memory bus).
+pub trait FrameLink: Send + 'static {
+    /// The transmit half, used by the transmit task.
+    type Sender: FrameSender;
+    /// A transmit half for this link.
+    fn sender(&self) -> Self::Sender;
+    /// The next frame that passes the gateway's filters (the link applies
+    /// `ihex_proto::filter::gateway_filters()` itself); `None` once the link is gone for good.
+    fn recv(&mut self) -> impl Future<Output = Option<CanFrame>> + Send;
 }
 
-/// What the transmit task writes on.
-#[derive(Clone, Debug)]
-enum TxLink {
-    Socket(Arc<socketcan::tokio::CanSocket>),
-    Mem(MemSender),
+/// Transmits frames on a [`FrameLink`].
+pub trait FrameSender: Send + Sync + 'static {
+    /// Writes one frame; the error text is the reason the core reports.
+    fn send(&self, frame: CanFrame) -> impl Future<Output = Result<(), String>> + Send;
 }
 
-/// Spawns the receive and transmit tasks into `tasks`; returns the transmit queue (bounded,
-/// `tx_queue` frames). Fails only when the gateway's filters cannot be expressed for the kernel.
-pub fn spawn(
-    link: LinkSpec,
-    tx_queue: usize,
-    inputs: mpsc::Sender<CanInput>,
-    tasks: &mut tokio::task::JoinSet<()>,
-    cancel: CancellationToken,
-) -> Result<mpsc::Sender<Packet>, CanError> {
-    let filters = filter::gateway_filters();
-    let plan = filter::to_kernel(&filters)?;
-    let (tx_packets, rx_packets) = mpsc::channel(tx_queue);
-    let (link_tx, link_rx) = watch::channel(None);
-    let failed = Arc::new(Notify::new());
-    match link {
-        LinkSpec::SocketCan { iface, rx_buffer } => {
-            let setup = SocketSetup {
-                iface,
-                rx_buffer,
-                plan,
-                filters: filters.to_vec(),
-            };
-            // The first attempt happens here so the bridge's first frames find a socket; when the
-            // interface is not there yet the receive task keeps trying.
-            let first = setup.open()?.map(Arc::new);
-            if let Some(sock) = &first {
-                link_tx.send_replace(Some(TxLink::Socket(sock.clone())));
-            }
+type Start = Box<
+    dyn FnOnce(mpsc::Receiver<Packet>, mpsc::Sender<CanInput>, &mut JoinSet<()>, CancellationToken)
+        + Send,
+>;
+
+/// How the CAN tasks reach the bus: built (and, for SocketCAN, first opened) before they run.
+pub struct CanLink {
+    name: String,
+    start: Start,
+}
+
+impl std::fmt::Debug for CanLink {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("CanLink").field("name", &self.name).finish()
+    }
+}
+
+impl CanLink {
+    /// A SocketCAN interface with `rx_buffer` bytes of receive buffer. The first open happens here,
+    /// so the core's first frames find a socket; an interface that is not there yet is waited for
+    /// by the receive task. Fails only when the gateway's filters cannot be expressed for the kernel
+    /// or the socket refuses them.
+    pub fn socketcan(iface: &str, rx_buffer: usize) -> Result<CanLink, CanError> {
+        let filters = filter::gateway_filters();
+        let setup = SocketSetup {
+            iface: iface.to_owned(),
+            rx_buffer,
+            plan: filter::to_kernel(&filters)?,
+            filters: filters.to_vec(),
+        };
+        let first = setup.open()?.map(Arc::new);
+        let start: Start = Box::new(move |packets, inputs, tasks, cancel| {
+            let (link_tx, link_rx) = watch::channel(first.clone());
+            let failed = Arc::new(Notify::new());
             tasks.spawn(receive_socket(
                 setup,
                 first,
@@ -113,15 +119,46 @@ pub fn spawn(
                 failed.clone(),
                 cancel.clone(),
             ));
-        }
-        LinkSpec::Mem(ep) => {
-            ep.set_filters(&filters);
-            link_tx.send_replace(Some(TxLink::Mem(ep.sender())));
-            tasks.spawn(receive_mem(ep, inputs.clone(), link_tx, cancel.clone()));
+            let writer = SocketWriter { link: link_rx };
+            tasks.spawn(transmit(packets, writer, inputs, Some(failed), cancel));
+        });
+        Ok(CanLink {
+            name: iface.to_owned(),
+            start,
+        })
+    }
+
+    /// Any other frame link, named `name` in logs.
+    pub fn frames<L: FrameLink>(name: &str, link: L) -> CanLink {
+        let start: Start = Box::new(move |packets, inputs, tasks, cancel| {
+            let writer = LinkWriter(link.sender());
+            tasks.spawn(receive_link(link, inputs.clone(), cancel.clone()));
+            tasks.spawn(transmit(packets, writer, inputs, None, cancel));
+        });
+        CanLink {
+            name: name.to_owned(),
+            start,
         }
     }
-    tasks.spawn(transmit(rx_packets, link_rx, inputs, failed, cancel));
-    Ok(tx_packets)
+
+    /// The link's name (interface name, or what [`CanLink::frames`] was given).
+    pub fn name(&self) -> &str {
+        &self.name
+    }
+
+    /// Spawns the receive and transmit tasks into `tasks`; returns the transmit queue (bounded,
+    /// `tx_queue` frames).
+    pub fn spawn(
+        self,
+        tx_queue: usize,
+        inputs: mpsc::Sender<CanInput>,
+        tasks: &mut JoinSet<()>,
+        cancel: CancellationToken,
+    ) -> mpsc::Sender<Packet> {
+        let (tx_packets, rx_packets) = mpsc::channel(tx_queue);
+        (self.start)(rx_packets, inputs, tasks, cancel);
+        tx_packets
+    }
 }
 
 struct SocketSetup {
@@ -216,7 +253,7 @@ async fn receive_socket(
     setup: SocketSetup,
     mut first: Option<Arc<socketcan::tokio::CanSocket>>,
     inputs: mpsc::Sender<CanInput>,
-    link: watch::Sender<Option<TxLink>>,
+    link: watch::Sender<Option<Arc<socketcan::tokio::CanSocket>>>,
     failed: Arc<Notify>,
     cancel: CancellationToken,
 ) {
@@ -256,7 +293,7 @@ async fn receive_socket(
         };
         if down {
             info!("CAN interface back");
-            link.send_replace(Some(TxLink::Socket(sock.clone())));
+            link.send_replace(Some(sock.clone()));
             let _ = inputs.send(CanInput::Bus(BusEvent::Recovered)).await;
         }
         delay = REOPEN_MIN;
@@ -308,22 +345,20 @@ async fn receive_socket(
     }
 }
 
-#[tracing::instrument(name = "can_rx", skip_all, fields(iface = "mem"))]
-async fn receive_mem(
-    mut ep: MemEndpoint,
+#[tracing::instrument(name = "can_rx", skip_all)]
+async fn receive_link<L: FrameLink>(
+    mut link: L,
     inputs: mpsc::Sender<CanInput>,
-    link: watch::Sender<Option<TxLink>>,
     cancel: CancellationToken,
 ) {
-    // The endpoint already filters with the same rule as the kernel.
+    // The link already filters with the same rule as the kernel.
     loop {
         let frame = tokio::select! {
             _ = cancel.cancelled() => return,
-            f = ep.recv() => f,
+            f = link.recv() => f,
         };
         let Some(frame) = frame else {
-            warn!("in-memory bus closed");
-            link.send_replace(None);
+            warn!("CAN link closed");
             let _ = inputs.send(CanInput::Bus(BusEvent::InterfaceDown)).await;
             cancel.cancelled().await;
             return;
@@ -368,12 +403,61 @@ pub fn classify(frame: &CanFrame, filters: &[Filter], software_check: bool) -> O
     })
 }
 
+/// Writes frames; on failure the reason and whether it means the link itself is gone.
+trait Writer: Send + 'static {
+    fn write(&self, frame: CanFrame) -> impl Future<Output = Result<(), (String, bool)>> + Send;
+}
+
+/// Writes on the SocketCAN socket of the moment.
+struct SocketWriter {
+    link: watch::Receiver<Option<Arc<socketcan::tokio::CanSocket>>>,
+}
+
+impl Writer for SocketWriter {
+    async fn write(&self, frame: CanFrame) -> Result<(), (String, bool)> {
+        let Some(sock) = self.link.borrow().clone() else {
+            return Err(("CAN interface down".into(), false));
+        };
+        // ENOBUFS means the interface's queue is full (the socket does not wait for room on its
+        // own): retry briefly, then give up so one stuck bus cannot stall the gateway.
+        let deadline = tokio::time::Instant::now() + WRITE_TIMEOUT;
+        loop {
+            match tokio::time::timeout_at(deadline, sock.write_frame(frame)).await {
+                Ok(Ok(())) => return Ok(()),
+                Ok(Err(e)) if e.raw_os_error() == Some(libc::ENOBUFS) => {
+                    if tokio::time::Instant::now() >= deadline {
+                        return Err(("transmit queue full (ENOBUFS)".into(), false));
+                    }
+                    tokio::time::sleep(Duration::from_millis(2)).await;
+                }
+                Ok(Err(e)) => {
+                    let link_error = matches!(
+                        e.raw_os_error(),
+                        Some(libc::ENETDOWN | libc::ENODEV | libc::ENXIO | libc::EBADF)
+                    );
+                    return Err((e.to_string(), link_error));
+                }
+                Err(_) => return Err(("transmit timed out".into(), false)),
+            }
+        }
+    }
+}
+
+/// Writes on a [`FrameLink`]'s sender.
+struct LinkWriter<S>(S);
+
+impl<S: FrameSender> Writer for LinkWriter<S> {
+    async fn write(&self, frame: CanFrame) -> Result<(), (String, bool)> {
+        self.0.send(frame).await.map_err(|e| (e, true))
+    }
+}
+
 #[tracing::instrument(name = "can_tx", skip_all)]
-async fn transmit(
+async fn transmit<W: Writer>(
     mut packets: mpsc::Receiver<Packet>,
-    link: watch::Receiver<Option<TxLink>>,
+    writer: W,
     inputs: mpsc::Sender<CanInput>,
-    failed: Arc<Notify>,
+    failed: Option<Arc<Notify>>,
     cancel: CancellationToken,
 ) {
     loop {
@@ -381,10 +465,13 @@ async fn transmit(
             _ = cancel.cancelled() => return,
             p = packets.recv() => match p { Some(p) => p, None => return },
         };
-        let current = link.borrow().clone();
-        if let Err((reason, link_error)) = write(current, &packet).await {
+        let written = match packet.to_frame::<CanFrame>() {
+            Some(frame) => writer.write(frame).await,
+            None => Err(("packet cannot be encoded".to_owned(), false)),
+        };
+        if let Err((reason, link_error)) = written {
             debug!(?packet, %reason, "send failed");
-            if link_error {
+            if let (true, Some(failed)) = (link_error, &failed) {
                 failed.notify_one();
             }
             if inputs
@@ -393,41 +480,6 @@ async fn transmit(
                 .is_err()
             {
                 return;
-            }
-        }
-    }
-}
-
-/// Writes one packet; on failure the reason and whether it means the link itself is gone.
-async fn write(link: Option<TxLink>, packet: &Packet) -> Result<(), (String, bool)> {
-    let frame: CanFrame = packet
-        .to_frame()
-        .ok_or_else(|| ("packet cannot be encoded".to_owned(), false))?;
-    match link {
-        None => Err(("CAN interface down".into(), false)),
-        Some(TxLink::Mem(tx)) => tx.send(frame).await.map_err(|e| (e.to_string(), true)),
-        Some(TxLink::Socket(sock)) => {
-            // ENOBUFS means the interface's queue is full (the socket does not wait for room on its
-            // own): retry briefly, then give up so one stuck bus cannot stall the gateway.
-            let deadline = tokio::time::Instant::now() + WRITE_TIMEOUT;
-            loop {
-                match tokio::time::timeout_at(deadline, sock.write_frame(frame)).await {
-                    Ok(Ok(())) => return Ok(()),
-                    Ok(Err(e)) if e.raw_os_error() == Some(libc::ENOBUFS) => {
-                        if tokio::time::Instant::now() >= deadline {
-                            return Err(("transmit queue full (ENOBUFS)".into(), false));
-                        }
-                        tokio::time::sleep(Duration::from_millis(2)).await;
-                    }
-                    Ok(Err(e)) => {
-                        let link_error = matches!(
-                            e.raw_os_error(),
-                            Some(libc::ENETDOWN | libc::ENODEV | libc::ENXIO | libc::EBADF)
-                        );
-                        return Err((e.to_string(), link_error));
-                    }
-                    Err(_) => return Err(("transmit timed out".into(), false)),
-                }
             }
         }
     }

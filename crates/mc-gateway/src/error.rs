@@ -1,5 +1,5 @@
 //! One error enum per layer of the gateway (configuration, CAN, MQTT, embedded broker), gathered by
-//! [`GatewayError`] for [`crate::run`].
+//! [`GatewayError`] for [`crate::run()`].
 
 use std::{io, net::SocketAddr, path::PathBuf};
 
@@ -22,20 +22,20 @@ pub enum ConfigError {
         /// What the TOML parser said.
         source: Box<toml::de::Error>,
     },
-    /// A value is out of range or malformed (`field` names the flag / TOML key).
+    /// A value is out of range or malformed (`field` names the option by its flag).
     #[error("invalid {field}: {reason}")]
     Invalid {
-        /// Flag or TOML key.
-        field: &'static str,
+        /// The option's flag without dashes (`lost-after`).
+        field: String,
         /// What is wrong, with the offending value.
         reason: String,
     },
 }
 
 impl ConfigError {
-    pub(crate) fn invalid(field: &'static str, reason: impl Into<String>) -> Self {
+    pub(crate) fn invalid(field: impl Into<String>, reason: impl Into<String>) -> Self {
         ConfigError::Invalid {
-            field,
+            field: field.into(),
             reason: reason.into(),
         }
     }
@@ -98,15 +98,9 @@ pub enum BrokerError {
     /// The broker thread did not accept connections in time.
     #[error("the embedded broker on {0} did not start accepting connections")]
     NotReady(SocketAddr),
-    /// The binary was built without the `embedded-broker` feature.
-    #[error(
-        "no broker configured and this gateway was built without the `embedded-broker` feature: \
-         pass --broker HOST:PORT"
-    )]
-    Unavailable,
 }
 
-/// Everything [`crate::run`] can fail with.
+/// Everything [`crate::run()`] can fail with.
 #[derive(Debug, thiserror::Error)]
 pub enum GatewayError {
     /// Bad configuration.
@@ -124,6 +118,13 @@ pub enum GatewayError {
     /// The simulated island could not be built.
     #[error("simulated island: {0}")]
     Sim(String),
+    /// The configuration asks for the embedded broker or the simulated island, and this build has
+    /// no `demo` feature.
+    #[error(
+        "this gateway was built without the `demo` cargo feature (embedded broker, simulated island): \
+         pass --broker HOST[:PORT] and --can IFACE"
+    )]
+    DemoUnavailable,
     /// A gateway task panicked.
     #[error("gateway task failed: {0}")]
     Task(String),

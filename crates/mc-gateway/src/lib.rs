@@ -1,9 +1,10 @@
 //! iHEX main controller: bridges MQTT JSON commands and events to the island's CAN bus.
 //!
-//! The logic is sans-IO ([`bridge`] and the modules it uses); the rest are thin async adapters:
-//! [`can`] (SocketCAN or the demo's in-memory bus), [`mqtt`] (rumqttc, one task owning the event
-//! loop), [`run`] wiring them around the bridge, [`config`] (CLI > env > TOML > defaults), [`log`],
-//! [`shutdown`], the embedded [`broker`] and the simulated island of the [`demo`].
+//! The logic is the sans-IO [`ihex_gateway_core::Bridge`]; this crate is the tokio shell around it:
+//! [`can`] (SocketCAN, or any [`can::FrameLink`]), [`mqtt`] (rumqttc, one task owning the event
+//! loop), [`mod@run`] building the resources and then running them around the core, [`config`]
+//! (CLI > env > TOML > defaults), [`log`], [`shutdown`]; and with the default `demo` feature the
+//! embedded broker and the simulated island (`demo`).
 //!
 //! ```no_run
 //! # async fn f() -> Result<(), Box<dyn std::error::Error>> {
@@ -14,26 +15,22 @@
 //! ```
 #![warn(missing_docs)]
 
-pub mod bridge;
-pub mod broker;
 pub mod can;
-pub mod command;
 pub mod config;
+#[cfg(feature = "demo")]
 pub mod demo;
-pub mod docking;
 pub mod error;
-pub mod error_frame;
-pub mod event;
 pub mod log;
 pub mod mqtt;
-pub mod registry;
 pub mod run;
 pub mod shutdown;
-pub mod throttle;
-pub mod topic;
+
+/// The sans-IO gateway core this shell runs (re-exported for the tests and tools built on the shell).
+pub use ihex_gateway_core as core;
+pub use ihex_gateway_core::topic;
 
 pub use config::Config;
 pub use error::GatewayError;
-pub use run::{run, run_with_stats};
-/// The shutdown signal [`run`] takes (re-exported so callers need no direct `tokio-util` dependency).
+pub use run::{run, run_with_stats, Gateway};
+/// The shutdown signal [`run()`] takes (re-exported so callers need no direct `tokio-util` dependency).
 pub use tokio_util::sync::CancellationToken;

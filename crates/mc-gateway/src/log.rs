@@ -47,12 +47,25 @@ fn filter(cfg: &LogConfig) -> Result<EnvFilter, LogError> {
     EnvFilter::try_new(&d).map_err(|e| LogError::Filter(d, e.to_string()))
 }
 
+/// Colour on stderr only for a person at a terminal, and never when `NO_COLOR` is set to anything
+/// but the empty string (no-color.org).
+pub fn use_colour(stderr_is_terminal: bool, no_color: Option<std::ffi::OsString>) -> bool {
+    stderr_is_terminal && no_color.is_none_or(|v| v.is_empty())
+}
+
 /// Installs the global subscriber.
 pub fn init(cfg: &LogConfig) -> Result<LogGuard, LogError> {
     let mut guards = Vec::new();
+    let ansi = use_colour(
+        std::io::IsTerminal::is_terminal(&std::io::stderr()),
+        std::env::var_os("NO_COLOR"),
+    );
     let (term, g) = tracing_appender::non_blocking(std::io::stderr());
     guards.push(g);
-    let term_layer = fmt::layer().with_writer(term).with_filter(filter(cfg)?);
+    let term_layer = fmt::layer()
+        .with_ansi(ansi)
+        .with_writer(term)
+        .with_filter(filter(cfg)?);
     let file_layer = match &cfg.dir {
         Some(dir) => {
             let rotation = match cfg.rotation {
@@ -96,6 +109,14 @@ pub fn init(cfg: &LogConfig) -> Result<LogGuard, LogError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn colour_only_on_a_terminal_without_no_color() {
+        assert!(use_colour(true, None));
+        assert!(use_colour(true, Some("".into())));
+        assert!(!use_colour(true, Some("1".into())));
+        assert!(!use_colour(false, None));
+    }
 
     #[test]
     fn broker_chatter_is_turned_down_unless_asked_for() {

@@ -1,10 +1,23 @@
 //! `mc-gateway`: parse the configuration, set up logging and signals, run until SIGINT/SIGTERM.
+//! A failure is one line on stderr and exit status 1.
+
+use std::process::ExitCode;
 
 use anyhow::Context as _;
 use tokio_util::sync::CancellationToken;
 
 #[tokio::main]
-async fn main() -> anyhow::Result<()> {
+async fn main() -> ExitCode {
+    match run().await {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("mc-gateway: {}", report(&e));
+            ExitCode::FAILURE
+        }
+    }
+}
+
+async fn run() -> anyhow::Result<()> {
     let config = mc_gateway::Config::from_env_and_args()?;
     // Held to the end: dropping it flushes the log file.
     let _log = mc_gateway::log::init(&config.log)?;
@@ -12,4 +25,18 @@ async fn main() -> anyhow::Result<()> {
     mc_gateway::shutdown::on_signals(shutdown.clone()).context("cannot install signal handlers")?;
     mc_gateway::run(config, shutdown).await?;
     Ok(())
+}
+
+/// An error and its causes on one line, each cause only when the text so far does not say it
+/// already (the gateway's errors quote their source in their own message).
+fn report(e: &anyhow::Error) -> String {
+    let mut text = e.to_string();
+    for cause in e.chain().skip(1) {
+        let cause = cause.to_string();
+        if !text.contains(&cause) {
+            text.push_str(": ");
+            text.push_str(&cause);
+        }
+    }
+    text
 }

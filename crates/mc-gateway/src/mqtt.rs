@@ -1,6 +1,6 @@
 //! The MQTT side: exactly one task owns rumqttc's `EventLoop::poll()`. It connects with keep-alive,
 //! clean session and a retained `offline` last will, (re)subscribes the command topic on *every*
-//! ConnAck, publishes `online` (retained), forwards commands to the bridge and carries out its
+//! ConnAck, publishes `online` (retained), forwards commands to the core and carries out its
 //! publications (QoS 1). rumqttc reconnects whenever `poll()` is called again but has no back-off, so
 //! this task sleeps with a capped exponential delay between failed polls.
 //!
@@ -41,9 +41,9 @@ const REQUEST_CHANNEL: usize = 64;
 /// How long shutdown waits for `offline` and the DISCONNECT to go out.
 const SHUTDOWN_GRACE: Duration = Duration::from_secs(2);
 
-/// One message to publish with QoS 1.
+/// One message to publish with QoS 1: a serialised core publication under its concrete topic.
 #[derive(Clone, Debug, PartialEq, Eq)]
-pub struct Publication {
+pub struct Outbound {
     /// Concrete topic name.
     pub topic: String,
     /// Payload bytes (JSON text).
@@ -55,10 +55,8 @@ pub struct Publication {
 /// What the MQTT task hands to the gateway core.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub enum MqttInput {
-    /// A message on the command topic (raw payload; the bridge validates it).
+    /// A message on the command topic (raw payload; the core validates it).
     Command(Vec<u8>),
-    /// A message on the simulation control topic (demo only).
-    Sim(Vec<u8>),
     /// A ConnAck: the session is (re)established and subscribed.
     Connected,
 }
@@ -76,28 +74,34 @@ pub struct MqttStats {
     pub commands: AtomicU64,
 }
 
-/// Builds the rumqttc options: keep-alive, clean session, last will, credentials, TLS.
+/// The rumqttc options of the gateway's own client: [`client_options`] plus the retained `offline`
+/// last will and the incoming size limit.
 pub fn options(
     cfg: &MqttConfig,
     topics: &Topics,
     max_incoming: usize,
 ) -> Result<MqttOptions, MqttError> {
+    let mut o = client_options(cfg, cfg.client_id.clone())?;
+    o.set_last_will(LastWill::new(
+        &topics.availability,
+        OFFLINE,
+        QoS::AtLeastOnce,
+        true,
+    ))
+    // An oversized command must reach the core (to be rejected with a reason) rather than
+    // break the connection, so the incoming limit sits well above the command limit.
+    .set_max_packet_size(max_incoming, 1 << 20);
+    Ok(o)
+}
+
+/// Options of any client of the configured broker: keep-alive, clean session, credentials, TLS.
+pub fn client_options(cfg: &MqttConfig, client_id: String) -> Result<MqttOptions, MqttError> {
     let (host, port) = match &cfg.broker {
         crate::config::Broker::External { host, port } => (host.clone(), *port),
         crate::config::Broker::Embedded { listen } => (listen.ip().to_string(), listen.port()),
     };
-    let mut o = MqttOptions::new(cfg.client_id.clone(), host, port);
-    o.set_keep_alive(cfg.keep_alive)
-        .set_clean_session(true)
-        .set_last_will(LastWill::new(
-            &topics.availability,
-            OFFLINE,
-            QoS::AtLeastOnce,
-            true,
-        ))
-        // An oversized command must reach the bridge (to be rejected with a reason) rather than
-        // break the connection, so the incoming limit sits well above the command limit.
-        .set_max_packet_size(max_incoming, 1 << 20);
+    let mut o = MqttOptions::new(client_id, host, port);
+    o.set_keep_alive(cfg.keep_alive).set_clean_session(true);
     if let Some((user, pass)) = &cfg.credentials {
         o.set_credentials(user.clone(), pass.clone());
     }
@@ -134,8 +138,6 @@ pub struct MqttTask {
     pub options: MqttOptions,
     /// Topic names.
     pub topics: Topics,
-    /// Also subscribe the simulation control topic.
-    pub subscribe_sim: bool,
     /// Publications held while disconnected.
     pub queue: usize,
     /// Counters.
@@ -147,7 +149,7 @@ impl MqttTask {
     #[tracing::instrument(name = "mqtt", skip_all, fields(client_id = %self.options.client_id()))]
     pub async fn run(
         self,
-        mut publications: mpsc::Receiver<Publication>,
+        mut publications: mpsc::Receiver<Outbound>,
         inputs: mpsc::Sender<MqttInput>,
         cancel: CancellationToken,
     ) {
@@ -158,7 +160,7 @@ impl MqttTask {
         net.set_connection_timeout(5);
         el.set_network_options(net);
 
-        let mut backlog: VecDeque<Publication> = VecDeque::new();
+        let mut backlog: VecDeque<Outbound> = VecDeque::new();
         let mut connected = false;
         let mut delay = RECONNECT_MIN;
         let mut inputs_open = true;
@@ -206,8 +208,6 @@ impl MqttTask {
                     let input = if p.topic == self.topics.commands {
                         self.stats.commands.fetch_add(1, Ordering::Relaxed);
                         MqttInput::Command(p.payload.to_vec())
-                    } else if self.subscribe_sim && p.topic == self.topics.sim {
-                        MqttInput::Sim(p.payload.to_vec())
                     } else {
                         debug!(topic = %p.topic, "message on an unexpected topic ignored");
                         continue;
@@ -251,14 +251,9 @@ impl MqttTask {
 
     /// Subscribes and announces `online`; runs on every ConnAck (a clean session forgets both).
     fn on_connack(&self, client: &AsyncClient) {
-        let mut subs = vec![self.topics.commands.clone()];
-        if self.subscribe_sim {
-            subs.push(self.topics.sim.clone());
-        }
-        for t in subs {
-            if let Err(e) = client.try_subscribe(t.clone(), QoS::AtLeastOnce) {
-                warn!(topic = %t, error = %e, "cannot queue the subscription");
-            }
+        let t = &self.topics.commands;
+        if let Err(e) = client.try_subscribe(t.clone(), QoS::AtLeastOnce) {
+            warn!(topic = %t, error = %e, "cannot queue the subscription");
         }
         if let Err(e) =
             client.try_publish(&self.topics.availability, QoS::AtLeastOnce, true, ONLINE)
@@ -267,7 +262,7 @@ impl MqttTask {
         }
     }
 
-    fn enqueue(&self, backlog: &mut VecDeque<Publication>, p: Publication) {
+    fn enqueue(&self, backlog: &mut VecDeque<Outbound>, p: Outbound) {
         if backlog.len() >= self.queue {
             let old = backlog.pop_front();
             let n = self.stats.dropped.fetch_add(1, Ordering::Relaxed) + 1;
@@ -280,7 +275,7 @@ impl MqttTask {
     }
 
     /// Hands queued publications to rumqttc until its channel is full.
-    fn flush(&self, client: &AsyncClient, backlog: &mut VecDeque<Publication>) {
+    fn flush(&self, client: &AsyncClient, backlog: &mut VecDeque<Outbound>) {
         while let Some(p) = backlog.pop_front() {
             match client.try_publish(
                 p.topic.clone(),
@@ -302,12 +297,12 @@ impl MqttTask {
     /// After a broken connection rumqttc keeps unacknowledged and unsent requests in `pending`, but
     /// clears them when the next (clean) session starts: move the publications back to the front of
     /// our queue, in order. Subscriptions and `online` are redone on ConnAck anyway.
-    fn take_back(&self, el: &mut EventLoop, backlog: &mut VecDeque<Publication>) {
-        let mut back: Vec<Publication> = el
+    fn take_back(&self, el: &mut EventLoop, backlog: &mut VecDeque<Outbound>) {
+        let mut back: Vec<Outbound> = el
             .pending
             .drain(..)
             .filter_map(|r| match r {
-                Request::Publish(p) if p.topic != self.topics.availability => Some(Publication {
+                Request::Publish(p) if p.topic != self.topics.availability => Some(Outbound {
                     topic: p.topic,
                     payload: p.payload.to_vec(),
                     retain: p.retain,
@@ -339,8 +334,8 @@ impl MqttTask {
         &self,
         client: &AsyncClient,
         el: &mut EventLoop,
-        publications: &mut mpsc::Receiver<Publication>,
-        backlog: &mut VecDeque<Publication>,
+        publications: &mut mpsc::Receiver<Outbound>,
+        backlog: &mut VecDeque<Outbound>,
     ) {
         while let Ok(p) = publications.try_recv() {
             self.enqueue(backlog, p);
@@ -395,14 +390,13 @@ mod tests {
         MqttTask {
             options: options(&cfg, &topics, 1 << 20).unwrap(),
             topics,
-            subscribe_sim: false,
             queue,
             stats: Arc::default(),
         }
     }
 
-    fn publication(n: u8) -> Publication {
-        Publication {
+    fn publication(n: u8) -> Outbound {
+        Outbound {
             topic: "EventsTopic".into(),
             payload: vec![n],
             retain: false,

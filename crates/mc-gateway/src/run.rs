@@ -1,21 +1,23 @@
-//! Wires the gateway together: embedded broker and simulated island when configured, the CAN tasks,
-//! the MQTT task, and the core loop that owns the [`Bridge`], feeds it inputs and timer ticks and
-//! carries out its [`Action`]s. Every channel is bounded; one [`CancellationToken`] stops everything
-//! and a `JoinSet` awaits every task.
+//! The gateway as a program, in two steps (mini-redis' `main` + `server::run`):
+//! [`Gateway::build`] makes and checks every resource — the CAN link (first socket open), the MQTT
+//! options, and in the demo the embedded broker, the simulated island and its control client — and
+//! [`Gateway::run`] only runs them: the CAN tasks, the MQTT task, and the core loop, one task that
+//! owns the [`Bridge`], feeds it inputs and timeouts and carries out its outputs without waiting.
+//! Every channel is bounded; one [`CancellationToken`] stops everything and a `JoinSet` awaits every
+//! task.
 
 use std::{sync::Arc, time::Instant};
 
+use ihex_gateway_core::{Bridge, Publication};
 use tokio::{sync::mpsc, task::JoinSet};
 use tokio_util::sync::CancellationToken;
-use tracing::{error, info, warn};
+use tracing::{debug, error, info, warn};
 
 use crate::{
-    bridge::{Action, Bridge},
-    can::{self, CanInput, LinkSpec},
-    config::{Broker, Config, Link},
-    demo,
+    can::{CanInput, CanLink},
+    config::{Config, Link},
     error::GatewayError,
-    mqtt::{self, MqttInput, MqttStats, MqttTask, Publication},
+    mqtt::{self, MqttInput, MqttStats, MqttTask, Outbound},
     topic::Topics,
 };
 
@@ -38,107 +40,124 @@ pub async fn run_with_stats(
     shutdown: CancellationToken,
     stats: Arc<MqttStats>,
 ) -> Result<(), GatewayError> {
-    if config.can.bitrate != ihex_proto::BITRATE {
-        warn!(
-            configured = config.can.bitrate,
-            island = ihex_proto::BITRATE,
-            "bitrate differs from the island's; the interface's own configuration decides"
-        );
-    }
-    // The island file is checked before the broker starts, so a typo fails fast.
-    let (link, sim) = match &config.can.link {
-        Link::SocketCan(iface) => (
-            LinkSpec::SocketCan {
-                iface: iface.clone(),
-                rx_buffer: config.can.rx_buffer,
-            },
-            None,
-        ),
-        Link::Simulated { island_file } => {
-            let s = demo::start(island_file.as_deref())?;
-            (LinkSpec::Mem(s.endpoint), Some(s.handle))
+    Gateway::build(config, stats).await?.run(shutdown).await
+}
+
+/// A gateway whose resources are built and checked, ready to run.
+pub struct Gateway {
+    config: Config,
+    link: CanLink,
+    mqtt: MqttTask,
+    #[cfg(feature = "demo")]
+    demo: crate::demo::Demo,
+}
+
+impl Gateway {
+    /// Builds every resource `config` asks for; fails on anything that would stop the gateway later
+    /// (a bad island file, a taken broker port, CAN filters the kernel refuses, TLS unavailable).
+    pub async fn build(config: Config, stats: Arc<MqttStats>) -> Result<Gateway, GatewayError> {
+        for w in &config.warnings {
+            warn!("{w}");
         }
-    };
-
-    if let Broker::Embedded { listen } = &config.mqtt.broker {
-        let listen = *listen;
-        tokio::task::spawn_blocking(move || crate::broker::start(listen))
-            .await
-            .map_err(|e| GatewayError::Task(e.to_string()))??;
-        info!(%listen, "embedded MQTT broker ready");
-    }
-    let cancel = shutdown.child_token();
-    let mut tasks = JoinSet::new();
-    let (can_in_tx, can_in) = mpsc::channel(CAN_INPUTS);
-    let (mqtt_in_tx, mqtt_in) = mpsc::channel(MQTT_INPUTS);
-    let (pub_tx, pub_rx) = mpsc::channel(PUBLICATIONS);
-
-    let can_tx = can::spawn(
-        link,
-        config.can.tx_queue,
-        can_in_tx,
-        &mut tasks,
-        cancel.clone(),
-    )?;
-    let mqtt_task = MqttTask {
-        options: mqtt::options(
-            &config.mqtt,
-            &config.topics,
-            config
-                .bridge
-                .max_command_bytes
-                .saturating_mul(4)
-                .max(1 << 20),
-        )?,
-        topics: config.topics.clone(),
-        subscribe_sim: sim.is_some(),
-        queue: config.mqtt.queue,
-        stats,
-    };
-    tasks.spawn(mqtt_task.run(pub_rx, mqtt_in_tx, cancel.clone()));
-
-    if config.is_demo() {
-        if let Broker::Embedded { listen } = &config.mqtt.broker {
-            println!(
-                "{}",
-                demo::banner(&config, &listen.ip().to_string(), listen.port())
+        if config.can.bitrate != ihex_proto::BITRATE {
+            warn!(
+                configured = config.can.bitrate,
+                island = ihex_proto::BITRATE,
+                "bitrate differs from the island's; the interface's own configuration decides"
             );
         }
+        #[cfg(feature = "demo")]
+        let (demo, island_link) = crate::demo::Demo::build(&config).await?;
+        #[cfg(not(feature = "demo"))]
+        let island_link: Option<CanLink> = match config.mqtt.broker {
+            crate::config::Broker::Embedded { .. } => return Err(GatewayError::DemoUnavailable),
+            crate::config::Broker::External { .. } => None,
+        };
+        let link = match (&config.can.link, island_link) {
+            (Link::SocketCan(iface), _) => CanLink::socketcan(iface, config.can.rx_buffer)?,
+            (Link::Simulated { .. }, Some(link)) => link,
+            (Link::Simulated { .. }, None) => return Err(GatewayError::DemoUnavailable),
+        };
+        let max_incoming = config
+            .bridge
+            .max_command_bytes
+            .saturating_mul(4)
+            .max(1 << 20);
+        let mqtt = MqttTask {
+            options: mqtt::options(&config.mqtt, &config.topics, max_incoming)?,
+            topics: config.topics.clone(),
+            queue: config.mqtt.queue,
+            stats,
+        };
+        Ok(Gateway {
+            config,
+            link,
+            mqtt,
+            #[cfg(feature = "demo")]
+            demo,
+        })
     }
-    info!(island = ?config.island, commands = %config.topics.commands, events = %config.topics.events,
-          link = ?config.can.link, "gateway running");
 
-    let core = Core {
-        bridge: Bridge::new(config.bridge.clone(), Instant::now()),
-        can_tx,
-        pub_tx,
-        topics: config.topics.clone(),
-        dropped: 0,
-    };
-    let result = core
-        .run(can_in, mqtt_in, sim.as_ref(), &mut tasks, &cancel)
-        .await;
+    /// Runs until `shutdown` is cancelled (then stops every task, publishes `offline` and returns
+    /// `Ok`), or until a task fails.
+    pub async fn run(self, shutdown: CancellationToken) -> Result<(), GatewayError> {
+        #[cfg(feature = "demo")]
+        let Gateway {
+            config,
+            link,
+            mqtt,
+            mut demo,
+        } = self;
+        #[cfg(not(feature = "demo"))]
+        let Gateway { config, link, mqtt } = self;
+        let cancel = shutdown.child_token();
+        let mut tasks = JoinSet::new();
+        let (can_in_tx, can_in) = mpsc::channel(CAN_INPUTS);
+        let (mqtt_in_tx, mqtt_in) = mpsc::channel(MQTT_INPUTS);
+        let (pub_tx, pub_rx) = mpsc::channel(PUBLICATIONS);
 
-    cancel.cancel();
-    let mut failure = result.err();
-    while let Some(r) = tasks.join_next().await {
-        if let Err(e) = r {
-            error!(error = %e, "gateway task failed");
-            failure.get_or_insert(GatewayError::Task(e.to_string()));
+        let can_tx = link.spawn(config.can.tx_queue, can_in_tx, &mut tasks, cancel.clone());
+        tasks.spawn(mqtt.run(pub_rx, mqtt_in_tx, cancel.clone()));
+        #[cfg(feature = "demo")]
+        demo.spawn(&config, &mut tasks, cancel.clone());
+        info!(
+            island = config.island.as_deref().unwrap_or("none"),
+            broker = %config.mqtt.broker,
+            link = %config.can.link,
+            commands = %config.topics.commands,
+            events = %config.topics.events,
+            "gateway running"
+        );
+
+        let core = Core {
+            bridge: Bridge::new(config.bridge.clone(), Instant::now()),
+            can_tx,
+            pub_tx,
+            topics: config.topics.clone(),
+            dropped: 0,
+        };
+        let result = core.run(can_in, mqtt_in, &mut tasks, &cancel).await;
+
+        cancel.cancel();
+        let mut failure = result.err();
+        while let Some(r) = tasks.join_next().await {
+            if let Err(e) = r {
+                error!(error = %e, "gateway task failed");
+                failure.get_or_insert(GatewayError::Task(e.to_string()));
+            }
         }
+        #[cfg(feature = "demo")]
+        demo.shutdown().await;
+        info!("gateway stopped");
+        failure.map_or(Ok(()), Err)
     }
-    if let Some(island) = sim {
-        island.shutdown().await;
-    }
-    info!("gateway stopped");
-    failure.map_or(Ok(()), Err)
 }
 
 /// The task that owns the bridge.
 struct Core {
     bridge: Bridge,
     can_tx: mpsc::Sender<ihex_proto::Packet>,
-    pub_tx: mpsc::Sender<Publication>,
+    pub_tx: mpsc::Sender<Outbound>,
     topics: Topics,
     dropped: u64,
 }
@@ -148,13 +167,12 @@ impl Core {
         mut self,
         mut can_in: mpsc::Receiver<CanInput>,
         mut mqtt_in: mpsc::Receiver<MqttInput>,
-        sim: Option<&sim_node::IslandHandle>,
         tasks: &mut JoinSet<()>,
         cancel: &CancellationToken,
     ) -> Result<(), GatewayError> {
         loop {
             self.carry_out();
-            let deadline = tokio::time::Instant::from_std(self.bridge.next_deadline());
+            let deadline = tokio::time::Instant::from_std(self.bridge.poll_timeout());
             // Unbiased on purpose: a timer that is always due must not starve the inputs, nor a
             // flood of frames the timers.
             tokio::select! {
@@ -172,62 +190,64 @@ impl Core {
                     error!(%why, "stopping the gateway");
                     return Err(GatewayError::Task(why));
                 }
-                _ = tokio::time::sleep_until(deadline) => self.bridge.tick(Instant::now()),
+                _ = tokio::time::sleep_until(deadline) => self.bridge.handle_timeout(Instant::now()),
                 Some(input) = can_in.recv() => {
                     let now = Instant::now();
                     match input {
-                        CanInput::Packet(p) => self.bridge.on_packet(p, now),
-                        CanInput::Undecodable { raw_id, data, err } => self.bridge.on_undecodable(raw_id, &data, err, now),
-                        CanInput::Bus(ev) => self.bridge.on_bus_event(ev, now),
-                        CanInput::SendFailed(p, reason) => self.bridge.on_send_failed(p, &reason, now),
+                        CanInput::Packet(p) => self.bridge.handle_packet(p, now),
+                        CanInput::Undecodable { raw_id, data, err } => self.bridge.handle_undecodable(raw_id, &data, err, now),
+                        CanInput::Bus(ev) => self.bridge.handle_bus_event(ev, now),
+                        CanInput::SendFailed(p, reason) => self.bridge.handle_send_failed(p, &reason, now),
                     }
                 }
                 Some(input) = mqtt_in.recv() => match input {
-                    MqttInput::Command(payload) => self.bridge.on_command(&payload, Instant::now()),
-                    MqttInput::Connected => self.bridge.on_mqtt_connected(Instant::now()),
-                    MqttInput::Sim(payload) => {
-                        if let Some(island) = sim {
-                            demo::handle(island, &payload).await;
-                        }
-                    }
+                    MqttInput::Command(payload) => self.bridge.handle_command(&payload, Instant::now()),
+                    MqttInput::Connected => self.bridge.handle_mqtt_connected(Instant::now()),
                 },
             }
         }
     }
 
-    /// Drains the bridge's actions without ever waiting: a full CAN queue is a failed send the bridge
+    /// Drains the bridge's outputs without ever waiting: a full CAN queue is a failed send the bridge
     /// hears about, a full publication queue a counted drop.
     fn carry_out(&mut self) {
-        while let Some(action) = self.bridge.poll_action() {
-            match action {
-                Action::Send(packet) => {
-                    let reason = match self.can_tx.try_send(packet) {
-                        Ok(()) => continue,
-                        Err(mpsc::error::TrySendError::Full(_)) => "CAN transmit queue full",
-                        Err(mpsc::error::TrySendError::Closed(_)) => "CAN transmitter stopped",
-                    };
-                    self.bridge.on_send_failed(packet, reason, Instant::now());
-                }
-                Action::Publish {
-                    topic,
-                    payload,
-                    retain,
-                } => {
-                    let p = Publication {
-                        topic: self.topics.resolve(topic),
-                        payload: payload.into_bytes(),
-                        retain,
-                    };
-                    if self.pub_tx.try_send(p).is_err() {
-                        self.dropped += 1;
-                        if self.dropped.is_power_of_two() {
-                            warn!(
-                                dropped_total = self.dropped,
-                                "publication queue full: event dropped"
-                            );
-                        }
-                    }
-                }
+        loop {
+            while let Some(packet) = self.bridge.poll_transmit() {
+                let reason = match self.can_tx.try_send(packet) {
+                    Ok(()) => continue,
+                    Err(mpsc::error::TrySendError::Full(_)) => "CAN transmit queue full",
+                    Err(mpsc::error::TrySendError::Closed(_)) => "CAN transmitter stopped",
+                };
+                self.bridge
+                    .handle_send_failed(packet, reason, Instant::now());
+            }
+            let Some(publication) = self.bridge.poll_publication() else {
+                return;
+            };
+            self.publish(publication);
+        }
+    }
+
+    /// The one place publications leave the core: serialised once, logged (every event at info, so
+    /// the log alone tells the island's story), handed to the MQTT task.
+    fn publish(&mut self, publication: Publication) {
+        let json = publication.to_json();
+        match &publication {
+            Publication::Event(e) => info!(event = e.name(), payload = %json, "event published"),
+            Publication::State(s) => debug!(node = %s.id, payload = %json, "state published"),
+        }
+        let p = Outbound {
+            topic: self.topics.resolve(publication.topic()),
+            payload: json.into_bytes(),
+            retain: publication.retain(),
+        };
+        if self.pub_tx.try_send(p).is_err() {
+            self.dropped += 1;
+            if self.dropped.is_power_of_two() {
+                warn!(
+                    dropped_total = self.dropped,
+                    "publication queue full: event dropped"
+                );
             }
         }
     }

@@ -1,14 +1,10 @@
 //! The embedded demo in-process: embedded rumqttd broker + simulated island on the in-memory bus,
 //! driven by a real MQTT client. (The SocketCAN end-to-end tests are in `tests/tests/gateway_*.rs`.)
-#![cfg(feature = "embedded-broker")]
+#![cfg(feature = "demo")]
 
 use std::{net::TcpListener, time::Duration};
 
-use mc_gateway::{
-    config::{Cli, FileConfig},
-    error::BrokerError,
-    CancellationToken, Config, GatewayError,
-};
+use mc_gateway::{config::Options, error::BrokerError, CancellationToken, Config, GatewayError};
 use rumqttc::{AsyncClient, Event, Incoming, MqttOptions, QoS};
 use serde_json::Value;
 use tokio::sync::mpsc;
@@ -24,13 +20,13 @@ fn free_port() -> u16 {
 }
 
 fn demo_config(port: u16) -> Config {
-    let cli = Cli {
-        broker_listen: Some(format!("127.0.0.1:{port}")),
+    let cli = Options {
+        broker_listen: Some(format!("127.0.0.1:{port}").parse().unwrap()),
         health_period_ms: Some(200),
         log_dir: Some("-".into()),
-        ..Cli::default()
+        ..Options::default()
     };
-    let c = Config::resolve(cli, FileConfig::default()).unwrap();
+    let c = Config::resolve(cli, Options::default()).unwrap();
     assert!(c.is_demo());
     c
 }
@@ -148,6 +144,36 @@ async fn the_demo_answers_commands_docks_and_says_goodbye() {
     .unwrap();
     assert_eq!(event(&d), want);
 
+    // A mistaken control message is answered on the events topic, with the island's reason.
+    c.publish(
+        "ihex/sim",
+        QoS::AtLeastOnce,
+        false,
+        r#"{"sim":"dock","mobile":"9","static":"112","port":2,"request_id":"s1"}"#,
+    )
+    .await
+    .unwrap();
+    let r = expect(&mut rx, "sim_result", |t, p| {
+        t == "EventsTopic" && event(p)["event"] == "sim_result"
+    })
+    .await;
+    assert_eq!(
+        event(&r)["payload"],
+        serde_json::json!({"request_id": "s1", "sim": "dock", "result": "refused",
+                           "reason": "no element \"9\" in this island"})
+    );
+    c.publish("ihex/sim", QoS::AtLeastOnce, false, "{not json")
+        .await
+        .unwrap();
+    let r = expect(&mut rx, "sim_rejected", |t, p| {
+        t == "EventsTopic" && event(p)["event"] == "sim_rejected"
+    })
+    .await;
+    assert!(event(&r)["payload"]["reason"]
+        .as_str()
+        .unwrap()
+        .starts_with("malformed JSON"));
+
     c.publish("CommandsTopic", QoS::AtLeastOnce, false, "{not json")
         .await
         .unwrap();
@@ -185,7 +211,7 @@ async fn a_taken_broker_port_is_a_clear_error() {
 async fn publications_queued_before_the_broker_exists_are_delivered() {
     use mc_gateway::{
         config::{Broker, MqttConfig},
-        mqtt::{self, MqttInput, MqttStats, MqttTask, Publication},
+        mqtt::{self, MqttInput, MqttStats, MqttTask, Outbound},
         topic::Topics,
     };
     let port = free_port();
@@ -205,7 +231,6 @@ async fn publications_queued_before_the_broker_exists_are_delivered() {
     let task = MqttTask {
         options: mqtt::options(&cfg, &topics, 1 << 20).unwrap(),
         topics,
-        subscribe_sim: false,
         queue: cfg.queue,
         stats: stats.clone(),
     };
@@ -214,7 +239,7 @@ async fn publications_queued_before_the_broker_exists_are_delivered() {
     let stop = CancellationToken::new();
     let run = tokio::spawn(task.run(pub_rx, in_tx, stop.clone()));
     for n in 0..5 {
-        let p = Publication {
+        let p = Outbound {
             topic: format!("early/{n}"),
             payload: format!("{n}").into_bytes(),
             retain: true,
@@ -225,7 +250,7 @@ async fn publications_queued_before_the_broker_exists_are_delivered() {
     tokio::time::sleep(Duration::from_millis(700)).await;
     assert_eq!(stats.connects.load(std::sync::atomic::Ordering::Relaxed), 0);
     let addr = format!("127.0.0.1:{port}").parse().unwrap();
-    tokio::task::spawn_blocking(move || mc_gateway::broker::start(addr))
+    tokio::task::spawn_blocking(move || mc_gateway::demo::broker::start(addr))
         .await
         .unwrap()
         .expect("embedded broker");

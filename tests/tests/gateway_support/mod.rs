@@ -7,10 +7,7 @@ use std::time::Duration;
 
 use ihex_proto::NodeId;
 use ihex_tests::broker::Mosquitto;
-use mc_gateway::{
-    config::{Cli, FileConfig},
-    CancellationToken, Config,
-};
+use mc_gateway::{config::Options, CancellationToken, Config};
 use rumqttc::{AsyncClient, Event, Incoming, MqttOptions, QoS};
 use serde_json::Value;
 use sim_node::{link::Link, Island, IslandDesc, IslandHandle};
@@ -161,7 +158,7 @@ fn scaled_ms(ms: u64) -> u64 {
 impl Gateway {
     /// Starts a gateway on `iface` against `broker`, island name `island`, with a fast health check.
     pub fn start(broker: std::net::SocketAddr, iface: &str, island: &str) -> Gateway {
-        let cli = Cli {
+        let cli = Options {
             broker: Some(broker.to_string()),
             can: Some(iface.into()),
             island: Some(island.into()),
@@ -173,9 +170,9 @@ impl Gateway {
             command_timeout_ms: Some(scaled_ms(1000)),
             dock_timeout_ms: Some(scaled_ms(3000)),
             log_dir: Some("-".into()),
-            ..Cli::default()
+            ..Options::default()
         };
-        let config = Config::resolve(cli, FileConfig::default()).expect("valid test config");
+        let config = Config::resolve(cli, Options::default()).expect("valid test config");
         let stop = CancellationToken::new();
         let task = tokio::spawn(mc_gateway::run(config.clone(), stop.clone()));
         Gateway { config, stop, task }

@@ -3,7 +3,7 @@
 
 use ihex_proto::NodeId;
 
-use crate::{bridge::Topic, error::ConfigError};
+use crate::bridge::Topic;
 
 /// Default command topic (the seed's name).
 pub const COMMANDS: &str = "CommandsTopic";
@@ -72,10 +72,25 @@ impl Topics {
     }
 }
 
+/// A topic or island name that cannot be used, and why.
+#[derive(Clone, PartialEq, Eq, Debug, thiserror::Error)]
+#[error("{name:?}: {why}")]
+pub struct NameError {
+    /// The name as given.
+    pub name: String,
+    /// What is wrong with it.
+    pub why: &'static str,
+}
+
 /// Checks an island name: 1..=64 characters, no MQTT wildcards (`+`, `#`), no NUL, no empty topic
 /// level (leading, trailing or doubled `/`), and no leading `$` (reserved for broker topics).
-pub fn validate_island(name: &str) -> Result<(), ConfigError> {
-    let bad = |why: &str| Err(ConfigError::invalid("island", format!("{name:?}: {why}")));
+pub fn validate_island(name: &str) -> Result<(), NameError> {
+    let bad = |why: &'static str| {
+        Err(NameError {
+            name: name.to_owned(),
+            why,
+        })
+    };
     if name.is_empty() || name.chars().count() > 64 {
         return bad("must be 1 to 64 characters");
     }
@@ -91,19 +106,19 @@ pub fn validate_island(name: &str) -> Result<(), ConfigError> {
     Ok(())
 }
 
-/// Checks a configured topic base (same rules as an island name, up to 256 characters).
-pub fn validate_topic(field: &'static str, name: &str) -> Result<(), ConfigError> {
+/// Checks a configured topic base: 1 to 256 bytes, no MQTT wildcards (`+`, `#`), no NUL.
+pub fn validate_topic(name: &str) -> Result<(), NameError> {
+    let bad = |why: &'static str| {
+        Err(NameError {
+            name: name.to_owned(),
+            why,
+        })
+    };
     if name.is_empty() || name.len() > 256 {
-        return Err(ConfigError::invalid(
-            field,
-            format!("{name:?}: must be 1 to 256 bytes"),
-        ));
+        return bad("must be 1 to 256 bytes");
     }
     if name.contains(['+', '#', '\0']) {
-        return Err(ConfigError::invalid(
-            field,
-            format!("{name:?}: must not contain '+', '#' or NUL"),
-        ));
+        return bad("must not contain '+', '#' or NUL");
     }
     Ok(())
 }
@@ -180,8 +195,11 @@ mod tests {
 
     #[test]
     fn topic_bases_are_checked() {
-        assert!(validate_topic("events-topic", "EventsTopic").is_ok());
-        assert!(validate_topic("events-topic", "").is_err());
-        assert!(validate_topic("events-topic", "a/#").is_err());
+        assert!(validate_topic("EventsTopic").is_ok());
+        assert!(validate_topic("").is_err());
+        assert_eq!(
+            validate_topic("a/#").unwrap_err().to_string(),
+            "\"a/#\": must not contain '+', '#' or NUL"
+        );
     }
 }

@@ -285,6 +285,19 @@ pub struct NodeList {
     pub nodes: Vec<NodeState>,
 }
 
+/// Payload of `sim_result` (demo only): how a control message on the `ihex/sim` topic ended.
+#[derive(Clone, PartialEq, Eq, Debug, Serialize, Deserialize)]
+pub struct SimResult {
+    /// The control message's `request_id`, `null` when it had none.
+    pub request_id: Option<String>,
+    /// The control message's name (`dock`, `undock`, `power_cycle`, `off_bus`, `on_bus`).
+    pub sim: String,
+    /// `ok`, `refused` (the island said no: unknown element, port taken, ...) or `timeout`.
+    pub result: Outcome,
+    /// Why, for anything but `ok` (`null` for `ok`).
+    pub reason: Option<String>,
+}
+
 /// One JSON event: `{"event": "<name>", "payload": {...}}`.
 #[derive(Clone, PartialEq, Debug, Serialize, Deserialize)]
 #[serde(tag = "event", content = "payload", rename_all = "snake_case")]
@@ -311,6 +324,10 @@ pub enum Event {
     DockFailed(DockFailed),
     /// Answer to `list`.
     NodeList(NodeList),
+    /// Demo only: a simulated island control message was carried out or refused.
+    SimResult(SimResult),
+    /// Demo only: a simulated island control message was not understood.
+    SimRejected(CommandRejected),
 }
 
 impl Event {
@@ -328,6 +345,8 @@ impl Event {
             Event::BusError(_) => "bus_error",
             Event::DockFailed(_) => "dock_failed",
             Event::NodeList(_) => "node_list",
+            Event::SimResult(_) => "sim_result",
+            Event::SimRejected(_) => "sim_rejected",
         }
     }
 

@@ -4,7 +4,7 @@
 //! until a TCP connect succeeds.
 
 use std::{
-    net::{SocketAddr, TcpStream},
+    net::{SocketAddr, TcpListener, TcpStream},
     time::{Duration, Instant},
 };
 
@@ -15,13 +15,9 @@ const READY_TIMEOUT: Duration = Duration::from_secs(10);
 
 /// Starts the broker on `listen` and returns once it accepts TCP connections. The broker thread
 /// lives until the process exits.
-#[cfg(feature = "embedded-broker")]
 pub fn start(listen: SocketAddr) -> Result<(), BrokerError> {
-    use std::collections::HashMap;
-
-    use std::net::TcpListener;
-
     use rumqttd::{Config, ConnectionSettings, RouterConfig, ServerSettings};
+    use std::collections::HashMap;
 
     // rumqttd reports a taken port only in its own log: find out first.
     drop(
@@ -75,13 +71,7 @@ pub fn start(listen: SocketAddr) -> Result<(), BrokerError> {
     wait_ready(listen)
 }
 
-/// Without the feature there is no embedded broker.
-#[cfg(not(feature = "embedded-broker"))]
-pub fn start(_listen: SocketAddr) -> Result<(), BrokerError> {
-    Err(BrokerError::Unavailable)
-}
-
-/// Polls a TCP connect until it succeeds or [`READY_TIMEOUT`] passes.
+/// Polls a TCP connect until it succeeds or `READY_TIMEOUT` passes.
 pub fn wait_ready(addr: SocketAddr) -> Result<(), BrokerError> {
     let deadline = Instant::now() + READY_TIMEOUT;
     while Instant::now() < deadline {
@@ -93,10 +83,9 @@ pub fn wait_ready(addr: SocketAddr) -> Result<(), BrokerError> {
     Err(BrokerError::NotReady(addr))
 }
 
-#[cfg(all(test, feature = "embedded-broker"))]
+#[cfg(test)]
 mod tests {
     use super::*;
-    use std::net::TcpListener;
 
     #[test]
     fn a_taken_port_is_a_clear_error() {

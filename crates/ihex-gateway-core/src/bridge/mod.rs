@@ -1,0 +1,858 @@
+//! The gateway's logic, sans-IO: JSON commands and CAN packets in, frames to send and publications
+//! (events, retained node states) out. No sockets, no clocks of its own: the adapters feed it one
+//! `handle_*` call per input, call [`Bridge::handle_timeout`] at [`Bridge::poll_timeout`], and carry
+//! out what [`Bridge::poll_transmit`] and [`Bridge::poll_publication`] return — so every behaviour
+//! (command validation, acknowledgement tracking, health and lost-node detection, the one-at-a-time
+//! docking sequence, bus diagnostics) is tested without a bus or a broker.
+//!
+//! This file only routes each input to the concern that owns it, one submodule each: `commands`
+//! (pending commands, sequence numbers, acks and timeouts), `health` (health checks, presence, lost
+//! detection), `diagnostics` (error frames, drops, undecodable frames, faults, rate limits), `dock`
+//! (the docking sequence's frames and events), `output` (the queues the adapters drain).
+
+mod commands;
+mod diagnostics;
+mod dock;
+mod health;
+mod output;
+#[cfg(test)]
+mod test_support;
+
+use std::time::{Duration, Instant};
+
+use ihex_proto::{AckResult, DecodeError, Kind, Message, NodeId, Packet};
+
+pub use commands::CommandCounters;
+pub use diagnostics::{BusEvent, BusHealth, ERROR_EVENT_WINDOW};
+pub use output::{Publication, Topic};
+
+use crate::command::{self, Command, CommandError};
+use crate::docking::Docking;
+use crate::event::{CommandRejected, Connection, Event, HexId, NodeList, NodeState, Target};
+use crate::registry::Registry;
+use commands::Commands;
+use diagnostics::Diagnostics;
+use dock::DockParts;
+use health::Health;
+use output::Outputs;
+
+/// Tunables of the bridge (the CLI/TOML configuration fills these in).
+#[derive(Clone, Debug)]
+pub struct BridgeConfig {
+    /// Period of the broadcast health check (seed: 1 s).
+    pub health_period: Duration,
+    /// Consecutive missed health replies after which a node is `node_lost` (default 3).
+    pub lost_after_misses: u32,
+    /// How long to wait for the mobile element's handshake after confirming a docking.
+    pub dock_timeout: Duration,
+    /// How long to wait for a node's ack before a `command_result` with `"timeout"`.
+    pub command_timeout: Duration,
+    /// Largest accepted command payload in bytes; larger ones are `command_rejected`.
+    pub max_command_bytes: usize,
+}
+
+/// Default period of the broadcast health check (the seed's 1 s).
+pub const DEFAULT_HEALTH_PERIOD: Duration = Duration::from_secs(1);
+/// Default number of missed health replies before `node_lost`.
+pub const DEFAULT_LOST_AFTER: u32 = 3;
+/// Default wait for a mobile element's handshake.
+pub const DEFAULT_DOCK_TIMEOUT: Duration = Duration::from_secs(5);
+/// Default wait for a node's ack.
+pub const DEFAULT_COMMAND_TIMEOUT: Duration = Duration::from_millis(500);
+/// Default largest command payload, bytes.
+pub const DEFAULT_MAX_COMMAND_BYTES: usize = 4096;
+
+impl Default for BridgeConfig {
+    fn default() -> Self {
+        BridgeConfig {
+            health_period: DEFAULT_HEALTH_PERIOD,
+            lost_after_misses: DEFAULT_LOST_AFTER,
+            dock_timeout: DEFAULT_DOCK_TIMEOUT,
+            command_timeout: DEFAULT_COMMAND_TIMEOUT,
+            max_command_bytes: DEFAULT_MAX_COMMAND_BYTES,
+        }
+    }
+}
+
+/// Shortest accepted health period: a zero period would make the gateway do nothing but health checks.
+pub const MIN_HEALTH_PERIOD: Duration = Duration::from_millis(10);
+
+/// The gateway state machine.
+#[derive(Debug)]
+pub struct Bridge {
+    config: BridgeConfig,
+    out: Outputs,
+    registry: Registry,
+    docking: Docking,
+    commands: Commands,
+    health: Health,
+    diagnostics: Diagnostics,
+}
+
+impl Bridge {
+    /// A bridge started at `now`; the first health check is due at once.
+    pub fn new(mut config: BridgeConfig, now: Instant) -> Self {
+        config.health_period = config.health_period.max(MIN_HEALTH_PERIOD);
+        Bridge {
+            out: Outputs::default(),
+            registry: Registry::new(),
+            docking: Docking::new(config.dock_timeout, Docking::DEFAULT_QUEUE),
+            commands: Commands::new(config.command_timeout),
+            health: Health::new(config.health_period, config.lost_after_misses, now),
+            diagnostics: Diagnostics::new(),
+            config,
+        }
+    }
+
+    /// The configuration in use.
+    pub fn config(&self) -> &BridgeConfig {
+        &self.config
+    }
+
+    /// The node registry (read-only).
+    pub fn registry(&self) -> &Registry {
+        &self.registry
+    }
+
+    /// The state document of every known node as of `now`, by ascending ID (what `list` answers and
+    /// what the retained topics hold, with ages computed at `now`).
+    pub fn node_states(&self, now: Instant) -> Vec<NodeState> {
+        self.registry
+            .iter()
+            .map(|e| e.state(self.docking.links_of(e.id), now))
+            .collect()
+    }
+
+    /// The state document of one node as of `now`, if it is known.
+    pub fn node_state(&self, id: NodeId, now: Instant) -> Option<NodeState> {
+        let e = self.registry.get(id)?;
+        Some(e.state(self.docking.links_of(id), now))
+    }
+
+    /// The docking connections recorded now.
+    pub fn connections(&self) -> Vec<Connection> {
+        self.docking.connections()
+    }
+
+    /// The docking sequence (read-only): the docking in progress and the reports waiting.
+    pub fn docking(&self) -> &Docking {
+        &self.docking
+    }
+
+    /// What the bus has done since start.
+    pub fn bus_health(&self) -> BusHealth {
+        BusHealth {
+            bus_down: self.health.bus_down(),
+            ..self.diagnostics.health()
+        }
+    }
+
+    /// Commands in flight now, and how the finished ones ended.
+    pub fn command_counters(&self) -> CommandCounters {
+        self.commands.counters()
+    }
+
+    /// A message arrived on `CommandsTopic` (raw bytes: the bridge parses and validates them and answers
+    /// bad input with a `command_rejected` event).
+    pub fn handle_command(&mut self, payload: &[u8], now: Instant) {
+        let req = match command::parse(payload, self.config.max_command_bytes) {
+            Ok(req) => req,
+            Err(rej) => return self.reject(rej.request_id, rej.error),
+        };
+        let request_id = req.request_id;
+        let sent = match req.command {
+            Command::List => {
+                let nodes = self.node_states(now);
+                self.out
+                    .emit(Event::NodeList(NodeList { request_id, nodes }));
+                Ok(())
+            }
+            Command::Node { target, action } => {
+                if let Target::Node(id) = target {
+                    if self.registry.get(id).is_none() {
+                        let known = self.registry.known_list();
+                        let error = CommandError::UnknownNode {
+                            id: HexId(id),
+                            known,
+                        };
+                        return self.reject(request_id, error);
+                    }
+                }
+                let registry = &self.registry;
+                self.commands.send(
+                    request_id,
+                    target,
+                    action,
+                    || registry.online_ids(),
+                    now,
+                    &mut self.out,
+                )
+            }
+            Command::Assign { uid, new_id, force } => {
+                if !force && self.registry.get(new_id).is_some_and(|e| e.online) {
+                    return self.reject(request_id, CommandError::IdInUse(HexId(new_id)));
+                }
+                self.commands
+                    .send_assign(request_id, uid, new_id, now, &mut self.out)
+            }
+        };
+        if let Err((request_id, error)) = sent {
+            self.reject(request_id, error);
+        }
+    }
+
+    /// A valid iHEX packet arrived on the bus.
+    pub fn handle_packet(&mut self, packet: Packet, now: Instant) {
+        if packet.dest != NodeId::GATEWAY {
+            // Another controller's command seen on the bus: not ours to act on.
+            tracing::debug!(?packet, "ignoring packet not addressed to the gateway");
+            return;
+        }
+        let src = packet.src;
+        if !src.is_sc() {
+            // Only an unconfigured node's AssignReply gets here (the decoder refuses other sources).
+            if let Message::AssignReply {
+                seq,
+                result,
+                new_id,
+                uid_tail,
+            } = packet.msg
+            {
+                self.commands
+                    .on_assign_reply(seq, result, new_id, uid_tail, &mut self.out);
+            }
+            self.flush_states(now);
+            return;
+        }
+        self.health
+            .on_heard(&mut self.registry, src, &packet.msg, now, &mut self.out);
+        match packet.msg {
+            // Handled by `on_heard`.
+            Message::BootUp { .. } | Message::HealthReply(_) => {}
+            Message::Ack {
+                kind, seq, result, ..
+            } => self.on_ack(src, kind, seq, result, now),
+            Message::Fault { code, arg, detail } => {
+                self.diagnostics
+                    .on_fault(src, code, arg, detail, now, &mut self.out)
+            }
+            Message::DockDetected { port } => {
+                if let Some(e) = self.registry.get_mut(src) {
+                    e.loops |= port.mask();
+                }
+                let steps = self.docking.on_detected(src, port, now);
+                self.apply(steps, now);
+            }
+            Message::DockRemoved { port } => {
+                if let Some(e) = self.registry.get_mut(src) {
+                    e.loops &= !port.mask();
+                }
+                let steps = self.docking.on_removed(src, port, now);
+                self.apply(steps, now);
+            }
+            Message::Handshake { port } => {
+                let steps = self.docking.on_handshake(src, port, now);
+                self.apply(steps, now);
+            }
+            Message::AssignReply {
+                seq,
+                result,
+                new_id,
+                uid_tail,
+            } => self
+                .commands
+                .on_assign_reply(seq, result, new_id, uid_tail, &mut self.out),
+            // Command kinds never come addressed to the gateway (the decoder checks addresses).
+            _ => tracing::debug!(?packet, "ignoring unexpected packet"),
+        }
+        self.flush_states(now);
+    }
+
+    /// A frame arrived that passed the filters but is not a valid iHEX packet.
+    pub fn handle_undecodable(&mut self, raw_id: u32, data: &[u8], err: DecodeError, now: Instant) {
+        self.diagnostics
+            .on_undecodable(raw_id, data, err, now, &mut self.out);
+    }
+
+    /// A bus condition (error frame, bus-off, interface down/up, drops).
+    pub fn handle_bus_event(&mut self, event: BusEvent, now: Instant) {
+        match event {
+            BusEvent::BusOff | BusEvent::InterfaceDown => self.health.on_bus_down(),
+            BusEvent::Recovered => self.health.on_recovered(now),
+            _ => {}
+        }
+        self.diagnostics.on_bus_event(event, now, &mut self.out);
+    }
+
+    /// A frame from [`Bridge::poll_transmit`] could not be transmitted.
+    pub fn handle_send_failed(&mut self, packet: Packet, reason: &str, now: Instant) {
+        self.diagnostics.count_send_failure();
+        if let Message::DockConfirm { seq, .. } = packet.msg {
+            let steps = self
+                .docking
+                .on_confirm_failed(packet.dest, seq, reason, now);
+            if !steps.is_empty() {
+                self.apply(steps, now);
+                self.flush_states(now);
+                return;
+            }
+        } else if self.commands.on_send_failed(&packet, reason, &mut self.out) {
+            return;
+        }
+        self.diagnostics
+            .on_send_failed(&packet, reason, now, &mut self.out);
+    }
+
+    /// The MQTT session is (re)established: queue the retained node states again (a restarted broker
+    /// may have lost them).
+    pub fn handle_mqtt_connected(&mut self, now: Instant) {
+        let ids: Vec<NodeId> = self.registry.iter().map(|e| e.id).collect();
+        for id in ids {
+            self.publish_state(id, now, true);
+        }
+        self.out.dirty.clear();
+    }
+
+    /// Advances timers: ack and docking timeouts, the health broadcast and lost nodes.
+    pub fn handle_timeout(&mut self, now: Instant) {
+        self.commands.expire(now, &mut self.out);
+        let steps = self.docking.tick(now);
+        self.apply(steps, now);
+        let Bridge {
+            registry,
+            docking,
+            commands,
+            health,
+            diagnostics,
+            out,
+            ..
+        } = self;
+        health.tick(registry, now, out, |id, out| {
+            let steps = docking.on_lost(id);
+            let parts = DockParts {
+                commands: &mut *commands,
+                docking: &mut *docking,
+                diagnostics: &mut *diagnostics,
+            };
+            dock::apply(steps, parts, now, out);
+        });
+        self.flush_states(now);
+    }
+
+    /// When [`Bridge::handle_timeout`] must run next.
+    pub fn poll_timeout(&self) -> Instant {
+        let mut next = self.health.next_deadline();
+        if let Some(d) = self.commands.next_deadline() {
+            next = next.min(d);
+        }
+        if let Some(d) = self.docking.deadline() {
+            next = next.min(d);
+        }
+        next
+    }
+
+    /// The next frame to transmit, `None` when there is none.
+    pub fn poll_transmit(&mut self) -> Option<Packet> {
+        self.out.transmit.pop_front()
+    }
+
+    /// The next event or state document to publish, `None` when there is none.
+    pub fn poll_publication(&mut self) -> Option<Publication> {
+        self.out.publish.pop_front()
+    }
+
+    fn reject(&mut self, request_id: Option<String>, error: CommandError) {
+        tracing::info!(%error, "command rejected");
+        self.commands.count_rejected();
+        self.out.emit(Event::CommandRejected(CommandRejected {
+            request_id,
+            reason: error.to_string(),
+        }));
+    }
+
+    fn on_ack(&mut self, src: NodeId, kind: Kind, seq: u8, result: AckResult, now: Instant) {
+        if kind == Kind::DockConfirm {
+            if result != AckResult::Ok {
+                let steps = self
+                    .docking
+                    .on_confirm_refused(src, seq, &result.to_string(), now);
+                self.apply(steps, now);
+            }
+            return;
+        }
+        self.commands
+            .on_ack(src, kind, seq, result, &mut self.registry, &mut self.out);
+    }
+
+    /// Carries out docking steps.
+    fn apply(&mut self, steps: Vec<crate::docking::Step>, now: Instant) {
+        let parts = DockParts {
+            commands: &mut self.commands,
+            docking: &mut self.docking,
+            diagnostics: &mut self.diagnostics,
+        };
+        dock::apply(steps, parts, now, &mut self.out);
+    }
+
+    fn publish_state(&mut self, id: NodeId, now: Instant, force: bool) {
+        let Some(doc) = self.node_state(id, now) else {
+            return;
+        };
+        let changed = self.registry.state_changed(id, &doc);
+        if changed || force {
+            self.out.publish.push_back(Publication::State(doc));
+        }
+    }
+
+    fn flush_states(&mut self, now: Instant) {
+        for id in std::mem::take(&mut self.out.dirty) {
+            self.publish_state(id, now, false);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::test_support::*;
+    use super::*;
+    use ihex_proto::{AckResult, DecodeError, Kind, Message, NodeId, Packet};
+    use serde_json::json;
+    use std::collections::BTreeMap;
+    use std::time::{Duration, Instant};
+
+    #[test]
+    fn unknown_node_is_rejected_with_the_known_list() {
+        let (mut b, t0) = with_nodes(&[2, 0x111]);
+        let out = command(
+            &mut b,
+            json!({"cmd": "led", "node": "1a2", "color": "red", "request_id": "q"}),
+            t0,
+        );
+        assert!(out.sent.is_empty());
+        assert_eq!(
+            out.one("command_rejected"),
+            &json!({"request_id": "q", "reason": "unknown node 1a2; known: 2, 111"})
+        );
+    }
+
+    #[test]
+    fn mqtt_reconnect_republishes_every_state() {
+        let (mut b, t0) = with_nodes(&[1, 2, 3]);
+        b.handle_mqtt_connected(t0 + S);
+        let out = drain(&mut b);
+        let ids: Vec<_> = out
+            .states
+            .iter()
+            .map(|(n, s)| (*n, s["id"].clone()))
+            .collect();
+        assert_eq!(
+            ids,
+            [
+                (id(1), json!("1")),
+                (id(2), json!("2")),
+                (id(3), json!("3"))
+            ]
+        );
+        assert!(out.states.iter().all(|(_, s)| s["last_seen_ms"] == 999));
+    }
+
+    #[test]
+    fn list_reports_every_node() {
+        let (mut b, t0) = with_nodes(&[0xa, 0x1]);
+        let out = command(&mut b, json!({"cmd": "list", "request_id": "L"}), t0 + S);
+        let l = out.one("node_list");
+        assert_eq!(l["request_id"], "L");
+        let ids: Vec<_> = l["nodes"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|n| n["id"].clone())
+            .collect();
+        assert_eq!(ids, [json!("1"), json!("a")]);
+        assert!(out.sent.is_empty());
+    }
+
+    #[test]
+    fn bad_input_never_panics_and_always_answers_once() {
+        let (mut b, t0) = with_nodes(&[2]);
+        let mut inputs: Vec<Vec<u8>> = vec![
+            b"".to_vec(),
+            b"{".to_vec(),
+            b"[]".to_vec(),
+            b"42".to_vec(),
+            vec![0xff, 0x00, 0x80],
+            br#"{"cmd":"led","node":"2","color":"red","brightness":-1}"#.to_vec(),
+            br#"{"cmd":"buzzer","node":"2","mode":"on","freq_hz":1e9}"#.to_vec(),
+            br#"{"cmd":"identify","node":"all","seconds":null,"extra":1}"#.to_vec(),
+            vec![b' '; 5000],
+        ];
+        // Deterministic pseudo-random byte strings, some with a JSON-looking prefix.
+        let mut x: u32 = 0x1234_5678;
+        for n in 0..300 {
+            let mut v: Vec<u8> = if n % 2 == 0 {
+                br#"{"cmd":"led","node":""#.to_vec()
+            } else {
+                Vec::new()
+            };
+            for _ in 0..(n % 40) {
+                x ^= x << 13;
+                x ^= x >> 17;
+                x ^= x << 5;
+                v.push((x & 0xff) as u8);
+            }
+            inputs.push(v);
+        }
+        for input in &inputs {
+            b.handle_command(input, t0);
+            let out = drain(&mut b);
+            assert!(out.sent.is_empty(), "{input:?} sent {:?}", out.sent);
+            assert_eq!(
+                out.named("command_rejected").len(),
+                1,
+                "{input:?}: {:?}",
+                out.events
+            );
+        }
+        let big = vec![b' '; 5000];
+        b.handle_command(&big, t0);
+        let reason = drain(&mut b).one("command_rejected")["reason"].clone();
+        assert_eq!(reason, "command is 5000 bytes; the limit is 4096 bytes");
+    }
+
+    /// Deterministic chaos: random reports, acks of what was sent, commands, bus events and time.
+    /// Nothing panics, every frame sent is valid, every event reads back as an [`Event`], and every
+    /// command that was accepted ends in exactly one `command_result`.
+    #[test]
+    fn random_traffic_keeps_every_invariant() {
+        let mut x: u64 = 0x9e37_79b9_7f4a_7c15;
+        let mut rnd = move |n: u64| {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            x % n
+        };
+        let t0 = Instant::now();
+        let mut now = t0;
+        let mut b = Bridge::new(BridgeConfig::default(), t0);
+        let nodes = [1u16, 2, 3, 0x111, 0x112];
+        let targets = ["1", "2", "3", "111", "112", "all", "5a"];
+        let mut sent: Vec<Packet> = Vec::new();
+        let (mut accepted, mut results, mut events) = (0usize, 0usize, 0usize);
+        let mut seen = BTreeMap::new();
+        for _ in 0..20_000 {
+            match rnd(10) {
+                0..=3 => {
+                    // A valid report from a random node: random bytes, kept when they decode.
+                    let kinds = [
+                        Kind::Fault,
+                        Kind::DockDetected,
+                        Kind::DockRemoved,
+                        Kind::Handshake,
+                        Kind::BootUp,
+                        Kind::HealthReply,
+                        Kind::AssignReply,
+                    ];
+                    let kind = kinds[rnd(kinds.len() as u64) as usize];
+                    let src = id(nodes[rnd(nodes.len() as u64) as usize]);
+                    let mut data = [0u8; 8];
+                    for d in &mut data {
+                        let range = if rnd(2) == 0 { 8 } else { 256 };
+                        *d = rnd(range) as u8;
+                    }
+                    let len = Message::len_of(kind) as usize;
+                    if let Ok(msg) = Message::decode(kind, &data[..len]) {
+                        b.handle_packet(Packet::report(src, msg), now);
+                    }
+                }
+                4..=5 if !sent.is_empty() => {
+                    // Answer something that was sent (possibly twice, possibly late).
+                    let p = sent[rnd(sent.len() as u64) as usize];
+                    let from = if p.dest == NodeId::BROADCAST {
+                        id(nodes[rnd(nodes.len() as u64) as usize])
+                    } else {
+                        p.dest
+                    };
+                    let result = AckResult::from_raw(rnd(7) as u8);
+                    let msg = match p.msg {
+                        Message::AssignCommit {
+                            uid_tail,
+                            new_id,
+                            seq,
+                        } => Message::AssignReply {
+                            seq,
+                            result,
+                            new_id,
+                            uid_tail,
+                        },
+                        m => match m.ack_seq() {
+                            Some(seq) => ack(m.kind(), seq, result),
+                            None => continue,
+                        },
+                    };
+                    let src = match msg {
+                        Message::AssignReply { new_id, .. } => new_id,
+                        _ => from,
+                    };
+                    b.handle_packet(Packet::report(src, msg), now);
+                }
+                6 => {
+                    let node = targets[rnd(targets.len() as u64) as usize];
+                    let cmd = match rnd(6) {
+                        0 => json!({"cmd": "led", "node": node, "color": [rnd(300), 0, 1]}),
+                        1 => json!({"cmd": "buzzer", "node": node, "mode": "pattern",
+                                    "on_ms": rnd(3000), "off_ms": 100}),
+                        2 => json!({"cmd": "power", "node": node, "on": rnd(2) == 0}),
+                        3 => json!({"cmd": "identify", "node": node, "seconds": rnd(300)}),
+                        4 => json!({"cmd": "assign", "uid": "00112233445566778899aabb",
+                                    "new_id": targets[rnd(5) as usize], "force": rnd(2) == 0}),
+                        _ => json!({"cmd": "list"}),
+                    };
+                    b.handle_command(cmd.to_string().as_bytes(), now);
+                    if cmd["cmd"] != "list" {
+                        accepted += 1; // corrected below when rejected
+                    }
+                }
+                7 => {
+                    let ev = match rnd(5) {
+                        0 => BusEvent::BusOff,
+                        1 => BusEvent::Recovered,
+                        2 => BusEvent::RxDropped(rnd(5) as u32),
+                        3 => BusEvent::ErrorFrame {
+                            class: rnd(0x400) as u32,
+                            data: [rnd(256) as u8; 8],
+                        },
+                        _ => BusEvent::InterfaceDown,
+                    };
+                    b.handle_bus_event(ev, now);
+                }
+                8 if !sent.is_empty() && rnd(4) == 0 => {
+                    let p = sent[rnd(sent.len() as u64) as usize];
+                    b.handle_send_failed(p, "test", now);
+                }
+                _ => {
+                    now += Duration::from_millis(rnd(400));
+                    b.handle_timeout(now);
+                }
+            }
+            let out = drain(&mut b);
+            for raw in &out.raw_events {
+                let ev: Event = serde_json::from_str(raw).unwrap_or_else(|e| panic!("{raw}: {e}"));
+                events += 1;
+                *seen.entry(ev.name()).or_insert(0usize) += 1;
+                match ev {
+                    Event::CommandResult(_) => results += 1,
+                    Event::CommandRejected(_) => accepted -= 1,
+                    _ => {}
+                }
+            }
+            sent.extend(
+                out.sent
+                    .iter()
+                    .filter(|p| p.msg.kind() != Kind::HealthCheck),
+            );
+            if sent.len() > 64 {
+                sent.drain(..32);
+            }
+        }
+        // Everything still pending times out.
+        now += Duration::from_secs(60);
+        b.handle_timeout(now);
+        let out = drain(&mut b);
+        results += out.named("command_result").len();
+        assert!(b.commands.is_empty());
+        for name in [
+            "new_connection",
+            "connection_removed",
+            "dock_failed",
+            "node_online",
+            "node_lost",
+            "node_rebooted",
+            "command_result",
+            "command_rejected",
+            "fault",
+            "bus_error",
+            "node_list",
+        ] {
+            assert!(seen.contains_key(name), "no {name} in {seen:?}");
+        }
+        assert!(
+            accepted > 100 && events > 1000,
+            "the test exercised little: {accepted} {events}"
+        );
+        assert_eq!(results, accepted, "one command_result per accepted command");
+    }
+
+    #[test]
+    fn packets_not_for_the_gateway_are_ignored() {
+        let (mut b, t0) = with_nodes(&[]);
+        b.handle_packet(
+            Packet::command(id(2), Message::PowerSet { seq: 0, on: true }),
+            t0,
+        );
+        let out = drain(&mut b);
+        assert!(out.events.is_empty() && out.states.is_empty() && out.sent.is_empty());
+        assert!(b.registry().get(id(2)).is_none());
+    }
+
+    #[test]
+    fn read_access_tells_states_links_and_counters() {
+        let (mut b, t0) = with_nodes(&[2, 0x111]);
+        command(
+            &mut b,
+            json!({"cmd": "led", "node": "2", "color": "red"}),
+            t0,
+        );
+        command(
+            &mut b,
+            json!({"cmd": "led", "node": "9", "color": "red"}),
+            t0,
+        );
+        assert_eq!(
+            b.command_counters(),
+            CommandCounters {
+                in_flight: 1,
+                sent: 1,
+                rejected: 1,
+                ..CommandCounters::default()
+            }
+        );
+        b.handle_timeout(t0 + BridgeConfig::default().command_timeout);
+        let c = b.command_counters();
+        assert_eq!((c.in_flight, c.timeout), (0, 1));
+
+        for _ in 0..3 {
+            b.handle_undecodable(0x1f00_0001, &[1], DecodeError::UnknownKind(0x1f), t0);
+        }
+        b.handle_bus_event(BusEvent::InterfaceDown, t0);
+        let h = b.bus_health();
+        assert_eq!(
+            (
+                h.bus_down,
+                h.interface_down,
+                h.undecodable_frames,
+                h.events_suppressed
+            ),
+            (true, 1, 3, 2)
+        );
+        b.handle_bus_event(BusEvent::Recovered, t0 + MS);
+        assert!(!b.bus_health().bus_down);
+
+        b.handle_packet(
+            Packet::report(id(0x111), Message::DockDetected { port: port(3) }),
+            t0,
+        );
+        b.handle_packet(
+            Packet::report(id(2), Message::Handshake { port: port(0) }),
+            t0,
+        );
+        drain(&mut b);
+        assert_eq!(b.connections().len(), 1);
+        let ids: Vec<_> = b.node_states(t0 + S).iter().map(|s| s.id.0).collect();
+        assert_eq!(ids, [id(2), id(0x111)]);
+        let s = b.node_state(id(0x111), t0 + S).unwrap();
+        assert_eq!(
+            (s.online, s.connections.len(), s.loops.clone()),
+            (true, 1, vec![3])
+        );
+        assert!(b.node_state(id(9), t0).is_none());
+    }
+
+    /// The bytes a cell of the docs' reason table stands for: `<N spaces>`, `<bytes 41 42>`, or the
+    /// command itself.
+    fn documented_input(cell: &str) -> Vec<u8> {
+        if let Some(n) = cell
+            .strip_prefix('<')
+            .and_then(|c| c.strip_suffix(" spaces>"))
+        {
+            return vec![b' '; n.parse().unwrap()];
+        }
+        if let Some(hex) = cell
+            .strip_prefix("<bytes ")
+            .and_then(|c| c.strip_suffix('>'))
+        {
+            return hex
+                .split(' ')
+                .map(|b| u8::from_str_radix(b, 16).unwrap())
+                .collect();
+        }
+        cell.as_bytes().to_vec()
+    }
+
+    /// Every rejection reason docs/mqtt-api.md lists is, word for word, what the gateway says to
+    /// that command (`UPDATE_DOCS=1` rewrites the reasons from the gateway's answers).
+    #[test]
+    fn every_documented_rejection_reason_is_the_gateways() {
+        const BEGIN: &str = "<!-- rejection reasons: checked by ihex-gateway-core's tests -->\n";
+        const END: &str = "<!-- end of rejection reasons -->";
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../docs/mqtt-api.md");
+        let doc = std::fs::read_to_string(&path).unwrap();
+        let start = doc.find(BEGIN).expect("begin marker") + BEGIN.len();
+        let end = start + doc[start..].find(END).expect("end marker");
+        let mut rows = doc[start..end].lines().skip(2).peekable();
+        assert!(rows.peek().is_some(), "no rows in the reason table");
+        let mut updated = String::new();
+        let mut wrong = Vec::new();
+        for row in rows {
+            let cells: Vec<&str> = row
+                .strip_prefix("| ")
+                .and_then(|r| r.strip_suffix(" |"))
+                .unwrap_or_else(|| panic!("not a table row: {row}"))
+                .split(" | ")
+                .collect();
+            let [input, reason] = cells[..] else {
+                panic!("a row needs a command and a reason: {row}")
+            };
+            let input = input.trim_matches('`');
+            let documented = reason
+                .strip_prefix("``")
+                .and_then(|r| r.strip_suffix("``"))
+                .unwrap_or_else(|| panic!("reasons are ``quoted``: {row}"))
+                .trim();
+            let (repeat, input) = match input.split_once(" × ") {
+                Some((n, rest)) => (n.parse().unwrap(), rest),
+                None => (1, input),
+            };
+            let (mut b, t0) = with_nodes(&[2, 0x111]);
+            let payload = documented_input(input);
+            for _ in 1..repeat {
+                b.handle_command(&payload, t0);
+            }
+            drain(&mut b);
+            b.handle_command(&payload, t0);
+            let out = drain(&mut b);
+            assert!(out.sent.is_empty(), "{input}: sent {:?}", out.sent);
+            let actual = out.one("command_rejected")["reason"]
+                .as_str()
+                .unwrap()
+                .to_owned();
+            if actual != documented {
+                wrong.push(format!(
+                    "{input}\n  docs:    {documented}\n  gateway: {actual}"
+                ));
+            }
+            let shown = if repeat > 1 {
+                format!("{repeat} × {input}")
+            } else {
+                input.to_owned()
+            };
+            updated.push_str(&format!("| `{shown}` | `` {actual} `` |\n"));
+        }
+        if wrong.is_empty() {
+            return;
+        }
+        if std::env::var_os("UPDATE_DOCS").is_some() {
+            let header: String = doc[start..end]
+                .lines()
+                .take(2)
+                .map(|l| format!("{l}\n"))
+                .collect();
+            let text = format!("{}{header}{updated}{}", &doc[..start], &doc[end..]);
+            std::fs::write(&path, text).unwrap();
+        } else {
+            panic!(
+                "docs/mqtt-api.md's reasons differ from the gateway's (UPDATE_DOCS=1 rewrites them):\n{}",
+                wrong.join("\n")
+            );
+        }
+    }
+}

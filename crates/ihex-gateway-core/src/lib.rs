@@ -1,0 +1,43 @@
+//! The iHEX gateway's logic, sans-IO: the [`Bridge`] takes JSON commands, CAN packets, bus
+//! conditions and the time as inputs, and gives frames to transmit and publications (events and
+//! retained node state documents, as typed values) as outputs. It owns no socket, task or clock:
+//! `mc-gateway` is the tokio shell that feeds it, and any other adapter (a web view, a test, a
+//! benchmark) drives it the same way.
+//!
+//! The API follows quinn-proto's `Connection`: one `handle_*` method per kind of input, each taking
+//! `now`; [`Bridge::handle_timeout`] at [`Bridge::poll_timeout`]; [`Bridge::poll_transmit`] and
+//! [`Bridge::poll_publication`] for the outputs, in the order they were produced.
+//!
+//! ```
+//! use std::time::Instant;
+//! use ihex_gateway_core::{Bridge, BridgeConfig, Publication};
+//!
+//! let now = Instant::now();
+//! let mut bridge = Bridge::new(BridgeConfig::default(), now);
+//! bridge.handle_timeout(now); // the first health check is due at once
+//! let health_check = bridge.poll_transmit().expect("a frame to send");
+//! assert_eq!(health_check.dest, ihex_proto::NodeId::BROADCAST);
+//!
+//! bridge.handle_command(br#"{"cmd":"led","node":"2","color":"red"}"#, now);
+//! let Some(Publication::Event(event)) = bridge.poll_publication() else { panic!() };
+//! assert_eq!(event.to_json(), r#"{"event":"command_rejected","payload":{"request_id":null,"reason":"unknown node 2; known: none yet"}}"#);
+//! ```
+//!
+//! Modules: [`bridge`] (the state machine, one submodule per concern), [`command`] (parsing and
+//! validation of JSON commands), [`event`] (the MQTT API's events and state documents), [`registry`]
+//! (what is known of each node), [`docking`] (the one-at-a-time docking sequence), [`throttle`]
+//! (rate limit of error events), [`error_frame`] (SocketCAN error frames), [`topic`] (topic names).
+#![forbid(unsafe_code)]
+#![warn(missing_docs)]
+
+pub mod bridge;
+pub mod command;
+pub mod docking;
+pub mod error_frame;
+pub mod event;
+pub mod registry;
+pub mod throttle;
+pub mod topic;
+
+pub use bridge::{Bridge, BridgeConfig, BusEvent, BusHealth, CommandCounters, Publication, Topic};
+pub use event::{Event, NodeState};
