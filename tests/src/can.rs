@@ -45,3 +45,17 @@ pub fn lease() -> String {
         ),
     }
 }
+
+/// Takes a (leased) interface down or brings it up with `ip link set IFACE down|up`, as an
+/// unplugged cable or a driver restart would.
+///
+/// # Panics
+/// When `ip` cannot be run or fails (the harness runs the SocketCAN tests as root).
+pub fn set_link(iface: &str, up: bool) {
+    let state = if up { "up" } else { "down" };
+    let st = std::process::Command::new("ip")
+        .args(["link", "set", iface, state])
+        .status()
+        .expect("run ip");
+    assert!(st.success(), "ip link set {iface} {state}: {st}");
+}

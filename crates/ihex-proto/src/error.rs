@@ -66,8 +66,9 @@ impl fmt::Display for DecodeError {
 
 impl core::error::Error for DecodeError {}
 
-/// Why a text is not a [`crate::NodeId`] or a [`crate::Uid`]. The one parser for each lives in
-/// their `FromStr`, so every tool (gateway, simulator, provisioning) accepts the same forms.
+/// Why a text is not a [`crate::NodeId`], a [`crate::Uid`] or a [`crate::FirmwareVersion`]. The one
+/// parser for each lives in their `FromStr`, so every tool (gateway, simulator, provisioning)
+/// accepts the same forms.
 #[derive(Clone, Copy, PartialEq, Eq, Debug)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum ParseError {
@@ -75,6 +76,8 @@ pub enum ParseError {
     NodeId,
     /// Not 24 hex digits (after an optional `0x`, ignoring `:`, `-` and spaces).
     Uid,
+    /// Not `MAJOR.MINOR.PATCH` with each number `0..=255`.
+    Version,
 }
 
 impl fmt::Display for ParseError {
@@ -86,6 +89,10 @@ impl fmt::Display for ParseError {
             ParseError::Uid => f.write_str(
                 "a UID is the board's 96-bit unique ID as 24 hex digits, byte 0 first \
                  (\"0123456789abcdef01234567\"; `:`, `-` and spaces between digits are ignored)",
+            ),
+            ParseError::Version => f.write_str(
+                "a firmware version is MAJOR.MINOR.PATCH, each 0 to 255 without leading zeros \
+                 (\"1.2.3\"; a -pre-release or +build suffix is ignored)",
             ),
         }
     }

@@ -194,3 +194,91 @@ pub mod health_reply {
     /// Uptime in seconds, 24-bit LE.
     pub const UPTIME: Field = 5..8;
 }
+
+/// [`crate::Message::StateQuery`].
+pub mod state_query {
+    /// Sequence number, echoed by the reply's closing `End` report.
+    pub const SEQ: usize = 0;
+    /// Bitmap of the state groups asked for ([`crate::StateParts`]).
+    pub const PARTS: usize = 1;
+}
+
+/// [`crate::Message::StateReport`]: byte 0 names the part, the rest depends on it. The `Led` part
+/// uses the offsets of [`led_set`] and the `Buzzer` part those of [`buzzer_set`] (their byte 0,
+/// the sequence number, is the part here), followed by one reserved byte.
+pub mod state_report {
+    use super::Field;
+    /// Which part of the state this report carries ([`crate::StateReport::part`]).
+    pub const PART: usize = 0;
+    /// The part's data (all 7 bytes, as an unknown part keeps them).
+    pub const DATA: Field = 1..8;
+
+    /// The `Power` part.
+    pub mod power {
+        /// Relay, `0`/`1`.
+        pub const RELAY: usize = 1;
+        /// Signal-loop bitmap.
+        pub const LOOPS: usize = 2;
+        /// Confirmed-port bitmap.
+        pub const CONFIRMED: usize = 3;
+        /// Identify seconds remaining.
+        pub const IDENTIFY: usize = 4;
+        /// Role, `0` static / `1` mobile.
+        pub const ROLE: usize = 5;
+        /// Number of dock ports.
+        pub const PORTS: usize = 6;
+    }
+
+    /// The `Dock(port)` parts.
+    pub mod dock {
+        use super::Field;
+        /// Loop closed / confirmed / linked flags.
+        pub const FLAGS: usize = 1;
+        /// The linked mobile element's node ID, `u16` LE (`0xFFF` = none).
+        pub const PARTNER: Field = 2..4;
+        /// The linked mobile element's own port.
+        pub const PARTNER_PORT: usize = 4;
+    }
+
+    /// The `Firmware` part.
+    pub mod firmware {
+        /// Version major.
+        pub const MAJOR: usize = 1;
+        /// Version minor.
+        pub const MINOR: usize = 2;
+        /// Version patch.
+        pub const PATCH: usize = 3;
+        /// Flags (bit 0: running an unconfirmed trial image).
+        pub const FLAGS: usize = 4;
+    }
+
+    /// The `ImageHash` part: the first 7 bytes of the running image's hash.
+    pub const IMAGE_HASH: Field = 1..8;
+    /// The `UidLow` part: unique-ID bytes 0–6.
+    pub const UID_LOW: Field = 1..8;
+    /// The `UidHigh` part: unique-ID bytes 7–11.
+    pub const UID_HIGH: Field = 1..6;
+
+    /// The `End` part, closing the reply to one query.
+    pub mod end {
+        /// Sequence number of the query answered.
+        pub const SEQ: usize = 1;
+        /// The groups answered.
+        pub const PARTS: usize = 2;
+        /// Number of reports sent before this one in the reply.
+        pub const COUNT: usize = 3;
+    }
+}
+
+/// [`crate::Message::DockLink`].
+pub mod dock_link {
+    use super::Field;
+    /// Sequence number.
+    pub const SEQ: usize = 0;
+    /// The static element's dock port.
+    pub const PORT: usize = 1;
+    /// The mobile element docked there, `u16` LE (`0xFFF` clears the link).
+    pub const PARTNER: Field = 2..4;
+    /// The mobile element's own port.
+    pub const PARTNER_PORT: usize = 4;
+}

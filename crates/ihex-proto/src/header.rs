@@ -44,11 +44,18 @@ pub enum Kind {
     HealthCheck = 0x0F,
     /// Node → gateway: state snapshot answering a health check.
     HealthReply = 0x10,
+    /// Gateway → node (or all): report these groups of your state.
+    StateQuery = 0x11,
+    /// Node → gateway: one part of the node's state, answering a state query.
+    StateReport = 0x12,
+    /// Gateway → static node: this mobile element is the one docked on your port.
+    DockLink = 0x13,
 }
 
 impl Kind {
-    /// Every kind, in priority order.
-    pub const ALL: [Kind; 17] = [
+    /// Every assigned kind, in numeric (= priority) order. Kinds need not be contiguous: unassigned
+    /// values between them are reserved for other additions.
+    pub const ALL: [Kind; 20] = [
         Kind::PowerSet,
         Kind::Fault,
         Kind::DockDetected,
@@ -66,15 +73,36 @@ impl Kind {
         Kind::Identify,
         Kind::HealthCheck,
         Kind::HealthReply,
+        Kind::StateQuery,
+        Kind::StateReport,
+        Kind::DockLink,
     ];
 
     /// The kind with this 5-bit value, `None` for unassigned values.
     pub const fn from_raw(raw: u8) -> Option<Kind> {
-        if (raw as usize) < Self::ALL.len() {
-            Some(Self::ALL[raw as usize])
-        } else {
-            None
-        }
+        Some(match raw {
+            0x00 => Kind::PowerSet,
+            0x01 => Kind::Fault,
+            0x02 => Kind::DockDetected,
+            0x03 => Kind::DockRemoved,
+            0x04 => Kind::DockConfirm,
+            0x05 => Kind::DockRefuse,
+            0x06 => Kind::Handshake,
+            0x07 => Kind::Ack,
+            0x08 => Kind::AssignSelect,
+            0x09 => Kind::AssignCommit,
+            0x0A => Kind::AssignReply,
+            0x0B => Kind::BootUp,
+            0x0C => Kind::BuzzerSet,
+            0x0D => Kind::LedSet,
+            0x0E => Kind::Identify,
+            0x0F => Kind::HealthCheck,
+            0x10 => Kind::HealthReply,
+            0x11 => Kind::StateQuery,
+            0x12 => Kind::StateReport,
+            0x13 => Kind::DockLink,
+            _ => return None,
+        })
     }
 
     /// The kind's name as in `docs/protocol.md` (`"PowerSet"`): the DBC message name and the
@@ -98,6 +126,9 @@ impl Kind {
             Kind::Identify => "Identify",
             Kind::HealthCheck => "HealthCheck",
             Kind::HealthReply => "HealthReply",
+            Kind::StateQuery => "StateQuery",
+            Kind::StateReport => "StateReport",
+            Kind::DockLink => "DockLink",
         }
     }
 
@@ -114,6 +145,8 @@ impl Kind {
                 | Kind::LedSet
                 | Kind::Identify
                 | Kind::HealthCheck
+                | Kind::StateQuery
+                | Kind::DockLink
         )
     }
 
@@ -127,6 +160,7 @@ impl Kind {
                 | Kind::BuzzerSet
                 | Kind::LedSet
                 | Kind::Identify
+                | Kind::DockLink
         )
     }
 }
@@ -193,8 +227,9 @@ impl Header {
     }
 
     /// Checks that source and destination make sense for the kind:
-    /// commands come from the gateway to a node or to all, reports go from a node to the gateway, and only
-    /// an [`crate::Message::AssignReply`] may come from [`NodeId::UNCONFIGURED`].
+    /// commands come from the gateway to a node or to all (assignment to all only, a dock link to one
+    /// node only), reports go from a node to the gateway, and only an
+    /// [`crate::Message::AssignReply`] may come from [`NodeId::UNCONFIGURED`].
     pub const fn check_addresses(self) -> Result<(), DecodeError> {
         let ok = if self.kind.is_command() {
             self.src.get() == NodeId::GATEWAY.get()
@@ -202,6 +237,9 @@ impl Header {
                     Kind::AssignSelect | Kind::AssignCommit => {
                         self.dest.get() == NodeId::BROADCAST.get()
                     }
+                    // A link names the mobile element on one static element's port: it cannot
+                    // be true of every node at once.
+                    Kind::DockLink => self.dest.is_sc(),
                     _ => self.dest.is_sc() || self.dest.get() == NodeId::BROADCAST.get(),
                 }
         } else {

@@ -13,6 +13,7 @@
 //!
 //! * [`Packet`] / [`Message`] — one typed value per interaction, with [`Packet::to_frame`] and
 //!   [`Packet::from_frame`] generic over any [`embedded_can::Frame`] (socketcan and embassy frames alike).
+//! * [`StateReport`] and friends — a node's state read back part by part ([`Message::StateQuery`]).
 //! * [`filter`] — accept/reject ID and mask filters with the seed's semantics, and their translation to
 //!   SocketCAN kernel filters and bxCAN filter banks.
 //! * [`timing`] — bxCAN bit timing from a peripheral clock and a bitrate.
@@ -38,6 +39,7 @@ pub mod filter;
 mod header;
 mod message;
 pub mod schema;
+mod state;
 pub mod timing;
 pub mod uart;
 pub mod unit;
@@ -49,10 +51,12 @@ pub use message::{
     AckResult, BootRole, BuzzerCommand, DockRefuseReason, FaultCode, HealthFlags, HealthReply,
     LedCommand, Message, Packet, ResetReason, Rgb, Uid,
 };
+pub use state::{DockPartner, DockState, FirmwareVersion, PowerState, StateParts, StateReport};
 
 /// Bitrate of the island bus, in bit/s.
 pub const BITRATE: u32 = 500_000;
 
-/// Firmware/protocol version carried in [`Message::BootUp`]: bump the minor on additions, the major on
-/// any change an old peer would misread.
-pub const PROTOCOL_VERSION: (u8, u8) = (1, 0);
+/// Protocol version carried in [`Message::BootUp`]: bump the minor on additions, the major on any
+/// change an old peer would misread. 1.1 added state read-back (`StateQuery`, `StateReport`) and
+/// dock links (`DockLink`).
+pub const PROTOCOL_VERSION: (u8, u8) = (1, 1);

@@ -4,8 +4,10 @@ use embedded_can::Frame;
 
 use crate::field::{
     ack, assign_commit, assign_reply, assign_select, boot_up, buzzer_set, dock, dock_confirm,
-    dock_refuse, fault, health_check, health_reply, identify, led_set, power_set, Field,
+    dock_link, dock_refuse, fault, health_check, health_reply, identify, led_set, power_set,
+    state_query, Field,
 };
+use crate::state::{DockPartner, StateParts, StateReport};
 use crate::{DecodeError, Header, Kind, NodeId, Port, Seq};
 
 /// An 8-bit-per-channel colour.
@@ -183,6 +185,28 @@ impl Uid {
         let mut t = [0; 4];
         t.copy_from_slice(&self.0[8..]);
         t
+    }
+
+    /// Bytes 0–6, carried by [`StateReport::UidLow`].
+    pub fn low(&self) -> [u8; 7] {
+        let mut l = [0; 7];
+        l.copy_from_slice(&self.0[..7]);
+        l
+    }
+
+    /// Bytes 7–11, carried by [`StateReport::UidHigh`].
+    pub fn high(&self) -> [u8; 5] {
+        let mut h = [0; 5];
+        h.copy_from_slice(&self.0[7..]);
+        h
+    }
+
+    /// The UID from its two state-report halves ([`Uid::low`], [`Uid::high`]).
+    pub fn from_low_high(low: [u8; 7], high: [u8; 5]) -> Uid {
+        let mut u = [0; 12];
+        u[..7].copy_from_slice(&low);
+        u[7..].copy_from_slice(&high);
+        Uid(u)
     }
 }
 
@@ -404,6 +428,26 @@ pub enum Message {
     },
     /// `[seq, flags, loops, tec, rec, uptime:u24le]` — state snapshot.
     HealthReply(HealthReply),
+    /// `[seq, parts]` — the addressed nodes report these groups of their state, one
+    /// [`Message::StateReport`] per part, closed by [`StateReport::End`]. Not acknowledged.
+    StateQuery {
+        /// Sequence number echoed by the closing [`StateReport::End`].
+        seq: Seq,
+        /// The groups asked for.
+        parts: StateParts,
+    },
+    /// `[part, 7 bytes]` — one part of a node's state, answering a [`Message::StateQuery`].
+    StateReport(StateReport),
+    /// `[seq, port, partner:u16le, partner_port]` — the mobile element `partner` is the one docked
+    /// on `port` of the addressed static element (`None`, sent as `0xFFF`, clears the link).
+    DockLink {
+        /// Sequence number echoed by the ack.
+        seq: Seq,
+        /// The static element's dock port.
+        port: Port,
+        /// The mobile element docked there and its own port; `None` clears.
+        partner: Option<DockPartner>,
+    },
 }
 
 /// A message with its addresses: exactly what one frame carries.
@@ -447,6 +491,9 @@ impl Message {
             Message::Identify { .. } => Kind::Identify,
             Message::HealthCheck { .. } => Kind::HealthCheck,
             Message::HealthReply(_) => Kind::HealthReply,
+            Message::StateQuery { .. } => Kind::StateQuery,
+            Message::StateReport(_) => Kind::StateReport,
+            Message::DockLink { .. } => Kind::DockLink,
         }
     }
 
@@ -458,7 +505,8 @@ impl Message {
             | Message::DockRefuse { seq, .. }
             | Message::BuzzerSet { seq, .. }
             | Message::LedSet { seq, .. }
-            | Message::Identify { seq, .. } => Some(seq),
+            | Message::Identify { seq, .. }
+            | Message::DockLink { seq, .. } => Some(seq),
             _ => None,
         }
     }
@@ -469,47 +517,12 @@ impl Message {
         let kind = self.kind();
         let bad = |field: &'static str, raw: u32| Err(DecodeError::Value { kind, field, raw });
         match *self {
-            Message::LedSet {
-                cmd:
-                    LedCommand::Blink {
-                        period_10ms,
-                        duty_pct,
-                        ..
-                    },
-                ..
-            } => {
-                if period_10ms == 0 {
-                    return bad("period", 0);
-                }
-                if duty_pct == 0 || duty_pct > LedCommand::MAX_DUTY_PCT {
-                    return bad("duty", duty_pct as u32);
-                }
-            }
-            Message::BuzzerSet { cmd, .. } => {
-                let freq = match cmd {
-                    BuzzerCommand::Off => None,
-                    BuzzerCommand::Continuous { freq_hz } => Some(freq_hz),
-                    BuzzerCommand::Pattern {
-                        freq_hz,
-                        on_10ms,
-                        off_10ms,
-                        ..
-                    } => {
-                        if on_10ms == 0 {
-                            return bad("on", 0);
-                        }
-                        if off_10ms == 0 {
-                            return bad("off", 0);
-                        }
-                        Some(freq_hz)
-                    }
-                };
-                if let Some(f) = freq {
-                    if !(BuzzerCommand::MIN_FREQ_HZ..=BuzzerCommand::MAX_FREQ_HZ).contains(&f) {
-                        return bad("freq", f as u32);
-                    }
-                }
-            }
+            Message::LedSet { cmd, .. } => check_led(kind, cmd)?,
+            Message::BuzzerSet { cmd, .. } => check_buzzer(kind, cmd)?,
+            Message::StateReport(r) => r.validate()?,
+            Message::DockLink {
+                partner: Some(p), ..
+            } if !p.node.is_sc() => return bad("partner", p.node.get() as u32),
             // An assignment reply may report "still no ID" (0xFFE) after a failure.
             Message::AssignCommit { new_id, .. } | Message::AssignReply { new_id, .. }
                 if !(new_id.is_sc()
@@ -605,61 +618,11 @@ impl Message {
             }
             Message::BuzzerSet { seq, cmd } => {
                 b[buzzer_set::SEQ] = seq;
-                let freq = match cmd {
-                    BuzzerCommand::Off => {
-                        b[buzzer_set::MODE] = buzzer_set::MODE_OFF;
-                        None
-                    }
-                    BuzzerCommand::Continuous { freq_hz } => {
-                        b[buzzer_set::MODE] = buzzer_set::MODE_CONTINUOUS;
-                        Some(freq_hz)
-                    }
-                    BuzzerCommand::Pattern {
-                        freq_hz,
-                        on_10ms,
-                        off_10ms,
-                        count,
-                    } => {
-                        b[buzzer_set::MODE] = buzzer_set::MODE_PATTERN;
-                        b[buzzer_set::ON] = on_10ms;
-                        b[buzzer_set::OFF] = off_10ms;
-                        b[buzzer_set::COUNT] = count;
-                        Some(freq_hz)
-                    }
-                };
-                if let Some(f) = freq {
-                    b[buzzer_set::FREQ].copy_from_slice(&f.to_le_bytes());
-                }
+                encode_buzzer(cmd, &mut b);
             }
             Message::LedSet { seq, cmd } => {
                 b[led_set::SEQ] = seq;
-                let (color, brightness) = match cmd {
-                    LedCommand::Off => {
-                        b[led_set::MODE] = led_set::MODE_OFF;
-                        (None, 0)
-                    }
-                    LedCommand::Steady { color, brightness } => {
-                        b[led_set::MODE] = led_set::MODE_STEADY;
-                        (Some(color), brightness)
-                    }
-                    LedCommand::Blink {
-                        color,
-                        brightness,
-                        period_10ms,
-                        duty_pct,
-                    } => {
-                        b[led_set::MODE] = led_set::MODE_BLINK;
-                        b[led_set::PERIOD] = period_10ms;
-                        b[led_set::DUTY] = duty_pct;
-                        (Some(color), brightness)
-                    }
-                };
-                if let Some(c) = color {
-                    b[led_set::R] = c.r;
-                    b[led_set::G] = c.g;
-                    b[led_set::B] = c.b;
-                    b[led_set::BRIGHTNESS] = brightness;
-                }
+                encode_led(cmd, &mut b);
             }
             Message::Identify { seq, seconds } => {
                 b[identify::SEQ] = seq;
@@ -674,6 +637,16 @@ impl Message {
                 b[health_reply::REC] = h.rec;
                 let up = h.uptime_s.min(HealthReply::MAX_UPTIME_S).to_le_bytes();
                 b[health_reply::UPTIME].copy_from_slice(&up[..3]);
+            }
+            Message::StateQuery { seq, parts } => {
+                b[state_query::SEQ] = seq;
+                b[state_query::PARTS] = parts.0;
+            }
+            Message::StateReport(r) => r.encode_into(&mut b),
+            Message::DockLink { seq, port, partner } => {
+                b[dock_link::SEQ] = seq;
+                b[dock_link::PORT] = port.get();
+                encode_partner(partner, &mut b, dock_link::PARTNER, dock_link::PARTNER_PORT);
             }
         }
         let mut d = Data::new();
@@ -699,6 +672,9 @@ impl Message {
             Kind::Identify => 2,
             Kind::HealthCheck => 1,
             Kind::HealthReply => 8,
+            Kind::StateQuery => 2,
+            Kind::StateReport => 8,
+            Kind::DockLink => 5,
         }
     }
 
@@ -728,12 +704,6 @@ impl Message {
             })
         };
         let bytes4 = |f: Field| [d[f.start], d[f.start + 1], d[f.start + 2], d[f.start + 3]];
-        // Bytes a mode does not use must be zero, so that every accepted payload has exactly one
-        // encoding (decode then encode gives the same bytes) and a future use of them is detectable.
-        let reserved = |from: usize| match d[from..].iter().find(|b| **b != 0) {
-            Some(b) => Err(bad("reserved", *b)),
-            None => Ok(()),
-        };
         let msg = match kind {
             Kind::PowerSet => Message::PowerSet {
                 seq: d[power_set::SEQ],
@@ -798,54 +768,14 @@ impl Message {
                 ports: d[boot_up::PORTS],
                 reset: ResetReason::from_raw(d[boot_up::RESET]),
             },
-            Kind::BuzzerSet => {
-                let f = buzzer_set::FREQ;
-                let freq_hz = u16::from_le_bytes([d[f.start], d[f.start + 1]]);
-                Message::BuzzerSet {
-                    seq: d[buzzer_set::SEQ],
-                    cmd: match d[buzzer_set::MODE] {
-                        buzzer_set::MODE_OFF => {
-                            reserved(f.start)?;
-                            BuzzerCommand::Off
-                        }
-                        buzzer_set::MODE_CONTINUOUS => {
-                            reserved(buzzer_set::ON)?;
-                            BuzzerCommand::Continuous { freq_hz }
-                        }
-                        buzzer_set::MODE_PATTERN => BuzzerCommand::Pattern {
-                            freq_hz,
-                            on_10ms: d[buzzer_set::ON],
-                            off_10ms: d[buzzer_set::OFF],
-                            count: d[buzzer_set::COUNT],
-                        },
-                        v => return Err(bad("mode", v)),
-                    },
-                }
-            }
-            Kind::LedSet => {
-                let color = Rgb::new(d[led_set::R], d[led_set::G], d[led_set::B]);
-                let brightness = d[led_set::BRIGHTNESS];
-                Message::LedSet {
-                    seq: d[led_set::SEQ],
-                    cmd: match d[led_set::MODE] {
-                        led_set::MODE_OFF => {
-                            reserved(led_set::R)?;
-                            LedCommand::Off
-                        }
-                        led_set::MODE_STEADY => {
-                            reserved(led_set::PERIOD)?;
-                            LedCommand::Steady { color, brightness }
-                        }
-                        led_set::MODE_BLINK => LedCommand::Blink {
-                            color,
-                            brightness,
-                            period_10ms: d[led_set::PERIOD],
-                            duty_pct: d[led_set::DUTY],
-                        },
-                        v => return Err(bad("mode", v)),
-                    },
-                }
-            }
+            Kind::BuzzerSet => Message::BuzzerSet {
+                seq: d[buzzer_set::SEQ],
+                cmd: decode_buzzer(kind, d)?,
+            },
+            Kind::LedSet => Message::LedSet {
+                seq: d[led_set::SEQ],
+                cmd: decode_led(kind, d)?,
+            },
             Kind::Identify => Message::Identify {
                 seq: d[identify::SEQ],
                 seconds: d[identify::SECONDS],
@@ -869,6 +799,16 @@ impl Message {
                     ]),
                 })
             }
+            Kind::StateQuery => Message::StateQuery {
+                seq: d[state_query::SEQ],
+                parts: StateParts(d[state_query::PARTS]),
+            },
+            Kind::StateReport => Message::StateReport(StateReport::decode(d)?),
+            Kind::DockLink => Message::DockLink {
+                seq: d[dock_link::SEQ],
+                port: port(d[dock_link::PORT])?,
+                partner: decode_partner(kind, d, dock_link::PARTNER, dock_link::PARTNER_PORT)?,
+            },
         };
         msg.validate()?;
         Ok(msg)
@@ -951,4 +891,213 @@ impl Packet {
             msg,
         })
     }
+}
+
+/// A `Value` error of `kind`.
+pub(crate) const fn bad_value(kind: Kind, field: &'static str, raw: u32) -> DecodeError {
+    DecodeError::Value { kind, field, raw }
+}
+
+/// Bytes a mode does not use must be zero, so that every accepted payload has exactly one
+/// encoding (decode then encode gives the same bytes) and a future use of them is detectable.
+pub(crate) fn reserved(kind: Kind, d: &[u8], from: usize) -> Result<(), DecodeError> {
+    match d
+        .get(from..)
+        .and_then(|rest| rest.iter().find(|b| **b != 0))
+    {
+        Some(b) => Err(bad_value(kind, "reserved", *b as u32)),
+        None => Ok(()),
+    }
+}
+
+/// Writes an LED command at the [`led_set`] offsets from `MODE` on (byte 0 is the caller's).
+pub(crate) fn encode_led(cmd: LedCommand, b: &mut [u8; 8]) {
+    let (color, brightness) = match cmd {
+        LedCommand::Off => {
+            b[led_set::MODE] = led_set::MODE_OFF;
+            (None, 0)
+        }
+        LedCommand::Steady { color, brightness } => {
+            b[led_set::MODE] = led_set::MODE_STEADY;
+            (Some(color), brightness)
+        }
+        LedCommand::Blink {
+            color,
+            brightness,
+            period_10ms,
+            duty_pct,
+        } => {
+            b[led_set::MODE] = led_set::MODE_BLINK;
+            b[led_set::PERIOD] = period_10ms;
+            b[led_set::DUTY] = duty_pct;
+            (Some(color), brightness)
+        }
+    };
+    if let Some(c) = color {
+        b[led_set::R] = c.r;
+        b[led_set::G] = c.g;
+        b[led_set::B] = c.b;
+        b[led_set::BRIGHTNESS] = brightness;
+    }
+}
+
+/// Reads an LED command at the [`led_set`] offsets (8 bytes, byte 0 not looked at); value
+/// ranges are [`check_led`]'s.
+pub(crate) fn decode_led(kind: Kind, d: &[u8]) -> Result<LedCommand, DecodeError> {
+    let color = Rgb::new(d[led_set::R], d[led_set::G], d[led_set::B]);
+    let brightness = d[led_set::BRIGHTNESS];
+    let cmd = match d[led_set::MODE] {
+        led_set::MODE_OFF => {
+            reserved(kind, d, led_set::R)?;
+            LedCommand::Off
+        }
+        led_set::MODE_STEADY => {
+            reserved(kind, d, led_set::PERIOD)?;
+            LedCommand::Steady { color, brightness }
+        }
+        led_set::MODE_BLINK => LedCommand::Blink {
+            color,
+            brightness,
+            period_10ms: d[led_set::PERIOD],
+            duty_pct: d[led_set::DUTY],
+        },
+        v => return Err(bad_value(kind, "mode", v as u32)),
+    };
+    Ok(cmd)
+}
+
+/// The value ranges of an LED command.
+pub(crate) fn check_led(kind: Kind, cmd: LedCommand) -> Result<(), DecodeError> {
+    if let LedCommand::Blink {
+        period_10ms,
+        duty_pct,
+        ..
+    } = cmd
+    {
+        if period_10ms == 0 {
+            return Err(bad_value(kind, "period", 0));
+        }
+        if duty_pct == 0 || duty_pct > LedCommand::MAX_DUTY_PCT {
+            return Err(bad_value(kind, "duty", duty_pct as u32));
+        }
+    }
+    Ok(())
+}
+
+/// Writes a buzzer command at the [`buzzer_set`] offsets from `MODE` on (byte 0 is the caller's).
+pub(crate) fn encode_buzzer(cmd: BuzzerCommand, b: &mut [u8; 8]) {
+    let freq = match cmd {
+        BuzzerCommand::Off => {
+            b[buzzer_set::MODE] = buzzer_set::MODE_OFF;
+            None
+        }
+        BuzzerCommand::Continuous { freq_hz } => {
+            b[buzzer_set::MODE] = buzzer_set::MODE_CONTINUOUS;
+            Some(freq_hz)
+        }
+        BuzzerCommand::Pattern {
+            freq_hz,
+            on_10ms,
+            off_10ms,
+            count,
+        } => {
+            b[buzzer_set::MODE] = buzzer_set::MODE_PATTERN;
+            b[buzzer_set::ON] = on_10ms;
+            b[buzzer_set::OFF] = off_10ms;
+            b[buzzer_set::COUNT] = count;
+            Some(freq_hz)
+        }
+    };
+    if let Some(f) = freq {
+        b[buzzer_set::FREQ].copy_from_slice(&f.to_le_bytes());
+    }
+}
+
+/// Reads a buzzer command at the [`buzzer_set`] offsets; bytes past the `BuzzerSet` length are
+/// not looked at (a longer layout checks its own tail); value ranges are [`check_buzzer`]'s.
+pub(crate) fn decode_buzzer(kind: Kind, d: &[u8]) -> Result<BuzzerCommand, DecodeError> {
+    let d = &d[..Message::len_of(Kind::BuzzerSet) as usize];
+    let f = buzzer_set::FREQ;
+    let freq_hz = u16::from_le_bytes([d[f.start], d[f.start + 1]]);
+    let cmd = match d[buzzer_set::MODE] {
+        buzzer_set::MODE_OFF => {
+            reserved(kind, d, f.start)?;
+            BuzzerCommand::Off
+        }
+        buzzer_set::MODE_CONTINUOUS => {
+            reserved(kind, d, buzzer_set::ON)?;
+            BuzzerCommand::Continuous { freq_hz }
+        }
+        buzzer_set::MODE_PATTERN => BuzzerCommand::Pattern {
+            freq_hz,
+            on_10ms: d[buzzer_set::ON],
+            off_10ms: d[buzzer_set::OFF],
+            count: d[buzzer_set::COUNT],
+        },
+        v => return Err(bad_value(kind, "mode", v as u32)),
+    };
+    Ok(cmd)
+}
+
+/// The value ranges of a buzzer command.
+pub(crate) fn check_buzzer(kind: Kind, cmd: BuzzerCommand) -> Result<(), DecodeError> {
+    let freq = match cmd {
+        BuzzerCommand::Off => None,
+        BuzzerCommand::Continuous { freq_hz } => Some(freq_hz),
+        BuzzerCommand::Pattern {
+            freq_hz,
+            on_10ms,
+            off_10ms,
+            ..
+        } => {
+            if on_10ms == 0 {
+                return Err(bad_value(kind, "on", 0));
+            }
+            if off_10ms == 0 {
+                return Err(bad_value(kind, "off", 0));
+            }
+            Some(freq_hz)
+        }
+    };
+    match freq {
+        Some(f) if !(BuzzerCommand::MIN_FREQ_HZ..=BuzzerCommand::MAX_FREQ_HZ).contains(&f) => {
+            Err(bad_value(kind, "freq", f as u32))
+        }
+        _ => Ok(()),
+    }
+}
+
+/// Writes a dock partner (`0xFFF` and port 0 for none) at the given offsets.
+pub(crate) fn encode_partner(
+    partner: Option<DockPartner>,
+    b: &mut [u8; 8],
+    id: Field,
+    port: usize,
+) {
+    let (node, p) = match partner {
+        Some(DockPartner { node, port }) => (node.get(), port.get()),
+        None => (NodeId::BROADCAST.get(), 0),
+    };
+    b[id].copy_from_slice(&node.to_le_bytes());
+    b[port] = p;
+}
+
+/// Reads a dock partner: `0xFFF` with port 0 is none, otherwise a sub-controller ID and a port.
+pub(crate) fn decode_partner(
+    kind: Kind,
+    d: &[u8],
+    id: Field,
+    port: usize,
+) -> Result<Option<DockPartner>, DecodeError> {
+    let raw = u16::from_le_bytes([d[id.start], d[id.start + 1]]);
+    let p = d[port];
+    if raw == NodeId::BROADCAST.get() {
+        return match p {
+            0 => Ok(None),
+            v => Err(bad_value(kind, "partner_port", v as u32)),
+        };
+    }
+    let node = NodeId::new_sc(raw).ok_or(bad_value(kind, "partner", raw as u32))?;
+    let port = Port::new(p).ok_or(bad_value(kind, "partner_port", p as u32))?;
+    Ok(Some(DockPartner { node, port }))
 }

@@ -10,17 +10,19 @@
 //!
 //! Every signal is an unsigned little-endian ("Intel") bit field, like every field of the codec.
 //! The destination and source node IDs are in the identifier, not in the data, so they are not
-//! signals. A message whose layout depends on one of its bytes (a part number, say) marks that
-//! signal [`Mux::Selector`] and the fields of each layout [`Mux::When`] (DBC multiplexing); fields
-//! that a mode merely leaves zero stay plain signals that read 0.
+//! signals. A message whose layout depends on one of its bytes (the `part` of a
+//! [`Message::StateReport`]) marks that signal [`Mux::Selector`] and the fields of each layout
+//! [`Mux::When`] (DBC multiplexing); fields that a mode merely leaves zero stay plain signals that
+//! read 0, and bytes a layout must leave zero are `*reserved` signals whose range is `0`.
 
 use crate::field::{
     ack, assign_commit, assign_reply, assign_select, boot_up, buzzer_set, dock, dock_confirm,
-    dock_refuse, fault, health_check, health_reply, identify, led_set, power_set, Field,
+    dock_link, dock_refuse, fault, health_check, health_reply, identify, led_set, power_set,
+    state_query, state_report, Field,
 };
 use crate::{
-    unit, AckResult, BuzzerCommand, DockRefuseReason, FaultCode, HealthFlags, HealthReply, Kind,
-    LedCommand, Message, NodeId, Port, ResetReason,
+    unit, AckResult, BuzzerCommand, DockRefuseReason, DockState, FaultCode, HealthFlags,
+    HealthReply, Kind, LedCommand, Message, NodeId, Port, ResetReason, StateParts, StateReport,
 };
 
 /// Who sends a message.
@@ -207,11 +209,47 @@ impl Signal {
 
     /// The bit `mask` (one bit set) of byte `byte`.
     const fn flag(name: &'static str, byte: usize, mask: u8, comment: &'static str) -> Signal {
+        assert!(mask.count_ones() == 1, "a flag is one bit");
+        Signal::bits(name, byte, mask, comment)
+    }
+
+    /// The bits `mask` (contiguous) of byte `byte`, as one number.
+    const fn bits(name: &'static str, byte: usize, mask: u8, comment: &'static str) -> Signal {
+        let bits = mask.count_ones();
+        assert!(
+            bits > 0 && bits + mask.leading_zeros() + mask.trailing_zeros() == 8,
+            "the bits of a field are contiguous"
+        );
         Signal {
             start: (byte * 8) as u8 + mask.trailing_zeros() as u8,
-            bits: 1,
-            max: 1,
+            bits: bits as u8,
+            max: (1 << bits) - 1,
             ..Signal::byte(name, byte, comment)
+        }
+    }
+
+    /// Bytes `from..to` that the layout leaves zero and the codec refuses otherwise.
+    const fn reserved(name: &'static str, from: usize, to: usize) -> Signal {
+        Signal::le(name, from..to, "reserved, always 0").range(0, 0)
+    }
+
+    const fn named(self, name: &'static str) -> Signal {
+        Signal { name, ..self }
+    }
+
+    /// The multiplexer of its message.
+    const fn selector(self) -> Signal {
+        Signal {
+            mux: Mux::Selector,
+            ..self
+        }
+    }
+
+    /// Only in frames whose selector is one of `values` (ascending).
+    const fn when(self, values: &'static [u8]) -> Signal {
+        Signal {
+            mux: Mux::When(values),
+            ..self
         }
     }
 
@@ -296,6 +334,18 @@ pub const fn of(kind: Kind) -> MessageSchema {
             &HEALTH_CHECK,
         ),
         Kind::HealthReply => ("Node to gateway: state snapshot", &HEALTH_REPLY),
+        Kind::StateQuery => (
+            "Gateway to node or all: report these groups of your state, closed by an end report",
+            &STATE_QUERY,
+        ),
+        Kind::StateReport => (
+            "Node to gateway: one part of its state, answering a StateQuery; part selects the layout",
+            &STATE_REPORT,
+        ),
+        Kind::DockLink => (
+            "Gateway to one static node: this mobile element is the one docked on your port",
+            &DOCK_LINK,
+        ),
     };
     MessageSchema {
         kind,
@@ -485,8 +535,11 @@ static BOOT_UP: [Signal; 5] = [
     .values(ResetReason::TABLE),
 ];
 
-static BUZZER_SET: [Signal; 6] = [
-    Signal::byte("seq", buzzer_set::SEQ, SEQ),
+static BUZZER_SET: [Signal; 6] =
+    concat(&[&[Signal::byte("seq", buzzer_set::SEQ, SEQ)], &BUZZER_FIELDS]);
+
+/// The `BuzzerSet` fields after `seq`, which a `Buzzer` state report carries at the same offsets.
+const BUZZER_FIELDS: [Signal; 5] = [
     Signal::byte(
         "mode",
         buzzer_set::MODE,
@@ -515,8 +568,10 @@ static BUZZER_SET: [Signal; 6] = [
     ),
 ];
 
-static LED_SET: [Signal; 8] = [
-    Signal::byte("seq", led_set::SEQ, SEQ),
+static LED_SET: [Signal; 8] = concat(&[&[Signal::byte("seq", led_set::SEQ, SEQ)], &LED_FIELDS]);
+
+/// The `LedSet` fields after `seq`, which a `Led` state report carries at the same offsets.
+const LED_FIELDS: [Signal; 7] = [
     Signal::byte("mode", led_set::MODE, "off, steady or blinking")
         .range(0, led_set::MODE_BLINK as u32)
         .values(LED_MODES),
@@ -606,3 +661,449 @@ static HEALTH_REPLY: [Signal; 13] = {
         .unit("s"),
     ]
 };
+
+static STATE_QUERY: [Signal; 5] = concat(&[
+    &[Signal::byte(
+        "seq",
+        state_query::SEQ,
+        "sequence number, echoed by the closing end report",
+    )],
+    &named(
+        state_groups(state_query::PARTS),
+        ["actuators", "docking", "identity", "parts_unassigned"],
+    ),
+]);
+
+/// `StateReport`: `part` selects the layout of bytes 1 to 7. Every part number has one: the known
+/// parts their fields (prefixed with the part's name, the UID bytes named as in `AssignSelect`),
+/// every other number the raw bytes of [`StateReport::Other`].
+static STATE_REPORT: [Signal; 68] = concat(&[
+    &[Signal::byte(
+        "part",
+        state_report::PART,
+        "which part of the node's state this report carries; selects the layout",
+    )
+    .values(PART_NAMES)
+    .selector()],
+    &in_part(
+        LED_FIELDS,
+        [
+            "led_mode",
+            "led_r",
+            "led_g",
+            "led_b",
+            "led_brightness",
+            "led_period",
+            "led_duty",
+        ],
+        &[StateReport::LED],
+    ),
+    &in_part(
+        BUZZER_FIELDS,
+        [
+            "buzzer_mode",
+            "buzzer_freq",
+            "buzzer_on",
+            "buzzer_off",
+            "buzzer_count",
+        ],
+        &[StateReport::BUZZER],
+    ),
+    &[Signal::reserved(
+        "buzzer_reserved",
+        Message::len_of(Kind::BuzzerSet) as usize,
+        STATE_REPORT_LEN,
+    )
+    .when(&[StateReport::BUZZER])],
+    &in_part(
+        [
+            Signal::byte("relay", state_report::power::RELAY, "relay state")
+                .range(0, 1)
+                .values(OFF_ON),
+            Signal::byte(
+                "loops",
+                state_report::power::LOOPS,
+                "debounced signal-loop bitmap: bit n set = something docked on port n",
+            ),
+            Signal::byte(
+                "confirmed",
+                state_report::power::CONFIRMED,
+                "bitmap of the ports the gateway confirmed that are still docked",
+            ),
+            Signal::byte(
+                "identify",
+                state_report::power::IDENTIFY,
+                "identify time remaining, rounded up; 0 = not identifying",
+            )
+            .unit("s"),
+            Signal::byte(
+                "role",
+                state_report::power::ROLE,
+                "static (wired on the bus) or mobile",
+            )
+            .range(0, boot_up::ROLE_MOBILE as u32)
+            .values(ROLES),
+            Signal::byte("ports", state_report::power::PORTS, "number of dock ports")
+                .range(0, Port::COUNT as u32),
+            Signal::reserved("reserved", state_report::power::PORTS + 1, STATE_REPORT_LEN),
+        ],
+        [
+            "power_relay",
+            "power_loops",
+            "power_confirmed",
+            "power_identify",
+            "power_role",
+            "power_ports",
+            "power_reserved",
+        ],
+        &[StateReport::POWER],
+    ),
+    &in_part(
+        [
+            Signal::flag(
+                "closed",
+                state_report::dock::FLAGS,
+                DockState::CLOSED,
+                "the port's signal loop is closed (debounced)",
+            ),
+            Signal::flag(
+                "confirmed",
+                state_report::dock::FLAGS,
+                DockState::CONFIRMED,
+                "the gateway confirmed the docking and it is still docked",
+            ),
+            Signal::flag(
+                "linked",
+                state_report::dock::FLAGS,
+                DockState::LINKED,
+                "a mobile element is linked: set exactly when partner is not 0xFFF",
+            ),
+            Signal::bits(
+                "flags_reserved",
+                state_report::dock::FLAGS,
+                !(DockState::CLOSED | DockState::CONFIRMED | DockState::LINKED),
+                "unassigned flags, always 0",
+            )
+            .range(0, 0),
+            PARTNER[0],
+            PARTNER[1],
+            Signal::reserved(
+                "reserved",
+                state_report::dock::PARTNER_PORT + 1,
+                STATE_REPORT_LEN,
+            ),
+        ],
+        [
+            "dock_closed",
+            "dock_confirmed",
+            "dock_linked",
+            "dock_flags_reserved",
+            "dock_partner",
+            "dock_partner_port",
+            "dock_reserved",
+        ],
+        &DOCK_PARTS,
+    ),
+    &in_part(
+        [
+            Signal::byte(
+                "major",
+                state_report::firmware::MAJOR,
+                "firmware version, major",
+            ),
+            Signal::byte(
+                "minor",
+                state_report::firmware::MINOR,
+                "firmware version, minor",
+            ),
+            Signal::byte(
+                "patch",
+                state_report::firmware::PATCH,
+                "firmware version, patch",
+            ),
+            Signal::flag(
+                "trial",
+                state_report::firmware::FLAGS,
+                StateReport::FIRMWARE_TRIAL,
+                "running a trial image that has not confirmed itself yet",
+            ),
+            Signal::bits(
+                "flags_reserved",
+                state_report::firmware::FLAGS,
+                !StateReport::FIRMWARE_TRIAL,
+                "unassigned flags, always 0",
+            )
+            .range(0, 0),
+            Signal::reserved(
+                "reserved",
+                state_report::firmware::FLAGS + 1,
+                STATE_REPORT_LEN,
+            ),
+        ],
+        [
+            "firmware_major",
+            "firmware_minor",
+            "firmware_patch",
+            "firmware_trial",
+            "firmware_flags_reserved",
+            "firmware_reserved",
+        ],
+        &[StateReport::FIRMWARE],
+    ),
+    &in_part(
+        bytes_of(
+            state_report::IMAGE_HASH,
+            "a byte of the running image's hash (all 0 = unknown)",
+        ),
+        [
+            "image_hash_0",
+            "image_hash_1",
+            "image_hash_2",
+            "image_hash_3",
+            "image_hash_4",
+            "image_hash_5",
+            "image_hash_6",
+        ],
+        &[StateReport::IMAGE_HASH],
+    ),
+    &in_part(
+        bytes_of(state_report::UID_LOW, UID_BYTE),
+        [
+            "uid_0", "uid_1", "uid_2", "uid_3", "uid_4", "uid_5", "uid_6",
+        ],
+        &[StateReport::UID_LOW],
+    ),
+    &in_part(
+        bytes_of(state_report::UID_HIGH, UID_BYTE),
+        ["uid_7", "uid_8", "uid_9", "uid_10", "uid_11"],
+        &[StateReport::UID_HIGH],
+    ),
+    &[Signal::reserved(
+        "uid_high_reserved",
+        state_report::UID_HIGH.end,
+        STATE_REPORT_LEN,
+    )
+    .when(&[StateReport::UID_HIGH])],
+    &in_part(
+        concat::<7>(&[
+            &[Signal::byte(
+                "seq",
+                state_report::end::SEQ,
+                "sequence number of the query answered",
+            )],
+            &state_groups(state_report::end::PARTS),
+            &[
+                Signal::byte(
+                    "count",
+                    state_report::end::COUNT,
+                    "reports sent before this one in the reply",
+                ),
+                Signal::reserved("reserved", state_report::end::COUNT + 1, STATE_REPORT_LEN),
+            ],
+        ]),
+        [
+            "end_seq",
+            "end_actuators",
+            "end_docking",
+            "end_identity",
+            "end_parts_unassigned",
+            "end_count",
+            "end_reserved",
+        ],
+        &[StateReport::END],
+    ),
+    &in_part(
+        bytes_of(
+            state_report::DATA,
+            "a byte of a part this version does not know, kept as received",
+        ),
+        [
+            "data_1", "data_2", "data_3", "data_4", "data_5", "data_6", "data_7",
+        ],
+        &UNKNOWN_PARTS,
+    ),
+]);
+
+static DOCK_LINK: [Signal; 4] = [
+    Signal::byte("seq", dock_link::SEQ, SEQ),
+    Signal::byte("port", dock_link::PORT, "the static element's dock port").range(0, PORT_MAX),
+    PARTNER[0],
+    PARTNER[1],
+];
+
+const STATE_REPORT_LEN: usize = Message::len_of(Kind::StateReport) as usize;
+
+const UID_BYTE: &str = "a byte of the 96-bit STM32 unique ID";
+
+/// The names of the part numbers (a `StateReport`'s `part`).
+const PART_NAMES: &[(u8, &str)] = &[
+    (StateReport::LED, "led"),
+    (StateReport::BUZZER, "buzzer"),
+    (StateReport::POWER, "power"),
+    (StateReport::DOCK, "dock_0"),
+    (StateReport::DOCK | 1, "dock_1"),
+    (StateReport::DOCK | 2, "dock_2"),
+    (StateReport::DOCK | 3, "dock_3"),
+    (StateReport::DOCK | 4, "dock_4"),
+    (StateReport::DOCK | 5, "dock_5"),
+    (StateReport::DOCK | 6, "dock_6"),
+    (StateReport::DOCK | 7, "dock_7"),
+    (StateReport::FIRMWARE, "firmware"),
+    (StateReport::IMAGE_HASH, "image_hash"),
+    (StateReport::UID_LOW, "uid_low"),
+    (StateReport::UID_HIGH, "uid_high"),
+    (StateReport::END, "end"),
+];
+
+/// The part numbers of the `Dock(port)` parts, one per port: they share one layout.
+const DOCK_PARTS: [u8; Port::COUNT as usize] = {
+    let mut t = [0; Port::COUNT as usize];
+    let mut i = 0;
+    while i < t.len() {
+        t[i] = StateReport::DOCK | i as u8;
+        i += 1;
+    }
+    t
+};
+
+/// How many part numbers are not [`StateReport::is_known_part`].
+const UNKNOWN_PART_COUNT: usize = {
+    let mut n = 0;
+    let mut part = 0;
+    while part <= u8::MAX as usize {
+        if !StateReport::is_known_part(part as u8) {
+            n += 1;
+        }
+        part += 1;
+    }
+    n
+};
+
+/// The part numbers this version does not know: they decode as [`StateReport::Other`].
+const UNKNOWN_PARTS: [u8; UNKNOWN_PART_COUNT] = {
+    let mut t = [0; UNKNOWN_PART_COUNT];
+    let mut n = 0;
+    let mut part = 0;
+    while part <= u8::MAX as usize {
+        if !StateReport::is_known_part(part as u8) {
+            t[n] = part as u8;
+            n += 1;
+        }
+        part += 1;
+    }
+    t
+};
+
+/// A dock partner as [`Message::DockLink`] and a `Dock(port)` report carry it: a node ID, `0xFFF`
+/// for none, and its port, 0 for none. The offsets are the same in both.
+const PARTNER: [Signal; 2] = {
+    assert!(
+        dock_link::PARTNER.start == state_report::dock::PARTNER.start
+            && dock_link::PARTNER_PORT == state_report::dock::PARTNER_PORT
+    );
+    [
+        Signal::le(
+            "partner",
+            dock_link::PARTNER,
+            "node ID of the mobile element docked there, 0x001 to 0xFFD; 0xFFF (4095) = none",
+        )
+        .range(
+            NodeId::FIRST_SC.get() as u32,
+            NodeId::BROADCAST.get() as u32,
+        ),
+        Signal::byte(
+            "partner_port",
+            dock_link::PARTNER_PORT,
+            "the mobile element's own dock port; 0 when none",
+        )
+        .range(0, PORT_MAX),
+    ]
+};
+
+/// The groups of a [`StateParts`] bitmap at byte `byte`, one bit each, and the bits version 1.1
+/// does not define as one number (unnamed: see [`named`]).
+const fn state_groups(byte: usize) -> [Signal; 4] {
+    [
+        Signal::flag(
+            "",
+            byte,
+            StateParts::ACTUATORS,
+            "group actuators: the led, buzzer and power parts",
+        ),
+        Signal::flag(
+            "",
+            byte,
+            StateParts::DOCKING,
+            "group docking: a dock part per port closed, confirmed or linked",
+        ),
+        Signal::flag(
+            "",
+            byte,
+            StateParts::IDENTITY,
+            "group identity: the firmware, image_hash, uid_low and uid_high parts",
+        ),
+        Signal::bits(
+            "",
+            byte,
+            !StateParts::ALL.0,
+            "groups version 1.1 does not define: sent as 0, kept, ignored by nodes",
+        ),
+    ]
+}
+
+/// One 8-bit signal per byte of `field` (unnamed: see [`named`]).
+const fn bytes_of<const N: usize>(field: Field, comment: &'static str) -> [Signal; N] {
+    assert!(field.end - field.start == N, "one signal per byte");
+    let mut out = [Signal::byte("", 0, comment); N];
+    let mut i = 0;
+    while i < N {
+        out[i] = Signal::byte("", field.start + i, comment);
+        i += 1;
+    }
+    out
+}
+
+/// `fields` renamed `names`: a layout written once and used in several messages, or unnamed.
+const fn named<const N: usize>(fields: [Signal; N], names: [&'static str; N]) -> [Signal; N] {
+    let mut out = fields;
+    let mut i = 0;
+    while i < N {
+        out[i] = fields[i].named(names[i]);
+        i += 1;
+    }
+    out
+}
+
+/// `fields` renamed `names` as the layout of the state-report parts `parts` (signal names are
+/// unique in a message, so each part's fields carry the part's name).
+const fn in_part<const N: usize>(
+    fields: [Signal; N],
+    names: [&'static str; N],
+    parts: &'static [u8],
+) -> [Signal; N] {
+    let mut out = named(fields, names);
+    let mut i = 0;
+    while i < N {
+        out[i] = out[i].when(parts);
+        i += 1;
+    }
+    out
+}
+
+/// The signals of `parts` one after the other; `N` is their number.
+const fn concat<const N: usize>(parts: &[&[Signal]]) -> [Signal; N] {
+    let mut out = [Signal::byte("", 0, ""); N];
+    let mut n = 0;
+    let mut i = 0;
+    while i < parts.len() {
+        let mut j = 0;
+        while j < parts[i].len() {
+            out[n] = parts[i][j];
+            n += 1;
+            j += 1;
+        }
+        i += 1;
+    }
+    assert!(n == N, "N is the number of signals");
+    out
+}

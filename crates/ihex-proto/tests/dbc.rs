@@ -207,7 +207,8 @@ fn can_dbc_reads_an_island_file_with_every_allowed_address_pair() {
     assert_eq!(dbc.messages.len(), allowed.len(), "a message twice");
 }
 
-/// Multiplexing (on an example: no kind is multiplexed yet): `M`, `m<n>` and `SG_MUL_VAL_` ranges.
+/// Multiplexing on a small example: `M`, `m<n>` and `SG_MUL_VAL_` ranges (`StateReport`, checked
+/// above, has them too).
 #[test]
 fn can_dbc_reads_multiplexed_signals() {
     let example = signals::mux_example();
@@ -222,6 +223,18 @@ fn can_dbc_reads_multiplexed_signals() {
     let dbc = Dbc::try_from(text.as_str()).unwrap();
     assert_eq!(dbc.messages.len(), 1);
     check_message(&dbc, &dbc.messages[0], &example, dbc::SC, &[dbc::GATEWAY]);
+
+    // The state reports of the committed file: the dock parts as one range, the part numbers this
+    // version does not know (around 0x00-0x02, 0x10-0x17, 0x20-0x23 and 0xFF) as three.
+    let committed = std::fs::read_to_string(committed_path()).unwrap();
+    for line in [
+        " SG_ part M : 0|8@1+ (1,0) [0|255] \"\" Gateway\n",
+        " SG_ dock_partner m16 : 16|16@1+ (1,0) [1|4095] \"\" Gateway\n",
+        "SG_MUL_VAL_ 2449473536 dock_partner part 16-23;\n",
+        "SG_MUL_VAL_ 2449473536 data_1 part 3-15, 24-31, 36-254;\n",
+    ] {
+        assert!(committed.contains(line), "{line}");
+    }
 }
 
 #[test]
@@ -302,13 +315,14 @@ fn island_suffix(n: NodeId) -> String {
     }
 }
 
-/// cantools' one-line form of a decoded message, as `cantools decode --single-line` prints it.
+/// cantools' one-line form of a decoded message, as `cantools decode --single-line` prints it
+/// (the signals of a multiplexed message in schema order: the selector is first).
 fn cantools_line(p: &Packet) -> String {
     let expected = signals::expected(&p.msg);
     let schema = schema::of(p.msg.kind());
+    let data = p.msg.encode();
     let fields: Vec<String> = schema
-        .signals
-        .iter()
+        .signals_in(&data)
         .map(|s| {
             let e = expected.iter().find(|e| e.name == s.name).unwrap();
             match (&e.label, s.unit) {
@@ -407,7 +421,8 @@ fn cantools_decodes_and_encodes_like_the_codec() {
         }
     }
 
-    // Multiplexing (on an example: no kind is multiplexed yet) reads the same in cantools.
+    // Multiplexing on the small example (a range that ends the selector's values) reads the same
+    // in cantools.
     let mux_path = Path::new(env!("CARGO_TARGET_TMPDIR")).join("mux-example.dbc");
     let mut text = String::new();
     dbc::write_messages(&mut text, Layout::ByKind, &[signals::mux_example()]).unwrap();

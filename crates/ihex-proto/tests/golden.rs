@@ -6,8 +6,9 @@ use embedded_can::{ExtendedId, Frame, Id, StandardId};
 use ihex_proto::timing::{BitTiming, TimingError};
 use ihex_proto::uart::{UartDecoder, UartError, UartReply, UartRequest};
 use ihex_proto::{
-    AckResult, BootRole, BuzzerCommand, DecodeError, DockRefuseReason, FaultCode, HealthFlags,
-    HealthReply, Kind, LedCommand, Message, NodeId, Packet, Port, ResetReason, Rgb, Uid,
+    AckResult, BootRole, BuzzerCommand, DecodeError, DockPartner, DockRefuseReason, DockState,
+    FaultCode, FirmwareVersion, HealthFlags, HealthReply, Kind, LedCommand, Message, NodeId,
+    Packet, Port, PowerState, ResetReason, Rgb, StateParts, StateReport, Uid,
 };
 
 mod common;
@@ -97,6 +98,9 @@ fn kind_values_priorities_and_directions() {
         (Kind::Identify, 0x0E, true, true),
         (Kind::HealthCheck, 0x0F, true, false),
         (Kind::HealthReply, 0x10, false, false),
+        (Kind::StateQuery, 0x11, true, false),
+        (Kind::StateReport, 0x12, false, false),
+        (Kind::DockLink, 0x13, true, true),
     ];
     assert_eq!(table.len(), Kind::ALL.len());
     for (i, (kind, raw, cmd, acked)) in table.into_iter().enumerate() {
@@ -107,10 +111,10 @@ fn kind_values_priorities_and_directions() {
         assert_eq!(kind.is_acknowledged(), acked, "{kind:?}");
         assert_eq!(
             Message::len_of(kind) as usize,
-            [2, 6, 1, 1, 2, 3, 1, 4, 8, 7, 8, 5, 7, 8, 2, 1, 8][i]
+            [2, 6, 1, 1, 2, 3, 1, 4, 8, 7, 8, 5, 7, 8, 2, 1, 8, 2, 8, 5][i]
         );
     }
-    for raw in 0x11..=0xFF {
+    for raw in 0x14..=0xFF {
         assert_eq!(Kind::from_raw(raw), None);
     }
 }
@@ -137,6 +141,9 @@ fn field_offsets_fill_each_layout() {
         (Kind::Identify, identify::SECONDS + 1),
         (Kind::HealthCheck, health_check::SEQ + 1),
         (Kind::HealthReply, health_reply::UPTIME.end),
+        (Kind::StateQuery, state_query::PARTS + 1),
+        (Kind::StateReport, state_report::DATA.end),
+        (Kind::DockLink, dock_link::PARTNER_PORT + 1),
     ];
     for (i, (kind, end)) in ends.into_iter().enumerate() {
         assert_eq!(kind, Kind::ALL[i]);
@@ -363,10 +370,28 @@ fn ack() {
         assert_eq!(r.to_raw(), raw);
         assert_eq!(AckResult::from_raw(raw), r);
     }
+    golden(
+        Packet::report(
+            node(0x111),
+            ack(Kind::DockLink, 0x2C, AckResult::InvalidState, 1),
+        ),
+        0x0700_0111,
+        &[0x13, 0x2C, 0x02, 0x01],
+    );
+    // Every assigned kind is accepted, unassigned ones are not.
+    for kind in Kind::ALL {
+        let p = Packet::report(node(0x111), ack(kind, 1, AckResult::Ok, 0));
+        golden(p, 0x0700_0111, &[kind as u8, 1, 0, 0]);
+    }
     rejected(
         0x0700_0111,
-        &[0x11, 0, 0, 0],
-        value(Kind::Ack, "kind", 0x11),
+        &[0x14, 0, 0, 0],
+        value(Kind::Ack, "kind", 0x14),
+    );
+    rejected(
+        0x0700_0111,
+        &[0x1B, 0, 0, 0],
+        value(Kind::Ack, "kind", 0x1B),
     );
     rejected(
         0x0700_0111,
@@ -795,7 +820,18 @@ fn ack_seq_is_set_exactly_for_acknowledged_commands() {
             rec: 0,
             uptime_s: 0,
         }),
+        Message::StateQuery {
+            seq: 1,
+            parts: StateParts::ALL,
+        },
+        Message::StateReport(StateReport::ImageHash([0; 7])),
+        Message::DockLink {
+            seq: 1,
+            port: port(1),
+            partner: None,
+        },
     ];
+    assert_eq!(samples.len(), Kind::ALL.len());
     for (m, kind) in samples.iter().zip(Kind::ALL) {
         assert_eq!(m.kind(), kind);
         assert_eq!(m.ack_seq().is_some(), kind.is_acknowledged(), "{kind:?}");
@@ -807,7 +843,12 @@ fn ack_seq_is_set_exactly_for_acknowledged_commands() {
 fn wrong_length_for_every_kind() {
     for kind in Kind::ALL {
         let len = Message::len_of(kind) as usize;
-        let dest = if kind.is_command() { 0xFFF } else { 0x000 };
+        // Addresses the kind allows, so that the length check is what fails.
+        let dest = match kind {
+            Kind::DockLink => 0x111,
+            _ if kind.is_command() => 0xFFF,
+            _ => 0x000,
+        };
         let src = if kind.is_command() { 0x000 } else { 0x111 };
         let id = ((kind as u32) << 24) | (dest << 12) | src;
         let expected = len as u8;
@@ -836,7 +877,8 @@ fn wrong_length_for_every_kind() {
 
 #[test]
 fn unknown_kinds() {
-    for k in 0x11u32..=0x1F {
+    // 0x14..=0x1A are free; 0x1B..=0x1F are reserved for firmware transfer (not assigned yet).
+    for k in 0x14u32..=0x1F {
         for data in [&[][..], &[0u8; 8][..]] {
             rejected(
                 (k << 24) | 0x00_0111,
@@ -881,6 +923,22 @@ fn bad_addresses() {
         0x0A00_0FFF,
         &[5, 0, 0x11, 0x01, 9, 10, 11, 12],
         addr(Kind::AssignReply),
+    );
+    // A dock link goes to one node, never to all; a state query may go to all.
+    rejected(0x13FF_F000, &[1, 3, 2, 0, 0], addr(Kind::DockLink));
+    rejected(0x1300_0000, &[1, 3, 2, 0, 0], addr(Kind::DockLink));
+    rejected(0x1111_1222, &[1, 7], addr(Kind::StateQuery));
+    rejected(0x1100_0000, &[1, 7], addr(Kind::StateQuery));
+    // A state report comes from a configured node.
+    rejected(
+        0x1200_0FFE,
+        &[0xFF, 0, 0, 0, 0, 0, 0, 0],
+        addr(Kind::StateReport),
+    );
+    rejected(
+        0x1211_1000,
+        &[0xFF, 0, 0, 0, 0, 0, 0, 0],
+        addr(Kind::StateReport),
     );
     // The address check comes before the payload check.
     rejected(0x0200_0000, &[], addr(Kind::DockDetected));
@@ -957,8 +1015,8 @@ fn raw_identifier_bits_above_28_are_ignored() {
 #[test]
 fn decode_error_messages_name_the_problem() {
     assert_eq!(
-        DecodeError::UnknownKind(0x11).to_string(),
-        "unknown message kind 0x11"
+        DecodeError::UnknownKind(0x14).to_string(),
+        "unknown message kind 0x14"
     );
     assert_eq!(
         DecodeError::Length {
@@ -1019,14 +1077,14 @@ fn docking_sequence_dump() {
         Packet::report(
             m,
             Message::BootUp {
-                version: (1, 0),
+                version: ihex_proto::PROTOCOL_VERSION,
                 role: BootRole::Mobile,
                 ports: 1,
                 reset: ResetReason::PowerOn,
             },
         ),
         0x0B00_0002,
-        &[0x01, 0x00, 0x01, 0x01, 0x00],
+        &[0x01, 0x01, 0x01, 0x01, 0x00],
     );
     golden(
         Packet::report(m, Message::Handshake { port: port(0) }),
@@ -1120,8 +1178,496 @@ fn assignment_sequence_dump() {
     golden(
         Packet::report(id, boot),
         0x0B00_0111,
-        &[0x01, 0x00, 0x00, 0x06, 0x00],
+        &[0x01, 0x01, 0x00, 0x06, 0x00],
     );
+}
+
+#[test]
+fn state_query() {
+    let q = |seq, parts| Message::StateQuery {
+        seq,
+        parts: StateParts(parts),
+    };
+    golden(
+        Packet::command(node(0x111), q(0x31, 0b111)),
+        0x1111_1000,
+        &[0x31, 0x07],
+    );
+    golden(
+        Packet::command(ALL, q(0, 0b001)),
+        0x11FF_F000,
+        &[0x00, 0x01],
+    );
+    golden(
+        Packet::command(ALL, q(255, 0b010)),
+        0x11FF_F000,
+        &[0xFF, 0x02],
+    );
+    golden(
+        Packet::command(node(0x001), q(1, 0b100)),
+        0x1100_1000,
+        &[1, 4],
+    );
+    // Nothing asked, and bits of groups this version does not define: kept as they are.
+    golden(Packet::command(node(0xFFD), q(2, 0)), 0x11FF_D000, &[2, 0]);
+    golden(Packet::command(ALL, q(3, 0xFF)), 0x11FF_F000, &[3, 0xFF]);
+    assert_eq!(StateParts::ALL, StateParts(0x07));
+    assert_eq!(
+        [
+            StateParts::ACTUATORS,
+            StateParts::DOCKING,
+            StateParts::IDENTITY
+        ],
+        [1, 2, 4]
+    );
+    assert_eq!(StateParts(0xFF).known(), StateParts::ALL);
+    assert!(StateParts(0x05).contains(StateParts::IDENTITY));
+    assert!(!StateParts(0x05).contains(StateParts::DOCKING));
+}
+
+/// Every state-report part, its boundaries and its rejections.
+#[test]
+fn state_report_parts() {
+    let r = |rep| Packet::report(node(0x111), Message::StateReport(rep));
+    let id = 0x1200_0111;
+    let bad = |field, raw| value(Kind::StateReport, field, raw);
+
+    // 0x00 Led: the LedSet layout after the part byte.
+    golden(
+        r(StateReport::Led(LedCommand::Off)),
+        id,
+        &[0, 0, 0, 0, 0, 0, 0, 0],
+    );
+    golden(
+        r(StateReport::Led(LedCommand::Steady {
+            color: Rgb::new(255, 128, 0),
+            brightness: 255,
+        })),
+        id,
+        &[0, 1, 0xFF, 0x80, 0x00, 0xFF, 0, 0],
+    );
+    golden(
+        r(StateReport::Led(LedCommand::Blink {
+            color: Rgb::new(0, 0, 255),
+            brightness: 100,
+            period_10ms: 255,
+            duty_pct: 99,
+        })),
+        id,
+        &[0, 2, 0, 0, 0xFF, 100, 255, 99],
+    );
+    rejected(id, &[0, 3, 0, 0, 0, 0, 0, 0], bad("mode", 3));
+    rejected(id, &[0, 2, 0, 0, 0xFF, 100, 0, 50], bad("period", 0));
+    rejected(id, &[0, 2, 0, 0, 0xFF, 100, 50, 100], bad("duty", 100));
+    rejected(id, &[0, 0, 0, 0, 0, 0, 0, 1], bad("reserved", 1));
+    rejected(id, &[0, 1, 1, 2, 3, 4, 5, 0], bad("reserved", 5));
+
+    // 0x01 Buzzer: the BuzzerSet layout after the part byte, then one reserved byte.
+    golden(
+        r(StateReport::Buzzer(BuzzerCommand::Off)),
+        id,
+        &[1, 0, 0, 0, 0, 0, 0, 0],
+    );
+    golden(
+        r(StateReport::Buzzer(BuzzerCommand::Continuous {
+            freq_hz: 20_000,
+        })),
+        id,
+        &[1, 1, 0x20, 0x4E, 0, 0, 0, 0],
+    );
+    golden(
+        r(StateReport::Buzzer(BuzzerCommand::Pattern {
+            freq_hz: 440,
+            on_10ms: 10,
+            off_10ms: 20,
+            count: 3,
+        })),
+        id,
+        &[1, 2, 0xB8, 0x01, 10, 20, 3, 0],
+    );
+    rejected(id, &[1, 2, 0xB8, 0x01, 10, 20, 3, 9], bad("reserved", 9));
+    rejected(id, &[1, 1, 0xB8, 0x01, 0, 0, 0, 9], bad("reserved", 9));
+    rejected(id, &[1, 1, 0x13, 0x00, 0, 0, 0, 0], bad("freq", 19));
+    rejected(id, &[1, 2, 0xB8, 0x01, 0, 20, 3, 0], bad("on", 0));
+    rejected(id, &[1, 3, 0, 0, 0, 0, 0, 0], bad("mode", 3));
+
+    // 0x02 Power.
+    let power = |relay, loops, confirmed, identify_s, role, ports| {
+        StateReport::Power(PowerState {
+            relay,
+            loops,
+            confirmed,
+            identify_s,
+            role,
+            ports,
+        })
+    };
+    golden(
+        r(power(true, 0x09, 0x08, 10, BootRole::Static, 6)),
+        id,
+        &[2, 1, 0x09, 0x08, 10, 0, 6, 0],
+    );
+    golden(
+        r(power(false, 0, 0, 0, BootRole::Mobile, 0)),
+        id,
+        &[2, 0, 0, 0, 0, 1, 0, 0],
+    );
+    golden(
+        r(power(true, 0xFF, 0xFF, 255, BootRole::Static, 8)),
+        id,
+        &[2, 1, 0xFF, 0xFF, 255, 0, 8, 0],
+    );
+    rejected(id, &[2, 2, 0, 0, 0, 0, 6, 0], bad("relay", 2));
+    rejected(id, &[2, 0, 0, 0, 0, 2, 6, 0], bad("role", 2));
+    rejected(id, &[2, 0, 0, 0, 0, 0, 9, 0], bad("ports", 9));
+    rejected(id, &[2, 0, 0, 0, 0, 0, 6, 1], bad("reserved", 1));
+
+    // 0x10 | port: Dock(port).
+    let dock = |p, closed, confirmed, partner| StateReport::Dock {
+        port: port(p),
+        state: DockState {
+            closed,
+            confirmed,
+            partner,
+        },
+    };
+    let partner = |n, p| {
+        Some(DockPartner {
+            node: node(n),
+            port: port(p),
+        })
+    };
+    golden(
+        r(dock(3, true, true, partner(0x002, 0))),
+        id,
+        &[0x13, 0x07, 0x02, 0x00, 0x00, 0, 0, 0],
+    );
+    golden(
+        r(dock(0, true, false, None)),
+        id,
+        &[0x10, 0x01, 0xFF, 0x0F, 0x00, 0, 0, 0],
+    );
+    golden(
+        r(dock(7, false, false, partner(0xFFD, 7))),
+        id,
+        &[0x17, 0x04, 0xFD, 0x0F, 0x07, 0, 0, 0],
+    );
+    golden(
+        r(dock(5, true, true, partner(0x001, 5))),
+        id,
+        &[0x15, 0x07, 0x01, 0x00, 0x05, 0, 0, 0],
+    );
+    rejected(id, &[0x13, 0x08, 0xFF, 0x0F, 0, 0, 0, 0], bad("flags", 8));
+    // The linked flag and the partner field agree.
+    rejected(id, &[0x13, 0x03, 0x02, 0x00, 0, 0, 0, 0], bad("flags", 3));
+    rejected(id, &[0x13, 0x07, 0xFF, 0x0F, 0, 0, 0, 0], bad("flags", 7));
+    // A partner is a sub-controller on a port 0..=7; "none" is 0xFFF with port 0.
+    rejected(id, &[0x13, 0x07, 0x00, 0x00, 0, 0, 0, 0], bad("partner", 0));
+    rejected(
+        id,
+        &[0x13, 0x07, 0xFE, 0x0F, 0, 0, 0, 0],
+        bad("partner", 0xFFE),
+    );
+    rejected(
+        id,
+        &[0x13, 0x07, 0x00, 0x10, 0, 0, 0, 0],
+        bad("partner", 0x1000),
+    );
+    rejected(
+        id,
+        &[0x13, 0x07, 0x02, 0x00, 8, 0, 0, 0],
+        bad("partner_port", 8),
+    );
+    rejected(
+        id,
+        &[0x13, 0x01, 0xFF, 0x0F, 1, 0, 0, 0],
+        bad("partner_port", 1),
+    );
+    rejected(
+        id,
+        &[0x13, 0x07, 0x02, 0x00, 0, 0, 0, 4],
+        bad("reserved", 4),
+    );
+
+    // 0x20 Firmware.
+    let fw = |major, minor, patch, trial| StateReport::Firmware {
+        version: FirmwareVersion::new(major, minor, patch),
+        trial,
+    };
+    golden(r(fw(0, 1, 0, false)), id, &[0x20, 0, 1, 0, 0, 0, 0, 0]);
+    golden(
+        r(fw(255, 254, 253, true)),
+        id,
+        &[0x20, 255, 254, 253, 1, 0, 0, 0],
+    );
+    rejected(id, &[0x20, 1, 2, 3, 2, 0, 0, 0], bad("flags", 2));
+    rejected(id, &[0x20, 1, 2, 3, 0, 0, 0, 7], bad("reserved", 7));
+
+    // 0x21 ImageHash, 0x22 UidLow, 0x23 UidHigh.
+    golden(
+        r(StateReport::ImageHash([1, 2, 3, 4, 5, 6, 7])),
+        id,
+        &[0x21, 1, 2, 3, 4, 5, 6, 7],
+    );
+    golden(
+        r(StateReport::ImageHash([0; 7])),
+        id,
+        &[0x21, 0, 0, 0, 0, 0, 0, 0],
+    );
+    let uid = Uid([1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12]);
+    assert_eq!(uid.low(), [1, 2, 3, 4, 5, 6, 7]);
+    assert_eq!(uid.high(), [8, 9, 10, 11, 12]);
+    assert_eq!(Uid::from_low_high(uid.low(), uid.high()), uid);
+    golden(
+        r(StateReport::UidLow(uid.low())),
+        id,
+        &[0x22, 1, 2, 3, 4, 5, 6, 7],
+    );
+    golden(
+        r(StateReport::UidHigh(uid.high())),
+        id,
+        &[0x23, 8, 9, 10, 11, 12, 0, 0],
+    );
+    rejected(id, &[0x23, 8, 9, 10, 11, 12, 1, 0], bad("reserved", 1));
+    rejected(id, &[0x23, 8, 9, 10, 11, 12, 0, 1], bad("reserved", 1));
+
+    // 0xFF End.
+    let end = |seq, parts, count| StateReport::End {
+        seq,
+        parts: StateParts(parts),
+        count,
+    };
+    golden(r(end(0x31, 7, 8)), id, &[0xFF, 0x31, 7, 8, 0, 0, 0, 0]);
+    golden(r(end(0, 0, 0)), id, &[0xFF, 0, 0, 0, 0, 0, 0, 0]);
+    golden(
+        r(end(255, 0xFF, 255)),
+        id,
+        &[0xFF, 255, 0xFF, 255, 0, 0, 0, 0],
+    );
+    rejected(id, &[0xFF, 0x31, 7, 8, 1, 0, 0, 0], bad("reserved", 1));
+
+    // Unknown parts are kept whole: an older gateway survives a newer node.
+    for part in [0x03u8, 0x0F, 0x18, 0x1F, 0x24, 0x80, 0xFE] {
+        assert!(!StateReport::is_known_part(part));
+        let other = StateReport::Other {
+            part,
+            data: [1, 2, 3, 4, 5, 6, 0xFF],
+        };
+        golden(r(other), id, &[part, 1, 2, 3, 4, 5, 6, 0xFF]);
+        assert_eq!(other.part(), part);
+    }
+    // ... but an `Other` may not use a known number: its bytes would decode as that part.
+    for part in [0x00u8, 0x02, 0x10, 0x17, 0x20, 0x23, 0xFF] {
+        assert!(StateReport::is_known_part(part));
+        let m = Message::StateReport(StateReport::Other { part, data: [0; 7] });
+        assert_eq!(m.validate(), Err(bad("part", part as u32)));
+    }
+    // Part numbers as documented.
+    assert_eq!(
+        [
+            StateReport::LED,
+            StateReport::BUZZER,
+            StateReport::POWER,
+            StateReport::DOCK,
+            StateReport::FIRMWARE,
+            StateReport::IMAGE_HASH,
+            StateReport::UID_LOW,
+            StateReport::UID_HIGH,
+            StateReport::END
+        ],
+        [0x00, 0x01, 0x02, 0x10, 0x20, 0x21, 0x22, 0x23, 0xFF]
+    );
+}
+
+#[test]
+fn dock_link() {
+    let link = |seq, p, partner| Message::DockLink {
+        seq,
+        port: port(p),
+        partner,
+    };
+    let partner = |n, p| {
+        Some(DockPartner {
+            node: node(n),
+            port: port(p),
+        })
+    };
+    golden(
+        Packet::command(node(0x111), link(0x2C, 3, partner(0x002, 0))),
+        0x1311_1000,
+        &[0x2C, 0x03, 0x02, 0x00, 0x00],
+    );
+    golden(
+        Packet::command(node(0x111), link(0, 0, partner(0x001, 7))),
+        0x1311_1000,
+        &[0x00, 0x00, 0x01, 0x00, 0x07],
+    );
+    golden(
+        Packet::command(node(0xFFD), link(255, 7, partner(0xFFD, 5))),
+        0x13FF_D000,
+        &[0xFF, 0x07, 0xFD, 0x0F, 0x05],
+    );
+    // Clearing: partner 0xFFF, partner port 0.
+    golden(
+        Packet::command(node(0x001), link(1, 3, None)),
+        0x1300_1000,
+        &[0x01, 0x03, 0xFF, 0x0F, 0x00],
+    );
+    let id = 0x1311_1000;
+    let bad = |field, raw| value(Kind::DockLink, field, raw);
+    rejected(id, &[1, 8, 0x02, 0x00, 0], bad("port", 8));
+    rejected(id, &[1, 3, 0x00, 0x00, 0], bad("partner", 0));
+    rejected(id, &[1, 3, 0xFE, 0x0F, 0], bad("partner", 0xFFE));
+    rejected(id, &[1, 3, 0x00, 0x10, 0], bad("partner", 0x1000));
+    rejected(id, &[1, 3, 0x02, 0x00, 8], bad("partner_port", 8));
+    rejected(id, &[1, 3, 0xFF, 0x0F, 2], bad("partner_port", 2));
+    // A hand-built link to a reserved ID does not validate (so it is never sent).
+    let m = Message::DockLink {
+        seq: 1,
+        port: port(3),
+        partner: Some(DockPartner {
+            node: NodeId::GATEWAY,
+            port: port(0),
+        }),
+    };
+    assert_eq!(m.validate(), Err(bad("partner", 0)));
+    assert_eq!(m.ack_seq(), Some(1));
+}
+
+/// The state read-back example of `docs/protocol.md`: the gateway asks static element 0x111 for
+/// everything; it answers part by part, in ascending part number, and closes with `End`.
+#[test]
+fn state_query_dump() {
+    let s = node(0x111);
+    golden(
+        Packet::command(
+            s,
+            Message::StateQuery {
+                seq: 0x31,
+                parts: StateParts::ALL,
+            },
+        ),
+        0x1111_1000,
+        &[0x31, 0x07],
+    );
+    let uid = Uid([
+        0x30, 0x00, 0x47, 0x00, 0x12, 0x51, 0x33, 0x39, 0x33, 0x38, 0x34, 0x37,
+    ]);
+    let replies: [(StateReport, [u8; 8]); 9] = [
+        (
+            StateReport::Led(LedCommand::Steady {
+                color: Rgb::new(255, 0, 0),
+                brightness: 255,
+            }),
+            [0x00, 0x01, 0xFF, 0x00, 0x00, 0xFF, 0x00, 0x00],
+        ),
+        (
+            StateReport::Buzzer(BuzzerCommand::Off),
+            [0x01, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00],
+        ),
+        (
+            StateReport::Power(PowerState {
+                relay: true,
+                loops: 0x08,
+                confirmed: 0x08,
+                identify_s: 0,
+                role: BootRole::Static,
+                ports: 6,
+            }),
+            [0x02, 0x01, 0x08, 0x08, 0x00, 0x00, 0x06, 0x00],
+        ),
+        (
+            StateReport::Dock {
+                port: port(3),
+                state: DockState {
+                    closed: true,
+                    confirmed: true,
+                    partner: Some(DockPartner {
+                        node: node(0x002),
+                        port: port(0),
+                    }),
+                },
+            },
+            [0x13, 0x07, 0x02, 0x00, 0x00, 0x00, 0x00, 0x00],
+        ),
+        (
+            StateReport::Firmware {
+                version: FirmwareVersion::new(0, 1, 0),
+                trial: false,
+            },
+            [0x20, 0x00, 0x01, 0x00, 0x00, 0x00, 0x00, 0x00],
+        ),
+        (
+            StateReport::ImageHash([0x3A, 0x7C, 0x11, 0x90, 0x5E, 0x2B, 0xD4]),
+            [0x21, 0x3A, 0x7C, 0x11, 0x90, 0x5E, 0x2B, 0xD4],
+        ),
+        (
+            StateReport::UidLow(uid.low()),
+            [0x22, 0x30, 0x00, 0x47, 0x00, 0x12, 0x51, 0x33],
+        ),
+        (
+            StateReport::UidHigh(uid.high()),
+            [0x23, 0x39, 0x33, 0x38, 0x34, 0x37, 0x00, 0x00],
+        ),
+        (
+            StateReport::End {
+                seq: 0x31,
+                parts: StateParts::ALL,
+                count: 8,
+            },
+            [0xFF, 0x31, 0x07, 0x08, 0x00, 0x00, 0x00, 0x00],
+        ),
+    ];
+    for (i, (rep, data)) in replies.iter().enumerate() {
+        golden(
+            Packet::report(s, Message::StateReport(*rep)),
+            0x1200_0111,
+            data,
+        );
+        if i > 0 {
+            assert!(
+                replies[i - 1].0.part() < rep.part(),
+                "ascending part numbers"
+            );
+        }
+    }
+    // The link that made 0x111 report its partner, and its ack.
+    golden(
+        Packet::command(
+            s,
+            Message::DockLink {
+                seq: 0x2C,
+                port: port(3),
+                partner: Some(DockPartner {
+                    node: node(0x002),
+                    port: port(0),
+                }),
+            },
+        ),
+        0x1311_1000,
+        &[0x2C, 0x03, 0x02, 0x00, 0x00],
+    );
+    golden(
+        Packet::report(
+            s,
+            Message::Ack {
+                kind: Kind::DockLink,
+                seq: 0x2C,
+                result: AckResult::Ok,
+                detail: 0,
+            },
+        ),
+        0x0700_0111,
+        &[0x13, 0x2C, 0x00, 0x00],
+    );
+    // State traffic loses arbitration to every older kind: it never delays a command or a docking.
+    let report = Packet::report(s, Message::StateReport(replies[0].0))
+        .encode()
+        .0;
+    let health = Packet::command(s, Message::HealthCheck { seq: 0 })
+        .encode()
+        .0;
+    assert!(health < report);
 }
 
 #[test]

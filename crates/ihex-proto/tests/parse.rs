@@ -1,7 +1,7 @@
-//! The one text form of node IDs and UIDs (`FromStr`), shared by the gateway, the simulator and
-//! the tools, and the enumerations' names.
+//! The one text form of node IDs, UIDs and firmware versions (`FromStr`), shared by the gateway,
+//! the simulator and the tools, and the enumerations' names.
 
-use ihex_proto::{AckResult, FaultCode, NodeId, ParseError, ResetReason, Uid};
+use ihex_proto::{AckResult, FaultCode, FirmwareVersion, NodeId, ParseError, ResetReason, Uid};
 
 #[test]
 fn node_ids_parse_as_one_to_three_hex_digits_with_an_optional_0x() {
@@ -79,5 +79,43 @@ fn enumerations_name_their_values_and_keep_unknown_ones() {
     for known in AckResult::KNOWN {
         assert_eq!(AckResult::from_raw(known.to_raw()), *known);
         assert!(known.name().is_some());
+    }
+}
+
+#[test]
+fn firmware_versions_parse_as_three_numbers() {
+    let v = FirmwareVersion::new;
+    for (text, want) in [
+        ("0.1.0", v(0, 1, 0)),
+        ("1.2.3", v(1, 2, 3)),
+        ("255.255.255", v(255, 255, 255)),
+        ("10.0.7", v(10, 0, 7)),
+        // Semver suffixes have no room on the wire: ignored.
+        ("1.2.3-rc.1", v(1, 2, 3)),
+        ("1.2.3+build.5", v(1, 2, 3)),
+    ] {
+        assert_eq!(text.parse::<FirmwareVersion>(), Ok(want), "{text}");
+    }
+    for bad in [
+        "", "1", "1.2", "1.2.3.4", "256.0.0", "1.2.256", "1000.0.0", "01.2.3", "1.02.3", "1..3",
+        ".1.2", "1.2.", "1.2.3-", "1.2.3+", "1.2.x", " 1.2.3", "1.2.3 ", "v1.2.3", "-1.2.3",
+    ] {
+        assert_eq!(
+            bad.parse::<FirmwareVersion>(),
+            Err(ParseError::Version),
+            "{bad:?}"
+        );
+    }
+    assert_eq!(v(1, 2, 3).to_string(), "1.2.3");
+    assert!(
+        v(1, 2, 3) < v(1, 10, 0),
+        "versions order by number, not by text"
+    );
+    // `const`: a firmware turns its crate version into this at compile time.
+    const CRATE: Option<FirmwareVersion> = FirmwareVersion::parse(env!("CARGO_PKG_VERSION"));
+    assert!(CRATE.is_some());
+    for major in [0u8, 9, 10, 99, 100, 255] {
+        let text = format!("{major}.{major}.{major}");
+        assert_eq!(text.parse(), Ok(v(major, major, major)));
     }
 }

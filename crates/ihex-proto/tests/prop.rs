@@ -7,13 +7,13 @@ use ihex_proto::filter::{
 };
 use ihex_proto::timing::{BitTiming, TimingError};
 use ihex_proto::uart::{UartDecoder, UartError, UartRequest};
-use ihex_proto::{DecodeError, Kind, Message, NodeId, Packet};
+use ihex_proto::{DecodeError, Kind, Message, NodeId, Packet, StateReport};
 use proptest::prelude::*;
 
 mod common;
 mod strategy;
 use common::TestFrame;
-use strategy::{packet, sc_id};
+use strategy::{packet, sc_id, state_report};
 
 /// A raw identifier biased towards assigned kinds and meaningful addresses, so that random frames
 /// reach the payload checks instead of all failing on the kind or the addresses.
@@ -44,8 +44,22 @@ fn raw_frame(max_len: usize) -> impl Strategy<Value = (u32, Vec<u8>)> {
             _ => 0..=max_len,
         };
         // Small byte values reach the modes, ports and flags that random bytes rarely hit.
-        let byte = prop_oneof![2 => any::<u8>(), 3 => 0u8..=9, 1 => Just(0)];
-        (Just(id), proptest::collection::vec(byte, len))
+        let byte = prop_oneof![2 => any::<u8>(), 3 => 0u8..=9, 2 => Just(0)];
+        // A state report's first byte picks its layout: mostly a part number that exists.
+        let part = prop_oneof![
+            1 => any::<u8>(),
+            1 => Just(StateReport::END),
+            4 => (0u8..=0x3F).prop_filter("a known part", |p| StateReport::is_known_part(*p)),
+        ];
+        let report = id >> 24 & 0x1F == Kind::StateReport as u32;
+        (Just(id), proptest::collection::vec(byte, len), part).prop_map(
+            move |(id, mut data, part)| {
+                if report && !data.is_empty() {
+                    data[0] = part;
+                }
+                (id, data)
+            },
+        )
     })
 }
 
@@ -141,7 +155,7 @@ fn random_frames_reach_every_kind() {
     use proptest::strategy::ValueTree;
     let mut runner = proptest::test_runner::TestRunner::deterministic();
     let strategy = raw_frame(8);
-    let mut decoded = [0u32; 17];
+    let mut decoded = [0u32; 32];
     let n = 20_000;
     for _ in 0..n {
         let (id, data) = strategy.new_tree(&mut runner).unwrap().current();
@@ -151,10 +165,93 @@ fn random_frames_reach_every_kind() {
     }
     let total: u32 = decoded.iter().sum();
     assert!(total * 10 > n, "only {total} of {n} random frames decode");
-    assert!(
-        decoded.iter().all(|c| *c > 0),
-        "kinds never decoded: {decoded:?}"
-    );
+    let never: Vec<Kind> = Kind::ALL
+        .into_iter()
+        .filter(|k| decoded[*k as usize] == 0)
+        .collect();
+    assert!(never.is_empty(), "kinds never decoded: {never:?}");
+}
+
+/// A valid frame with one byte changed: near-valid input reaches the checks of every layout
+/// (random bytes rarely satisfy a state report's reserved bytes).
+fn mutated(packets: impl Strategy<Value = Packet>) -> impl Strategy<Value = (u32, Vec<u8>)> {
+    (packets, any::<prop::sample::Index>(), any::<u8>()).prop_map(|(p, i, v)| {
+        let (id, data) = p.encode();
+        let mut data = data.to_vec();
+        if !data.is_empty() {
+            let i = i.index(data.len());
+            data[i] = v;
+        }
+        (id, data)
+    })
+}
+
+/// Valid state reports only: the layouts with the most rules.
+fn report_packet() -> impl Strategy<Value = Packet> {
+    (state_report(), sc_id()).prop_map(|(r, node)| Packet::report(node, Message::StateReport(r)))
+}
+
+/// A one-byte change of a valid frame decodes to something that re-encodes to it, or is refused
+/// for a value (never for its kind, length or addresses, which the change does not touch).
+fn check_mutated(id: u32, data: &[u8]) -> Result<(), TestCaseError> {
+    match Packet::decode(id, data) {
+        Ok(p) => {
+            let (rid, rdata) = p.encode();
+            prop_assert_eq!(rid, id);
+            prop_assert_eq!(rdata.as_slice(), data);
+        }
+        Err(DecodeError::Value { kind, field, .. }) => {
+            prop_assert_eq!(kind as u32, id >> 24);
+            prop_assert!(!field.is_empty());
+        }
+        Err(e) => prop_assert!(false, "a one-byte change gave {:?}", e),
+    }
+    Ok(())
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 2048, ..ProptestConfig::default() })]
+
+    #[test]
+    fn mutated_frames_decode_canonically_or_say_why((id, data) in mutated(packet())) {
+        check_mutated(id, &data)?;
+    }
+
+    #[test]
+    fn mutated_state_reports_decode_canonically_or_say_why((id, data) in mutated(report_packet())) {
+        check_mutated(id, &data)?;
+    }
+}
+
+/// The mutation generator reaches every state-report part, known and unknown, and its
+/// rejections.
+#[test]
+fn mutated_reports_reach_every_part() {
+    use proptest::strategy::ValueTree;
+    let mut runner = proptest::test_runner::TestRunner::deterministic();
+    let strategy = mutated(report_packet());
+    let mut parts = std::collections::BTreeSet::new();
+    let mut refused = 0;
+    for _ in 0..4096 {
+        let (id, data) = strategy.new_tree(&mut runner).unwrap().current();
+        match Packet::decode(id, &data) {
+            Ok(Packet {
+                msg: Message::StateReport(r),
+                ..
+            }) => {
+                parts.insert(match r {
+                    StateReport::Other { .. } => 0x100,
+                    StateReport::Dock { .. } => u16::from(StateReport::DOCK),
+                    r => u16::from(r.part()),
+                });
+            }
+            Ok(p) => panic!("{p:?} from a state-report identifier"),
+            Err(_) => refused += 1,
+        }
+    }
+    // Led, Buzzer, Power, Dock, Firmware, ImageHash, UidLow, UidHigh, End and Other.
+    assert_eq!(parts.len(), 10, "parts reached: {parts:x?}");
+    assert!(refused > 0);
 }
 
 // ---------------------------------------------------------------------------------------------

@@ -5,7 +5,7 @@
 use std::collections::{BTreeMap, BTreeSet};
 
 use ihex_proto::schema::{self, Direction, MessageSchema, Mux, Signal};
-use ihex_proto::{Header, Kind, Message, Packet};
+use ihex_proto::{Header, Kind, Message, Packet, StateReport};
 use proptest::prelude::*;
 use proptest::strategy::ValueTree;
 use proptest::test_runner::TestRunner;
@@ -48,7 +48,7 @@ fn put(s: &Signal, data: &mut [u8], raw: u32) {
 }
 
 /// One entry's own consistency: names, ranges, value tables, multiplexing, and that the signals of
-/// every layout (every selector value a signal is selected by) cover each payload bit exactly once.
+/// every layout (every value in the selector's range) cover each payload bit exactly once.
 fn check_entry(m: &MessageSchema) {
     let kind = m.kind;
     assert!(dbc_safe(m.summary) && !m.summary.is_empty(), "{kind:?}");
@@ -101,6 +101,10 @@ fn check_entry(m: &MessageSchema) {
         );
         layouts.insert(None);
     }
+    // A selector value that selects no layout would leave its frames' bits undescribed.
+    if let Some(selector) = selectors.first() {
+        layouts.extend((selector.min..=selector.max).map(Some));
+    }
     for layout in layouts {
         let mut owner = vec![None; m.data_len() as usize * 8];
         for s in m.signals.iter().filter(|s| s.present_for(layout)) {
@@ -144,8 +148,8 @@ fn every_kind_has_a_consistent_entry_that_tiles_its_payload() {
     }
 }
 
-/// The checks above see each multiplexed layout separately (on an example: no kind is multiplexed
-/// yet), and the signals of a frame follow its selector.
+/// The checks above see each multiplexed layout separately (on a small example), and the signals
+/// of a frame follow its selector.
 #[test]
 fn a_multiplexed_entry_is_checked_layout_by_layout() {
     let m = signals::mux_example();
@@ -164,6 +168,46 @@ fn a_multiplexed_entry_is_checked_layout_by_layout() {
         ..m
     };
     assert!(std::panic::catch_unwind(|| check_entry(&broken)).is_err());
+    // So does a selector value that selects nothing.
+    let mut wider = m.signals.to_vec();
+    wider[0].max = 4;
+    let wider = MessageSchema {
+        signals: Vec::leak(wider),
+        ..m
+    };
+    assert!(std::panic::catch_unwind(|| check_entry(&wider)).is_err());
+}
+
+/// Every part number selects a layout: each known part its fields, every other number the raw
+/// bytes of `Other`; the eight dock parts share one layout.
+#[test]
+fn state_reports_are_multiplexed_on_the_part() {
+    let m = schema::of(Kind::StateReport);
+    let part = m.selector().unwrap();
+    assert_eq!((part.name, part.start, part.bits), ("part", 0, 8));
+    let names = |part: u8| -> Vec<&str> {
+        let mut data = [0u8; 8];
+        data[0] = part;
+        m.signals_in(&data).skip(1).map(|s| s.name).collect()
+    };
+    assert_eq!(names(0x00)[0], "led_mode");
+    assert_eq!(names(0x02)[0], "power_relay");
+    assert_eq!(names(0x10)[0], "dock_closed");
+    for port in 1..8 {
+        assert_eq!(names(0x10 | port), names(0x10));
+    }
+    assert_eq!(names(0x20)[0], "firmware_major");
+    assert_eq!(names(0x23)[0], "uid_7");
+    assert_eq!(names(0xFF)[0], "end_seq");
+    for raw in 0..=u8::MAX {
+        let known = StateReport::is_known_part(raw);
+        assert_eq!(names(raw)[0] == "data_1", !known, "part {raw:#04x}");
+        assert_eq!(part.label(raw.into()).is_some(), known, "part {raw:#04x}");
+    }
+    for kind in Kind::ALL {
+        let multiplexed = schema::of(kind).selector().is_some();
+        assert_eq!(multiplexed, kind == Kind::StateReport, "{kind:?}");
+    }
 }
 
 proptest! {
@@ -195,22 +239,62 @@ proptest! {
     }
 }
 
-/// A signal's range is exactly what the codec accepts: in valid frames of every kind, the raw
-/// value just above `max` (and just below `min`) of each signal is refused by `decode`, and `max`
-/// and `min` themselves decode in at least one of them.
+/// The layouts of a kind: the signal names of each (one layout unless it is multiplexed).
+fn layouts(m: &MessageSchema) -> BTreeSet<Vec<&'static str>> {
+    let mut data = vec![0u8; m.data_len() as usize];
+    let Some(selector) = m.selector() else {
+        return [m.signals_in(&data).map(|s| s.name).collect()].into();
+    };
+    (selector.min..=selector.max)
+        .map(|raw| {
+            put(selector, &mut data, raw);
+            m.signals_in(&data).map(|s| s.name).collect()
+        })
+        .collect()
+}
+
+/// A signal's range is exactly what the codec accepts: in valid frames of every kind and layout,
+/// the raw value just above `max` (and just below `min`) of each signal is refused by `decode`,
+/// and `max` and `min` themselves decode in at least one of them.
 #[test]
 fn signal_ranges_are_exactly_what_decode_accepts() {
-    const PER_KIND: usize = 16;
+    const PER_LAYOUT: usize = 16;
+    // Generous: the rarest layout (one state-report part) comes in about 1 packet in 200.
+    const MAX_DRAWS: usize = 200_000;
     let mut runner = TestRunner::deterministic();
     let strategy = strategy::packet();
-    let mut samples: BTreeMap<u8, Vec<Packet>> = BTreeMap::new();
-    while samples.len() < Kind::ALL.len() || samples.values().any(|v| v.len() < PER_KIND) {
+    let wanted: BTreeSet<(u8, Vec<&str>)> = schema::all()
+        .flat_map(|m| layouts(&m).into_iter().map(move |l| (m.kind as u8, l)))
+        .collect();
+    let mut samples: BTreeMap<(u8, Vec<&str>), Vec<Packet>> = BTreeMap::new();
+    let enough = |samples: &BTreeMap<_, Vec<Packet>>, layout| {
+        samples.get(layout).is_some_and(|v| v.len() >= PER_LAYOUT)
+    };
+    for _ in 0..MAX_DRAWS {
+        if wanted.iter().all(|l| enough(&samples, l)) {
+            break;
+        }
         let p = strategy.new_tree(&mut runner).unwrap().current();
-        let v = samples.entry(p.msg.kind() as u8).or_default();
-        if v.len() < PER_KIND {
+        let data = p.msg.encode();
+        let layout = schema::of(p.msg.kind())
+            .signals_in(&data)
+            .map(|s| s.name)
+            .collect();
+        let v = samples.entry((p.msg.kind() as u8, layout)).or_default();
+        if v.len() < PER_LAYOUT {
             v.push(p);
         }
     }
+    let missing: Vec<_> = wanted.iter().filter(|l| !enough(&samples, l)).collect();
+    assert!(
+        missing.is_empty(),
+        "the strategy rarely or never makes these layouts: {missing:?}"
+    );
+    let unknown: Vec<_> = samples.keys().filter(|l| !wanted.contains(*l)).collect();
+    assert!(
+        unknown.is_empty(),
+        "layouts no selector value selects: {unknown:?}"
+    );
     let mut refused = 0;
     // (kind, signal) -> (max decoded somewhere, min decoded somewhere)
     let mut bounds: BTreeMap<(u8, &str), (bool, bool)> = BTreeMap::new();
@@ -247,6 +331,14 @@ fn signal_ranges_are_exactly_what_decode_accepts() {
         }
     }
     assert!(refused > 100, "only {refused} out-of-range values tried");
+    let every_signal: BTreeSet<(u8, &str)> = schema::all()
+        .flat_map(|m| m.signals.iter().map(move |s| (m.kind as u8, s.name)))
+        .collect();
+    assert_eq!(
+        bounds.keys().copied().collect::<BTreeSet<_>>(),
+        every_signal,
+        "every signal of every layout tried"
+    );
     for ((kind, name), (max_ok, min_ok)) in bounds {
         assert!(max_ok, "kind {kind:#04x}.{name}: its max never decodes");
         assert!(min_ok, "kind {kind:#04x}.{name}: its min never decodes");
@@ -275,4 +367,37 @@ fn value_names_are_the_codec_names() {
         schema::of(Kind::Identify).signal("seconds").unwrap().unit,
         "s"
     );
+    // A state report's LED and buzzer parts read like LedSet and BuzzerSet, at the same offsets.
+    let report = schema::of(Kind::StateReport);
+    for (part, set, fields) in [
+        (
+            "led_",
+            led,
+            &["mode", "r", "brightness", "period", "duty"][..],
+        ),
+        (
+            "buzzer_",
+            buzzer,
+            &["mode", "freq", "on", "off", "count"][..],
+        ),
+    ] {
+        for f in fields {
+            let a = report.signal(&format!("{part}{f}")).unwrap();
+            let b = set.signal(f).unwrap();
+            assert_eq!(
+                (a.start, a.bits, a.factor, a.unit, a.min, a.max, a.values),
+                (b.start, b.bits, b.factor, b.unit, b.min, b.max, b.values),
+                "{part}{f}"
+            );
+        }
+    }
+    assert_eq!(report.signal("power_identify").unwrap().unit, "s");
+    for m in [report, schema::of(Kind::DockLink)] {
+        let partner = m
+            .signals
+            .iter()
+            .find(|s| s.name.ends_with("partner"))
+            .unwrap();
+        assert_eq!((partner.bits, partner.min, partner.max), (16, 0x001, 0xFFF));
+    }
 }

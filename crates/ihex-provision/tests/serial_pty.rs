@@ -67,6 +67,7 @@ impl Board {
             uid: Uid([0x11; 12]),
             node_id,
             reset: ResetReason::PowerOn,
+            firmware: Default::default(),
         };
         let seen = Arc::new(Mutex::new(Seen {
             node_id,

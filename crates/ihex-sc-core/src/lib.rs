@@ -28,6 +28,8 @@
 //!
 //! * With an ID (`Config::node_id`, `0x001..=0xFFD`; a reserved stored value counts as none) the node
 //!   announces itself at [`Node::new`]: `BootUp { version: PROTOCOL_VERSION, role, ports, reset }`.
+//! * Its firmware identity (`Config::firmware`: version, first 7 bytes of the image hash, trial flag)
+//!   and UID are the adapter's to supply; the core only reports them (see *State read-back*).
 //! * **Unconfigured** (no ID) it sends nothing on the bus and ignores every command — broadcast
 //!   ones included — except `AssignSelect` / `AssignCommit`. Its loops are still debounced.
 //! * **UART** (`ihex_proto::uart`): bytes go through a `UartDecoder`; a half-received request is
@@ -65,7 +67,8 @@
 //! | `BuzzerSet` | `Off` / `Tone` / `Pattern` (on/off in ms); a pattern with `count > 0` returns to `Off` after `count × (on + off)` ms, or earlier on [`Node::handle_buzzer_done`] | — |
 //! | `Identify { seconds }` | for `seconds` s the LED shows [`IDENTIFY_LED`] and the buzzer [`IDENTIFY_BUZZER`], then the commanded state returns; `0` stops it | — |
 //! | `DockConfirm { port }` | the port is confirmed, relay on | `Unsupported` (mobile / port-less); `InvalidValue`, detail 1 (port ≥ `ports`); `InvalidState`, detail 1, **plus** `Fault DockConfirmNotDocked arg=port` (loop open) |
-//! | `DockRefuse { port }` | the relay is not switched; a confirmation of that port is withdrawn (relay off if it was the last) | as `DockConfirm`, except an open loop is fine |
+//! | `DockRefuse { port }` | the relay is not switched; a confirmation of that port is withdrawn (relay off if it was the last) and its link forgotten | as `DockConfirm`, except an open loop is fine |
+//! | `DockLink { port, partner }` | remembers `partner` (mobile ID and its own port) as docked on `port`; `None` forgets it | `Unsupported` (mobile / port-less); `InvalidValue`, detail 1 (port ≥ `ports`); `InvalidState`, detail 1 (a link for a port that is not confirmed; clearing is always fine) |
 //!
 //! Values the protocol forbids (blink duty 0, tone 5 Hz, …) never reach this table: they fail to
 //! decode and yield `BadFrame`. Commands during an identify change the state that returns after it.
@@ -74,6 +77,23 @@
 //! `LED_BLINK` = lit and blinking, `BUZZER` = not off, `IDENTIFY`), the role (`MOBILE`) and CAN
 //! state (`ERROR_PASSIVE`); `loops` is the debounced loop bitmap; uptime in whole seconds since
 //! [`Node::new`], saturating at 24 bits.
+//!
+//! # State read-back
+//!
+//! `StateQuery { seq, parts }` (own ID or broadcast; not acknowledged) → one `StateReport` per part
+//! of the groups asked that this version knows (other bits are ignored), in ascending part
+//! number, then `End { seq, parts: answered, count }`:
+//!
+//! * actuators: `Led` and `Buzzer` — the *commanded* state exactly as `LedSet`/`BuzzerSet` carried
+//!   it (an identify does not show here; a finite pattern that has ended is `Off`) — and `Power`:
+//!   relay, debounced loop bitmap, confirmed bitmap, identify seconds remaining (rounded up), role,
+//!   port count;
+//! * docking (static role only): `Dock(port)` for every port that is closed, confirmed or linked,
+//!   with its link;
+//! * identity: `Firmware` (version, trial flag) and `ImageHash` from `Config::firmware`, `UidLow`,
+//!   `UidHigh` from `Config::uid`.
+//!
+//! A full reply is at most 16 frames, so it always fits the output queue. A query changes nothing.
 //!
 //! # Signal loops and docking (static role)
 //!
@@ -88,6 +108,10 @@
 //! * `DockConfirm` for a closed port → relay on (the port is *confirmed*).
 //! * open → if the port was confirmed, it no longer is and — when no other confirmed port is still
 //!   docked — the relay goes off in this same call, before `DockRemoved { port }` is queued.
+//! * `DockLink` for a confirmed port → the node remembers which mobile element (and its port) the
+//!   gateway found docked there and reports it in `Dock(port)`, so a restarted gateway can rebuild
+//!   the island's dockings. The link goes when the port opens, when its confirmation is withdrawn
+//!   (`DockRefuse`) and at reset (links live in RAM only).
 //!
 //! The relay is the element's one power relay: it stays on while any confirmed port is docked and
 //! goes off when the last one opens. An open port that was never confirmed does not touch it (so a
@@ -100,7 +124,8 @@
 //! `Handshake { port }` once: its own port whose loop debounces closed first, or — if none has
 //! within [`HANDSHAKE_SETTLE_MS`] (longer than the debounce, so a loop closed from the start is
 //! always seen) — port 0. If a loop is already debounced closed when it gets an ID, the lowest such
-//! port is sent at once. It answers `PowerSet` / `DockConfirm` / `DockRefuse` with `Unsupported`.
+//! port is sent at once. It answers `PowerSet` / `DockConfirm` / `DockRefuse` / `DockLink` with
+//! `Unsupported`.
 //!
 //! # CAN controller state
 //!
@@ -112,10 +137,10 @@
 //! # Output queue
 //!
 //! Outputs wait in a queue of [`OUTPUT_QUEUE_LEN`]. It only fills if the adapter stops draining;
-//! then the oldest `HealthReply` goes first, then the oldest `BootUp`, then the oldest dock,
-//! handshake or assignment report; `Ack`s, `Fault`s and non-frame outputs are never sacrificed
-//! for another output (only if nothing else is left is the newest one lost).
-//! [`Node::dropped_outputs`] counts the losses.
+//! then the oldest `HealthReply` or `StateReport` goes first (the gateway asks again), then the
+//! oldest `BootUp`, then the oldest dock, handshake or assignment report; `Ack`s, `Fault`s and
+//! non-frame outputs are never sacrificed for another output (only if nothing else is left is the
+//! newest one lost). [`Node::dropped_outputs`] counts the losses.
 #![cfg_attr(not(test), no_std)]
 #![warn(missing_docs)]
 #![forbid(unsafe_code)]
@@ -128,8 +153,8 @@ mod time;
 
 pub use actuator::{Actuators, BuzzerOutput, LedOutput};
 pub use node::{
-    Config, Node, Output, DEBOUNCE_MS, HANDSHAKE_SETTLE_MS, IDENTIFY_BUZZER, IDENTIFY_LED,
-    UART_IDLE_RESET_MS,
+    Config, FirmwareIdentity, Node, Output, DEBOUNCE_MS, HANDSHAKE_SETTLE_MS, IDENTIFY_BUZZER,
+    IDENTIFY_LED, UART_IDLE_RESET_MS,
 };
 pub use queue::OUTPUT_QUEUE_LEN;
 pub use time::Millis;

@@ -2,11 +2,12 @@
 
 mod command;
 mod ident;
+mod state;
 
 use ihex_proto::{
     uart::{UartDecoder, UartError, UartReply},
-    BootRole, FaultCode, HealthFlags, HealthReply, Message, NodeId, Packet, Port, ResetReason, Rgb,
-    Uid, PROTOCOL_VERSION,
+    BootRole, BuzzerCommand, DockPartner, FaultCode, FirmwareVersion, HealthFlags, HealthReply,
+    LedCommand, Message, NodeId, Packet, Port, ResetReason, Rgb, Uid, PROTOCOL_VERSION,
 };
 
 use crate::debounce::Debounce;
@@ -40,6 +41,19 @@ const PORT0: Port = match Port::new(0) {
     None => panic!("port 0 exists"),
 };
 
+/// The firmware a node runs, as its adapter knows it; the core only reports it
+/// (`StateReport::Firmware` and `ImageHash`).
+#[derive(Clone, Copy, PartialEq, Eq, Debug, Default)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct FirmwareIdentity {
+    /// The running firmware's version.
+    pub version: FirmwareVersion,
+    /// The first 7 bytes of the running image's hash; all zero when unknown.
+    pub image_hash: [u8; 7],
+    /// Running a trial image that has not confirmed itself yet.
+    pub trial: bool,
+}
+
 /// How a node is built and what it remembers across resets.
 #[derive(Clone, Copy, PartialEq, Eq, Debug)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
@@ -54,6 +68,8 @@ pub struct Config {
     pub node_id: Option<NodeId>,
     /// Why the node started (reported in the boot-up announcement).
     pub reset: ResetReason,
+    /// The firmware it runs (reported on a state query).
+    pub firmware: FirmwareIdentity,
 }
 
 /// Something the adapter must do.
@@ -87,11 +103,13 @@ pub struct Node {
     loops: [Debounce; Port::COUNT as usize],
     /// Ports the gateway confirmed and that are still docked: the relay follows them.
     confirmed: u8,
+    /// Per port, the mobile element the gateway linked to it; only while the port is confirmed.
+    links: [Option<DockPartner>; Port::COUNT as usize],
     relay: bool,
-    /// The commanded LED (identify overrides it while it runs).
-    led: LedOutput,
-    /// The commanded buzzer (identify overrides it while it runs).
-    buzzer: BuzzerOutput,
+    /// The commanded LED (identify overrides it while it runs), as commanded: reported as is.
+    led: LedCommand,
+    /// The commanded buzzer (identify overrides it while it runs); `Off` once a finite pattern ends.
+    buzzer: BuzzerCommand,
     /// When a finite commanded buzzer pattern ends.
     buzzer_end: Option<Millis>,
     identify_until: Option<Millis>,
@@ -127,9 +145,10 @@ impl Node {
             queue: OutputQueue::default(),
             loops: [Debounce::default(); Port::COUNT as usize],
             confirmed: 0,
+            links: [None; Port::COUNT as usize],
             relay: false,
-            led: LedOutput::default(),
-            buzzer: BuzzerOutput::Off,
+            led: LedCommand::Off,
+            buzzer: BuzzerCommand::Off,
             buzzer_end: None,
             identify_until: None,
             handshake_at: None,
@@ -226,7 +245,7 @@ impl Node {
         // While identify runs the adapter plays the endless identify pattern, so a "done" can only
         // be a stale report about the commanded pattern, which the core ends on its own clock.
         if self.identify_until.is_none() && self.buzzer_end.is_some() {
-            self.buzzer = BuzzerOutput::Off;
+            self.buzzer = BuzzerCommand::Off;
             self.buzzer_end = None;
         }
     }
@@ -270,8 +289,8 @@ impl Node {
             }
         } else {
             Actuators {
-                led: self.led,
-                buzzer: self.buzzer,
+                led: command::led_output(self.led),
+                buzzer: command::buzzer_output(self.buzzer),
                 relay: self.relay,
             }
         }
@@ -354,7 +373,7 @@ impl Node {
         }
         if self.buzzer_end.is_some_and(|t| now >= t) {
             self.buzzer_end = None;
-            self.buzzer = BuzzerOutput::Off;
+            self.buzzer = BuzzerCommand::Off;
         }
         if self.identify_until.is_some_and(|t| now >= t) {
             self.identify_until = None;
@@ -367,12 +386,7 @@ impl Node {
             BootRole::Static if closed => self.report(Message::DockDetected { port }),
             BootRole::Static => {
                 // Power goes off before the report is even queued.
-                if self.confirmed & port.mask() != 0 {
-                    self.confirmed &= !port.mask();
-                    if self.confirmed == 0 {
-                        self.relay = false;
-                    }
-                }
+                self.withdraw(port);
                 self.report(Message::DockRemoved { port });
             }
             BootRole::Mobile => {
@@ -380,6 +394,18 @@ impl Node {
                     self.handshake_at = None;
                     self.report(Message::Handshake { port });
                 }
+            }
+        }
+    }
+
+    /// The port is no longer confirmed (it opened, or the gateway withdrew it): its link goes, and
+    /// the relay goes off if it was the last confirmed port.
+    fn withdraw(&mut self, port: Port) {
+        self.links[port.get() as usize] = None;
+        if self.confirmed & port.mask() != 0 {
+            self.confirmed &= !port.mask();
+            if self.confirmed == 0 {
+                self.relay = false;
             }
         }
     }

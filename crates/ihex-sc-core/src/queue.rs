@@ -3,7 +3,8 @@
 //! The adapter drains the queue after every call, so it only fills when the adapter cannot send
 //! (bus-off, a stuck transmitter) while inputs keep arriving. Then the *least useful* output goes:
 //!
-//! 1. the oldest [`Message::HealthReply`] (the gateway asks again; a newer reply says more),
+//! 1. the oldest [`Message::HealthReply`] or [`Message::StateReport`] (the gateway asks again; a
+//!    newer reply says more, and a state reply that lost a report no longer matches its `End` count),
 //! 2. then the oldest [`Message::BootUp`],
 //! 3. then the oldest dock / handshake / assignment report,
 //!
@@ -27,7 +28,7 @@ const ESSENTIAL: u8 = 3;
 fn rank(o: &Output) -> u8 {
     match o {
         Output::Frame(p) => match p.msg {
-            Message::HealthReply(_) => 0,
+            Message::HealthReply(_) | Message::StateReport(_) => 0,
             Message::BootUp { .. } => 1,
             Message::Ack { .. } | Message::Fault { .. } => ESSENTIAL,
             _ => 2,

@@ -1,8 +1,11 @@
 //! Property test: any sequence of frames, UART bytes, loop levels, CAN status and ticks never makes
 //! the core panic, emit an undecodable frame, speak while unconfigured or leave a deadline overdue.
 
-use ihex_proto::{BootRole, Header, Kind, Message, NodeId, Packet, Port, ResetReason, Uid};
-use ihex_sc_core::{Config, Millis, Node, Output, OUTPUT_QUEUE_LEN};
+use ihex_proto::{
+    BootRole, DockPartner, DockRefuseReason, FirmwareVersion, Header, Kind, Message, NodeId,
+    Packet, Port, ResetReason, StateParts, StateReport, Uid,
+};
+use ihex_sc_core::{Config, FirmwareIdentity, Millis, Node, Output, OUTPUT_QUEUE_LEN};
 use proptest::prelude::*;
 
 const UID: [u8; 12] = [0xA5, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11];
@@ -37,6 +40,17 @@ enum Input {
         new_id: u16,
         seq: u8,
     },
+    /// A dock command (confirm, refuse or link) for a port, so that links get made and broken.
+    Dock {
+        what: u8,
+        port: u8,
+        partner: Option<(u16, u8)>,
+    },
+    /// A state query of any groups, to the node or to all.
+    Query {
+        parts: u8,
+        broadcast: bool,
+    },
     Loop {
         port: u8,
         closed: bool,
@@ -68,6 +82,9 @@ fn input() -> impl Strategy<Value = Input> {
             .prop_map(|(kind, dest, src, data)| Input::Command { kind, dest, src, data }),
         1 => (any::<bool>(), any::<bool>(), 0u16..0x1000, any::<u8>())
             .prop_map(|(head_ok, tail_ok, new_id, seq)| Input::Assign { head_ok, tail_ok, new_id, seq }),
+        2 => (0u8..3, 0u8..8, prop::option::of((1u16..0xFFE, 0u8..8)))
+            .prop_map(|(what, port, partner)| Input::Dock { what, port, partner }),
+        2 => (any::<u8>(), any::<bool>()).prop_map(|(parts, broadcast)| Input::Query { parts, broadcast }),
         4 => (0u8..8, any::<bool>()).prop_map(|(port, closed)| Input::Loop { port, closed }),
         3 => prop_oneof![
             any::<u8>(),
@@ -94,6 +111,11 @@ fn config() -> impl Strategy<Value = Config> {
             uid: Uid(UID),
             node_id,
             reset: ResetReason::from_raw(reset),
+            firmware: FirmwareIdentity {
+                version: FirmwareVersion::new(reset, 1, 2),
+                image_hash: [reset; 7],
+                trial: reset & 1 != 0,
+            },
         })
 }
 
@@ -142,6 +164,44 @@ fn apply(n: &mut Node, input: &Input, now: Millis) {
             let raw = (Kind::AssignCommit as u32) << 24 | 0xFFF << 12;
             n.handle_frame(raw, true, false, &d, now);
         }
+        Input::Dock {
+            what,
+            port,
+            partner,
+        } => {
+            let port = Port::new(*port).unwrap();
+            let msg = match what {
+                0 => Message::DockConfirm { seq: 1, port },
+                1 => Message::DockRefuse {
+                    seq: 2,
+                    port,
+                    reason: DockRefuseReason::Busy,
+                },
+                _ => Message::DockLink {
+                    seq: 3,
+                    port,
+                    partner: partner.map(|(node, p)| DockPartner {
+                        node: NodeId::new_sc(node).unwrap(),
+                        port: Port::new(p).unwrap(),
+                    }),
+                },
+            };
+            let (raw, d) = Packet::command(NodeId::new(own).unwrap(), msg).encode();
+            n.handle_frame(raw, true, false, &d, now);
+        }
+        Input::Query { parts, broadcast } => {
+            let dest = if *broadcast {
+                NodeId::BROADCAST
+            } else {
+                NodeId::new(own).unwrap()
+            };
+            let q = Message::StateQuery {
+                seq: *parts,
+                parts: StateParts(*parts),
+            };
+            let (raw, d) = Packet::command(dest, q).encode();
+            n.handle_frame(raw, true, false, &d, now);
+        }
         Input::Loop { port, closed } => {
             n.handle_loop_level(Port::new(*port).unwrap(), *closed, now)
         }
@@ -170,8 +230,23 @@ proptest! {
             now = now.add_ms(dt);
             let before = n.node_id();
             apply(&mut n, &input, now);
+            let mut reports = 0u32;
             while let Some(out) = n.poll_output() {
                 if let Output::Frame(p) = out {
+                    // A state reply is whole and closed by an End that counts it.
+                    match p.msg {
+                        Message::StateReport(StateReport::End { count, .. }) => {
+                            prop_assert_eq!(u32::from(count), reports, "End count after {:?}", input);
+                            reports = 0;
+                        }
+                        Message::StateReport(StateReport::Dock { state, .. }) => {
+                            reports += 1;
+                            prop_assert!(state.closed || !state.confirmed, "confirmed only while docked: {:?}", p);
+                            prop_assert!(state.confirmed || state.partner.is_none(), "linked only while confirmed: {:?}", p);
+                        }
+                        Message::StateReport(_) => reports += 1,
+                        _ => {}
+                    }
                     prop_assert_eq!(p.validate(), Ok(()), "{:?} after {:?}", p, input);
                     let (raw, data) = p.encode();
                     prop_assert_eq!(Packet::decode(raw, &data), Ok(p));
@@ -186,6 +261,7 @@ proptest! {
                     prop_assert!(id.is_sc());
                 }
             }
+            prop_assert_eq!(reports, 0, "state reports without their End after {:?}", input);
             prop_assert!(n.node_id().is_none_or(|id| id.is_sc()));
             prop_assert_eq!(n.dropped_outputs(), 0, "drained after every call, the queue never fills");
             if let Some(t) = n.poll_at() {
@@ -212,6 +288,7 @@ proptest! {
             uid: Uid(UID),
             node_id: NodeId::new_sc(0x111),
             reset: ResetReason::PowerOn,
+            firmware: FirmwareIdentity::default(),
         };
         let mut drained = Node::new(cfg, Millis(0));
         let mut stuck = Node::new(cfg, Millis(0));

@@ -57,8 +57,9 @@ type Mutex = CriticalSectionRawMutex;
 
 /// Everything the node task reacts to.
 pub static EVENTS: Channel<Mutex, Event, 32> = Channel::new();
-/// Frames to transmit.
-pub static CAN_TX: Channel<Mutex, Packet, 16> = Channel::new();
+/// Frames to transmit. As deep as the core's output queue, so that everything one pass of the node
+/// task drains (a full state reply is 16 frames) fits while the transmitter catches up.
+pub static CAN_TX: Channel<Mutex, Packet, { ihex_sc_core::OUTPUT_QUEUE_LEN }> = Channel::new();
 /// Replies for the configuration UART.
 pub static UART_TX: Channel<Mutex, [u8; 2], 4> = Channel::new();
 /// New acceptance filters are needed for this node ID (`None` = unconfigured: broadcasts only).

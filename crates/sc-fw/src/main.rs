@@ -13,8 +13,8 @@ use embassy_stm32::timer::low_level::CountingMode;
 use embassy_stm32::timer::simple_pwm::{PwmPin, SimplePwm};
 use embassy_stm32::usart::{self, BufferedUart};
 use embassy_stm32::{bind_interrupts, can, peripherals};
-use ihex_proto::{BootRole, Port, Uid};
-use ihex_sc_core::Node;
+use ihex_proto::{BootRole, FirmwareVersion, Port, Uid};
+use ihex_sc_core::{FirmwareIdentity, Node};
 use ihex_sc_fw::board::{self, ExtiIrqs};
 use ihex_sc_fw::tasks::{self, led::PWM_HZ, node::now};
 use ihex_sc_fw::{can as sc_can, clock, config, image, reset, take_board, update};
@@ -31,6 +31,20 @@ bind_interrupts!(struct Irqs {
 
 /// Dock ports of a hexagonal element (signal loops `loop0`..`loop5` of the pin map).
 const PORTS: u8 = 6;
+
+/// This firmware's version, from the crate's (checked at compile time).
+const VERSION: FirmwareVersion = match FirmwareVersion::parse(env!("CARGO_PKG_VERSION")) {
+    Some(v) => v,
+    None => panic!("the crate version must be MAJOR.MINOR.PATCH with numbers up to 255"),
+};
+
+/// What the node reports about its firmware. The image hash stays unknown (zeros) and the image is
+/// never a trial one until the firmware-update work (bootloader, image header) supplies both.
+const FIRMWARE: FirmwareIdentity = FirmwareIdentity {
+    version: VERSION,
+    image_hash: [0; 7],
+    trial: false,
+};
 
 static CAN: StaticCell<Can<'static>> = StaticCell::new();
 static UART_TX_BUF: StaticCell<[u8; 32]> = StaticCell::new();
@@ -85,8 +99,8 @@ async fn main(spawner: Spawner) {
     let node_id = record.map(|r| r.node_id);
     let uid = Uid(embassy_stm32::uid::uid());
     info!(
-        "iHEX SC up: reset {}, role {}, node ID {}, uid {=[u8]:02x}",
-        reset, role, node_id, uid.0
+        "iHEX SC {} up: reset {}, role {}, node ID {}, uid {=[u8]:02x}",
+        VERSION, reset, role, node_id, uid.0
     );
 
     // CAN: the protocol's bit timing and filter banks, both read back from the registers.
@@ -174,6 +188,7 @@ async fn main(spawner: Spawner) {
             uid,
             node_id,
             reset,
+            firmware: FIRMWARE,
         },
         now(),
     );

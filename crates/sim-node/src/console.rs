@@ -249,7 +249,11 @@ pub fn view_line(v: &NodeView) -> String {
         ihex_proto::BootRole::Mobile => "mobile",
     };
     let id = v.node_id.map_or("unset".to_string(), |i| i.to_string());
-    let mut s = format!("{:>3}  {role} id={id}", name(v.name));
+    let mut s = format!(
+        "{:>3}  {role} id={id} fw={}",
+        name(v.name),
+        v.firmware.version
+    );
     if !v.powered {
         s.push_str("  unpowered");
     } else {
@@ -369,7 +373,8 @@ mod tests {
     async fn a_script_drives_an_island() {
         use crate::{bus::MemBus, Island, IslandDesc, Link};
         let desc = IslandDesc::parse(
-            "[[static]]\nid = \"111\"\nports = 4\n[[static]]\nid = \"120\"\nunconfigured = true\n\
+            "[[static]]\nid = \"111\"\nports = 4\nfirmware = \"1.4.0\"\n\
+             [[static]]\nid = \"120\"\nunconfigured = true\nfirmware = \"2.0.1-rc.1\"\n\
              [[mobile]]\nid = \"2\"\n",
         )
         .unwrap();
@@ -389,11 +394,15 @@ mod tests {
         assert_eq!(
             out,
             [
-                "120  uart reply: 51 23",
-                "120  uart reply: 51 23",
-                "111  static id=111  LED off  buzzer off  relay off  OFF-BUS  loops=00001000",
-                "120  static id=123  LED off  buzzer off  relay off",
-                "  2  mobile id=2  unpowered  loops=00000001  docked on 111 port 3",
+                "120  uart reply: 51 23".to_string(),
+                "120  uart reply: 51 23".to_string(),
+                "111  static id=111 fw=1.4.0  LED off  buzzer off  relay off  OFF-BUS  loops=00001000"
+                    .to_string(),
+                "120  static id=123 fw=2.0.1  LED off  buzzer off  relay off".to_string(),
+                format!(
+                    "  2  mobile id=2 fw={}  unpowered  loops=00000001  docked on 111 port 3",
+                    crate::desc::DEFAULT_FIRMWARE
+                ),
             ]
         );
         let err = execute(&island, parse("undock 111").unwrap().unwrap())

@@ -8,6 +8,9 @@
 //! ports = 6                     # dock ports with a signal loop (0..=8, default 6)
 //! uid = "0123456789abcdef00000111"   # optional 96-bit unique ID, 24 hex digits
 //! unconfigured = false          # optional: a factory-fresh board with no stored ID (default false)
+//! firmware = "0.1.0"            # optional: the firmware version it reports (default: this crate's)
+//! image_hash = "0011223344aabb" # optional: the first 7 bytes of its image hash, 14 hex digits
+//!                               # (default: derived from the version)
 //!
 //! [[mobile]]
 //! id = "2"
@@ -21,7 +24,8 @@
 
 use std::{collections::HashMap, ops::Range, path::Path};
 
-use ihex_proto::{NodeId, Port, Uid};
+use ihex_proto::{FirmwareVersion, NodeId, Port, Uid};
+use ihex_sc_core::FirmwareIdentity;
 use serde::Deserialize;
 use toml::Spanned;
 
@@ -62,6 +66,8 @@ pub struct StaticDesc {
     pub uid: Uid,
     /// False for a factory-fresh board that starts without a node ID.
     pub configured: bool,
+    /// The firmware it reports.
+    pub firmware: FirmwareIdentity,
 }
 
 /// A mobile element: powered through the static element it is docked on.
@@ -79,6 +85,8 @@ pub struct MobileDesc {
     pub configured: bool,
     /// Docked at start on (static element, port).
     pub dock: Option<(NodeId, Port)>,
+    /// The firmware it reports.
+    pub firmware: FirmwareIdentity,
 }
 
 /// A validated island description.
@@ -94,6 +102,13 @@ pub struct IslandDesc {
 
 /// Default number of ports of an element (a hexagon).
 pub const DEFAULT_PORTS: u8 = 6;
+
+/// The firmware version a virtual board reports when the file gives none: this crate's version.
+pub const DEFAULT_FIRMWARE: FirmwareVersion =
+    match FirmwareVersion::parse(env!("CARGO_PKG_VERSION")) {
+        Some(v) => v,
+        None => panic!("the crate version is MAJOR.MINOR.PATCH with numbers up to 255"),
+    };
 
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -114,6 +129,8 @@ struct StaticRaw {
     uid: Option<Spanned<HexUid>>,
     #[serde(default)]
     unconfigured: bool,
+    firmware: Option<Version>,
+    image_hash: Option<HexHash>,
 }
 
 #[derive(Deserialize)]
@@ -126,6 +143,19 @@ struct MobileRaw {
     #[serde(default)]
     unconfigured: bool,
     dock: Option<DockRaw>,
+    firmware: Option<Version>,
+    image_hash: Option<HexHash>,
+}
+
+/// An element's firmware from its optional `firmware` and `image_hash` keys.
+fn firmware_identity(firmware: Option<Version>, image_hash: Option<HexHash>) -> FirmwareIdentity {
+    let version = firmware.map_or(DEFAULT_FIRMWARE, |v| v.0);
+    FirmwareIdentity {
+        version,
+        image_hash: image_hash.map_or_else(|| simulated_image_hash(version), |h| h.0),
+        // A simulated board always runs a confirmed image.
+        trial: false,
+    }
 }
 
 #[derive(Deserialize)]
@@ -159,6 +189,42 @@ pub fn parse_node_id(s: &str) -> Result<NodeId, String> {
     }
 }
 
+/// A firmware version written as `"MAJOR.MINOR.PATCH"`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+struct Version(FirmwareVersion);
+
+impl<'de> Deserialize<'de> for Version {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        let s = String::deserialize(d)?;
+        s.parse::<FirmwareVersion>()
+            .map(Version)
+            .map_err(|e| serde::de::Error::custom(format!("firmware {s:?}: {e}")))
+    }
+}
+
+/// The first 7 bytes of an image hash, written as 14 hex digits.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+struct HexHash([u8; 7]);
+
+impl<'de> Deserialize<'de> for HexHash {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        let s = String::deserialize(d)?;
+        let bad = || {
+            serde::de::Error::custom(format!(
+                "image_hash {s:?}: the first 7 bytes of the image hash are 14 hex digits"
+            ))
+        };
+        if s.len() != 14 || !s.is_ascii() {
+            return Err(bad());
+        }
+        let mut h = [0u8; 7];
+        for (i, b) in h.iter_mut().enumerate() {
+            *b = u8::from_str_radix(&s[2 * i..2 * i + 2], 16).map_err(|_| bad())?;
+        }
+        Ok(HexHash(h))
+    }
+}
+
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 struct HexUid([u8; 12]);
 
@@ -175,15 +241,36 @@ impl<'de> Deserialize<'de> for HexUid {
 /// node IDs, and spread over all 12 bytes so that assignment by UID head or tail both discriminate.
 pub fn derived_uid(id: NodeId) -> Uid {
     // SplitMix64 of the ID fills the head; the tail carries the ID itself, which keeps UIDs unique.
-    let mut z = (id.get() as u64).wrapping_add(0x9E37_79B9_7F4A_7C15);
-    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-    z ^= z >> 31;
+    let z = splitmix64(id.get() as u64);
     let mut uid = [0u8; 12];
     uid[..8].copy_from_slice(&z.to_be_bytes());
     uid[8..10].copy_from_slice(b"SN");
     uid[10..].copy_from_slice(&id.get().to_be_bytes());
     Uid(uid)
+}
+
+/// The image hash a virtual board reports when the file gives none: deterministic per version
+/// (every board with the same version has the same "image", as on a real bench), different for
+/// different versions, never all zero (which would mean "unknown").
+pub fn simulated_image_hash(version: FirmwareVersion) -> [u8; 7] {
+    // A salt keeps these apart from the derived UIDs, which mix small numbers too.
+    let v =
+        u64::from(version.major) << 16 | u64::from(version.minor) << 8 | u64::from(version.patch);
+    let z = splitmix64(v ^ 0x1EC5_1A6E_0000_0000);
+    let mut h = [0u8; 7];
+    h.copy_from_slice(&z.to_be_bytes()[..7]);
+    if h == [0; 7] {
+        h[6] = 1;
+    }
+    h
+}
+
+/// SplitMix64's output function: a fixed, well-spread 64-bit mix of `x`.
+fn splitmix64(x: u64) -> u64 {
+    let mut z = x.wrapping_add(0x9E37_79B9_7F4A_7C15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
 }
 
 struct Locator<'a>(&'a str);
@@ -262,6 +349,7 @@ impl IslandDesc {
                 ports: ports_of(&s.ports)?,
                 uid,
                 configured: !s.unconfigured,
+                firmware: firmware_identity(s.firmware, s.image_hash),
             });
         }
         let mut taken: HashMap<(NodeId, Port), NodeId> = HashMap::new();
@@ -322,6 +410,7 @@ impl IslandDesc {
                 uid,
                 configured: !m.unconfigured,
                 dock,
+                firmware: firmware_identity(m.firmware, m.image_hash),
             });
         }
         Ok(desc)
@@ -355,11 +444,14 @@ uid = "0123456789abcdef00000111"
 
 [[static]]
 id = "0x112"
+firmware = "1.2.3"
 
 [[mobile]]
 id = "2"
 port = 1
 dock = { static = "111", port = 3 }
+firmware = "0.9.0"
+image_hash = "00112233AABBCC"
 
 [[mobile]]
 id = "3"
@@ -378,6 +470,49 @@ unconfigured = true
         assert!(d.mobiles[0].configured);
         assert_eq!(d.mobiles[1].dock, None);
         assert!(!d.mobiles[1].configured);
+        // Firmware: the crate's version and its simulated hash unless the file says otherwise.
+        let fw = |version, image_hash| FirmwareIdentity {
+            version,
+            image_hash,
+            trial: false,
+        };
+        assert_eq!(
+            d.statics[0].firmware,
+            fw(DEFAULT_FIRMWARE, simulated_image_hash(DEFAULT_FIRMWARE))
+        );
+        let v123 = FirmwareVersion::new(1, 2, 3);
+        assert_eq!(d.statics[1].firmware, fw(v123, simulated_image_hash(v123)));
+        assert_eq!(
+            d.mobiles[0].firmware,
+            fw(
+                FirmwareVersion::new(0, 9, 0),
+                [0x00, 0x11, 0x22, 0x33, 0xAA, 0xBB, 0xCC]
+            )
+        );
+        assert_eq!(d.mobiles[1].firmware, d.statics[0].firmware);
+    }
+
+    #[test]
+    fn simulated_hashes_follow_the_version() {
+        let v = FirmwareVersion::new;
+        assert_eq!(
+            simulated_image_hash(v(1, 2, 3)),
+            simulated_image_hash(v(1, 2, 3))
+        );
+        let mut seen = std::collections::HashSet::new();
+        for major in 0..4 {
+            for minor in 0..4 {
+                for patch in 0..4 {
+                    let h = simulated_image_hash(v(major, minor, patch));
+                    assert_ne!(h, [0; 7], "all zero means unknown");
+                    assert!(seen.insert(h), "{major}.{minor}.{patch} collides");
+                }
+            }
+        }
+        assert_eq!(
+            Some(DEFAULT_FIRMWARE),
+            env!("CARGO_PKG_VERSION").parse().ok()
+        );
     }
 
     #[test]
@@ -457,6 +592,20 @@ unconfigured = true
             ("[[static]]\nid = \"xyz\"\n", "1 to 3 hex digits"),
             ("[[static]]\nid = \"1\"\ncolour = 3\n", "colour"),
             ("[[static]]\nid = \"1\"\nuid = \"12\"\n", "24 hex digits"),
+            (
+                "[[static]]\nid = \"1\"\nfirmware = \"1.2\"\n",
+                "MAJOR.MINOR.PATCH",
+            ),
+            ("[[mobile]]\nid = \"1\"\nfirmware = \"1.2.300\"\n", "line 3"),
+            (
+                "[[static]]\nid = \"1\"\nimage_hash = \"0011\"\n",
+                "14 hex digits",
+            ),
+            (
+                "[[static]]\nid = \"1\"\nimage_hash = \"0011223344556g\"\n",
+                "14 hex digits",
+            ),
+            ("[[static]]\nid = \"1\"\nfirmware = 1\n", "line 3"),
             ("[[static]\n", "line 1"),
         ] {
             match IslandDesc::parse(text) {

@@ -19,7 +19,7 @@ use std::collections::BTreeMap;
 
 use embedded_can::Frame as EmbeddedFrame;
 use ihex_proto::{filter::sc_filters, BootRole, NodeId, Port, ResetReason, Uid};
-use ihex_sc_core::{Actuators, BuzzerOutput, Config, Millis, Node, Output};
+use ihex_sc_core::{Actuators, BuzzerOutput, Config, FirmwareIdentity, Millis, Node, Output};
 use socketcan::CanFrame;
 use tokio::{
     sync::{broadcast, mpsc, oneshot},
@@ -171,6 +171,8 @@ pub struct NodeView {
     pub loops: u8,
     /// Mobile: where it is docked.
     pub docked: Option<(NodeId, Port)>,
+    /// The firmware it runs (reported on a state query).
+    pub firmware: FirmwareIdentity,
 }
 
 enum Command {
@@ -295,6 +297,7 @@ struct Element {
     role: BootRole,
     ports: u8,
     uid: Uid,
+    firmware: FirmwareIdentity,
     /// The "flash": the ID the board boots with.
     stored_id: Option<NodeId>,
     /// Mobile: its own port it docks by.
@@ -350,6 +353,7 @@ impl Island {
                 role: BootRole::Static,
                 ports: s.ports,
                 uid: s.uid,
+                firmware: s.firmware,
                 stored_id: s.configured.then_some(s.id),
                 own_port: zero,
                 docked: None,
@@ -364,6 +368,7 @@ impl Island {
                 role: BootRole::Mobile,
                 ports: m.ports,
                 uid: m.uid,
+                firmware: m.firmware,
                 stored_id: m.configured.then_some(m.id),
                 own_port: m.port,
                 docked: m.dock,
@@ -575,6 +580,7 @@ impl Island {
             uid: e.uid,
             node_id: e.stored_id,
             reset: ResetReason::PowerOn,
+            firmware: e.firmware,
         };
         let mut node = Node::new(config, now);
         for p in 0..e.ports.min(Port::COUNT) {
@@ -859,6 +865,7 @@ impl Island {
                     .map_or(Actuators::default(), |l| l.actuators),
                 loops: e.loops,
                 docked: e.docked,
+                firmware: e.firmware,
             })
             .collect()
     }

@@ -5,11 +5,22 @@
 //! can wait for frames while another sends. On SocketCAN each endpoint is its own raw socket: the
 //! kernel carries frames between the virtual nodes and any other program on the interface, and a
 //! socket never receives its own frames, exactly like a controller on a real bus.
+//!
+//! A SocketCAN endpoint survives its interface going down and up (or being deleted and created
+//! again): when a read fails, or a write fails with a link error, the receiving half reopens the
+//! socket with a back-off ([`REOPEN_MIN`] doubling up to [`REOPEN_MAX`], reset by the next frame
+//! received), reinstalls the filters in force and carries on; the sending half writes on the
+//! socket of the moment. Frames sent while the interface is down are lost (the send fails), as
+//! on a controller whose bus is gone.
 
-use std::sync::{Arc, Mutex};
+use std::{
+    sync::{Arc, Mutex},
+    time::Duration,
+};
 
 use ihex_proto::filter::{self, Filter, FilterError};
 use socketcan::{CanFilter, CanFrame, SocketOptions};
+use tokio::sync::Notify;
 
 use crate::bus::{BusError, MemBus, MemEndpoint, MemFilterHandle, MemSender};
 
@@ -32,6 +43,11 @@ pub enum LinkError {
     #[error("filters cannot be installed: {0}")]
     Filter(FilterError),
 }
+
+/// First reopen delay after a SocketCAN endpoint lost its interface; doubles up to [`REOPEN_MAX`].
+pub const REOPEN_MIN: Duration = Duration::from_millis(100);
+/// Longest reopen delay.
+pub const REOPEN_MAX: Duration = Duration::from_secs(5);
 
 /// A bus that virtual nodes (and tests playing the gateway) attach to.
 #[derive(Clone, Debug)]
@@ -61,22 +77,24 @@ impl Link {
         let filters = Arc::new(Mutex::new(Vec::new()));
         match self {
             Link::SocketCan(iface) => {
-                let io = |error| LinkError::Io {
+                let sock = open_socket(iface, &[])?;
+                let can = Arc::new(CanLink {
                     iface: iface.clone(),
-                    error,
-                };
-                let sock = Arc::new(socketcan::tokio::CanSocket::open(iface).map_err(io)?);
+                    slot: Mutex::new(Slot {
+                        sock: Arc::new(sock),
+                        filters: Vec::new(),
+                    }),
+                    failed: Notify::new(),
+                });
                 let tx = LinkTx {
-                    inner: TxInner::Can {
-                        sock: sock.clone(),
-                        iface: iface.clone(),
-                    },
+                    inner: TxInner::Can(can.clone()),
                     filters: filters.clone(),
                 };
                 let rx = LinkRx {
                     inner: RxInner::Can {
-                        sock,
-                        iface: iface.clone(),
+                        can,
+                        backoff: REOPEN_MIN,
+                        lost: false,
                     },
                     filters,
                 };
@@ -103,12 +121,86 @@ impl Link {
     }
 }
 
+/// Opens a raw socket on `iface` with these acceptance filters (kernel plan of
+/// [`ihex_proto::filter::to_kernel`]; an empty set receives everything).
+fn open_socket(iface: &str, filters: &[Filter]) -> Result<socketcan::tokio::CanSocket, LinkError> {
+    let io = |error| LinkError::Io {
+        iface: iface.to_owned(),
+        error,
+    };
+    let sock = socketcan::tokio::CanSocket::open(iface).map_err(io)?;
+    if !filters.is_empty() {
+        install(&sock, iface, filters)?;
+    }
+    Ok(sock)
+}
+
+/// Installs `filters` on a socket as kernel filters.
+fn install(
+    sock: &socketcan::tokio::CanSocket,
+    iface: &str,
+    filters: &[Filter],
+) -> Result<(), LinkError> {
+    let plan = filter::to_kernel(filters).map_err(LinkError::Filter)?;
+    let io = |error| LinkError::Io {
+        iface: iface.to_owned(),
+        error,
+    };
+    let kf: Vec<CanFilter> = plan
+        .filters
+        .iter()
+        .map(|k| CanFilter::new(k.can_id, k.can_mask))
+        .collect();
+    sock.set_join_filters(plan.join).map_err(io)?;
+    sock.set_filters(&kf).map_err(io)
+}
+
+/// One SocketCAN endpoint, shared by its two halves.
+#[derive(Debug)]
+struct CanLink {
+    iface: String,
+    /// The socket of the moment and the filters installed on it: swapped together, so a reopen
+    /// and a change of filters cannot cross.
+    slot: Mutex<Slot>,
+    /// A write failed with a link error: the receiving half should reopen.
+    failed: Notify,
+}
+
+#[derive(Debug)]
+struct Slot {
+    sock: Arc<socketcan::tokio::CanSocket>,
+    filters: Vec<Filter>,
+}
+
+impl CanLink {
+    fn slot(&self) -> std::sync::MutexGuard<'_, Slot> {
+        self.slot.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    fn socket(&self) -> Arc<socketcan::tokio::CanSocket> {
+        self.slot().sock.clone()
+    }
+
+    /// A fresh socket with the filters in force replaces the current one.
+    fn reopen(&self) -> Result<(), LinkError> {
+        let mut slot = self.slot();
+        let sock = open_socket(&self.iface, &slot.filters)?;
+        slot.sock = Arc::new(sock);
+        Ok(())
+    }
+}
+
+/// True for write errors that mean the interface is down or gone, not a full queue.
+fn is_link_error(e: &std::io::Error) -> bool {
+    matches!(
+        e.raw_os_error(),
+        Some(libc::ENETDOWN | libc::ENODEV | libc::ENXIO | libc::EBADF)
+    )
+}
+
 #[derive(Debug)]
 enum TxInner {
-    Can {
-        sock: Arc<socketcan::tokio::CanSocket>,
-        iface: String,
-    },
+    Can(Arc<CanLink>),
     Mem {
         tx: MemSender,
         filters: MemFilterHandle,
@@ -127,13 +219,17 @@ impl LinkTx {
     /// Transmits a frame.
     pub async fn send(&self, frame: CanFrame) -> Result<(), LinkError> {
         match &self.inner {
-            TxInner::Can { sock, iface } => {
-                sock.write_frame(frame)
-                    .await
-                    .map_err(|error| LinkError::Io {
-                        iface: iface.clone(),
+            TxInner::Can(can) => {
+                let sock = can.socket();
+                sock.write_frame(frame).await.map_err(|error| {
+                    if is_link_error(&error) {
+                        can.failed.notify_one();
+                    }
+                    LinkError::Io {
+                        iface: can.iface.clone(),
                         error,
-                    })
+                    }
+                })
             }
             TxInner::Mem { tx, .. } => Ok(tx.send(frame).await?),
         }
@@ -143,19 +239,10 @@ impl LinkTx {
     /// as kernel filters via [`ihex_proto::filter::to_kernel`].
     pub fn set_filters(&self, filters: &[Filter]) -> Result<(), LinkError> {
         match &self.inner {
-            TxInner::Can { sock, iface } => {
-                let plan = filter::to_kernel(filters).map_err(LinkError::Filter)?;
-                let io = |error| LinkError::Io {
-                    iface: iface.clone(),
-                    error,
-                };
-                let kf: Vec<CanFilter> = plan
-                    .filters
-                    .iter()
-                    .map(|k| CanFilter::new(k.can_id, k.can_mask))
-                    .collect();
-                sock.set_join_filters(plan.join).map_err(io)?;
-                sock.set_filters(&kf).map_err(io)?;
+            TxInner::Can(can) => {
+                let mut slot = can.slot();
+                install(&slot.sock, &can.iface, filters)?;
+                slot.filters = filters.to_vec();
             }
             TxInner::Mem { filters: f, .. } => f.set(filters),
         }
@@ -169,8 +256,11 @@ impl LinkTx {
 #[derive(Debug)]
 enum RxInner {
     Can {
-        sock: Arc<socketcan::tokio::CanSocket>,
-        iface: String,
+        can: Arc<CanLink>,
+        /// Wait before the next reopen; back to [`REOPEN_MIN`] once a frame arrives.
+        backoff: Duration,
+        /// The interface was lost and no frame has arrived since (for logging once per outage).
+        lost: bool,
     },
     Mem(MemEndpoint),
 }
@@ -184,15 +274,30 @@ pub struct LinkRx {
 
 impl LinkRx {
     /// The next frame that passes the endpoint's filters. Error frames are passed on (the caller
-    /// decides); `Err` on I/O failure or when the in-memory bus is gone. Cancel-safe.
+    /// decides). On SocketCAN it waits through interface outages, reopening the socket (see the
+    /// module docs); `Err` only when the in-memory bus is gone. Cancel-safe.
     pub async fn recv(&mut self) -> Result<CanFrame, LinkError> {
         loop {
             let frame = match &mut self.inner {
-                RxInner::Can { sock, iface } => {
-                    sock.read_frame().await.map_err(|error| LinkError::Io {
-                        iface: iface.clone(),
-                        error,
-                    })?
+                RxInner::Can { can, backoff, lost } => {
+                    let sock = can.socket();
+                    let got = tokio::select! {
+                        r = sock.read_frame() => r.map_err(|e| e.to_string()),
+                        _ = can.failed.notified() => Err("a write failed with a link error".to_owned()),
+                    };
+                    match got {
+                        Ok(frame) => {
+                            if std::mem::take(lost) {
+                                tracing::info!(iface = %can.iface, "CAN endpoint hears the bus again");
+                            }
+                            *backoff = REOPEN_MIN;
+                            frame
+                        }
+                        Err(why) => {
+                            reopen_after(can, backoff, lost, &why).await;
+                            continue;
+                        }
+                    }
                 }
                 RxInner::Mem(ep) => ep.recv().await.ok_or(BusError::Closed)?,
             };
@@ -204,6 +309,21 @@ impl LinkRx {
                 return Ok(frame);
             }
         }
+    }
+}
+
+/// Waits out the back-off, then puts a fresh socket in place (if the interface lets us).
+async fn reopen_after(can: &CanLink, backoff: &mut Duration, lost: &mut bool, why: &str) {
+    if *lost {
+        tracing::debug!(iface = %can.iface, %why, "CAN endpoint still without its interface");
+    } else {
+        tracing::warn!(iface = %can.iface, %why, "CAN endpoint lost its interface; reopening");
+        *lost = true;
+    }
+    tokio::time::sleep(*backoff).await;
+    *backoff = (*backoff * 2).min(REOPEN_MAX);
+    if let Err(err) = can.reopen() {
+        tracing::debug!(%err, "reopening failed; retrying");
     }
 }
 

@@ -59,6 +59,11 @@ async fn can_assignment() {
     scenario::can_assignment(mem()).await;
 }
 
+#[tokio::test(start_paused = true)]
+async fn state_query() {
+    scenario::state_query(mem()).await;
+}
+
 /// The island also runs on a real multi-threaded runtime with a running clock.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn dock_and_undock_in_real_time() {

@@ -4,7 +4,10 @@
 //! here until its signals are written down.
 #![allow(dead_code)]
 
-use ihex_proto::{unit, BuzzerCommand, HealthFlags, LedCommand, Message};
+use ihex_proto::{
+    unit, BootRole, BuzzerCommand, DockPartner, HealthFlags, LedCommand, Message, StateParts,
+    StateReport,
+};
 
 /// One signal as it should decode.
 #[derive(Clone, Debug, PartialEq)]
@@ -132,66 +135,17 @@ pub fn expected(msg: &Message) -> Vec<Expected> {
             ]
         }
         Message::BuzzerSet { seq, cmd } => {
-            let (mode, freq, on, off, count) = match cmd {
-                BuzzerCommand::Off => (named("mode", 0u8, Some("off")), 0, 0, 0, 0),
-                BuzzerCommand::Continuous { freq_hz } => {
-                    (named("mode", 1u8, Some("continuous")), freq_hz, 0, 0, 0)
-                }
-                BuzzerCommand::Pattern {
-                    freq_hz,
-                    on_10ms,
-                    off_10ms,
-                    count,
-                } => (
-                    named("mode", 2u8, Some("pattern")),
-                    freq_hz,
-                    on_10ms,
-                    off_10ms,
-                    count,
-                ),
-            };
-            vec![
-                n("seq", seq),
-                mode,
-                n("freq", freq),
-                ms("on", on),
-                ms("off", off),
-                n("count", count),
-            ]
+            let mut v = vec![n("seq", seq)];
+            v.extend(buzzer(cmd, ["mode", "freq", "on", "off", "count"]));
+            v
         }
         Message::LedSet { seq, cmd } => {
-            let (mode, color, brightness, period, duty) = match cmd {
-                LedCommand::Off => (named("mode", 0u8, Some("off")), [0; 3], 0, 0, 0),
-                LedCommand::Steady { color, brightness } => (
-                    named("mode", 1u8, Some("steady")),
-                    [color.r, color.g, color.b],
-                    brightness,
-                    0,
-                    0,
-                ),
-                LedCommand::Blink {
-                    color,
-                    brightness,
-                    period_10ms,
-                    duty_pct,
-                } => (
-                    named("mode", 2u8, Some("blink")),
-                    [color.r, color.g, color.b],
-                    brightness,
-                    period_10ms,
-                    duty_pct,
-                ),
-            };
-            vec![
-                n("seq", seq),
-                mode,
-                n("r", color[0]),
-                n("g", color[1]),
-                n("b", color[2]),
-                n("brightness", brightness),
-                ms("period", period),
-                n("duty", duty),
-            ]
+            let mut v = vec![n("seq", seq)];
+            v.extend(led(
+                cmd,
+                ["mode", "r", "g", "b", "brightness", "period", "duty"],
+            ));
+            v
         }
         Message::Identify { seq, seconds } => vec![n("seq", seq), n("seconds", seconds)],
         Message::HealthCheck { seq } => vec![n("seq", seq)],
@@ -213,11 +167,233 @@ pub fn expected(msg: &Message) -> Vec<Expected> {
                 n("uptime", h.uptime_s),
             ]
         }
+        Message::StateQuery { seq, parts } => {
+            let mut v = vec![n("seq", seq)];
+            v.extend(groups(
+                parts,
+                ["actuators", "docking", "identity", "parts_unassigned"],
+            ));
+            v
+        }
+        Message::StateReport(r) => state_report(&r),
+        Message::DockLink { seq, port, partner } => {
+            let mut v = vec![n("seq", seq), n("port", port.get())];
+            v.extend(dock_partner(partner, ["partner", "partner_port"]));
+            v
+        }
     }
 }
 
-/// A multiplexed message for the tests of the multiplexing machinery (no iHEX kind is multiplexed
-/// yet): 6 bytes, `part` in byte 0 selects `a` (byte 1) and `b` (bytes 2–5) for part 0, `c`
+/// The fields of a buzzer command after `seq`, named `names`.
+fn buzzer(cmd: BuzzerCommand, names: [&'static str; 5]) -> Vec<Expected> {
+    let (mode, freq, on, off, count) = match cmd {
+        BuzzerCommand::Off => (named(names[0], 0u8, Some("off")), 0, 0, 0, 0),
+        BuzzerCommand::Continuous { freq_hz } => {
+            (named(names[0], 1u8, Some("continuous")), freq_hz, 0, 0, 0)
+        }
+        BuzzerCommand::Pattern {
+            freq_hz,
+            on_10ms,
+            off_10ms,
+            count,
+        } => (
+            named(names[0], 2u8, Some("pattern")),
+            freq_hz,
+            on_10ms,
+            off_10ms,
+            count,
+        ),
+    };
+    vec![
+        mode,
+        n(names[1], freq),
+        ms(names[2], on),
+        ms(names[3], off),
+        n(names[4], count),
+    ]
+}
+
+/// The fields of an LED command after `seq`, named `names`.
+fn led(cmd: LedCommand, names: [&'static str; 7]) -> Vec<Expected> {
+    let (mode, color, brightness, period, duty) = match cmd {
+        LedCommand::Off => (named(names[0], 0u8, Some("off")), [0; 3], 0, 0, 0),
+        LedCommand::Steady { color, brightness } => (
+            named(names[0], 1u8, Some("steady")),
+            [color.r, color.g, color.b],
+            brightness,
+            0,
+            0,
+        ),
+        LedCommand::Blink {
+            color,
+            brightness,
+            period_10ms,
+            duty_pct,
+        } => (
+            named(names[0], 2u8, Some("blink")),
+            [color.r, color.g, color.b],
+            brightness,
+            period_10ms,
+            duty_pct,
+        ),
+    };
+    vec![
+        mode,
+        n(names[1], color[0]),
+        n(names[2], color[1]),
+        n(names[3], color[2]),
+        n(names[4], brightness),
+        ms(names[5], period),
+        n(names[6], duty),
+    ]
+}
+
+/// A state-groups bitmap: bits 0, 1, 2 and bits 3 to 7 as one number.
+fn groups(parts: StateParts, names: [&'static str; 4]) -> Vec<Expected> {
+    vec![
+        n(names[0], parts.0 & 1),
+        n(names[1], (parts.0 >> 1) & 1),
+        n(names[2], (parts.0 >> 2) & 1),
+        n(names[3], parts.0 >> 3),
+    ]
+}
+
+/// A dock partner: its node ID and port, 0xFFF and 0 for none.
+fn dock_partner(partner: Option<DockPartner>, names: [&'static str; 2]) -> Vec<Expected> {
+    let (node, port) = partner.map_or((0xFFF, 0), |p| (p.node.get(), p.port.get()));
+    vec![n(names[0], node), n(names[1], port)]
+}
+
+fn bytes(names: &[&'static str], bytes: &[u8]) -> Vec<Expected> {
+    assert_eq!(names.len(), bytes.len());
+    names
+        .iter()
+        .zip(bytes)
+        .map(|(name, b)| n(name, *b))
+        .collect()
+}
+
+/// A state report: `part` with its name, then the fields of that part.
+fn state_report(r: &StateReport) -> Vec<Expected> {
+    let part = r.part();
+    let label = match r {
+        StateReport::Led(_) => Some("led".to_string()),
+        StateReport::Buzzer(_) => Some("buzzer".into()),
+        StateReport::Power(_) => Some("power".into()),
+        StateReport::Dock { port, .. } => Some(format!("dock_{}", port.get())),
+        StateReport::Firmware { .. } => Some("firmware".into()),
+        StateReport::ImageHash(_) => Some("image_hash".into()),
+        StateReport::UidLow(_) => Some("uid_low".into()),
+        StateReport::UidHigh(_) => Some("uid_high".into()),
+        StateReport::End { .. } => Some("end".into()),
+        StateReport::Other { .. } => None,
+    };
+    let mut v = vec![named("part", part, label.as_deref())];
+    match *r {
+        StateReport::Led(cmd) => v.extend(led(
+            cmd,
+            [
+                "led_mode",
+                "led_r",
+                "led_g",
+                "led_b",
+                "led_brightness",
+                "led_period",
+                "led_duty",
+            ],
+        )),
+        StateReport::Buzzer(cmd) => {
+            v.extend(buzzer(
+                cmd,
+                [
+                    "buzzer_mode",
+                    "buzzer_freq",
+                    "buzzer_on",
+                    "buzzer_off",
+                    "buzzer_count",
+                ],
+            ));
+            v.push(n("buzzer_reserved", 0u8));
+        }
+        StateReport::Power(p) => v.extend([
+            named(
+                "power_relay",
+                p.relay,
+                Some(if p.relay { "on" } else { "off" }),
+            ),
+            n("power_loops", p.loops),
+            n("power_confirmed", p.confirmed),
+            n("power_identify", p.identify_s),
+            match p.role {
+                BootRole::Static => named("power_role", 0u8, Some("static")),
+                BootRole::Mobile => named("power_role", 1u8, Some("mobile")),
+            },
+            n("power_ports", p.ports),
+            n("power_reserved", 0u8),
+        ]),
+        StateReport::Dock { state, .. } => {
+            v.extend([
+                n("dock_closed", state.closed),
+                n("dock_confirmed", state.confirmed),
+                n("dock_linked", state.partner.is_some()),
+                n("dock_flags_reserved", 0u8),
+            ]);
+            v.extend(dock_partner(
+                state.partner,
+                ["dock_partner", "dock_partner_port"],
+            ));
+            v.push(n("dock_reserved", 0u8));
+        }
+        StateReport::Firmware { version, trial } => v.extend([
+            n("firmware_major", version.major),
+            n("firmware_minor", version.minor),
+            n("firmware_patch", version.patch),
+            n("firmware_trial", trial),
+            n("firmware_flags_reserved", 0u8),
+            n("firmware_reserved", 0u8),
+        ]),
+        StateReport::ImageHash(h) => v.extend(bytes(
+            &[
+                "image_hash_0",
+                "image_hash_1",
+                "image_hash_2",
+                "image_hash_3",
+                "image_hash_4",
+                "image_hash_5",
+                "image_hash_6",
+            ],
+            &h,
+        )),
+        StateReport::UidLow(u) => v.extend(uid(0, &u)),
+        StateReport::UidHigh(u) => {
+            v.extend(uid(7, &u));
+            v.push(n("uid_high_reserved", 0u8));
+        }
+        StateReport::End { seq, parts, count } => {
+            v.push(n("end_seq", seq));
+            v.extend(groups(
+                parts,
+                [
+                    "end_actuators",
+                    "end_docking",
+                    "end_identity",
+                    "end_parts_unassigned",
+                ],
+            ));
+            v.extend([n("end_count", count), n("end_reserved", 0u8)]);
+        }
+        StateReport::Other { data, .. } => v.extend(bytes(
+            &[
+                "data_1", "data_2", "data_3", "data_4", "data_5", "data_6", "data_7",
+            ],
+            &data,
+        )),
+    }
+    v
+}
+
+/// A small multiplexed message for the tests of the multiplexing machinery (beside `StateReport`):
+/// 6 bytes, `part` in byte 0 selects `a` (byte 1) and `b` (bytes 2–5) for part 0, `c`
 /// (bytes 1–2) and `d` (bytes 3–5) for parts 1 to 3.
 pub fn mux_example() -> ihex_proto::schema::MessageSchema {
     use ihex_proto::schema::{MessageSchema, Mux, Signal};

@@ -4,8 +4,9 @@
 #![allow(dead_code)]
 
 use ihex_proto::{
-    AckResult, BootRole, BuzzerCommand, DockRefuseReason, FaultCode, HealthFlags, HealthReply,
-    Kind, LedCommand, Message, NodeId, Packet, Port, ResetReason, Rgb,
+    AckResult, BootRole, BuzzerCommand, DockPartner, DockRefuseReason, DockState, FaultCode,
+    FirmwareVersion, HealthFlags, HealthReply, Kind, LedCommand, Message, NodeId, Packet, Port,
+    PowerState, ResetReason, Rgb, StateParts, StateReport,
 };
 use proptest::prelude::*;
 
@@ -76,6 +77,70 @@ pub fn buzzer() -> impl Strategy<Value = BuzzerCommand> {
                 }
             }
         ),
+    ]
+}
+
+/// A role.
+pub fn role() -> impl Strategy<Value = BootRole> {
+    prop_oneof![Just(BootRole::Static), Just(BootRole::Mobile)]
+}
+
+/// A dock partner, or none.
+pub fn partner() -> impl Strategy<Value = Option<DockPartner>> {
+    prop_oneof![
+        1 => Just(None),
+        3 => (sc_id(), port()).prop_map(|(node, port)| Some(DockPartner { node, port })),
+    ]
+}
+
+/// Any valid state report: every known part, and unknown part numbers with any data.
+pub fn state_report() -> impl Strategy<Value = StateReport> {
+    prop_oneof![
+        led().prop_map(StateReport::Led),
+        buzzer().prop_map(StateReport::Buzzer),
+        (any::<(bool, u8, u8, u8)>(), role(), 0u8..=Port::COUNT).prop_map(
+            |((relay, loops, confirmed, identify_s), role, ports)| {
+                StateReport::Power(PowerState {
+                    relay,
+                    loops,
+                    confirmed,
+                    identify_s,
+                    role,
+                    ports,
+                })
+            }
+        ),
+        (port(), any::<(bool, bool)>(), partner()).prop_map(
+            |(port, (closed, confirmed), partner)| {
+                StateReport::Dock {
+                    port,
+                    state: DockState {
+                        closed,
+                        confirmed,
+                        partner,
+                    },
+                }
+            }
+        ),
+        (any::<(u8, u8, u8)>(), any::<bool>()).prop_map(|((major, minor, patch), trial)| {
+            StateReport::Firmware {
+                version: FirmwareVersion::new(major, minor, patch),
+                trial,
+            }
+        }),
+        any::<[u8; 7]>().prop_map(StateReport::ImageHash),
+        any::<[u8; 7]>().prop_map(StateReport::UidLow),
+        any::<[u8; 5]>().prop_map(StateReport::UidHigh),
+        any::<(u8, u8, u8)>().prop_map(|(seq, parts, count)| StateReport::End {
+            seq,
+            parts: StateParts(parts),
+            count,
+        }),
+        (any::<u8>(), any::<[u8; 7]>())
+            .prop_filter("an unknown part number", |(part, _)| {
+                !StateReport::is_known_part(*part)
+            })
+            .prop_map(|(part, data)| StateReport::Other { part, data }),
     ]
 }
 
@@ -162,6 +227,16 @@ pub fn message() -> impl Strategy<Value = Message> {
                     uptime_s,
                 })
             }),
+        (any::<u8>(), any::<u8>()).prop_map(|(seq, parts)| Message::StateQuery {
+            seq,
+            parts: StateParts(parts)
+        }),
+        state_report().prop_map(Message::StateReport),
+        (any::<u8>(), port(), partner()).prop_map(|(seq, port, partner)| Message::DockLink {
+            seq,
+            port,
+            partner
+        }),
     ]
 }
 
@@ -172,6 +247,7 @@ pub fn packet() -> impl Strategy<Value = Packet> {
         if kind.is_command() {
             let dest = match kind {
                 Kind::AssignSelect | Kind::AssignCommit => NodeId::BROADCAST,
+                Kind::DockLink => node,
                 _ if alt => NodeId::BROADCAST,
                 _ => node,
             };

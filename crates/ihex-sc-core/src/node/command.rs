@@ -1,15 +1,19 @@
 //! Gateway commands: decoding, addressing, actuators, docking, health, and their acks.
 
 use ihex_proto::{
-    filter::ID_MASK, AckResult, BootRole, BuzzerCommand, DecodeError, FaultCode, Header, Kind,
-    LedCommand, Message, NodeId, Packet, Port, Rgb, Seq,
+    field, filter::ID_MASK, AckResult, BootRole, BuzzerCommand, DecodeError, DockPartner,
+    FaultCode, Header, Kind, LedCommand, Message, NodeId, Packet, Port, Rgb, Seq,
 };
 
 use super::Node;
 use crate::{BuzzerOutput, LedOutput, Millis};
 
-/// Byte offset of the port field in `DockConfirm` and `DockRefuse` (the ack's `detail`).
-const PORT_OFFSET: u8 = 1;
+/// Byte offset of the port field in `DockConfirm`, `DockRefuse` and `DockLink` (the ack's `detail`).
+const PORT_OFFSET: u8 = field::dock_confirm::PORT as u8;
+const _: () = assert!(
+    field::dock_refuse::PORT == field::dock_confirm::PORT
+        && field::dock_link::PORT == field::dock_confirm::PORT
+);
 
 impl Node {
     /// Addressing, decoding and dispatch of one received frame.
@@ -69,7 +73,7 @@ impl Node {
                 }
             }
             Message::LedSet { seq, cmd } => {
-                self.led = led_output(cmd);
+                self.led = cmd;
                 self.ack(Kind::LedSet, seq, AckResult::Ok, 0);
             }
             Message::BuzzerSet { seq, cmd } => {
@@ -87,18 +91,15 @@ impl Node {
                     return;
                 }
                 // A refusal after a confirmation withdraws it.
-                if self.confirmed & port.mask() != 0 {
-                    self.confirmed &= !port.mask();
-                    if self.confirmed == 0 {
-                        self.relay = false;
-                    }
-                }
+                self.withdraw(port);
                 self.ack(Kind::DockRefuse, seq, AckResult::Ok, 0);
             }
+            Message::DockLink { seq, port, partner } => self.on_dock_link(seq, port, partner),
             Message::HealthCheck { seq } => {
                 let h = self.health(seq, now);
                 self.report(Message::HealthReply(h));
             }
+            Message::StateQuery { seq, parts } => self.on_state_query(seq, parts, now),
             // Assignment is dispatched before this; reports never get here.
             _ => {}
         }
@@ -119,6 +120,21 @@ impl Node {
         self.ack(Kind::DockConfirm, seq, AckResult::Ok, 0);
     }
 
+    /// `DockLink`: remember (or forget) which mobile element is docked on a confirmed port.
+    fn on_dock_link(&mut self, seq: Seq, port: Port, partner: Option<DockPartner>) {
+        if let Some((result, detail)) = self.dock_refusal(port) {
+            self.ack(Kind::DockLink, seq, result, detail);
+            return;
+        }
+        // A link is only kept while the port is confirmed; clearing is always fine.
+        if partner.is_some() && self.confirmed & port.mask() == 0 {
+            self.ack(Kind::DockLink, seq, AckResult::InvalidState, PORT_OFFSET);
+            return;
+        }
+        self.links[port.get() as usize] = partner;
+        self.ack(Kind::DockLink, seq, AckResult::Ok, 0);
+    }
+
     /// Why a dock command for `port` cannot apply to this node at all, as `(result, detail)`.
     fn dock_refusal(&self, port: Port) -> Option<(AckResult, u8)> {
         if !self.has_relay() {
@@ -136,32 +152,19 @@ impl Node {
     }
 
     fn set_buzzer(&mut self, cmd: BuzzerCommand, now: Millis) {
-        let (out, end) = match cmd {
-            BuzzerCommand::Off => (BuzzerOutput::Off, None),
-            BuzzerCommand::Continuous { freq_hz } => (BuzzerOutput::Tone { freq_hz }, None),
-            BuzzerCommand::Pattern {
-                freq_hz,
-                on_10ms,
-                off_10ms,
+        self.buzzer = cmd;
+        self.buzzer_end = match buzzer_output(cmd) {
+            BuzzerOutput::Pattern {
+                on_ms,
+                off_ms,
                 count,
-            } => {
-                let on_ms = ihex_proto::unit::to_ms(on_10ms);
-                let off_ms = ihex_proto::unit::to_ms(off_10ms);
+                ..
+            } if count > 0 => {
                 let len = u64::from(count) * (u64::from(on_ms) + u64::from(off_ms));
-                let end = (count > 0).then(|| now.add_ms(len));
-                (
-                    BuzzerOutput::Pattern {
-                        freq_hz,
-                        on_ms,
-                        off_ms,
-                        count,
-                    },
-                    end,
-                )
+                Some(now.add_ms(len))
             }
+            _ => None,
         };
-        self.buzzer = out;
-        self.buzzer_end = end;
     }
 
     fn ack(&mut self, kind: Kind, seq: Seq, result: AckResult, detail: u8) {
@@ -194,6 +197,25 @@ pub(crate) fn led_output(cmd: LedCommand) -> LedOutput {
         } => LedOutput {
             duty: scale(color, brightness),
             blink: Some((ihex_proto::unit::to_ms(period_10ms), duty_pct)),
+        },
+    }
+}
+
+/// The buzzer drive for a command: 10 ms units in milliseconds.
+pub(crate) fn buzzer_output(cmd: BuzzerCommand) -> BuzzerOutput {
+    match cmd {
+        BuzzerCommand::Off => BuzzerOutput::Off,
+        BuzzerCommand::Continuous { freq_hz } => BuzzerOutput::Tone { freq_hz },
+        BuzzerCommand::Pattern {
+            freq_hz,
+            on_10ms,
+            off_10ms,
+            count,
+        } => BuzzerOutput::Pattern {
+            freq_hz,
+            on_ms: ihex_proto::unit::to_ms(on_10ms),
+            off_ms: ihex_proto::unit::to_ms(off_10ms),
+            count,
         },
     }
 }

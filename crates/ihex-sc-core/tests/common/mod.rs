@@ -1,11 +1,17 @@
 //! Test harness shared by the behaviour tests: build nodes, send commands, collect outputs.
 #![allow(dead_code)]
 
-use ihex_proto::{BootRole, Message, NodeId, Packet, Port, ResetReason, Uid};
-use ihex_sc_core::{Config, Millis, Node, Output};
+use ihex_proto::{BootRole, FirmwareVersion, Message, NodeId, Packet, Port, ResetReason, Uid};
+use ihex_sc_core::{Config, FirmwareIdentity, Millis, Node, Output};
 
 pub const ID: u16 = 0x111;
 pub const UID: [u8; 12] = [1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12];
+/// The firmware every test node runs.
+pub const FIRMWARE: FirmwareIdentity = FirmwareIdentity {
+    version: FirmwareVersion::new(1, 4, 2),
+    image_hash: [0xA1, 0xA2, 0xA3, 0xA4, 0xA5, 0xA6, 0xA7],
+    trial: false,
+};
 
 pub fn id() -> NodeId {
     NodeId::new_sc(ID).unwrap()
@@ -22,6 +28,7 @@ pub fn config(role: BootRole, ports: u8, node_id: Option<NodeId>) -> Config {
         uid: Uid(UID),
         node_id,
         reset: ResetReason::PowerOn,
+        firmware: FIRMWARE,
     }
 }
 

@@ -16,8 +16,11 @@ mod record;
 use cortex_m_rt::entry;
 use cortex_m_semihosting::{debug, hprintln};
 use ihex_proto::filter::{sc_filters, to_bxcan};
-use ihex_proto::{AckResult, BootRole, Kind, Message, NodeId, Packet, Port, ResetReason, Uid};
-use ihex_sc_core::{Config, Millis, Node, Output, DEBOUNCE_MS};
+use ihex_proto::{
+    AckResult, BootRole, DockPartner, DockState, FirmwareVersion, Kind, Message, NodeId, Packet,
+    Port, ResetReason, StateParts, StateReport, Uid,
+};
+use ihex_sc_core::{Config, FirmwareIdentity, Millis, Node, Output, DEBOUNCE_MS};
 
 struct Suite {
     passed: u32,
@@ -51,6 +54,11 @@ fn config(node_id: Option<NodeId>, role: BootRole) -> Config {
         uid: Uid([1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12]),
         node_id,
         reset: ResetReason::PowerOn,
+        firmware: FirmwareIdentity {
+            version: FirmwareVersion::new(1, 2, 3),
+            image_hash: [7; 7],
+            trial: false,
+        },
     }
 }
 
@@ -188,6 +196,87 @@ fn static_node(s: &mut Suite) {
     s.check("relay off after undocking", !n.actuators().relay);
 }
 
+/// A docked, confirmed and linked port read back with a full state query.
+fn state_read_back(s: &mut Suite) {
+    let own = id(0x111);
+    let mut n = Node::new(config(Some(own), BootRole::Static), Millis(0));
+    let _ = drain(&mut n);
+    n.handle_loop_level(port(2), true, Millis(0));
+    let _ = run_until(&mut n, DEBOUNCE_MS);
+    let partner = Some(DockPartner {
+        node: id(0x002),
+        port: port(1),
+    });
+    let cmd = |msg| Packet::command(own, msg);
+    let _ = deliver(
+        &mut n,
+        cmd(Message::DockConfirm {
+            seq: 1,
+            port: port(2),
+        }),
+        100,
+    );
+    let outs = deliver(
+        &mut n,
+        cmd(Message::DockLink {
+            seq: 2,
+            port: port(2),
+            partner,
+        }),
+        100,
+    );
+    let ack = Packet::report(
+        own,
+        Message::Ack {
+            kind: Kind::DockLink,
+            seq: 2,
+            result: AckResult::Ok,
+            detail: 0,
+        },
+    );
+    s.check(
+        "DockLink on a confirmed port acknowledged Ok",
+        has_frame(&outs, &ack),
+    );
+
+    let outs = deliver(
+        &mut n,
+        cmd(Message::StateQuery {
+            seq: 5,
+            parts: StateParts::ALL,
+        }),
+        200,
+    );
+    let report = |r| Packet::report(own, Message::StateReport(r));
+    let dock = StateReport::Dock {
+        port: port(2),
+        state: DockState {
+            closed: true,
+            confirmed: true,
+            partner,
+        },
+    };
+    s.check(
+        "state reply reports the linked port",
+        has_frame(&outs, &report(dock)),
+    );
+    let uid = Uid([1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12]);
+    s.check(
+        "state reply reports the UID",
+        has_frame(&outs, &report(StateReport::UidLow(uid.low())))
+            && has_frame(&outs, &report(StateReport::UidHigh(uid.high()))),
+    );
+    let end = StateReport::End {
+        seq: 5,
+        parts: StateParts::ALL,
+        count: 8,
+    };
+    s.check(
+        "state reply closed by End counting 8 reports",
+        outs.len() == 9 && outs.last() == Some(&Output::Frame(report(end))),
+    );
+}
+
 fn unconfigured_node_gets_id_over_uart(s: &mut Suite) {
     let mut n = Node::new(config(None, BootRole::Static), Millis(0));
     let outs = run_until(&mut n, 500);
@@ -323,6 +412,7 @@ fn main() -> ! {
         failed: 0,
     };
     static_node(&mut s);
+    state_read_back(&mut s);
     unconfigured_node_gets_id_over_uart(&mut s);
     firmware_modules(&mut s);
     image_checks(&mut s);

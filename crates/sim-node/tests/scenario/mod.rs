@@ -6,8 +6,9 @@
 use std::time::Duration;
 
 use ihex_proto::{
-    filter::gateway_filters, AckResult, BootRole, BuzzerCommand, Kind, LedCommand, Message, NodeId,
-    Packet, Port, ResetReason, Rgb,
+    filter::gateway_filters, AckResult, BootRole, BuzzerCommand, DockPartner, DockState,
+    FirmwareVersion, Kind, LedCommand, Message, NodeId, Packet, Port, PowerState, ResetReason, Rgb,
+    StateParts, StateReport,
 };
 use ihex_sc_core::{BuzzerOutput, LedOutput};
 use sim_node::{
@@ -38,8 +39,9 @@ fn port(raw: u8) -> Port {
     Port::new(raw).expect("valid port")
 }
 
-/// The island every scenario uses: two static hexagons (111 with 6 ports, 112 with 4), a mobile
-/// element 2 that docks by its own port 1, a mobile 3, and a factory-fresh static 120.
+/// The island every scenario uses: two static hexagons (111 with 6 ports, 112 with 4 and a
+/// firmware of its own), a mobile element 2 that docks by its own port 1, a mobile 3, and a
+/// factory-fresh static 120.
 pub const ISLAND: &str = r#"
 [[static]]
 id = "111"
@@ -48,6 +50,8 @@ ports = 6
 [[static]]
 id = "112"
 ports = 4
+firmware = "2.3.4"
+image_hash = "00112233445566"
 
 [[static]]
 id = "120"
@@ -83,8 +87,32 @@ impl Gateway {
 
     /// Sends a command from the gateway.
     pub async fn send(&self, dest: NodeId, msg: Message) {
+        self.try_send(dest, msg).await.expect("gateway send");
+    }
+
+    /// Sends a command from the gateway; the send may fail (an interface that is down).
+    pub async fn try_send(&self, dest: NodeId, msg: Message) -> Result<(), sim_node::LinkError> {
         let frame = Packet::command(dest, msg).to_frame().expect("frame");
-        self.tx.send(frame).await.expect("gateway send");
+        self.tx.send(frame).await
+    }
+
+    /// The next packet matching `pred` within `wait` (unscaled), if any; others go to the backlog.
+    pub async fn within(
+        &mut self,
+        wait: Duration,
+        mut pred: impl FnMut(&Packet) -> bool,
+    ) -> Option<Packet> {
+        if let Some(i) = self.backlog.iter().position(&mut pred) {
+            return Some(self.backlog.remove(i));
+        }
+        let until = tokio::time::Instant::now() + wait;
+        while let Some(p) = self.next(until).await {
+            if pred(&p) {
+                return Some(p);
+            }
+            self.backlog.push(p);
+        }
+        None
     }
 
     async fn next(&mut self, until: tokio::time::Instant) -> Option<Packet> {
@@ -650,6 +678,161 @@ pub async fn can_assignment(link: Link) {
     assert_eq!(
         island.view(id(0x120)).await.unwrap().node_id,
         Some(id(0x456))
+    );
+    island.shutdown().await;
+}
+
+/// The reply of `src` to the state query `seq`: its reports up to and including `End`.
+pub async fn state_reply(gw: &mut Gateway, src: NodeId, seq: u8) -> Vec<StateReport> {
+    let mut out = Vec::new();
+    loop {
+        let p = gw
+            .expect(&format!("state report {} of {src}", out.len()), |p| {
+                p.src == src && matches!(p.msg, Message::StateReport(_))
+            })
+            .await;
+        let Message::StateReport(r) = p.msg else {
+            unreachable!("matched above")
+        };
+        out.push(r);
+        if let StateReport::End { seq: s, count, .. } = r {
+            assert_eq!(s, seq, "{src} answered another query: {out:?}");
+            assert_eq!(usize::from(count), out.len() - 1, "{src}: {out:?}");
+            return out;
+        }
+    }
+}
+
+/// A (restarted) gateway reads the island back: the commanded LED, the relay, the docking with
+/// the link it set, and every node's firmware and UID from the island file (or their defaults);
+/// the link goes with the undocking.
+pub async fn state_query(link: Link) {
+    let (mut gw, island) = start(&link, ISLAND).await;
+    dock_and_confirm(&mut gw, &island, 7).await;
+    let partner = DockPartner {
+        node: id(2),
+        port: port(1),
+    };
+    gw.send(
+        id(0x111),
+        Message::DockLink {
+            seq: 8,
+            port: port(3),
+            partner: Some(partner),
+        },
+    )
+    .await;
+    gw.expect_from(id(0x111), ack(Kind::DockLink, 8)).await;
+    let red = LedCommand::Steady {
+        color: Rgb::new(255, 0, 0),
+        brightness: 200,
+    };
+    gw.send(id(0x111), Message::LedSet { seq: 9, cmd: red })
+        .await;
+    gw.expect_from(id(0x111), ack(Kind::LedSet, 9)).await;
+
+    // One broadcast query: every configured, powered node answers in full.
+    gw.send(
+        NodeId::BROADCAST,
+        Message::StateQuery {
+            seq: 0x40,
+            parts: StateParts::ALL,
+        },
+    )
+    .await;
+    let desc = IslandDesc::parse(ISLAND).unwrap();
+    let default_fw = sim_node::desc::DEFAULT_FIRMWARE;
+    let identity = |node: u16, version: FirmwareVersion, hash: [u8; 7]| {
+        let uid = sim_node::desc::derived_uid(id(node));
+        [
+            StateReport::Firmware {
+                version,
+                trial: false,
+            },
+            StateReport::ImageHash(hash),
+            StateReport::UidLow(uid.low()),
+            StateReport::UidHigh(uid.high()),
+        ]
+    };
+    let mut want = vec![
+        StateReport::Led(red),
+        StateReport::Buzzer(BuzzerCommand::Off),
+        StateReport::Power(PowerState {
+            relay: true,
+            loops: port(3).mask(),
+            confirmed: port(3).mask(),
+            identify_s: 0,
+            role: BootRole::Static,
+            ports: 6,
+        }),
+        StateReport::Dock {
+            port: port(3),
+            state: DockState {
+                closed: true,
+                confirmed: true,
+                partner: Some(partner),
+            },
+        },
+    ];
+    want.extend(identity(
+        0x111,
+        default_fw,
+        sim_node::desc::simulated_image_hash(default_fw),
+    ));
+    want.push(StateReport::End {
+        seq: 0x40,
+        parts: StateParts::ALL,
+        count: 8,
+    });
+    assert_eq!(state_reply(&mut gw, id(0x111), 0x40).await, want);
+    assert_eq!(desc.statics[0].firmware.version, default_fw);
+
+    let r112 = state_reply(&mut gw, id(0x112), 0x40).await;
+    assert_eq!(
+        r112[3..7],
+        identity(
+            0x112,
+            FirmwareVersion::new(2, 3, 4),
+            [0x00, 0x11, 0x22, 0x33, 0x44, 0x55, 0x66]
+        )
+    );
+    let r2 = state_reply(&mut gw, id(2), 0x40).await;
+    assert_eq!(
+        r2[2],
+        StateReport::Power(PowerState {
+            relay: false,
+            loops: port(1).mask(),
+            confirmed: 0,
+            identify_s: 0,
+            role: BootRole::Mobile,
+            ports: 6,
+        })
+    );
+    assert_eq!(r2.len(), 8, "a mobile has no dock parts: {r2:?}");
+    gw.expect_none("a state report from a silent node", |p| {
+        matches!(p.msg, Message::StateReport(_)) && (p.src == id(3) || !p.src.is_sc())
+    })
+    .await;
+
+    // Undocked: the loop opens and the link goes with it.
+    island.undock(id(2)).await.expect("undock");
+    gw.expect_from(id(0x111), Message::DockRemoved { port: port(3) })
+        .await;
+    gw.send(
+        id(0x111),
+        Message::StateQuery {
+            seq: 0x41,
+            parts: StateParts(StateParts::DOCKING),
+        },
+    )
+    .await;
+    assert_eq!(
+        state_reply(&mut gw, id(0x111), 0x41).await,
+        [StateReport::End {
+            seq: 0x41,
+            parts: StateParts(StateParts::DOCKING),
+            count: 0
+        }]
     );
     island.shutdown().await;
 }
