@@ -2,8 +2,9 @@
 
 use crate::board::{Board, Layout};
 use crate::error::ImageError;
-use crate::header::{field, Digest, Header, Version, HEADER_BLOCK, HEADER_LEN, SIGNED_LEN};
+use crate::header::{field, Digest, Header, HEADER_BLOCK, HEADER_LEN, SIGNED_LEN};
 use crate::key::{PublicKey, SIGNATURE_LEN};
+use crate::FirmwareVersion;
 
 /// What a node accepts: its board and slot, the protocol it speaks, what it runs now.
 #[derive(Clone, Copy, PartialEq, Eq, Debug)]
@@ -18,7 +19,7 @@ pub struct Policy {
     /// The node's CAN protocol major.
     pub protocol_major: u8,
     /// The running firmware's version.
-    pub running: Version,
+    pub running: FirmwareVersion,
     /// Accept an older version than `running` (a forced downgrade).
     pub allow_downgrade: bool,
 }
@@ -26,7 +27,12 @@ pub struct Policy {
 impl Policy {
     /// The policy of a `board` with `layout`, speaking `protocol_major`, running `running`;
     /// downgrades refused.
-    pub const fn new(board: Board, layout: &Layout, protocol_major: u8, running: Version) -> Self {
+    pub const fn new(
+        board: Board,
+        layout: &Layout,
+        protocol_major: u8,
+        running: FirmwareVersion,
+    ) -> Self {
         Policy {
             board,
             load_addr: layout.app_start(),

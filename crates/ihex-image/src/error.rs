@@ -3,7 +3,7 @@
 use core::fmt;
 
 use crate::board::Board;
-use crate::header::Version;
+use crate::FirmwareVersion;
 
 /// Why an image is refused. A node reports each as a refusal reason on the bus and keeps running
 /// its current image.
@@ -72,9 +72,9 @@ pub enum ImageError {
     /// Older than the running firmware, and the update was not forced.
     Downgrade {
         /// The image's version.
-        image: Version,
+        image: FirmwareVersion,
         /// The running version.
-        running: Version,
+        running: FirmwareVersion,
     },
     /// The payload (or the header block as stored) does not hash to what the header says.
     Corrupted,

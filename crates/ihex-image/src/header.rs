@@ -23,7 +23,8 @@
 //! refuses instead of misreading.
 
 use core::fmt;
-use core::str::FromStr;
+
+use ihex_proto::FirmwareVersion;
 
 use crate::board::Board;
 use crate::error::ImageError;
@@ -75,98 +76,6 @@ pub mod field {
     pub const SIGNATURE: Range<usize> = super::HEADER_LEN..super::SIGNED_LEN;
 }
 
-/// A firmware version, `major.minor.patch`, compared in that order.
-#[derive(Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Debug, Default)]
-#[cfg_attr(feature = "defmt", derive(defmt::Format))]
-pub struct Version {
-    /// Major.
-    pub major: u8,
-    /// Minor.
-    pub minor: u8,
-    /// Patch.
-    pub patch: u8,
-}
-
-impl Version {
-    /// `major.minor.patch`.
-    pub const fn new(major: u8, minor: u8, patch: u8) -> Self {
-        Version {
-            major,
-            minor,
-            patch,
-        }
-    }
-}
-
-impl Version {
-    /// From three decimal strings such as `env!("CARGO_PKG_VERSION_MAJOR")`, at compile time;
-    /// `None` if one is not a number `0..=255`.
-    pub const fn from_decimal(major: &str, minor: &str, patch: &str) -> Option<Version> {
-        match (
-            decimal_u8(major.as_bytes()),
-            decimal_u8(minor.as_bytes()),
-            decimal_u8(patch.as_bytes()),
-        ) {
-            (Some(major), Some(minor), Some(patch)) => Some(Version::new(major, minor, patch)),
-            _ => None,
-        }
-    }
-}
-
-/// A decimal `0..=255` without sign or spaces.
-const fn decimal_u8(b: &[u8]) -> Option<u8> {
-    if b.is_empty() || b.len() > 3 {
-        return None;
-    }
-    let mut v: u16 = 0;
-    let mut i = 0;
-    while i < b.len() {
-        if !b[i].is_ascii_digit() {
-            return None;
-        }
-        v = v * 10 + (b[i] - b'0') as u16;
-        i += 1;
-    }
-    if v > 255 {
-        None
-    } else {
-        Some(v as u8)
-    }
-}
-
-impl fmt::Display for Version {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        write!(f, "{}.{}.{}", self.major, self.minor, self.patch)
-    }
-}
-
-/// Why a text is not a [`Version`].
-#[derive(Clone, Copy, PartialEq, Eq, Debug)]
-pub struct VersionParseError;
-
-impl fmt::Display for VersionParseError {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.write_str("expected a version MAJOR.MINOR.PATCH with each part 0..=255")
-    }
-}
-
-impl core::error::Error for VersionParseError {}
-
-impl FromStr for Version {
-    type Err = VersionParseError;
-
-    /// `1.2.3` (each part a decimal `0..=255`).
-    fn from_str(s: &str) -> Result<Self, Self::Err> {
-        let mut parts = s.trim().split('.');
-        let mut next = || parts.next().ok_or(VersionParseError);
-        let (major, minor, patch) = (next()?, next()?, next()?);
-        if parts.next().is_some() {
-            return Err(VersionParseError);
-        }
-        Version::from_decimal(major, minor, patch).ok_or(VersionParseError)
-    }
-}
-
 /// A SHA-512 digest.
 #[derive(Clone, Copy, PartialEq, Eq, Hash)]
 pub struct Digest(pub [u8; 64]);
@@ -210,7 +119,7 @@ pub struct Header {
     /// The CAN protocol version the firmware speaks (major, minor).
     pub protocol: (u8, u8),
     /// The firmware version.
-    pub version: Version,
+    pub version: FirmwareVersion,
     /// Payload bytes after the header block.
     pub payload_len: u32,
     /// Address the payload is linked to run at (slot start + [`HEADER_BLOCK`]).
@@ -278,12 +187,19 @@ impl Header {
         Ok(Header {
             board: Board(u16::from_le_bytes([b[6], b[7]])),
             protocol: (b[field::PROTOCOL_MAJOR], b[field::PROTOCOL_MINOR]),
-            version: Version::new(b[10], b[11], b[12]),
+            version: FirmwareVersion::new(b[10], b[11], b[12]),
             payload_len,
             load_addr: u32::from_le_bytes([b[20], b[21], b[22], b[23]]),
             key_id: KeyId(key_id),
             payload_hash: Digest(hash),
         })
+    }
+
+    /// The image's ID: the first 4 bytes of `payload_hash`, little-endian. A transfer names the
+    /// image it carries by it (`ihex_proto::Message::FwBegin`), and a node checks it against the
+    /// header it receives.
+    pub fn image_id(&self) -> u32 {
+        u32::from_le_bytes(self.payload_hash.prefix::<4>())
     }
 
     /// Length of the whole image file: header block plus payload.
@@ -320,7 +236,7 @@ pub struct FwInfo {
     /// The CAN protocol version it speaks.
     pub protocol: (u8, u8),
     /// Its version.
-    pub version: Version,
+    pub version: FirmwareVersion,
 }
 
 impl FwInfo {
@@ -358,7 +274,7 @@ impl FwInfo {
         Some(FwInfo {
             board: Board(u16::from_le_bytes([b[4], b[5]])),
             protocol: (b[6], b[7]),
-            version: Version::new(b[8], b[9], b[10]),
+            version: FirmwareVersion::new(b[8], b[9], b[10]),
         })
     }
 }

@@ -60,10 +60,11 @@ mod tool;
 pub use board::{Board, Layout, Region};
 pub use check::{check_len, check_signed, header_block_digest, verify_image, Hasher, Policy};
 pub use error::{ImageError, KeyTextError};
-pub use header::{
-    Digest, FwInfo, Header, Version, FORMAT, HEADER_BLOCK, HEADER_LEN, MAGIC, SIGNED_LEN,
-};
+pub use header::{Digest, FwInfo, Header, FORMAT, HEADER_BLOCK, HEADER_LEN, MAGIC, SIGNED_LEN};
 pub use key::{KeyId, PublicKey, SIGNATURE_LEN};
+
+/// The firmware version type (the protocol's: `StateReport::Firmware` carries it).
+pub use ihex_proto::FirmwareVersion;
 
 #[cfg(feature = "std")]
 pub use tool::{load_public, pack, pack_elf, Inspection, PackOverrides, SigningKey, ToolError};

@@ -8,9 +8,10 @@ use std::path::Path;
 use crate::board::Board;
 use crate::check::{check_len, Hasher};
 use crate::error::{ImageError, KeyTextError};
-use crate::header::{field, Header, Version, HEADER_BLOCK, HEADER_LEN, SIGNED_LEN};
+use crate::header::{field, Header, HEADER_BLOCK, HEADER_LEN, SIGNED_LEN};
 use crate::hex::parse_key_text;
 use crate::key::{PublicKey, SIGNATURE_LEN};
+use crate::FirmwareVersion;
 
 /// What the tools can fail at.
 #[derive(Debug, thiserror::Error)]
@@ -197,7 +198,7 @@ fn read_text(path: &Path) -> Result<String, ToolError> {
 pub fn pack(
     board: Board,
     protocol: (u8, u8),
-    version: Version,
+    version: FirmwareVersion,
     payload: &[u8],
     key: &SigningKey,
 ) -> Result<Vec<u8>, ToolError> {
@@ -237,7 +238,7 @@ pub struct PackOverrides {
     /// The protocol version (major, minor).
     pub protocol: Option<(u8, u8)>,
     /// The firmware version.
-    pub version: Option<Version>,
+    pub version: Option<FirmwareVersion>,
 }
 
 /// Packs a firmware ELF: its [`crate::FwInfo`] record (or `overrides`) gives board, protocol and
@@ -358,6 +359,7 @@ impl fmt::Display for Inspection {
         )?;
         writeln!(f, "image         {} bytes", h.image_len())?;
         writeln!(f, "sha512        {}", h.payload_hash)?;
+        writeln!(f, "image id      {:08x}", h.image_id())?;
         writeln!(f, "key id        {}", h.key_id)?;
         match &self.length {
             Ok(()) => writeln!(f, "length        ok")?,

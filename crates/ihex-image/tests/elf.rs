@@ -2,8 +2,8 @@
 
 use ihex_image::elf::{flatten, fw_info, ElfError};
 use ihex_image::{
-    board::F303RE, pack_elf, verify_image, Board, FwInfo, PackOverrides, Policy, SigningKey,
-    ToolError, Version,
+    board::F303RE, pack_elf, verify_image, Board, FirmwareVersion, FwInfo, PackOverrides, Policy,
+    SigningKey, ToolError,
 };
 
 const PT_LOAD: u32 = 1;
@@ -119,7 +119,7 @@ fn info() -> FwInfo {
     FwInfo {
         board: Board::NUCLEO_F303RE,
         protocol: (1, 0),
-        version: Version::new(0, 3, 1),
+        version: FirmwareVersion::new(0, 3, 1),
     }
 }
 
@@ -164,21 +164,26 @@ fn code_then_data_at_their_load_addresses() {
     // Packed: the header takes board, protocol and version from the record.
     let key = SigningKey::test_key();
     let img = pack_elf(&file, PackOverrides::default(), &key).unwrap();
-    let policy = Policy::new(Board::NUCLEO_F303RE, &F303RE, 1, Version::new(0, 1, 0));
+    let policy = Policy::new(
+        Board::NUCLEO_F303RE,
+        &F303RE,
+        1,
+        FirmwareVersion::new(0, 1, 0),
+    );
     let h = verify_image(&img, &key.public(), &policy).unwrap();
     assert_eq!(
         (h.version, h.protocol, h.payload_len),
-        (Version::new(0, 3, 1), (1, 0), 0x110)
+        (FirmwareVersion::new(0, 3, 1), (1, 0), 0x110)
     );
     assert_eq!(&img[512..], &flat.bytes[..]);
     // Overrides that agree are fine; one that contradicts the record is refused.
     let same = PackOverrides {
-        version: Some(Version::new(0, 3, 1)),
+        version: Some(FirmwareVersion::new(0, 3, 1)),
         ..Default::default()
     };
     assert_eq!(pack_elf(&file, same, &key).unwrap(), img);
     let other = PackOverrides {
-        version: Some(Version::new(0, 4, 0)),
+        version: Some(FirmwareVersion::new(0, 4, 0)),
         ..Default::default()
     };
     assert!(matches!(
@@ -208,7 +213,7 @@ fn without_a_record_the_fields_must_be_given() {
     let given = PackOverrides {
         board: Some(Board::NUCLEO_F303RE),
         protocol: Some((1, 0)),
-        version: Some(Version::new(2, 0, 0)),
+        version: Some(FirmwareVersion::new(2, 0, 0)),
     };
     let img = pack_elf(&file, given, &key).unwrap();
     assert_eq!(img.len(), 512 + 64);

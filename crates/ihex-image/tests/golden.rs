@@ -4,8 +4,8 @@ mod common;
 
 use common::{header_for, key, payload, unhex};
 use ihex_image::{
-    header_block_digest, Board, Digest, FwInfo, Hasher, Header, KeyId, PublicKey, SigningKey,
-    Version, HEADER_BLOCK, SIGNED_LEN,
+    header_block_digest, Board, Digest, FirmwareVersion, FwInfo, Hasher, Header, KeyId, PublicKey,
+    SigningKey, HEADER_BLOCK, SIGNED_LEN,
 };
 
 #[test]
@@ -13,7 +13,7 @@ fn header_bytes() {
     let h = Header {
         board: Board::NUCLEO_F303RE,
         protocol: (1, 1),
-        version: Version::new(2, 10, 255),
+        version: FirmwareVersion::new(2, 10, 255),
         payload_len: 0x0001_2345,
         load_addr: 0x0800_7200,
         key_id: KeyId([0xA0, 0xA1, 0xA2, 0xA3, 0xA4, 0xA5, 0xA6, 0xA7]),
@@ -38,7 +38,7 @@ fn fw_info_bytes() {
     let info = FwInfo {
         board: Board::NUCLEO_F303RE,
         protocol: (1, 0),
-        version: Version::new(0, 1, 0),
+        version: FirmwareVersion::new(0, 1, 0),
     };
     let b = info.encode();
     assert_eq!(b.to_vec(), unhex("69 48 46 49 01 00 01 00 00 01 00 00"));
@@ -135,21 +135,4 @@ fn signed_header_block() {
         header_block_digest(&signed),
         Hasher::digest(&img[..HEADER_BLOCK])
     );
-}
-
-#[test]
-fn versions_parse_and_order() {
-    assert_eq!("1.2.3".parse(), Ok(Version::new(1, 2, 3)));
-    assert_eq!(" 0.10.255 ".parse(), Ok(Version::new(0, 10, 255)));
-    for bad in ["1.2", "1.2.3.4", "1.2.256", "1.-2.3", "a.b.c", "1..3", ""] {
-        assert!(bad.parse::<Version>().is_err(), "{bad}");
-    }
-    assert!(Version::new(1, 2, 3) < Version::new(1, 10, 0));
-    assert!(Version::new(2, 0, 0) > Version::new(1, 255, 255));
-    assert_eq!(Version::new(3, 0, 7).to_string(), "3.0.7");
-    assert_eq!(
-        Version::from_decimal("0", "1", "0"),
-        Some(Version::new(0, 1, 0))
-    );
-    assert_eq!(Version::from_decimal("0", "1", "x"), None);
 }

@@ -4,7 +4,7 @@ mod common;
 
 use common::{key, policy};
 use ihex_image::{
-    check_signed, pack, verify_image, Board, Header, Inspection, Version, HEADER_LEN,
+    check_signed, pack, verify_image, Board, FirmwareVersion, Header, Inspection, HEADER_LEN,
 };
 use proptest::prelude::*;
 
@@ -35,7 +35,7 @@ proptest! {
         minor in 0u8..=255,
         patch in 0u8..=255,
     ) {
-        let v = Version::new(1, minor.max(3), patch);
+        let v = FirmwareVersion::new(1, minor.max(3), patch);
         let img = pack(Board::NUCLEO_F303RE, (1, 0), v, &payload, &key()).unwrap();
         let h = verify_image(&img, &key().public(), &policy()).unwrap();
         prop_assert_eq!(h.version, v);
@@ -45,7 +45,7 @@ proptest! {
 
     #[test]
     fn any_byte_changed_is_refused(pos in 0usize..1512, x in 1u8..=255) {
-        let mut img = common::image(Version::new(1, 2, 3));
+        let mut img = common::image(FirmwareVersion::new(1, 2, 3));
         img[pos] ^= x;
         prop_assert!(verify_image(&img, &key().public(), &policy()).is_err());
     }

@@ -4,11 +4,11 @@ mod common;
 
 use common::{header_for, image, key, payload, policy, sign_raw};
 use ihex_image::{
-    board::F303RE, check_len, check_signed, pack, verify_image, Board, Hasher, ImageError,
-    Inspection, SigningKey, Version, HEADER_BLOCK, SIGNED_LEN,
+    board::F303RE, check_len, check_signed, pack, verify_image, Board, FirmwareVersion, Hasher,
+    ImageError, Inspection, SigningKey, HEADER_BLOCK, SIGNED_LEN,
 };
 
-const V: Version = Version::new(1, 2, 3);
+const V: FirmwareVersion = FirmwareVersion::new(1, 2, 3);
 
 #[test]
 fn a_good_image_verifies_and_inspects_clean() {
@@ -190,11 +190,11 @@ fn too_large() {
 #[test]
 fn downgrade_unless_forced() {
     let k = key().public();
-    let older = image(Version::new(1, 2, 2));
+    let older = image(FirmwareVersion::new(1, 2, 2));
     assert_eq!(
         verify_image(&older, &k, &policy()),
         Err(ImageError::Downgrade {
-            image: Version::new(1, 2, 2),
+            image: FirmwareVersion::new(1, 2, 2),
             running: V
         })
     );
@@ -203,7 +203,7 @@ fn downgrade_unless_forced() {
     assert!(verify_image(&older, &k, &forced).is_ok());
     // The same version (a re-install) and newer ones are no downgrade.
     assert!(verify_image(&image(V), &k, &policy()).is_ok());
-    assert!(verify_image(&image(Version::new(1, 3, 0)), &k, &policy()).is_ok());
+    assert!(verify_image(&image(FirmwareVersion::new(1, 3, 0)), &k, &policy()).is_ok());
 }
 
 #[test]

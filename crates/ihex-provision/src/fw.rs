@@ -8,7 +8,8 @@ use std::path::{Path, PathBuf};
 use anyhow::{bail, Context, Result};
 use clap::{Args, Subcommand};
 use ihex_image::{
-    load_public, pack, pack_elf, Board, Inspection, PackOverrides, PublicKey, SigningKey, Version,
+    load_public, pack, pack_elf, Board, FirmwareVersion, Inspection, PackOverrides, PublicKey,
+    SigningKey,
 };
 
 /// The `fw` verbs.
@@ -62,7 +63,7 @@ pub struct PackArgs {
     board: Option<Board>,
     /// The firmware version MAJOR.MINOR.PATCH; from the ELF's IHEX_FW_INFO when it has one.
     #[arg(long)]
-    version: Option<Version>,
+    version: Option<FirmwareVersion>,
     /// The CAN protocol version MAJOR.MINOR; from the ELF's IHEX_FW_INFO when it has one.
     #[arg(long, value_parser = parse_protocol)]
     protocol: Option<(u8, u8)>,

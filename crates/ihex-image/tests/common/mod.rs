@@ -2,7 +2,7 @@
 #![allow(dead_code)]
 
 use ihex_image::{
-    board::F303RE, pack, Board, Hasher, Header, Policy, SigningKey, Version, HEADER_BLOCK,
+    board::F303RE, pack, Board, FirmwareVersion, Hasher, Header, Policy, SigningKey, HEADER_BLOCK,
 };
 
 pub fn unhex(s: &str) -> Vec<u8> {
@@ -19,7 +19,12 @@ pub fn key() -> SigningKey {
 
 /// A node on the F303RE running 1.2.3, protocol 1.
 pub fn policy() -> Policy {
-    Policy::new(Board::NUCLEO_F303RE, &F303RE, 1, Version::new(1, 2, 3))
+    Policy::new(
+        Board::NUCLEO_F303RE,
+        &F303RE,
+        1,
+        FirmwareVersion::new(1, 2, 3),
+    )
 }
 
 /// A deterministic payload of `len` bytes.
@@ -28,7 +33,7 @@ pub fn payload(len: usize) -> Vec<u8> {
 }
 
 /// A good image of version `v` with a 1000-byte payload.
-pub fn image(v: Version) -> Vec<u8> {
+pub fn image(v: FirmwareVersion) -> Vec<u8> {
     pack(Board::NUCLEO_F303RE, (1, 0), v, &payload(1000), &key()).unwrap()
 }
 
@@ -47,7 +52,7 @@ pub fn header_for(payload: &[u8]) -> Header {
     Header {
         board: Board::NUCLEO_F303RE,
         protocol: (1, 0),
-        version: Version::new(1, 2, 3),
+        version: FirmwareVersion::new(1, 2, 3),
         payload_len: payload.len() as u32,
         load_addr: F303RE.app_start(),
         key_id: key().public().id(),
