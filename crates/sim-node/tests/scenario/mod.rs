@@ -51,7 +51,6 @@ ports = 6
 id = "112"
 ports = 4
 firmware = "2.3.4"
-image_hash = "00112233445566"
 
 [[static]]
 id = "120"
@@ -793,7 +792,7 @@ pub async fn state_query(link: Link) {
         identity(
             0x112,
             FirmwareVersion::new(2, 3, 4),
-            [0x00, 0x11, 0x22, 0x33, 0x44, 0x55, 0x66]
+            sim_node::desc::simulated_image_hash(FirmwareVersion::new(2, 3, 4))
         )
     );
     let r2 = state_reply(&mut gw, id(2), 0x40).await;
