@@ -14,7 +14,7 @@ fn main() {
     let image = ihex_image::pack(
         ihex_image::Board::NUCLEO_F303RE,
         (1, 0),
-        ihex_image::Version::new(1, 2, 3),
+        ihex_image::FirmwareVersion::new(1, 2, 3),
         &payload,
         &ihex_image::SigningKey::test_key(),
     )

@@ -1,21 +1,22 @@
-//! The firmware's own identity: what it is built as ([`IHEX_FW_INFO`], read back by the packer) and
-//! the key it trusts ([`FW_PUBLIC_KEY`], from `IHEX_FW_PUBKEY` at build time). The identity of the
-//! image it *runs* is the signed header at the start of the active slot
+//! The firmware's own identity: what it is built as ([`IHEX_FW_INFO`], read back by the packer),
+//! the key it trusts ([`FW_PUBLIC_KEY`], from `IHEX_FW_PUBKEY` at build time), and what it tells
+//! the node core about the image it *runs* — the signed header at the start of the active slot
 //! ([`crate::update::running_header`]), which moves with the image when the bootloader swaps or
 //! reverts.
 
-use ihex_image::{Board, FwInfo, Version};
+use defmt::warn;
+use ihex_image::board::F303RE;
+use ihex_image::{Board, FirmwareVersion, FwInfo, Header, PublicKey};
+use ihex_sc_core::{FirmwareIdentity, UpdateConfig};
+
+use crate::update::BootState;
 
 include!(concat!(env!("OUT_DIR"), "/pubkey.rs"));
 
-/// This build's version (the crate version).
-pub const VERSION: Version = match Version::from_decimal(
-    env!("CARGO_PKG_VERSION_MAJOR"),
-    env!("CARGO_PKG_VERSION_MINOR"),
-    env!("CARGO_PKG_VERSION_PATCH"),
-) {
+/// This build's version, from the crate's (checked at compile time).
+pub const VERSION: FirmwareVersion = match FirmwareVersion::parse(env!("CARGO_PKG_VERSION")) {
     Some(v) => v,
-    None => panic!("the crate version must be MAJOR.MINOR.PATCH with parts 0..=255"),
+    None => panic!("the crate version must be MAJOR.MINOR.PATCH with numbers up to 255"),
 };
 
 /// What this build is: board, protocol, version.
@@ -36,4 +37,41 @@ pub fn stored_info() -> Option<FwInfo> {
     // SAFETY: a plain read of an initialised static.
     let b = unsafe { core::ptr::read_volatile(&IHEX_FW_INFO) };
     FwInfo::parse(&b)
+}
+
+/// What the node reports about its firmware: the running image's version and hash from its
+/// header, or — an application flashed without one — this build's version and an all-zero
+/// (unknown) hash; on trial while the bootloader says so.
+pub fn identity(header: Option<&Header>, boot: BootState) -> FirmwareIdentity {
+    let trial = boot == BootState::Trial;
+    match header {
+        Some(h) => {
+            if h.version != VERSION {
+                warn!(
+                    "image header says {} but this code was built as {}",
+                    h.version, VERSION
+                );
+            }
+            FirmwareIdentity {
+                version: h.version,
+                image_hash: h.payload_hash.prefix::<7>(),
+                trial,
+            }
+        }
+        None => FirmwareIdentity {
+            version: VERSION,
+            image_hash: [0; 7],
+            trial,
+        },
+    }
+}
+
+/// What the node core needs to take updates on this board.
+pub fn update_config(boot: BootState) -> UpdateConfig {
+    UpdateConfig {
+        board: Board::NUCLEO_F303RE,
+        key: PublicKey::from_bytes(FW_PUBLIC_KEY),
+        layout: &F303RE,
+        reverted: boot == BootState::Reverted,
+    }
 }
