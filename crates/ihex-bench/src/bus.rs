@@ -1,32 +1,7 @@
-//! The physical limit of a classic CAN bus: bit lengths of extended data frames (with and without
-//! worst-case bit stuffing) and the frame rates they allow at a given bitrate.
-//!
-//! An extended data frame with `n` data bytes is, field by field: SOF 1, base ID 11, SRR 1, IDE 1,
-//! extended ID 18, RTR 1, r1 + r0 2, DLC 4, data 8n, CRC 15, CRC delimiter 1, ACK slot 1, ACK
-//! delimiter 1, EOF 7 — 64 + 8n bits — plus the 3-bit interframe space before the next frame can
-//! start: **67 + 8n** bits. Stuffing covers SOF through the CRC (54 + 8n bits); after the first
-//! five equal bits every further four can force one stuff bit, so the worst case adds
-//! **floor((54 + 8n − 1) / 4)** bits. 8 data bytes: 131 bits plain, 160 worst case.
+//! The physical limit of a classic CAN bus: the frame rates the frame bit lengths
+//! ([`ihex_proto::bits`], where the field-by-field count is written) allow at a given bitrate.
 
-/// Bits from SOF to the end of the CRC sequence (the stuffed region) of an extended frame.
-pub const fn stuffed_region_bits(data_len: u8) -> u32 {
-    54 + 8 * data_len as u32
-}
-
-/// Bits of an extended data frame including the 3-bit interframe space, without stuff bits.
-pub const fn frame_bits(data_len: u8) -> u32 {
-    67 + 8 * data_len as u32
-}
-
-/// The most stuff bits an extended frame with `data_len` bytes can carry.
-pub const fn worst_stuff_bits(data_len: u8) -> u32 {
-    (stuffed_region_bits(data_len) - 1) / 4
-}
-
-/// Bits of an extended data frame with worst-case stuffing, interframe space included.
-pub const fn frame_bits_worst(data_len: u8) -> u32 {
-    frame_bits(data_len) + worst_stuff_bits(data_len)
-}
+pub use ihex_proto::bits::{frame_bits, frame_bits_worst, stuffed_region_bits, worst_stuff_bits};
 
 /// Back-to-back frames per second at `bitrate` for frames of `bits` bits.
 pub fn frames_per_second(bitrate: u32, bits: u32) -> f64 {

@@ -35,6 +35,7 @@ pub mod command;
 pub mod docking;
 pub mod error_frame;
 pub mod event;
+pub mod fwupdate;
 pub mod registry;
 pub mod throttle;
 pub mod topic;

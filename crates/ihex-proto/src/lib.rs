@@ -34,6 +34,7 @@
 #[macro_use]
 mod macros;
 mod addr;
+pub mod bits;
 pub mod dbc;
 mod error;
 pub mod field;
