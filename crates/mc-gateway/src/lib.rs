@@ -20,6 +20,7 @@ pub mod config;
 #[cfg(feature = "demo")]
 pub mod demo;
 pub mod error;
+pub mod fw;
 pub mod log;
 pub mod mqtt;
 pub mod run;

@@ -135,6 +135,7 @@ impl Gateway {
             pub_tx,
             topics: config.topics.clone(),
             dropped: 0,
+            fw_dir: config.settings.fw_dir.clone(),
         };
         let result = core.run(can_in, mqtt_in, &mut tasks, &cancel).await;
 
@@ -160,6 +161,8 @@ struct Core {
     pub_tx: mpsc::Sender<Outbound>,
     topics: Topics,
     dropped: u64,
+    /// `--fw-dir`: where `fw_update` images are read from.
+    fw_dir: Option<std::path::PathBuf>,
 }
 
 impl Core {
@@ -176,7 +179,14 @@ impl Core {
             // Unbiased on purpose: a timer that is always due must not starve the inputs, nor a
             // flood of frames the timers.
             tokio::select! {
-                _ = cancel.cancelled() => return Ok(()),
+                _ = cancel.cancelled() => {
+                    if self.bridge.fw_update_running() {
+                        // Best effort: the aborts and the report go out if the tasks still run.
+                        self.bridge.cancel_fw_update("the gateway stopped", Instant::now());
+                        self.carry_out();
+                    }
+                    return Ok(());
+                }
                 r = tasks.join_next() => {
                     if cancel.is_cancelled() {
                         // Tasks end on cancellation; the caller joins the rest.
@@ -211,6 +221,10 @@ impl Core {
     /// Drains the bridge's outputs without ever waiting: a full CAN queue is a failed send the bridge
     /// hears about, a full publication queue a counted drop.
     fn carry_out(&mut self) {
+        while let Some(load) = self.bridge.poll_fw_load() {
+            let bytes = crate::fw::read_image(self.fw_dir.as_deref(), &load.image);
+            self.bridge.handle_fw_image(load, bytes, Instant::now());
+        }
         loop {
             while let Some(packet) = self.bridge.poll_transmit() {
                 let reason = match self.can_tx.try_send(packet) {

@@ -13,6 +13,7 @@
 mod commands;
 mod diagnostics;
 mod dock;
+mod fw;
 mod health;
 mod output;
 #[cfg(test)]
@@ -24,15 +25,17 @@ use ihex_proto::{AckResult, DecodeError, Kind, Message, NodeId, Packet};
 
 pub use commands::CommandCounters;
 pub use diagnostics::{BusEvent, BusHealth, ERROR_EVENT_WINDOW};
+pub use fw::FwLoad;
 pub use output::{Publication, Topic};
 
-use crate::command::{self, Command, CommandError};
+use crate::command::{self, Command, CommandError, FwNodes};
 use crate::docking::Docking;
 use crate::event::{CommandRejected, Connection, Event, HexId, NodeList, NodeState, Target};
 use crate::registry::Registry;
 use commands::Commands;
 use diagnostics::Diagnostics;
 use dock::DockParts;
+use fw::FwUpdates;
 use health::Health;
 use output::Outputs;
 
@@ -49,6 +52,8 @@ pub struct BridgeConfig {
     pub command_timeout: Duration,
     /// Largest accepted command payload in bytes; larger ones are `command_rejected`.
     pub max_command_bytes: usize,
+    /// Firmware updates (`fw_update`): bus share and timeouts.
+    pub fw: crate::fwupdate::FwConfig,
 }
 
 /// Default period of the broadcast health check (the seed's 1 s).
@@ -70,6 +75,7 @@ impl Default for BridgeConfig {
             dock_timeout: DEFAULT_DOCK_TIMEOUT,
             command_timeout: DEFAULT_COMMAND_TIMEOUT,
             max_command_bytes: DEFAULT_MAX_COMMAND_BYTES,
+            fw: crate::fwupdate::FwConfig::default(),
         }
     }
 }
@@ -87,6 +93,7 @@ pub struct Bridge {
     commands: Commands,
     health: Health,
     diagnostics: Diagnostics,
+    fw: FwUpdates,
 }
 
 impl Bridge {
@@ -100,6 +107,7 @@ impl Bridge {
             commands: Commands::new(config.command_timeout),
             health: Health::new(config.health_period, config.lost_after_misses, now),
             diagnostics: Diagnostics::new(),
+            fw: FwUpdates::new(config.fw.clone()),
             config,
         }
     }
@@ -188,6 +196,11 @@ impl Bridge {
                     &mut self.out,
                 )
             }
+            Command::FwUpdate {
+                image,
+                nodes,
+                force,
+            } => return self.request_fw_update(request_id, image, nodes, force),
             Command::Assign { uid, new_id, force } => {
                 if !force && self.registry.get(new_id).is_some_and(|e| e.online) {
                     return self.reject(request_id, CommandError::IdInUse(HexId(new_id)));
@@ -227,8 +240,10 @@ impl Bridge {
         self.health
             .on_heard(&mut self.registry, src, &packet.msg, now, &mut self.out);
         match packet.msg {
+            Message::BootUp { .. } => self.fw.on_boot_up(src, now, &mut self.out),
             // Handled by `on_heard`.
-            Message::BootUp { .. } | Message::HealthReply(_) => {}
+            Message::HealthReply(_) => {}
+            Message::FwStatus(st) => self.fw.on_status(src, st, now, &mut self.out),
             Message::Ack {
                 kind, seq, result, ..
             } => self.on_ack(src, kind, seq, result, now),
@@ -277,8 +292,14 @@ impl Bridge {
     /// A bus condition (error frame, bus-off, interface down/up, drops).
     pub fn handle_bus_event(&mut self, event: BusEvent, now: Instant) {
         match event {
-            BusEvent::BusOff | BusEvent::InterfaceDown => self.health.on_bus_down(),
-            BusEvent::Recovered => self.health.on_recovered(now),
+            BusEvent::BusOff | BusEvent::InterfaceDown => {
+                self.health.on_bus_down();
+                self.fw.on_bus(true, now, &mut self.out);
+            }
+            BusEvent::Recovered => {
+                self.health.on_recovered(now);
+                self.fw.on_bus(false, now, &mut self.out);
+            }
             _ => {}
         }
         self.diagnostics.on_bus_event(event, now, &mut self.out);
@@ -313,8 +334,26 @@ impl Bridge {
         self.out.dirty.clear();
     }
 
+    /// The image file of an `fw_update` ([`Bridge::poll_fw_load`]) was read (`Ok`), or could not
+    /// be (`Err`: why, for the `command_result`). A good image starts the update.
+    pub fn handle_fw_image(&mut self, load: FwLoad, bytes: Result<Vec<u8>, String>, now: Instant) {
+        self.fw.on_image(load, bytes, now, &mut self.out);
+    }
+
+    /// Stops a running firmware update (the gateway is shutting down): its nodes are told to drop
+    /// the transfer and `fw_report` says `failed` with `reason` for every node not done yet.
+    pub fn cancel_fw_update(&mut self, reason: &str, now: Instant) {
+        self.fw.cancel(reason, now, &mut self.out);
+    }
+
+    /// True while a firmware update is loading or running.
+    pub fn fw_update_running(&self) -> bool {
+        self.fw.busy()
+    }
+
     /// Advances timers: ack and docking timeouts, the health broadcast and lost nodes.
     pub fn handle_timeout(&mut self, now: Instant) {
+        self.fw.tick(now, &mut self.out);
         self.commands.expire(now, &mut self.out);
         let steps = self.docking.tick(now);
         self.apply(steps, now);
@@ -348,17 +387,69 @@ impl Bridge {
         if let Some(d) = self.docking.deadline() {
             next = next.min(d);
         }
+        if let Some(d) = self.fw.deadline() {
+            next = next.min(d);
+        }
         next
     }
 
-    /// The next frame to transmit, `None` when there is none.
+    /// The next frame to transmit, `None` when there is none. A firmware update's frames come
+    /// last, only when nothing else waits, and within the update's bus share.
     pub fn poll_transmit(&mut self) -> Option<Packet> {
-        self.out.transmit.pop_front()
+        self.out
+            .transmit
+            .pop_front()
+            .or_else(|| self.fw.poll_transmit())
+    }
+
+    /// An `fw_update` whose image file the adapter must read and hand to
+    /// [`Bridge::handle_fw_image`]; `None` when there is none.
+    pub fn poll_fw_load(&mut self) -> Option<FwLoad> {
+        self.fw.poll_load()
     }
 
     /// The next event or state document to publish, `None` when there is none.
     pub fn poll_publication(&mut self) -> Option<Publication> {
         self.out.publish.pop_front()
+    }
+
+    /// `fw_update`: resolves the nodes against the registry and asks the adapter for the image.
+    fn request_fw_update(
+        &mut self,
+        request_id: Option<String>,
+        image: String,
+        nodes: FwNodes,
+        force: bool,
+    ) {
+        if self.fw.busy() {
+            return self.reject(request_id, CommandError::FwBusy);
+        }
+        let nodes = match nodes {
+            FwNodes::All => {
+                let ids = self.registry.online_ids();
+                if ids.is_empty() {
+                    return self.reject(request_id, CommandError::FwNoNodes);
+                }
+                ids
+            }
+            FwNodes::List(ids) => {
+                if let Some(&id) = ids.iter().find(|&&id| self.registry.get(id).is_none()) {
+                    let known = self.registry.known_list();
+                    let error = CommandError::UnknownNode {
+                        id: HexId(id),
+                        known,
+                    };
+                    return self.reject(request_id, error);
+                }
+                ids
+            }
+        };
+        self.fw.request(FwLoad {
+            request_id,
+            image,
+            nodes,
+            force,
+        });
     }
 
     fn reject(&mut self, request_id: Option<String>, error: CommandError) {

@@ -194,6 +194,11 @@ impl FwSender {
         self.finished
     }
 
+    /// True once the report is out and every frame sent: the sender can be dropped.
+    pub fn is_done(&self) -> bool {
+        self.finished && self.queue.is_empty()
+    }
+
     /// The next event to publish (`fw_progress`, `fw_report`).
     pub fn poll_event(&mut self) -> Option<Event> {
         self.events.pop_front()
@@ -332,15 +337,20 @@ impl FwSender {
 
     /// When [`FwSender::handle_timeout`] must run next (`None`: only an input moves it on).
     pub fn poll_timeout(&self) -> Option<Instant> {
-        if self.bus_down {
+        if self.bus_down || self.is_done() {
             return None;
         }
-        let mut next = self.round_deadline;
+        let mut next = self.round_deadline.filter(|_| !self.finished);
         if let Some(p) = self.queue.front() {
             let at = self.bucket.ready_at(cost(p));
             next = Some(next.map_or(at, |n| n.min(at)));
         }
-        for d in self.nodes.values().filter_map(|n| n.due) {
+        for d in self
+            .nodes
+            .values()
+            .filter_map(|n| n.due)
+            .filter(|_| !self.finished)
+        {
             next = Some(next.map_or(d, |n| n.min(d)));
         }
         next
@@ -380,7 +390,17 @@ impl FwSender {
             self.post_commit_timers(now);
             self.maybe_next_round(now);
         }
-        if self.nodes.values().all(|n| n.stage == Stage::Done) && self.queue.is_empty() {
+        if self.nodes.values().all(|n| n.stage == Stage::Done) {
+            // Nobody needs the rest of the image; only the aborts of a cancel still go out.
+            self.queue.retain(|p| {
+                matches!(
+                    p.msg,
+                    Message::FwEnd {
+                        action: FwAction::Abort,
+                        ..
+                    }
+                )
+            });
             self.report(now);
         }
     }
