@@ -26,7 +26,8 @@
 //! Modules: [`bridge`] (the state machine, one submodule per concern), [`command`] (parsing and
 //! validation of JSON commands), [`event`] (the MQTT API's events and state documents), [`registry`]
 //! (what is known of each node), [`docking`] (the one-at-a-time docking sequence), [`throttle`]
-//! (rate limit of error events), [`error_frame`] (SocketCAN error frames), [`topic`] (topic names).
+//! (rate limit of error events), [`error_frame`] (SocketCAN error frames), [`topic`] (topic names),
+//! [`fwupdate`] (the firmware-update sender: `fw_update`).
 #![forbid(unsafe_code)]
 #![warn(missing_docs)]
 
