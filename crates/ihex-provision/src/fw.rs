@@ -1,6 +1,7 @@
 //! `ihex-provision fw …`: the lab PC's firmware-image verbs — make a signing key, pack and sign the
-//! firmware ELF into an update image, inspect an image. (Sending an image to the island through the
-//! gateway, `fw update`, comes with the gateway's side of the update.)
+//! firmware ELF into an update image, inspect an image, and update nodes through the gateway
+//! (`fw update`: the `fw_update` command over MQTT, for an image in the gateway's firmware
+//! directory; progress and the report printed).
 
 use std::fs;
 use std::path::{Path, PathBuf};
@@ -22,6 +23,29 @@ pub enum FwCmd {
     Pack(PackArgs),
     /// Show what an image says about itself and check it (signature with --key or --test-key).
     Inspect(InspectArgs),
+    /// Update nodes through the gateway (MQTT): send `fw_update` for an image in the gateway's
+    /// firmware directory (--fw-dir), print progress and the report; exit 1 unless every node
+    /// was updated.
+    Update(UpdateArgs),
+}
+
+/// `fw update`.
+#[derive(Args)]
+pub struct UpdateArgs {
+    #[command(flatten)]
+    broker: crate::BrokerArgs,
+    /// The image's file name in the gateway's firmware directory (copy it there first). A local
+    /// file of that path is checked first; its file name is what the gateway is asked for.
+    image: PathBuf,
+    /// Which nodes: `all` (every node online) or node IDs in hex, comma-separated (`111,112`).
+    #[arg(long, default_value = "all")]
+    nodes: String,
+    /// Let the nodes take an older version (a downgrade).
+    #[arg(long)]
+    force: bool,
+    /// Give up waiting for the report after this many seconds.
+    #[arg(long, default_value_t = 600)]
+    timeout_secs: u64,
 }
 
 /// `fw keygen`.
@@ -94,7 +118,81 @@ pub fn run(cmd: FwCmd) -> Result<bool> {
         FwCmd::Keygen(a) => keygen(&a.out).map(|()| true),
         FwCmd::Pack(a) => pack_cmd(a).map(|()| true),
         FwCmd::Inspect(a) => inspect(a),
+        FwCmd::Update(a) => crate::tokio_main(update(a)),
     }
+}
+
+/// `fw update`: `Ok(true)` when every node ended `updated`.
+async fn update(a: UpdateArgs) -> Result<bool> {
+    use ihex_gateway_core::event::Event as GatewayEvent;
+    use ihex_provision::api;
+    use ihex_provision::mqtt::Session;
+
+    let name = a
+        .image
+        .file_name()
+        .and_then(|n| n.to_str())
+        .context("IMAGE must end in a file name")?
+        .to_owned();
+    if a.image.is_file() {
+        let bytes = fs::read(&a.image).with_context(|| format!("reading {}", a.image.display()))?;
+        let image = ihex_gateway_core::fwupdate::FwImage::check(bytes)
+            .with_context(|| format!("{} is not an image to send", a.image.display()))?;
+        println!(
+            "{name}: version {}, {} bytes; the gateway reads it from its firmware directory",
+            image.version(),
+            image.len()
+        );
+    }
+    let broker = a.broker.broker()?;
+    let topics = a.broker.topics();
+    let deadline = tokio::time::Instant::now() + std::time::Duration::from_secs(a.timeout_secs);
+    let mut session = Session::connect(
+        &broker,
+        std::slice::from_ref(&topics.events),
+        std::time::Duration::from_secs(10),
+    )
+    .await?;
+    let request_id = api::new_request_id("fw");
+    let cmd = api::fw_update_command(&name, &a.nodes, a.force, &request_id);
+    session.publish(&topics.commands, cmd).await?;
+    while let Some(msg) = session.recv_until(deadline).await? {
+        let Ok(event) = serde_json::from_slice::<GatewayEvent>(&msg.payload) else {
+            continue;
+        };
+        if let Some(api::Outcome::Failed { reason, .. }) = api::outcome(&event, &request_id) {
+            session.close().await;
+            bail!("the gateway did not start the update: {reason}");
+        }
+        match event {
+            GatewayEvent::FwProgress(p) if p.request_id.as_deref() == Some(&request_id) => {
+                println!("{:>4} {:<10} {:>3} %", p.node, p.phase, p.percent);
+            }
+            GatewayEvent::FwReport(r) if r.request_id.as_deref() == Some(&request_id) => {
+                session.close().await;
+                println!(
+                    "image {} version {}: {} data frames in {:.1} s at a {} % bus share",
+                    r.image_id,
+                    r.version,
+                    r.frames_sent,
+                    r.duration_ms as f64 / 1000.0,
+                    r.bus_share
+                );
+                for n in &r.nodes {
+                    let outcome = serde_json::to_value(n.outcome)?;
+                    let outcome = outcome.as_str().unwrap_or("?");
+                    match &n.reason {
+                        Some(why) => println!("{:>4} {outcome}: {why}", n.node),
+                        None => println!("{:>4} {outcome}", n.node),
+                    }
+                }
+                return Ok(r.all_updated());
+            }
+            _ => {}
+        }
+    }
+    session.close().await;
+    bail!("no fw_report within {} s", a.timeout_secs)
 }
 
 fn keygen(out: &Path) -> Result<()> {

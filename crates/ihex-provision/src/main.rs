@@ -1,5 +1,5 @@
 //! `ihex-provision`: give sub-controllers their node IDs (serial or CAN), watch the gateway's events,
-//! and make signed firmware images (`fw`).
+//! make signed firmware images and update nodes through the gateway (`fw`).
 
 mod fw;
 
@@ -61,7 +61,7 @@ struct SerialArgs {
 }
 
 #[derive(Args)]
-struct BrokerArgs {
+pub(crate) struct BrokerArgs {
     /// The gateway's MQTT broker, HOST[:PORT].
     #[arg(long, env = "IHEX_BROKER", default_value = "127.0.0.1:1883")]
     broker: String,
@@ -179,7 +179,7 @@ fn main() -> ExitCode {
     }
 }
 
-fn tokio_main(f: impl std::future::Future<Output = Result<()>>) -> Result<()> {
+fn tokio_main<T>(f: impl std::future::Future<Output = Result<T>>) -> Result<T> {
     tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()
