@@ -1,33 +1,44 @@
 #!/usr/bin/env bash
 [ -n "${BASH_VERSION:-}" ] || exec bash "$0" "$@"   # also when started as `sh script`
-# Cross-compile the iHEX host binaries for the Raspberry Pi (64-bit Raspberry Pi OS) with cargo-zigbuild.
+# Cross-compile the iHEX host binaries for the Raspberry Pi (64-bit Raspberry Pi OS): mc-gateway,
+# sim-node and ihex-provision, the gateway as deployed (without the demo: --no-default-features).
 #
-#   deploy/build-pi.sh                 # gnu (glibc >= 2.29) and static musl builds of every binary
-#   deploy/build-pi.sh --musl          # only the static musl build (what deploy/check-arm64.sh runs)
-#   deploy/build-pi.sh --gnu -p mc-gateway
+#   deploy/build-pi.sh                        # glibc (>= 2.29) and static musl builds
+#   deploy/build-pi.sh --musl                 # only the static musl build
+#   deploy/build-pi.sh --gnu -p mc-gateway    # one package, glibc only
+#   deploy/build-pi.sh --musl --profile arm64-check   # what deploy/check-arm64.sh runs
+#   deploy/build-pi.sh --features mc-gateway/demo   # with the demo (embedded broker, simulated island)
 #
-# Installs what is missing: the two rustup targets, cargo-zigbuild (cargo install --locked) and zig
-# (pip install ziglang). Binaries land in target/<triple>/release/ and are listed at the end.
-# All packages build in one cargo run; if that fails, each is retried alone so one that does not build
-# does not hide the others. The exit code is non-zero if any failed.
+# musl is linked by rust-lld (shipped with rustup: no C toolchain needed); glibc by cargo-zigbuild,
+# which pins the glibc version (IHEX_PI_GLIBC, default 2.29; bullseye has 2.31, bookworm 2.36).
+# Installs what is missing: the rustup targets, and for --gnu cargo-zigbuild (cargo install --locked)
+# and zig (pip install ziglang). Binaries land in target/<triple>/<profile>/ (release: release/) and
+# are listed at the end. All packages build in one cargo run; if that fails, each is retried alone so
+# one that does not build does not hide the others. The exit code is non-zero if any failed.
 set -euo pipefail
 
 cd "$(dirname "$0")/.."
-GLIBC="${IHEX_PI_GLIBC:-2.29}"          # bullseye has 2.31, bookworm 2.36
+GLIBC="${IHEX_PI_GLIBC:-2.29}"
 GNU=1 MUSL=1
+PROFILE=release
 PACKAGES=()
+FEATURES=()
 while [ $# -gt 0 ]; do
     case "$1" in
         --gnu) MUSL=0 ;;
         --musl) GNU=0 ;;
         -p|--package) PACKAGES+=("$2"); shift ;;
-        -h|--help) sed -n '3,13p' "$0"; exit 0 ;;
+        --profile) PROFILE="$2"; shift ;;
+        --features) FEATURES+=(--features "$2"); shift ;;
+        -h|--help) sed -n '/^# /,/^[^#]/{/^[^#]/q;s/^# \{0,1\}//p}' "$0"; exit 0 ;;
         *) echo "build-pi.sh: unknown argument $1 (see --help)" >&2; exit 2 ;;
     esac
     shift
 done
 [ ${#PACKAGES[@]} -gt 0 ] || PACKAGES=(mc-gateway sim-node ihex-provision)
 CARGO="${CARGO:-cargo}"
+OUT_DIR="$PROFILE"
+[ "$PROFILE" = dev ] && OUT_DIR=debug
 
 say() { echo "build-pi: $*" >&2; }
 
@@ -39,35 +50,43 @@ installed="$(rustup target list --installed 2>/dev/null || true)"
 for t in "${targets[@]}"; do
     grep -qx "$t" <<<"$installed" || { say "adding rustup target $t"; rustup target add "$t"; }
 done
-if ! "$CARGO" zigbuild --help >/dev/null 2>&1; then
-    say "installing cargo-zigbuild (cargo install cargo-zigbuild --locked; a few minutes)"
-    "$CARGO" install cargo-zigbuild --locked
+if [ $GNU = 1 ]; then
+    if ! "$CARGO" zigbuild --help >/dev/null 2>&1; then
+        say "installing cargo-zigbuild (cargo install cargo-zigbuild --locked; a few minutes)"
+        "$CARGO" install cargo-zigbuild --locked
+    fi
+    if ! command -v zig >/dev/null 2>&1 && ! python3 -m ziglang version >/dev/null 2>&1; then
+        say "installing zig (pip install ziglang)"
+        python3 -m pip install --quiet ziglang || python3 -m pip install --quiet --break-system-packages ziglang
+    fi
 fi
-if ! command -v zig >/dev/null 2>&1 && ! python3 -m ziglang version >/dev/null 2>&1; then
-    say "installing zig (pip install ziglang)"
-    python3 -m pip install --quiet ziglang || python3 -m pip install --quiet --break-system-packages ziglang
-fi
+# rust-lld links the static musl binaries with the musl CRT objects rustup ships (self-contained).
+export CARGO_TARGET_AARCH64_UNKNOWN_LINUX_MUSL_LINKER="${CARGO_TARGET_AARCH64_UNKNOWN_LINUX_MUSL_LINKER:-rust-lld}"
 
 # --- build -------------------------------------------------------------------------------------
 failed=()
 built=()
 for t in "${targets[@]}"; do
-    # cargo-zigbuild reads the glibc version from a suffix of the gnu target; the output directory
-    # is still target/aarch64-unknown-linux-gnu.
-    zt="$t"
-    [ "$t" = aarch64-unknown-linux-gnu ] && zt="$t.$GLIBC"
+    if [ "$t" = aarch64-unknown-linux-gnu ]; then
+        # cargo-zigbuild reads the glibc version from a suffix of the gnu target; the output
+        # directory is still target/aarch64-unknown-linux-gnu.
+        build=("$CARGO" zigbuild --target "$t.$GLIBC")
+    else
+        build=("$CARGO" build --target "$t")
+    fi
+    build+=(--profile "$PROFILE" --no-default-features "${FEATURES[@]}" --bins)
     # One cargo invocation for all packages (shared dependencies are built once, with the same
     # features); only if that fails, one by one, so what does build is still produced and named.
     pkg_args=()
     for p in "${PACKAGES[@]}"; do pkg_args+=(-p "$p"); done
-    say "building ${PACKAGES[*]} for $zt"
-    if "$CARGO" zigbuild --release --target "$zt" "${pkg_args[@]}" --bins; then
+    say "building ${PACKAGES[*]} for $t ($PROFILE)"
+    if "${build[@]}" "${pkg_args[@]}"; then
         built+=("$t:all")
         continue
     fi
     for p in "${PACKAGES[@]}"; do
-        say "building $p alone for $zt"
-        if "$CARGO" zigbuild --release --target "$zt" -p "$p" --bins; then
+        say "building $p alone for $t"
+        if "${build[@]}" -p "$p"; then
             built+=("$t:$p")
         else
             failed+=("$p ($t)")
@@ -78,7 +97,7 @@ done
 echo
 for entry in "${built[@]}"; do
     t="${entry%%:*}"
-    for f in target/"$t"/release/*; do
+    for f in target/"$t"/"$OUT_DIR"/*; do
         # Executables produced by this build, not build scripts or deps.
         if [ -f "$f" ] && [ -x "$f" ]; then
             case "$(basename "$f")" in *.d|*.so) ;; *) echo "  $f" ;; esac

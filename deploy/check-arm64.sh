@@ -2,34 +2,41 @@
 [ -n "${BASH_VERSION:-}" ] || exec bash "$0" "$@"   # also when started as `sh script`
 # Prove the Pi binaries work on a real arm64 Linux kernel: boot Debian's arm64 kernel under
 # qemu-system-aarch64 (-M virt -cpu cortex-a72, TCG) with the CAN modules loaded and vcan0 up, then run
-# the static aarch64-musl binaries there:
-#   1. an embedded MQTT broker on 127.0.0.1:1883 (mc-gateway's demo mode, the broker compiled into it);
-#   2. sim-node with an island on vcan0;
-#   3. the gateway under test on vcan0 (--can vcan0 --broker 127.0.0.1:1883, island prefix "arm64",
-#      so the demo instance's own events cannot be mistaken for it);
-#   4. ihex-provision wait-event, subscribed before 2 and 3 start, waiting for the first node_online
-#      event of the arm64 island; then an LED command to the island's first node whose command_result must be "ok"
+# the static aarch64-musl binaries there, against a Mosquitto broker on the host (started here on a free
+# loopback port; the guest reaches it as 10.0.2.2 through QEMU user networking):
+#   1. ihex-provision wait-event, subscribed before anything else starts, waiting for the first
+#      node_online event of the island "arm64";
+#   2. sim-node with the island deploy/arm64-island.toml on vcan0;
+#   3. the gateway under test on vcan0, built as for the Pi (without the demo), with the Pi's
+#      deploy/etc/gateway.toml and --can vcan0 --island arm64;
+#   4. an LED command to the island's first element whose command_result must be "ok"
 #      (MQTT -> CAN frame -> virtual SC -> ack frame -> MQTT); then `ihex-provision can` gives the
 #      island's factory-fresh board its ID by UID (a taken ID refused first) and its node_online follows.
-# Exit code 0 only if both arrived; the VM is killed after a bounded time (IHEX_ARM64_TIMEOUT s).
+# Exit code 0 only if all of it happened; the VM is killed after a bounded time (IHEX_ARM64_TIMEOUT s).
 #
-#   deploy/check-arm64.sh              # builds with deploy/build-pi.sh --musl, then boots
-#   IHEX_ARM64_NO_BUILD=1 deploy/check-arm64.sh   # use the binaries already in target/
-#   IHEX_ARM64_GNU=1 deploy/check-arm64.sh        # also build the glibc (Raspberry Pi OS) binaries and
-#                                                 # run sim-node from that build, on Debian's arm64 glibc
+#   deploy/check-arm64.sh                          # builds with deploy/build-pi.sh --musl, then boots
+#   IHEX_ARM64_NO_BUILD=1 deploy/check-arm64.sh    # use the binaries already in target/
+#   IHEX_ARM64_PROFILE=release deploy/check-arm64.sh   # the shipped profile instead of arm64-check
+#   IHEX_ARM64_GNU=1 deploy/check-arm64.sh         # also build the glibc (Raspberry Pi OS) binaries and
+#                                                  # run sim-node from that build, on Debian's arm64 glibc
 # With IHEX_ARM64_GNU unset, glibc binaries already in target/aarch64-unknown-linux-gnu are used when
-# present; IHEX_ARM64_GNU=0 never uses them.
+# present; IHEX_ARM64_GNU=0 never uses them. IHEX_ARM64_BROKER=HOST:PORT uses a broker already running
+# on the host's loopback instead of starting one.
 #
-# Needs (installed when missing, Debian/Ubuntu): qemu-system-arm, cpio, xz-utils; the arm64 kernel and
-# busybox-static come from Debian's arm64 archive via `apt-get download` (after
+# Needs (installed when missing, Debian/Ubuntu): qemu-system-arm, cpio, xz-utils, mosquitto; the arm64
+# kernel and busybox-static come from Debian's arm64 archive via `apt-get download` (after
 # `dpkg --add-architecture arm64 && apt-get update`) and are cached in target/arm64-vm/.
 set -euo pipefail
+case "${1:-}" in -h|--help) sed -n '/^# /,/^[^#]/{/^[^#]/q;s/^# \{0,1\}//p}' "$0"; exit 0 ;; esac
 
 cd "$(dirname "$0")/.."
 ROOT="$PWD"
 TIMEOUT="${IHEX_ARM64_TIMEOUT:-240}"
 WORK="$ROOT/target/arm64-vm"
-BIN="$ROOT/target/aarch64-unknown-linux-musl/release"
+PROFILE="${IHEX_ARM64_PROFILE:-arm64-check}"
+OUT_DIR="$PROFILE"
+[ "$PROFILE" = dev ] && OUT_DIR=debug
+BIN="$ROOT/target/aarch64-unknown-linux-musl/$OUT_DIR"
 ISLAND="${IHEX_ARM64_ISLAND:-$ROOT/deploy/arm64-island.toml}"
 mkdir -p "$WORK"
 
@@ -41,6 +48,8 @@ need_apt=()
 command -v qemu-system-aarch64 >/dev/null || need_apt+=(qemu-system-arm)
 command -v cpio >/dev/null || need_apt+=(cpio)
 command -v xz >/dev/null || need_apt+=(xz-utils)
+[ -n "${IHEX_ARM64_BROKER:-}" ] || command -v mosquitto >/dev/null || [ -x /usr/sbin/mosquitto ] \
+    || need_apt+=(mosquitto)
 if [ ${#need_apt[@]} -gt 0 ]; then
     command -v apt-get >/dev/null || die "missing ${need_apt[*]} (install them with your package manager)"
     say "installing ${need_apt[*]}"
@@ -74,17 +83,17 @@ MODDIR="$WORK/rootfs/lib/modules/$KVER/kernel"
 
 # --- binaries ----------------------------------------------------------------------------------
 GNU_MODE="${IHEX_ARM64_GNU:-auto}"
-GNU_BIN="$ROOT/target/aarch64-unknown-linux-gnu/release"
+GNU_BIN="$ROOT/target/aarch64-unknown-linux-gnu/$OUT_DIR"
 if [ "${IHEX_ARM64_NO_BUILD:-0}" != 1 ]; then
-    deploy/build-pi.sh --musl || say "some packages did not build (see above); using what exists"
+    deploy/build-pi.sh --musl --profile "$PROFILE" || say "some packages did not build (see above); using what exists"
     if [ "$GNU_MODE" = 1 ]; then
-        deploy/build-pi.sh --gnu -p sim-node -p mc-gateway -p ihex-provision || die "glibc build failed"
+        deploy/build-pi.sh --gnu --profile "$PROFILE" || die "glibc build failed"
     fi
 fi
 USE_GNU=0
 if [ "$GNU_MODE" = 1 ] || { [ "$GNU_MODE" = auto ] && [ -x "$GNU_BIN/sim-node" ]; }; then
     for b in mc-gateway sim-node ihex-provision; do
-        [ -x "$GNU_BIN/$b" ] || die "$GNU_BIN/$b missing (deploy/build-pi.sh --gnu)"
+        [ -x "$GNU_BIN/$b" ] || die "$GNU_BIN/$b missing (deploy/build-pi.sh --gnu --profile $PROFILE)"
     done
     USE_GNU=1
     if [ ! -f "$WORK/rootfs/.complete-glibc" ]; then
@@ -97,7 +106,7 @@ if [ "$GNU_MODE" = 1 ] || { [ "$GNU_MODE" = auto ] && [ -x "$GNU_BIN/sim-node" ]
     fi
 fi
 for b in mc-gateway sim-node ihex-provision; do
-    [ -x "$BIN/$b" ] || die "$BIN/$b missing (deploy/build-pi.sh --musl)"
+    [ -x "$BIN/$b" ] || die "$BIN/$b missing (deploy/build-pi.sh --musl --profile $PROFILE)"
     # ELF e_machine (offset 18) 0xb7 = AArch64.
     [ "$(od -An -tx1 -j18 -N1 "$BIN/$b" | tr -d ' ')" = b7 ] || die "$BIN/$b is not an aarch64 binary"
 done
@@ -111,16 +120,48 @@ read -r NEWID UID_HEX <<<"$(awk -F'"' '
     /^id *=/ { id = $2 } /^uid *=/ { uid = $2 } /^unconfigured *= *true/ { un = 1 }
     END { if (!found && un && uid != "") print id, uid }' "$ISLAND")" || true
 
+# --- broker on the host ------------------------------------------------------------------------
+# The guest reaches the host's loopback as 10.0.2.2 (QEMU user networking), like the x86_64 test VM.
+if [ -n "${IHEX_ARM64_BROKER:-}" ]; then
+    BROKER_PORT="${IHEX_ARM64_BROKER##*:}"
+else
+    MOSQUITTO="$(command -v mosquitto || echo /usr/sbin/mosquitto)"
+    mkdir -p "$WORK/broker"
+    BROKER_PID=
+    for _ in 1 2 3 4 5 6 7 8 9 10; do
+        BROKER_PORT=$((20000 + RANDOM % 40000))
+        printf 'listener %s 127.0.0.1\nallow_anonymous true\npersistence false\nuser root\nlog_dest stderr\nlog_type error\nlog_type warning\n' \
+            "$BROKER_PORT" > "$WORK/broker/mosquitto.conf"
+        "$MOSQUITTO" -c "$WORK/broker/mosquitto.conf" 2> "$WORK/broker/mosquitto.log" &
+        BROKER_PID=$!
+        for _ in $(seq 100); do
+            (exec 3<>"/dev/tcp/127.0.0.1/$BROKER_PORT") 2>/dev/null && break 2
+            kill -0 "$BROKER_PID" 2>/dev/null || break
+            sleep 0.1
+        done
+        kill "$BROKER_PID" 2>/dev/null || true
+        wait "$BROKER_PID" 2>/dev/null || true
+        BROKER_PID=
+    done
+    [ -n "$BROKER_PID" ] || die "mosquitto did not start on a free port (see $WORK/broker/mosquitto.log)"
+    trap 'kill "$BROKER_PID" 2>/dev/null || true' EXIT
+    say "host mosquitto on 127.0.0.1:$BROKER_PORT (10.0.2.2:$BROKER_PORT in the guest)"
+fi
+
 # --- initramfs ---------------------------------------------------------------------------------
 IR="$WORK/initramfs"
 rm -rf "$IR"
 mkdir -p "$IR"/{bin,sbin,proc,sys,dev,tmp,run,etc,lib/modules,ihex}
 cp "$WORK/rootfs/bin/busybox" "$IR/bin/busybox"
-for m in net/can/can.ko net/can/can-raw.ko drivers/net/can/dev/can-dev.ko drivers/net/can/vcan.ko; do
+# Loaded in this order (dependencies first): the CAN stack, then virtio-net on the virt machine's
+# virtio-mmio transport for user networking (the host's broker).
+for m in net/can/can.ko net/can/can-raw.ko drivers/net/can/dev/can-dev.ko drivers/net/can/vcan.ko \
+    net/core/failover.ko drivers/net/net_failover.ko drivers/virtio/virtio_mmio.ko drivers/net/virtio_net.ko; do
     src="$MODDIR/$m"
     if [ -f "$src" ]; then cp "$src" "$IR/lib/modules/"
     elif [ -f "$src.xz" ]; then xz -dc "$src.xz" > "$IR/lib/modules/$(basename "$m")"
     else die "kernel module $m not in $KVER"; fi
+    basename "$m" .ko >> "$IR/lib/modules/order"
 done
 cp "$BIN/mc-gateway" "$BIN/sim-node" "$BIN/ihex-provision" "$IR/ihex/"
 if [ "$USE_GNU" = 1 ]; then
@@ -138,15 +179,15 @@ cat > "$IR/init" <<'INIT'
 export PATH=/bin:/sbin
 mount -t proc proc /proc; mount -t sysfs sys /sys; mount -t devtmpfs dev /dev; mount -t tmpfs tmp /tmp
 echo "ihex-vm: kernel $(uname -r) on $(uname -m)"
-for m in can can-raw can-dev vcan; do insmod /lib/modules/$m.ko || echo "ihex-vm: insmod $m failed"; done
+while read -r m; do insmod /lib/modules/$m.ko || echo "ihex-vm: insmod $m failed"; done < /lib/modules/order
 ip link set lo up
 ip link add dev vcan0 type vcan && ip link set up vcan0
 ip link show vcan0
 cd /ihex
-B=127.0.0.1:1883
-# 1. the broker: mc-gateway's demo mode (embedded broker + in-memory island, nothing on vcan0)
-./mc-gateway --broker-listen $B --log-dir /tmp/demo-log > /tmp/demo.out 2>&1 &
-# 4. the client subscribes first, so no event is missed
+# The host's broker through QEMU user networking.
+ip link set eth0 up && ip addr add 10.0.2.15/24 dev eth0 && ip route add default via 10.0.2.2
+B=10.0.2.2:@PORT@
+# 1. the client subscribes first, so no event is missed
 ./ihex-provision wait-event --broker $B --island arm64 --event node_online \
     --retry-connect --ready-file /tmp/ready --timeout-secs 150 > /tmp/event.json 2> /tmp/wait.err &
 WAIT=$!
@@ -168,14 +209,14 @@ $SIM --iface vcan0 --island island.toml > /tmp/sim.out 2>&1 &
 wait $WAIT; rc=$?
 if [ $rc = 0 ]; then
     echo "ihex-vm: event: $(cat /tmp/event.json)"
-    # 5. the other direction: a command over MQTT -> frame on vcan0 -> the node acks -> command_result ok
+    # 4. the other direction: a command over MQTT -> frame on vcan0 -> the node acks -> command_result ok
     ./ihex-provision wait-event --broker $B --island arm64 --event command_result \
         --match request_id=arm64-led --match result=ok --timeout-secs 60 \
         --send '{"cmd":"led","node":"@NODE@","color":"green","request_id":"arm64-led"}' \
         > /tmp/result.json 2> /tmp/wait.err; rc=$?
     [ $rc = 0 ] && echo "ihex-vm: event: $(cat /tmp/result.json)"
 fi
-# 6. CAN ID assignment by UID through the gateway (only if the island has a factory-fresh board)
+# 4. (cont.) CAN ID assignment by UID through the gateway (only if the island has a factory-fresh board)
 if [ $rc = 0 ] && [ -n "@UID@" ]; then
     ./ihex-provision wait-event --broker $B --island arm64 --event node_online --match id=@NEWID@ \
         --ready-file /tmp/ready2 --timeout-secs 60 > /tmp/online2.json 2> /tmp/wait.err &
@@ -199,7 +240,7 @@ if [ $rc = 0 ] && [ -n "@UID@" ]; then
     fi
 fi
 if [ $rc != 0 ]; then
-    for f in /tmp/wait.err /tmp/gw.out /tmp/sim.out /tmp/demo.out; do
+    for f in /tmp/wait.err /tmp/gw.out /tmp/sim.out; do
         echo "---- $f"; tail -n 25 $f
     done
 fi
@@ -207,7 +248,7 @@ echo "ihex-vm: vcan0 frames: rx $(cat /sys/class/net/vcan0/statistics/rx_packets
 echo "IHEX-ARM64-RESULT rc=$rc"
 poweroff -f
 INIT
-sed -i "s/@NODE@/$NODE/g; s/@NEWID@/${NEWID:-}/g; s/@UID@/${UID_HEX:-}/g" "$IR/init"
+sed -i "s/@NODE@/$NODE/g; s/@NEWID@/${NEWID:-}/g; s/@UID@/${UID_HEX:-}/g; s/@PORT@/$BROKER_PORT/g" "$IR/init"
 chmod +x "$IR/init"
 (cd "$IR" && find . | cpio -o -H newc --quiet | gzip -1) > "$WORK/initrd.gz"
 
@@ -216,7 +257,7 @@ say "booting $KVER under qemu-system-aarch64 (TCG, cortex-a72), at most ${TIMEOU
 LOG="$WORK/console.log"
 set +e
 timeout --signal=KILL "$TIMEOUT" qemu-system-aarch64 -M virt -cpu cortex-a72 -smp 2 -m 1024 \
-    -accel tcg -nographic -no-reboot -nic none \
+    -accel tcg -nographic -no-reboot -netdev user,id=n0 -device virtio-net-device,netdev=n0 \
     -kernel "$KERNEL" -initrd "$WORK/initrd.gz" \
     -append "console=ttyAMA0 quiet panic=-1 rdinit=/init" </dev/null 2>&1 | tee "$LOG" >&2
 qrc=${PIPESTATUS[0]}

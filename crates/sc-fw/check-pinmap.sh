@@ -4,6 +4,7 @@
 # expected message). Only the build script reruns for the broken copies, so this is quick once the
 # firmware has been built. Usage: crates/sc-fw/check-pinmap.sh
 set -euo pipefail
+case "${1:-}" in -h|--help) sed -n '/^# /,/^[^#]/{/^[^#]/q;s/^# \{0,1\}//p}' "$0"; exit 0 ;; esac
 cd "$(dirname "$0")"
 CARGO=${CARGO:-cargo}
 map=../../hw/pinmap.toml

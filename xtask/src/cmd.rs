@@ -1,7 +1,7 @@
 //! Running external programs: cargo through `$CARGO`, command lines echoed, failures as errors.
 
 use std::ffi::OsString;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 
 use anyhow::{bail, Context, Result};
@@ -9,6 +9,25 @@ use anyhow::{bail, Context, Result};
 /// The cargo that started us (`$CARGO`), so nested builds use the same toolchain.
 pub fn cargo() -> Command {
     Command::new(std::env::var_os("CARGO").unwrap_or_else(|| OsString::from("cargo")))
+}
+
+/// The firmware workspace, relative to the root: its own `Cargo.lock`, profiles, target and
+/// `.cargo/config.toml` (thumb target); `host-tests/` and `mcu-tests/` inside are workspaces too.
+pub const FIRMWARE: &str = "crates/sc-fw";
+
+/// `cmd` prepared to run in `dir`, a workspace of its own (the firmware's): its
+/// `.cargo/config.toml` (target, target-dir), profiles and `target/` apply, whatever
+/// `CARGO_TARGET_DIR` or `CARGO_BUILD_TARGET` the host build uses.
+pub fn in_workspace(mut cmd: Command, dir: &Path) -> Command {
+    cmd.current_dir(dir)
+        .env_remove("CARGO_TARGET_DIR")
+        .env_remove("CARGO_BUILD_TARGET");
+    cmd
+}
+
+/// Cargo run in `dir`, a workspace of its own (see [`in_workspace`]).
+pub fn cargo_in(dir: &Path) -> Command {
+    in_workspace(cargo(), dir)
 }
 
 /// The workspace root (the parent of this crate's folder).
@@ -27,9 +46,28 @@ pub fn target_dir() -> PathBuf {
     }
 }
 
-/// A command line as the user would type it.
+/// A command line as the user would type it, from the root: `cd crates/sc-fw && cargo ...` for a
+/// command that runs in a subfolder, with the variables it sets (`RUSTDOCFLAGS='-D warnings' ...`).
 pub fn display(cmd: &Command) -> String {
-    let mut s = cmd.get_program().to_string_lossy().into_owned();
+    let mut s = String::new();
+    if let Some(rel) = cmd
+        .get_current_dir()
+        .and_then(|d| d.strip_prefix(root()).ok())
+        .filter(|rel| !rel.as_os_str().is_empty())
+    {
+        s.push_str(&format!("cd {} && ", rel.display()));
+    }
+    for (k, v) in cmd.get_envs() {
+        if let Some(v) = v {
+            let v = v.to_string_lossy();
+            if v.contains(' ') {
+                s.push_str(&format!("{}='{v}' ", k.to_string_lossy()));
+            } else {
+                s.push_str(&format!("{}={v} ", k.to_string_lossy()));
+            }
+        }
+    }
+    s.push_str(&cmd.get_program().to_string_lossy());
     for a in cmd.get_args() {
         s.push(' ');
         s.push_str(&a.to_string_lossy());

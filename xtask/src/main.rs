@@ -8,7 +8,10 @@ mod cmd;
 mod cpio;
 mod dbc;
 mod fwsize;
+mod lint;
 mod setup;
+#[cfg(test)]
+mod tidy;
 mod vcan;
 mod vm;
 
@@ -28,9 +31,13 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Task {
-    /// Run the test stages (all by default): setup, host, proto-mcu, firmware, vcan, arm64.
+    /// Run every test stage in order, or those picked with --stage / --skip (docs/testing.md).
     Test(TestArgs),
-    /// Install the rust targets and system packages the tests need (apt on Debian/Ubuntu).
+    /// Formatting, clippy and rustdoc warnings of the host and firmware workspaces, and the MSRV
+    /// (the `lint` stage alone).
+    Lint,
+    /// Install the rust targets, toolchains and system packages the tests need (apt on
+    /// Debian/Ubuntu).
     Setup,
     /// Print flash/RAM use of the release firmware (bootloader, application) against the budgets:
     /// 96 KiB flash per application, 24 KiB for the bootloader, 16 KiB static RAM each.
@@ -108,35 +115,38 @@ struct TestArgs {
     vm_args: VmArgs,
 }
 
+/// The stages of `cargo xtask test`, in the order they run; the one list of them. A new stage is a
+/// variant here (its doc line is its `--stage` help), an arm in [`run_stage`] and a row in
+/// docs/testing.md (the tidy tests check the docs).
 #[derive(Clone, Copy, PartialEq, Eq, Debug, ValueEnum)]
 enum Stage {
+    /// Rust targets (an MSRV toolchain if one is needed) and system packages.
     Setup,
+    /// `cargo test --workspace`.
     Host,
+    /// fmt, clippy, rustdoc and the MSRV check (after `host`: it reuses its build scripts and proc macros).
+    Lint,
+    /// The protocol crate builds for the MCU (no_std).
     ProtoMcu,
+    /// Firmware build, size budget, pin-map check, host and Cortex-M4 tests.
     Firmware,
+    /// SocketCAN tests on vcan (natively or in the x86_64 microVM).
     Vcan,
+    /// The aarch64 binaries on a real arm64 kernel (deploy/check-arm64.sh).
     Arm64,
 }
 
-const ALL: [Stage; 6] = [
-    Stage::Setup,
-    Stage::Host,
-    Stage::ProtoMcu,
-    Stage::Firmware,
-    Stage::Vcan,
-    Stage::Arm64,
-];
-
 impl Stage {
-    fn name(self) -> &'static str {
-        match self {
-            Stage::Setup => "setup",
-            Stage::Host => "host",
-            Stage::ProtoMcu => "proto-mcu",
-            Stage::Firmware => "firmware",
-            Stage::Vcan => "vcan",
-            Stage::Arm64 => "arm64",
-        }
+    /// Every stage, in run order.
+    fn all() -> &'static [Stage] {
+        Stage::value_variants()
+    }
+
+    /// The name used by `--stage`, `--skip`, the log and docs/testing.md.
+    fn name(self) -> String {
+        self.to_possible_value()
+            .map(|v| v.get_name().to_owned())
+            .unwrap_or_default()
     }
 }
 
@@ -150,6 +160,7 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
         Task::Test(args) => return test(args),
+        Task::Lint => lint::run(),
         Task::Setup => setup::run(),
         Task::FwSize { dir } => fwsize::report(&dir.unwrap_or_else(firmware_release_dir)),
         Task::VmRun { vm, binary, args } => match vcan::vm_run(vm.settings(), &binary, &args) {
@@ -172,30 +183,33 @@ fn main() -> ExitCode {
 }
 
 fn test(args: TestArgs) -> ExitCode {
-    let selected: Vec<Stage> = ALL
-        .into_iter()
+    let selected: Vec<Stage> = Stage::all()
+        .iter()
+        .copied()
         .filter(|s| args.stages.is_empty() || args.stages.contains(s))
         .filter(|s| !args.skip.contains(s))
         .collect();
+    let start_all = Instant::now();
     let mut results = Vec::new();
     for stage in selected {
-        println!("\n==> xtask: stage {}", stage.name());
+        let name = stage.name();
+        println!("\n==> xtask: stage {name}");
         let start = Instant::now();
         let r = run_stage(stage, &args);
         let secs = start.elapsed().as_secs_f64();
         match &r {
-            Ok(Done::Ran) => println!("==> xtask: stage {} passed ({secs:.1} s)", stage.name()),
-            Ok(Done::Skipped(why)) => println!("==> xtask: stage {} skipped: {why}", stage.name()),
-            Err(e) => println!(
-                "==> xtask: stage {} FAILED ({secs:.1} s): {e:#}",
-                stage.name()
-            ),
+            Ok(Done::Ran) => println!("==> xtask: stage {name} passed ({secs:.1} s)"),
+            Ok(Done::Skipped(why)) => {
+                println!("==> xtask: stage {name} skipped ({secs:.1} s): {why}")
+            }
+            Err(e) => println!("==> xtask: stage {name} FAILED ({secs:.1} s): {e:#}"),
         }
-        results.push((stage, r, secs));
+        results.push((name, r, secs));
     }
+    let total = start_all.elapsed().as_secs_f64();
     println!("\nxtask: summary");
     let (mut passed, mut failed) = (0, 0);
-    for (stage, r, secs) in &results {
+    for (name, r, secs) in &results {
         let what = match r {
             Ok(Done::Ran) => {
                 passed += 1;
@@ -210,8 +224,9 @@ fn test(args: TestArgs) -> ExitCode {
                 )
             }
         };
-        println!("  {:<10} {:>7.1} s  {what}", stage.name(), secs);
+        println!("  {name:<10} {secs:>7.1} s  {what}");
     }
+    println!("  {:<10} {total:>7.1} s  ({})", "total", minutes(total));
     println!("xtask: {passed} passed, {failed} failed");
     if failed == 0 {
         ExitCode::SUCCESS
@@ -219,6 +234,22 @@ fn test(args: TestArgs) -> ExitCode {
         ExitCode::FAILURE
     }
 }
+
+/// `754.2` -> `12 min 34 s`.
+fn minutes(secs: f64) -> String {
+    let whole = secs.round() as u64;
+    format!("{} min {:02} s", whole / 60, whole % 60)
+}
+
+/// The firmware's own checks after its build: the pin map cannot disagree with the code (broken
+/// copies must fail the build), its pure modules on the host, and the SC core on Cortex-M4
+/// instructions in QEMU mps2-an386. Each is its own workspace, run from its folder under
+/// `crates/sc-fw`: (what, folder, program, arguments).
+const FIRMWARE_CHECKS: [(&str, &str, &str, &[&str]); 3] = [
+    ("pin map check", ".", "./check-pinmap.sh", &[]),
+    ("host tests", "host-tests", "cargo", &["test"]),
+    ("Cortex-M4 tests", "mcu-tests", "./run.sh", &[]),
+];
 
 fn run_stage(stage: Stage, args: &TestArgs) -> Result<Done> {
     let root = cmd::root();
@@ -251,6 +282,7 @@ fn run_stage(stage: Stage, args: &TestArgs) -> Result<Done> {
             }
             Ok(Done::Ran)
         }
+        Stage::Lint => lint::run().map(|()| Done::Ran),
         Stage::ProtoMcu => {
             let base = [
                 "build",
@@ -269,41 +301,23 @@ fn run_stage(stage: Stage, args: &TestArgs) -> Result<Done> {
             Ok(Done::Ran)
         }
         Stage::Firmware => {
-            let fw = root.join("crates/sc-fw");
+            let fw = root.join(cmd::FIRMWARE);
             if !fw.join("Cargo.toml").exists() {
-                return Ok(Done::Skipped("no crates/sc-fw/Cargo.toml".into()));
+                return Ok(Done::Skipped(format!("no {}/Cargo.toml", cmd::FIRMWARE)));
             }
-            // Its own workspace: build from its folder so its .cargo/config.toml (thumb target),
-            // profiles and target/ apply, whatever CARGO_TARGET_DIR the host build uses.
-            cmd::run(
-                cmd::cargo()
-                    .current_dir(&fw)
-                    .env_remove("CARGO_TARGET_DIR")
-                    .env_remove("CARGO_BUILD_TARGET")
-                    .args(["build", "--release"]),
-            )?;
+            cmd::run(cmd::cargo_in(&fw).args(["build", "--release"]))?;
             fwsize::report(&firmware_release_dir())?;
             fwsize::pack_check(&firmware_release_dir())?;
-            // The firmware's own checks: the pin map cannot disagree with the code (broken copies
-            // must fail the build), its pure modules on the host, and the SC core on Cortex-M4
-            // instructions in QEMU mps2-an386. Each is its own workspace, so it runs from its folder.
             let mut failures = Vec::new();
-            for (what, dir, prog, args) in [
-                ("pin map check", fw.clone(), "./check-pinmap.sh", &[][..]),
-                ("host tests", fw.join("host-tests"), "cargo", &["test"][..]),
-                ("Cortex-M4 tests", fw.join("mcu-tests"), "./run.sh", &[][..]),
-            ] {
+            for (what, dir, prog, args) in FIRMWARE_CHECKS {
                 println!("==> xtask: firmware: {what}");
+                let dir = fw.join(dir);
                 let mut c = if prog == "cargo" {
-                    cmd::cargo()
+                    cmd::cargo_in(&dir)
                 } else {
-                    Command::new(prog)
+                    cmd::in_workspace(Command::new(prog), &dir)
                 };
-                c.current_dir(&dir)
-                    .env_remove("CARGO_TARGET_DIR")
-                    .env_remove("CARGO_BUILD_TARGET")
-                    .args(args);
-                if let Err(e) = cmd::run(&mut c) {
+                if let Err(e) = cmd::run(c.args(args)) {
                     failures.push(format!("{what}: {e:#}"));
                 }
             }
@@ -341,5 +355,7 @@ fn is_executable(path: &std::path::Path) -> bool {
 }
 
 fn firmware_release_dir() -> PathBuf {
-    cmd::root().join("crates/sc-fw/target/thumbv7em-none-eabihf/release")
+    cmd::root()
+        .join(cmd::FIRMWARE)
+        .join("target/thumbv7em-none-eabihf/release")
 }

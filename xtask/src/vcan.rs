@@ -1,5 +1,9 @@
 //! The SocketCAN stage: `ihex-tests --features vcan` on native vcan interfaces when the host has
 //! them, otherwise inside the x86_64 microVM; and `vm-run`, the cargo runner of the musl target.
+//!
+//! The VM runs the host-target test binaries the way the host stage built them (one workspace
+//! build, the `vcan` feature only adds ihex-tests itself), with the glibc libraries they link
+//! copied in: no second build of every dependency for another target.
 
 use std::fs;
 use std::path::{Path, PathBuf};
@@ -10,12 +14,12 @@ use anyhow::{anyhow, bail, Context, Result};
 
 use crate::broker::HostBroker;
 use crate::cmd;
-use crate::vm::{Payload, Program, Vm};
+use crate::vm::{shared_libraries, Payload, Program, Vm};
 
 /// Number of vcan interfaces the tests get.
 pub const COUNT: usize = 16;
 
-/// The static target the VM runs.
+/// The static target `vm-run` serves as cargo runner (and the benchmark builds for the VM).
 pub const MUSL: &str = "x86_64-unknown-linux-musl";
 
 /// Modules the VM loads (dependencies are resolved with modinfo).
@@ -227,18 +231,16 @@ fn guest_env(broker: Option<&HostBroker>) -> Vec<(String, String)> {
     env
 }
 
-/// Builds the SocketCAN test binaries for the musl target and returns them (name, path).
-fn build_musl_tests() -> Result<Vec<(String, PathBuf)>> {
+/// Builds the SocketCAN test binaries for the host and returns them (name, path). `--workspace`
+/// resolves features as the host stage does, so after it only ihex-tests compiles again.
+fn build_tests() -> Result<Vec<(String, PathBuf)>> {
     let mut c = cmd::cargo();
     c.current_dir(cmd::root())
         .args([
             "test",
-            "-p",
-            "ihex-tests",
+            "--workspace",
             "--features",
-            "vcan",
-            "--target",
-            MUSL,
+            "ihex-tests/vcan",
             "--no-run",
         ])
         .arg("--message-format=json-render-diagnostics")
@@ -246,14 +248,22 @@ fn build_musl_tests() -> Result<Vec<(String, PathBuf)>> {
     println!("$ {}", cmd::display(&c));
     let out = c.output().context("running cargo")?;
     if !out.status.success() {
-        bail!("building the musl test binaries failed ({})", out.status);
+        bail!(
+            "building the SocketCAN test binaries failed ({})",
+            out.status
+        );
     }
+    let manifest = cmd::root().join("tests/Cargo.toml");
     let mut bins = Vec::new();
     for line in String::from_utf8_lossy(&out.stdout).lines() {
         let Ok(msg) = serde_json::from_str::<serde_json::Value>(line) else {
             continue;
         };
-        if msg["reason"] != "compiler-artifact" || msg["profile"]["test"] != true {
+        // Only ihex-tests' test binaries: the workspace build lists every package's.
+        if msg["reason"] != "compiler-artifact"
+            || msg["profile"]["test"] != true
+            || msg["manifest_path"].as_str().map(Path::new) != Some(&manifest)
+        {
             continue;
         }
         let Some(exe) = msg["executable"].as_str() else {
@@ -271,9 +281,18 @@ fn build_musl_tests() -> Result<Vec<(String, PathBuf)>> {
 }
 
 fn run_in_vm(settings: VmSettings) -> Result<()> {
-    let bins = build_musl_tests()?;
+    let bins = build_tests()?;
     let vm = test_vm(settings)?;
     let broker = HostBroker::start()?;
+    // The binaries are dynamically linked: their libraries (glibc) go in at the host's paths.
+    let mut files = repo_files();
+    for (_, path) in &bins {
+        for lib in shared_libraries(path)? {
+            if !files.contains(&lib) {
+                files.push(lib);
+            }
+        }
+    }
     let payload = Payload {
         programs: bins
             .into_iter()
@@ -285,7 +304,7 @@ fn run_in_vm(settings: VmSettings) -> Result<()> {
             .collect(),
         env: guest_env(broker.as_ref()),
         cwd: Some(cmd::root().join("tests")),
-        files: repo_files(),
+        files,
     };
     let outcomes = vm.run(&payload)?;
     let failed: Vec<String> = outcomes

@@ -624,7 +624,7 @@ fn run_script(p: &Payload) -> String {
 }
 
 /// The libraries (and the dynamic loader) `ldd` lists for a program; empty for a static one.
-fn shared_libraries(program: &Path) -> Result<Vec<PathBuf>> {
+pub fn shared_libraries(program: &Path) -> Result<Vec<PathBuf>> {
     let out = Command::new("ldd")
         .arg(program)
         .stdin(Stdio::null())

@@ -53,7 +53,7 @@ impl BitTiming {
         let mut tq = 25u32;
         while tq >= 8 {
             let per_bit = bitrate as u64 * tq as u64;
-            if (pclk_hz as u64) % per_bit == 0 {
+            if (pclk_hz as u64).is_multiple_of(per_bit) {
                 let prescaler = (pclk_hz as u64 / per_bit) as u32;
                 if prescaler >= 1 && prescaler <= 1024 {
                     // Samples after 1 + bs1 quanta; round to the nearest quantum, then clamp to the ranges.

@@ -111,7 +111,8 @@ impl BrokerArgs {
 struct CanArgs {
     #[command(flatten)]
     broker: BrokerArgs,
-    /// The board's unique ID: 24 hex digits (shown in its boot-up event and by `list`).
+    /// The board's 96-bit unique ID: 24 hex digits (the firmware logs it over RTT at boot, a probe
+    /// reads it: docs/deploy.md).
     #[arg(long)]
     uid: String,
     /// The node ID to give it, in hex (001..=ffd).

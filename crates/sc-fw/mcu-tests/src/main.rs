@@ -569,6 +569,7 @@ fn main() -> ! {
     } else {
         debug::EXIT_FAILURE
     });
+    // Not reached: QEMU ends at the semihosting exit.
     loop {
         cortex_m::asm::wfi();
     }

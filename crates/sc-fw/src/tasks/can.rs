@@ -62,7 +62,7 @@ pub async fn can_status() {
         beat(Beat::CanStatus as usize);
         let s = status();
         ticks = ticks.wrapping_add(1);
-        if last != Some(s) || ticks % 10 == 0 {
+        if last != Some(s) || ticks.is_multiple_of(10) {
             if last.map(|l: crate::event::CanStatus| l.bus_off) != Some(s.bus_off) && s.bus_off {
                 warn!(
                     "CAN bus-off (tec {}, rec {}); hardware recovery running",
