@@ -45,7 +45,8 @@ pub struct FwConfig {
     pub bitrate: u32,
     /// Largest share of the bus the update's frames take, % (1–100).
     pub bus_share: u8,
-    /// How long a node has to answer a begin, a query or a commit once the queue has drained.
+    /// How long a node has to answer a begin, a query or a commit once the queue has drained
+    /// (the gateway uses its command timeout).
     pub reply_timeout: Duration,
     /// Unanswered requests in a row after which a node is `unreachable`.
     pub max_misses: u32,
@@ -67,7 +68,7 @@ impl Default for FwConfig {
         FwConfig {
             bitrate: BUS_BITRATE,
             bus_share: DEFAULT_BUS_SHARE,
-            reply_timeout: Duration::from_millis(300),
+            reply_timeout: Duration::from_millis(500),
             max_misses: 5,
             erase_timeout: Duration::from_secs(20),
             reboot_timeout: Duration::from_secs(30),

@@ -458,6 +458,8 @@ impl Config {
             fw: fwupdate::FwConfig {
                 bitrate: s.bitrate,
                 bus_share: s.fw_bus_share,
+                // A node answers an update's requests as it acks a command.
+                reply_timeout: Duration::from_millis(s.command_timeout_ms),
                 ..fwupdate::FwConfig::default()
             },
         };
