@@ -211,7 +211,8 @@ impl Layout {
         let mut i = 0;
         while i < parts.len() {
             let r = parts[i];
-            if r.len == 0 || r.start % self.page != 0 || r.len % self.page != 0 {
+            if r.len == 0 || !r.start.is_multiple_of(self.page) || !r.len.is_multiple_of(self.page)
+            {
                 return Err("every region must be a non-empty whole number of pages, page-aligned");
             }
             if !self.flash.contains(&r) {
@@ -235,7 +236,7 @@ impl Layout {
         if (2 + 4 * (self.active.len / self.page)) * self.write_unit > self.state.len {
             return Err("the state partition is too small for the swap progress index");
         }
-        if (HEADER_BLOCK as u32) % self.write_unit != 0 || HEADER_BLOCK < SIGNED_LEN {
+        if !(HEADER_BLOCK as u32).is_multiple_of(self.write_unit) || HEADER_BLOCK < SIGNED_LEN {
             return Err("the header block must hold the signed header and keep the write unit");
         }
         Ok(())

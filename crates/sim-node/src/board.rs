@@ -167,7 +167,7 @@ impl SimFlash {
 
     fn check(&self, offset: u32, len: usize, align: usize) -> Result<usize, SimFlashError> {
         let start = offset as usize;
-        if start % align != 0 || len % align != 0 {
+        if !start.is_multiple_of(align) || !len.is_multiple_of(align) {
             return Err(SimFlashError::NotAligned);
         }
         if start + len > self.capacity() {

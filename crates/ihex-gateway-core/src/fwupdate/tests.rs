@@ -481,7 +481,6 @@ fn the_bus_share_is_respected_over_every_window() {
 #[test]
 fn bus_down_pauses_without_counting_misses() {
     let img = image(2000);
-    let frames = img.frames();
     let t0 = Instant::now();
     let mut s = FwSender::new(img, [nid(0x171)], false, None, FwConfig::default(), t0);
     assert!(s.poll_transmit().is_some(), "the begin goes out");
@@ -496,7 +495,6 @@ fn bus_down_pauses_without_counting_misses() {
     let p = s.poll_transmit().expect("asked again after recovery");
     assert_eq!(p.dest, nid(0x171));
     assert!(matches!(p.msg, Message::FwBegin { .. }));
-    let _ = frames;
 }
 
 #[test]

@@ -35,9 +35,9 @@ const MAX_CHUNKS: usize = (MAX_IMAGE_LEN as usize).div_ceil(CHUNK_LEN);
 /// for again), which only costs resends after losses.
 const CACHE: usize = 4;
 const _: () = assert!(
-    SIGNED_LEN % CHUNK_LEN == 0
-        && CHUNK_LEN % FW_DATA_LEN == 0
-        && CHUNK_LEN % 8 == 0
+    SIGNED_LEN.is_multiple_of(CHUNK_LEN)
+        && CHUNK_LEN.is_multiple_of(FW_DATA_LEN)
+        && CHUNK_LEN.is_multiple_of(8)
         && HEADER_FRAMES == 32
 );
 
