@@ -48,6 +48,11 @@ async fn actuators() {
 }
 
 #[tokio::test]
+async fn firmware_update() {
+    scenario::firmware_update(vcan()).await;
+}
+
+#[tokio::test]
 async fn bounce() {
     scenario::bounce(vcan()).await;
 }

@@ -95,12 +95,14 @@ fn firmware(dir: &Path, build: bool, out: &Path) -> Result<()> {
     let list: Vec<serde_json::Value> = bins
         .iter()
         .map(|(p, s)| {
+            let name = p.file_name().unwrap_or_default().to_string_lossy();
+            let (flash_budget, ram_budget) = fwsize::budget(&name);
             serde_json::json!({
-                "name": p.file_name().unwrap_or_default().to_string_lossy(),
+                "name": name,
                 "flash": s.flash(),
                 "ram": s.ram(),
-                "flash_budget": fwsize::FLASH_BUDGET,
-                "ram_budget": fwsize::RAM_BUDGET,
+                "flash_budget": flash_budget,
+                "ram_budget": ram_budget,
             })
         })
         .collect();

@@ -2,6 +2,9 @@
 //!
 //! Flash = text + rodata + data (initialised data is stored in flash and copied at boot);
 //! static RAM = data + bss. Non-allocated sections (debug info, defmt strings) cost nothing.
+//! The bootloader must fit its 24 KiB partition; an application (the firmware, the loopback
+//! self-test) has a 96 KiB goal inside its 128 KiB slot (`ihex_image::board::F303RE`), so that a
+//! release can grow without a layout change (which needs a probe on every board).
 
 use std::fs;
 use std::path::{Path, PathBuf};
@@ -9,10 +12,23 @@ use std::path::{Path, PathBuf};
 use anyhow::{bail, Context, Result};
 use object::{Object, ObjectKind, ObjectSection, SectionFlags, SectionKind};
 
-/// Flash budget of one firmware image, in bytes.
-pub const FLASH_BUDGET: u64 = 64 * 1024;
-/// Static RAM budget of one firmware image, in bytes.
+/// Flash budget of an application image, in bytes.
+pub const APP_FLASH_BUDGET: u64 = 96 * 1024;
+/// Flash budget of the bootloader: its partition.
+pub const BOOTLOADER_FLASH_BUDGET: u64 = 24 * 1024;
+/// Static RAM budget of every image, in bytes.
 pub const RAM_BUDGET: u64 = 16 * 1024;
+/// The bootloader's binary name (everything else in the folder is an application).
+pub const BOOTLOADER: &str = "ihex-sc-bootloader";
+
+/// (flash, static RAM) budget of the binary called `name`.
+pub fn budget(name: &str) -> (u64, u64) {
+    if name == BOOTLOADER {
+        (BOOTLOADER_FLASH_BUDGET, RAM_BUDGET)
+    } else {
+        (APP_FLASH_BUDGET, RAM_BUDGET)
+    }
+}
 
 const SHF_WRITE: u64 = 0x1;
 const SHF_ALLOC: u64 = 0x2;
@@ -97,6 +113,33 @@ pub fn binaries(dir: &Path) -> Result<Vec<(PathBuf, Sizes)>> {
     Ok(out)
 }
 
+/// The application every update image is made from.
+pub const APP: &str = "ihex-sc-fw";
+
+/// Packs the release application in `dir` into an update image signed with the committed test key
+/// (`ihex-sc-fw.img` next to it) and checks it as a node would: proves on the real ELF that the
+/// packer finds its identity record and that it is linked at the slot's load address.
+pub fn pack_check(dir: &Path) -> Result<()> {
+    use ihex_image::{board::F303RE, pack_elf, verify_image, Board, PackOverrides, Policy};
+    let elf_path = dir.join(APP);
+    let elf = fs::read(&elf_path).with_context(|| format!("reading {}", elf_path.display()))?;
+    let key = ihex_image::SigningKey::test_key();
+    let image = pack_elf(&elf, PackOverrides::default(), &key)
+        .with_context(|| format!("packing {}", elf_path.display()))?;
+    let info = ihex_image::elf::fw_info(&elf)?.context("no IHEX_FW_INFO in the firmware")?;
+    let policy = Policy::new(Board::NUCLEO_F303RE, &F303RE, info.protocol.0, info.version);
+    let header = verify_image(&image, &key.public(), &policy).context("the packed image")?;
+    let out = dir.join(format!("{APP}.img"));
+    fs::write(&out, &image).with_context(|| format!("writing {}", out.display()))?;
+    println!(
+        "{APP}.img: version {}, {} bytes, sha512 {}..., test-key signed, verifies",
+        header.version,
+        image.len(),
+        &header.payload_hash.to_string()[..16]
+    );
+    Ok(())
+}
+
 fn pct(used: u64, budget: u64) -> f64 {
     used as f64 * 100.0 / budget as f64
 }
@@ -117,6 +160,7 @@ pub fn report(dir: &Path) -> Result<()> {
     let mut over = Vec::new();
     for (path, s) in &bins {
         let name = path.file_name().unwrap_or_default().to_string_lossy();
+        let (flash_budget, ram_budget) = budget(&name);
         println!(
             "{:<20} {:>8} {:>8} {:>6} {:>6}  {:>7}/{} ({:>5.1} %)  {:>7}/{} ({:>5.1} %)",
             name,
@@ -125,24 +169,24 @@ pub fn report(dir: &Path) -> Result<()> {
             s.data,
             s.bss,
             s.flash(),
-            FLASH_BUDGET,
-            pct(s.flash(), FLASH_BUDGET),
+            flash_budget,
+            pct(s.flash(), flash_budget),
             s.ram(),
-            RAM_BUDGET,
-            pct(s.ram(), RAM_BUDGET)
+            ram_budget,
+            pct(s.ram(), ram_budget)
         );
-        if s.flash() > FLASH_BUDGET {
+        if s.flash() > flash_budget {
             over.push(format!(
                 "{name}: flash {} B > {} B",
                 s.flash(),
-                FLASH_BUDGET
+                flash_budget
             ));
         }
-        if s.ram() > RAM_BUDGET {
+        if s.ram() > ram_budget {
             over.push(format!(
                 "{name}: static RAM {} B > {} B",
                 s.ram(),
-                RAM_BUDGET
+                ram_budget
             ));
         }
     }
@@ -274,7 +318,7 @@ mod tests {
         fs::write(dir.join("fits"), firmware(30_000, 4_000)).unwrap();
         fs::write(dir.join("fits.d"), "not an ELF").unwrap();
         report(&dir).unwrap();
-        fs::write(dir.join("too-big"), firmware(70_000, 4_000)).unwrap();
+        fs::write(dir.join("too-big"), firmware(100_000, 4_000)).unwrap();
         let err = report(&dir).unwrap_err().to_string();
         assert!(
             err.contains("too-big: flash") && !err.contains("fits:"),
@@ -285,6 +329,13 @@ mod tests {
             .unwrap_err()
             .to_string()
             .contains("too-big: static RAM"));
+        fs::remove_file(dir.join("too-big")).unwrap();
+        // The bootloader has its partition's budget: what fits an application does not fit it.
+        fs::write(dir.join(BOOTLOADER), firmware(30_000, 1_000)).unwrap();
+        let err = report(&dir).unwrap_err().to_string();
+        assert!(err.contains("ihex-sc-bootloader: flash"), "{err}");
+        fs::write(dir.join(BOOTLOADER), firmware(20_000, 1_000)).unwrap();
+        report(&dir).unwrap();
         fs::remove_dir_all(&dir).unwrap();
     }
 }

@@ -40,7 +40,8 @@ enum Task {
     /// Install the rust targets, toolchains and system packages the tests need (apt on
     /// Debian/Ubuntu).
     Setup,
-    /// Print flash/RAM use of the release firmware against the 64 KiB / 16 KiB budget.
+    /// Print flash/RAM use of the release firmware (bootloader, application) against the budgets:
+    /// 96 KiB flash per application, 24 KiB for the bootloader, 16 KiB static RAM each.
     FwSize {
         /// Folder with the firmware ELFs.
         #[arg(long)]
@@ -363,6 +364,7 @@ fn run_stage(stage: Stage, args: &TestArgs) -> Result<Done> {
             }
             cmd::run(cmd::cargo_in(&fw).args(["build", "--release"]))?;
             fwsize::report(&firmware_release_dir())?;
+            fwsize::pack_check(&firmware_release_dir())?;
             let mut failures = Vec::new();
             for (what, dir, prog, args) in FIRMWARE_CHECKS {
                 println!("==> xtask: firmware: {what}");

@@ -361,6 +361,10 @@ pub enum Event {
     SimResult(SimResult),
     /// Demo only: a simulated island control message was not understood.
     SimRejected(CommandRejected),
+    /// Where one node is in a firmware update (throttled).
+    FwProgress(crate::fwupdate::FwProgress),
+    /// A firmware update ended: every node's outcome.
+    FwReport(crate::fwupdate::FwReport),
 }
 
 impl Event {
@@ -382,6 +386,8 @@ impl Event {
             Event::PublicationsDropped(_) => "publications_dropped",
             Event::SimResult(_) => "sim_result",
             Event::SimRejected(_) => "sim_rejected",
+            Event::FwProgress(_) => "fw_progress",
+            Event::FwReport(_) => "fw_report",
         }
     }
 

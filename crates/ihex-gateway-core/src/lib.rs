@@ -32,7 +32,8 @@
 //! validation of JSON commands), [`event`] (the MQTT API's events and state documents), [`registry`]
 //! (what is known of each node), [`docking`] (the one-at-a-time docking sequence), [`throttle`]
 //! (rate limit of error events), [`error_frame`] (SocketCAN error frames), [`topic`] (topic names),
-//! [`ha`] (Home Assistant discovery and commands).
+//! [`ha`] (Home Assistant discovery and commands),
+//! [`fwupdate`] (the firmware-update sender: `fw_update`).
 #![forbid(unsafe_code)]
 #![warn(missing_docs)]
 
@@ -42,6 +43,7 @@ pub mod docking;
 pub mod error_frame;
 pub mod event;
 pub mod ha;
+pub mod fwupdate;
 pub mod registry;
 pub mod throttle;
 pub mod topic;

@@ -282,3 +282,54 @@ pub mod dock_link {
     /// The mobile element's own port.
     pub const PARTNER_PORT: usize = 4;
 }
+
+/// [`crate::Message::FwBegin`].
+pub mod fw_begin {
+    use super::Field;
+    /// The image's ID (first 4 bytes of its payload SHA-512), `u32` LE.
+    pub const IMAGE_ID: Field = 0..4;
+    /// Image length in bytes (header block + payload), `u24` LE.
+    pub const LEN: Field = 4..7;
+    /// Flags (bit 0: force, i.e. allow a downgrade).
+    pub const FLAGS: usize = 7;
+}
+
+/// [`crate::Message::FwData`].
+pub mod fw_data {
+    use super::Field;
+    /// Frame index, `u16` LE: the bytes start at image offset `6 × index`.
+    pub const INDEX: Field = 0..2;
+    /// Six image bytes.
+    pub const DATA: Field = 2..8;
+}
+
+/// [`crate::Message::FwQuery`].
+pub mod fw_query {
+    use super::Field;
+    /// The image the gateway asks about, `u32` LE.
+    pub const IMAGE_ID: Field = 0..4;
+}
+
+/// [`crate::Message::FwEnd`].
+pub mod fw_end {
+    use super::Field;
+    /// The image, `u32` LE.
+    pub const IMAGE_ID: Field = 0..4;
+    /// `1` commit, `2` abort.
+    pub const ACTION: usize = 4;
+}
+
+/// [`crate::Message::FwStatus`].
+pub mod fw_status {
+    use super::Field;
+    /// Phase of the node's transfer.
+    pub const PHASE: usize = 0;
+    /// Refusal reason (`0` none).
+    pub const REASON: usize = 1;
+    /// First missing frame index, `u16` LE.
+    pub const FIRST_MISSING: Field = 2..4;
+    /// Missing frames from there on without a gap, `u16` LE.
+    pub const RUN: Field = 4..6;
+    /// All missing frames, `u16` LE (saturating).
+    pub const MISSING: Field = 6..8;
+}

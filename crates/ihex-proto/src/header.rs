@@ -50,12 +50,22 @@ pub enum Kind {
     StateReport = 0x12,
     /// Gateway → static node: this mobile element is the one docked on your port.
     DockLink = 0x13,
+    /// Gateway → node (or all): a firmware transfer starts (or resumes).
+    FwBegin = 0x1B,
+    /// Gateway → node (or all): commit (verify, install, reset) or abort a transfer.
+    FwEnd = 0x1C,
+    /// Gateway → node (or all): report your transfer status.
+    FwQuery = 0x1D,
+    /// Node → gateway: transfer phase, refusal reason, what is missing.
+    FwStatus = 0x1E,
+    /// Gateway → node (or all): six image bytes; the lowest priority of all.
+    FwData = 0x1F,
 }
 
 impl Kind {
     /// Every assigned kind, in numeric (= priority) order. Kinds need not be contiguous: unassigned
     /// values between them are reserved for other additions.
-    pub const ALL: [Kind; 20] = [
+    pub const ALL: [Kind; 25] = [
         Kind::PowerSet,
         Kind::Fault,
         Kind::DockDetected,
@@ -76,6 +86,11 @@ impl Kind {
         Kind::StateQuery,
         Kind::StateReport,
         Kind::DockLink,
+        Kind::FwBegin,
+        Kind::FwEnd,
+        Kind::FwQuery,
+        Kind::FwStatus,
+        Kind::FwData,
     ];
 
     /// The kind with this 5-bit value, `None` for unassigned values.
@@ -101,6 +116,11 @@ impl Kind {
             0x11 => Kind::StateQuery,
             0x12 => Kind::StateReport,
             0x13 => Kind::DockLink,
+            0x1B => Kind::FwBegin,
+            0x1C => Kind::FwEnd,
+            0x1D => Kind::FwQuery,
+            0x1E => Kind::FwStatus,
+            0x1F => Kind::FwData,
             _ => return None,
         })
     }
@@ -129,6 +149,11 @@ impl Kind {
             Kind::StateQuery => "StateQuery",
             Kind::StateReport => "StateReport",
             Kind::DockLink => "DockLink",
+            Kind::FwBegin => "FwBegin",
+            Kind::FwEnd => "FwEnd",
+            Kind::FwQuery => "FwQuery",
+            Kind::FwStatus => "FwStatus",
+            Kind::FwData => "FwData",
         }
     }
 
@@ -147,6 +172,10 @@ impl Kind {
                 | Kind::HealthCheck
                 | Kind::StateQuery
                 | Kind::DockLink
+                | Kind::FwBegin
+                | Kind::FwEnd
+                | Kind::FwQuery
+                | Kind::FwData
         )
     }
 

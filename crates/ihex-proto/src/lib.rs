@@ -14,6 +14,8 @@
 //! * [`Packet`] / [`Message`] — one typed value per interaction, with [`Packet::to_frame`] and
 //!   [`Packet::from_frame`] generic over any [`embedded_can::Frame`] (socketcan and embassy frames alike).
 //! * [`StateReport`] and friends — a node's state read back part by part ([`Message::StateQuery`]).
+//! * [`FwStatus`] and friends — a signed firmware image sent to many nodes at once
+//!   ([`Message::FwBegin`], [`Message::FwData`], [`Message::FwQuery`], [`Message::FwEnd`]).
 //! * [`filter`] — accept/reject ID and mask filters with the seed's semantics, and their translation to
 //!   SocketCAN kernel filters and bxCAN filter banks.
 //! * [`timing`] — bxCAN bit timing from a peripheral clock and a bitrate; [`bus`] — bit lengths of
@@ -38,6 +40,7 @@ pub mod dbc;
 mod error;
 pub mod field;
 pub mod filter;
+mod fw;
 mod header;
 mod message;
 pub mod schema;
@@ -48,6 +51,9 @@ pub mod unit;
 
 pub use addr::{NodeId, Port, Seq};
 pub use error::{DecodeError, ParseError};
+pub use fw::{
+    FwAction, FwPhase, FwRefusal, FwStatus, FW_BEGIN_MAX_LEN, FW_DATA_LEN, FW_KINDS, FW_MAX_LEN,
+};
 pub use header::{Header, Kind};
 pub use message::{
     AckResult, BootRole, BuzzerCommand, DockRefuseReason, FaultCode, HealthFlags, HealthReply,
@@ -60,5 +66,6 @@ pub const BITRATE: u32 = 500_000;
 
 /// Protocol version carried in [`Message::BootUp`]: bump the minor on additions, the major on any
 /// change an old peer would misread. 1.1 added state read-back (`StateQuery`, `StateReport`) and
-/// dock links (`DockLink`).
-pub const PROTOCOL_VERSION: (u8, u8) = (1, 1);
+/// dock links (`DockLink`); 1.2 firmware transfer (`FwBegin`, `FwEnd`, `FwQuery`, `FwStatus`,
+/// `FwData`).
+pub const PROTOCOL_VERSION: (u8, u8) = (1, 2);

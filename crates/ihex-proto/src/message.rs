@@ -4,9 +4,10 @@ use embedded_can::Frame;
 
 use crate::field::{
     ack, assign_commit, assign_reply, assign_select, boot_up, buzzer_set, dock, dock_confirm,
-    dock_link, dock_refuse, fault, health_check, health_reply, identify, led_set, power_set,
-    state_query, Field,
+    dock_link, dock_refuse, fault, fw_begin, fw_data, fw_end, fw_query, health_check, health_reply,
+    identify, led_set, power_set, state_query, Field,
 };
+use crate::fw::{FwAction, FwStatus, FW_BEGIN_MAX_LEN, FW_DATA_LEN};
 use crate::state::{DockPartner, StateParts, StateReport};
 use crate::{DecodeError, Header, Kind, NodeId, Port, Seq};
 
@@ -448,6 +449,37 @@ pub enum Message {
         /// The mobile element docked there and its own port; `None` clears.
         partner: Option<DockPartner>,
     },
+    /// `[image_id:u32le, len:u24le, flags]` — a firmware transfer of this image starts; the same
+    /// image ID and length resume the node's transfer. Flags: bit 0 `force` (allow a downgrade).
+    FwBegin {
+        /// First 4 bytes (LE) of the image's payload SHA-512.
+        image_id: u32,
+        /// Image length (header block + payload), up to [`FW_BEGIN_MAX_LEN`].
+        len: u32,
+        /// Accept an image older than the running one.
+        force: bool,
+    },
+    /// `[image_id:u32le, action]` — commit or abort the transfer of this image.
+    FwEnd {
+        /// The image.
+        image_id: u32,
+        /// What to do.
+        action: FwAction,
+    },
+    /// `[image_id:u32le]` — every addressed node answers with a [`Message::FwStatus`] about this image.
+    FwQuery {
+        /// The image.
+        image_id: u32,
+    },
+    /// `[phase, reason, first:u16le, run:u16le, missing:u16le]` — a node's transfer status.
+    FwStatus(FwStatus),
+    /// `[index:u16le, 6 bytes]` — image bytes `6 × index .. 6 × index + 6`.
+    FwData {
+        /// Frame index.
+        index: u16,
+        /// The bytes (past the image's end: don't care).
+        data: [u8; FW_DATA_LEN],
+    },
 }
 
 /// A message with its addresses: exactly what one frame carries.
@@ -494,6 +526,11 @@ impl Message {
             Message::StateQuery { .. } => Kind::StateQuery,
             Message::StateReport(_) => Kind::StateReport,
             Message::DockLink { .. } => Kind::DockLink,
+            Message::FwBegin { .. } => Kind::FwBegin,
+            Message::FwEnd { .. } => Kind::FwEnd,
+            Message::FwQuery { .. } => Kind::FwQuery,
+            Message::FwStatus(_) => Kind::FwStatus,
+            Message::FwData { .. } => Kind::FwData,
         }
     }
 
@@ -536,6 +573,7 @@ impl Message {
             Message::HealthReply(h) if h.uptime_s > HealthReply::MAX_UPTIME_S => {
                 return bad("uptime", h.uptime_s);
             }
+            Message::FwBegin { len, .. } if len > FW_BEGIN_MAX_LEN => return bad("len", len),
             _ => {}
         }
         Ok(())
@@ -648,6 +686,27 @@ impl Message {
                 b[dock_link::PORT] = port.get();
                 encode_partner(partner, &mut b, dock_link::PARTNER, dock_link::PARTNER_PORT);
             }
+            Message::FwBegin {
+                image_id,
+                len,
+                force,
+            } => {
+                b[fw_begin::IMAGE_ID].copy_from_slice(&image_id.to_le_bytes());
+                b[fw_begin::LEN].copy_from_slice(&len.to_le_bytes()[..3]);
+                b[fw_begin::FLAGS] = u8::from(force);
+            }
+            Message::FwEnd { image_id, action } => {
+                b[fw_end::IMAGE_ID].copy_from_slice(&image_id.to_le_bytes());
+                b[fw_end::ACTION] = action.to_raw();
+            }
+            Message::FwQuery { image_id } => {
+                b[fw_query::IMAGE_ID].copy_from_slice(&image_id.to_le_bytes());
+            }
+            Message::FwStatus(st) => st.encode_into(&mut b),
+            Message::FwData { index, data } => {
+                b[fw_data::INDEX].copy_from_slice(&index.to_le_bytes());
+                b[fw_data::DATA].copy_from_slice(&data);
+            }
         }
         let mut d = Data::new();
         push_all(&mut d, &b[..Self::len_of(self.kind()) as usize]);
@@ -675,6 +734,11 @@ impl Message {
             Kind::StateQuery => 2,
             Kind::StateReport => 8,
             Kind::DockLink => 5,
+            Kind::FwBegin => 8,
+            Kind::FwEnd => 5,
+            Kind::FwQuery => 4,
+            Kind::FwStatus => 8,
+            Kind::FwData => 8,
         }
     }
 
@@ -809,6 +873,38 @@ impl Message {
                 port: port(d[dock_link::PORT])?,
                 partner: decode_partner(kind, d, dock_link::PARTNER, dock_link::PARTNER_PORT)?,
             },
+            Kind::FwBegin => {
+                let l = fw_begin::LEN;
+                Message::FwBegin {
+                    image_id: u32::from_le_bytes(bytes4(fw_begin::IMAGE_ID)),
+                    len: u32::from_le_bytes([d[l.start], d[l.start + 1], d[l.start + 2], 0]),
+                    force: match d[fw_begin::FLAGS] {
+                        0 => false,
+                        1 => true,
+                        v => return Err(bad("flags", v)),
+                    },
+                }
+            }
+            Kind::FwEnd => Message::FwEnd {
+                image_id: u32::from_le_bytes(bytes4(fw_end::IMAGE_ID)),
+                action: FwAction::from_raw(d[fw_end::ACTION])
+                    .ok_or(bad("action", d[fw_end::ACTION]))?,
+            },
+            Kind::FwQuery => Message::FwQuery {
+                image_id: u32::from_le_bytes(bytes4(fw_query::IMAGE_ID)),
+            },
+            Kind::FwStatus => Message::FwStatus(FwStatus::decode(d)),
+            Kind::FwData => {
+                let mut data = [0; FW_DATA_LEN];
+                data.copy_from_slice(&d[fw_data::DATA]);
+                Message::FwData {
+                    index: u16::from_le_bytes([
+                        d[fw_data::INDEX.start],
+                        d[fw_data::INDEX.start + 1],
+                    ]),
+                    data,
+                }
+            }
         };
         msg.validate()?;
         Ok(msg)

@@ -17,12 +17,13 @@
 
 use crate::field::{
     ack, assign_commit, assign_reply, assign_select, boot_up, buzzer_set, dock, dock_confirm,
-    dock_link, dock_refuse, fault, health_check, health_reply, identify, led_set, power_set,
-    state_query, state_report, Field,
+    dock_link, dock_refuse, fault, fw_begin, fw_data, fw_end, fw_query, fw_status, health_check,
+    health_reply, identify, led_set, power_set, state_query, state_report, Field,
 };
 use crate::{
-    unit, AckResult, BuzzerCommand, DockRefuseReason, DockState, FaultCode, HealthFlags,
-    HealthReply, Kind, LedCommand, Message, NodeId, Port, ResetReason, StateParts, StateReport,
+    unit, AckResult, BuzzerCommand, DockRefuseReason, DockState, FaultCode, FwAction, FwPhase,
+    FwRefusal, HealthFlags, HealthReply, Kind, LedCommand, Message, NodeId, Port, ResetReason,
+    StateParts, StateReport,
 };
 
 /// Who sends a message.
@@ -345,6 +346,26 @@ pub const fn of(kind: Kind) -> MessageSchema {
         Kind::DockLink => (
             "Gateway to one static node: this mobile element is the one docked on your port",
             &DOCK_LINK,
+        ),
+        Kind::FwBegin => (
+            "Gateway to node or all: a firmware transfer of this image starts (or resumes)",
+            &FW_BEGIN,
+        ),
+        Kind::FwEnd => (
+            "Gateway to node or all: commit (verify, install, reset) or abort a transfer",
+            &FW_END,
+        ),
+        Kind::FwQuery => (
+            "Gateway to node or all: report your transfer status for this image",
+            &FW_QUERY,
+        ),
+        Kind::FwStatus => (
+            "Node to gateway: transfer phase, refusal reason, the first run of missing frames",
+            &FW_STATUS,
+        ),
+        Kind::FwData => (
+            "Gateway to node or all: six image bytes at 6 x index; the lowest priority",
+            &FW_DATA,
         ),
     };
     MessageSchema {
@@ -930,6 +951,75 @@ static DOCK_LINK: [Signal; 4] = [
     PARTNER[0],
     PARTNER[1],
 ];
+
+const IMAGE_ID: &str = "the image: first 4 bytes (LE) of its payload SHA-512";
+
+static FW_BEGIN: [Signal; 4] = [
+    Signal::le("image_id", fw_begin::IMAGE_ID, IMAGE_ID),
+    Signal::le("len", fw_begin::LEN, "image length: header block + payload").unit("B"),
+    Signal::flag("force", fw_begin::FLAGS, 0x01, "accept a downgrade").values(OFF_ON),
+    Signal::bits(
+        "flags_reserved",
+        fw_begin::FLAGS,
+        0xFE,
+        "reserved, always 0",
+    )
+    .range(0, 0),
+];
+
+static FW_END: [Signal; 2] = [
+    Signal::le("image_id", fw_end::IMAGE_ID, IMAGE_ID),
+    Signal::byte("action", fw_end::ACTION, "what to do with the transfer")
+        .range(1, 2)
+        .values(FwAction::TABLE),
+];
+
+static FW_QUERY: [Signal; 1] = [Signal::le("image_id", fw_query::IMAGE_ID, IMAGE_ID)];
+
+static FW_STATUS: [Signal; 5] = [
+    Signal::byte(
+        "phase",
+        fw_status::PHASE,
+        "where the node is in the transfer",
+    )
+    .values(FwPhase::TABLE),
+    Signal::byte(
+        "reason",
+        fw_status::REASON,
+        "why it refused; none otherwise",
+    )
+    .values(FwRefusal::TABLE),
+    Signal::le(
+        "first_missing",
+        fw_status::FIRST_MISSING,
+        "first frame index still missing",
+    ),
+    Signal::le(
+        "run",
+        fw_status::RUN,
+        "frames missing from first_missing on without a gap",
+    ),
+    Signal::le("missing", fw_status::MISSING, "frames missing in all"),
+];
+
+const FW_BYTE: &str = "an image byte";
+
+static FW_DATA: [Signal; 7] = {
+    let f = fw_data::DATA.start;
+    [
+        Signal::le(
+            "index",
+            fw_data::INDEX,
+            "frame index: the bytes are at 6 x index",
+        ),
+        Signal::byte("data_0", f, FW_BYTE),
+        Signal::byte("data_1", f + 1, FW_BYTE),
+        Signal::byte("data_2", f + 2, FW_BYTE),
+        Signal::byte("data_3", f + 3, FW_BYTE),
+        Signal::byte("data_4", f + 4, FW_BYTE),
+        Signal::byte("data_5", f + 5, FW_BYTE),
+    ]
+};
 
 const STATE_REPORT_LEN: usize = Message::len_of(Kind::StateReport) as usize;
 

@@ -7,8 +7,9 @@ use ihex_proto::timing::{BitTiming, TimingError};
 use ihex_proto::uart::{UartDecoder, UartError, UartReply, UartRequest};
 use ihex_proto::{
     AckResult, BootRole, BuzzerCommand, DecodeError, DockPartner, DockRefuseReason, DockState,
-    FaultCode, FirmwareVersion, HealthFlags, HealthReply, Kind, LedCommand, Message, NodeId,
-    Packet, Port, PowerState, ResetReason, Rgb, StateParts, StateReport, Uid,
+    FaultCode, FirmwareVersion, FwAction, FwPhase, FwRefusal, FwStatus, HealthFlags, HealthReply,
+    Kind, LedCommand, Message, NodeId, Packet, Port, PowerState, ResetReason, Rgb, StateParts,
+    StateReport, Uid, FW_BEGIN_MAX_LEN, FW_DATA_LEN, FW_MAX_LEN,
 };
 
 mod common;
@@ -101,6 +102,11 @@ fn kind_values_priorities_and_directions() {
         (Kind::StateQuery, 0x11, true, false),
         (Kind::StateReport, 0x12, false, false),
         (Kind::DockLink, 0x13, true, true),
+        (Kind::FwBegin, 0x1B, true, false),
+        (Kind::FwEnd, 0x1C, true, false),
+        (Kind::FwQuery, 0x1D, true, false),
+        (Kind::FwStatus, 0x1E, false, false),
+        (Kind::FwData, 0x1F, true, false),
     ];
     assert_eq!(table.len(), Kind::ALL.len());
     for (i, (kind, raw, cmd, acked)) in table.into_iter().enumerate() {
@@ -111,10 +117,10 @@ fn kind_values_priorities_and_directions() {
         assert_eq!(kind.is_acknowledged(), acked, "{kind:?}");
         assert_eq!(
             Message::len_of(kind) as usize,
-            [2, 6, 1, 1, 2, 3, 1, 4, 8, 7, 8, 5, 7, 8, 2, 1, 8, 2, 8, 5][i]
+            [2, 6, 1, 1, 2, 3, 1, 4, 8, 7, 8, 5, 7, 8, 2, 1, 8, 2, 8, 5, 8, 5, 4, 8, 8][i]
         );
     }
-    for raw in 0x14..=0xFF {
+    for raw in (0x14..=0x1A).chain(0x20..=0xFF) {
         assert_eq!(Kind::from_raw(raw), None);
     }
 }
@@ -144,6 +150,11 @@ fn field_offsets_fill_each_layout() {
         (Kind::StateQuery, state_query::PARTS + 1),
         (Kind::StateReport, state_report::DATA.end),
         (Kind::DockLink, dock_link::PARTNER_PORT + 1),
+        (Kind::FwBegin, fw_begin::FLAGS + 1),
+        (Kind::FwEnd, fw_end::ACTION + 1),
+        (Kind::FwQuery, fw_query::IMAGE_ID.end),
+        (Kind::FwStatus, fw_status::MISSING.end),
+        (Kind::FwData, fw_data::DATA.end),
     ];
     for (i, (kind, end)) in ends.into_iter().enumerate() {
         assert_eq!(kind, Kind::ALL[i]);
@@ -390,8 +401,8 @@ fn ack() {
     );
     rejected(
         0x0700_0111,
-        &[0x1B, 0, 0, 0],
-        value(Kind::Ack, "kind", 0x1B),
+        &[0x1A, 0, 0, 0],
+        value(Kind::Ack, "kind", 0x1A),
     );
     rejected(
         0x0700_0111,
@@ -830,6 +841,21 @@ fn ack_seq_is_set_exactly_for_acknowledged_commands() {
             port: port(1),
             partner: None,
         },
+        Message::FwBegin {
+            image_id: 1,
+            len: 600,
+            force: false,
+        },
+        Message::FwEnd {
+            image_id: 1,
+            action: FwAction::Commit,
+        },
+        Message::FwQuery { image_id: 1 },
+        Message::FwStatus(FwStatus::phase(FwPhase::Idle, FwRefusal::None)),
+        Message::FwData {
+            index: 0,
+            data: [0; 6],
+        },
     ];
     assert_eq!(samples.len(), Kind::ALL.len());
     for (m, kind) in samples.iter().zip(Kind::ALL) {
@@ -877,8 +903,8 @@ fn wrong_length_for_every_kind() {
 
 #[test]
 fn unknown_kinds() {
-    // 0x14..=0x1A are free; 0x1B..=0x1F are reserved for firmware transfer (not assigned yet).
-    for k in 0x14u32..=0x1F {
+    // 0x14..=0x1A are free (0x1B..=0x1F carry firmware transfer).
+    for k in 0x14u32..=0x1A {
         for data in [&[][..], &[0u8; 8][..]] {
             rejected(
                 (k << 24) | 0x00_0111,
@@ -1084,7 +1110,7 @@ fn docking_sequence_dump() {
             },
         ),
         0x0B00_0002,
-        &[0x01, 0x01, 0x01, 0x01, 0x00],
+        &[0x01, 0x02, 0x01, 0x01, 0x00],
     );
     golden(
         Packet::report(m, Message::Handshake { port: port(0) }),
@@ -1178,7 +1204,7 @@ fn assignment_sequence_dump() {
     golden(
         Packet::report(id, boot),
         0x0B00_0111,
-        &[0x01, 0x01, 0x00, 0x06, 0x00],
+        &[0x01, 0x02, 0x00, 0x06, 0x00],
     );
 }
 
@@ -1794,4 +1820,351 @@ fn bit_timings() {
     };
     assert!(!big.is_valid());
     assert_eq!(big.btr() & !0x037F_03FF, 0);
+}
+
+// ---- firmware transfer (0x1B..=0x1F) ----
+
+#[test]
+fn fw_begin() {
+    let begin = |image_id, len, force| Message::FwBegin {
+        image_id,
+        len,
+        force,
+    };
+    golden(
+        Packet::command(ALL, begin(0x7A3C_19E4, 51_296, false)),
+        0x1BFF_F000,
+        &[0xE4, 0x19, 0x3C, 0x7A, 0x60, 0xC8, 0x00, 0x00],
+    );
+    golden(
+        Packet::command(node(0x111), begin(0, FW_BEGIN_MAX_LEN, true)),
+        0x1B11_1000,
+        &[0, 0, 0, 0, 0xFF, 0xFF, 0xFF, 0x01],
+    );
+    rejected(
+        0x1BFF_F000,
+        &[0, 0, 0, 0, 0, 2, 0, 0x02],
+        value(Kind::FwBegin, "flags", 2),
+    );
+    let too_long = begin(1, FW_BEGIN_MAX_LEN + 1, false);
+    assert_eq!(
+        too_long.validate(),
+        Err(value(Kind::FwBegin, "len", FW_BEGIN_MAX_LEN + 1))
+    );
+}
+
+#[test]
+fn fw_end_and_query() {
+    let end = |action| Message::FwEnd {
+        image_id: 0x7A3C_19E4,
+        action,
+    };
+    golden(
+        Packet::command(ALL, end(FwAction::Commit)),
+        0x1CFF_F000,
+        &[0xE4, 0x19, 0x3C, 0x7A, 0x01],
+    );
+    golden(
+        Packet::command(node(0x2), end(FwAction::Abort)),
+        0x1C00_2000,
+        &[0xE4, 0x19, 0x3C, 0x7A, 0x02],
+    );
+    for bad in [0u8, 3, 0xFF] {
+        rejected(
+            0x1CFF_F000,
+            &[0, 0, 0, 0, bad],
+            value(Kind::FwEnd, "action", bad as u32),
+        );
+    }
+    golden(
+        Packet::command(
+            ALL,
+            Message::FwQuery {
+                image_id: 0x7A3C_19E4,
+            },
+        ),
+        0x1DFF_F000,
+        &[0xE4, 0x19, 0x3C, 0x7A],
+    );
+}
+
+#[test]
+fn fw_data() {
+    golden(
+        Packet::command(
+            ALL,
+            Message::FwData {
+                index: 0,
+                data: *b"iHXI\x01\x00",
+            },
+        ),
+        0x1FFF_F000,
+        &[0x00, 0x00, 0x69, 0x48, 0x58, 0x49, 0x01, 0x00],
+    );
+    golden(
+        Packet::command(
+            node(0x111),
+            Message::FwData {
+                index: 0xFFFF,
+                data: [0xFF; FW_DATA_LEN],
+            },
+        ),
+        0x1F11_1000,
+        &[0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF],
+    );
+    assert_eq!(FW_MAX_LEN, 65_536 * 6);
+}
+
+#[test]
+fn fw_status() {
+    let status = |phase, reason, first_missing, run, missing| {
+        Message::FwStatus(FwStatus {
+            phase,
+            reason,
+            first_missing,
+            run,
+            missing,
+        })
+    };
+    golden(
+        Packet::report(
+            node(0x111),
+            status(FwPhase::Receiving, FwRefusal::None, 100, 12, 16),
+        ),
+        0x1E00_0111,
+        &[0x03, 0x00, 0x64, 0x00, 0x0C, 0x00, 0x10, 0x00],
+    );
+    golden(
+        Packet::report(
+            node(0x111),
+            status(FwPhase::Refused, FwRefusal::Downgrade, 0, 0, 0),
+        ),
+        0x1E00_0111,
+        &[0x07, 0x07, 0, 0, 0, 0, 0, 0],
+    );
+    // Codes this version does not know survive (a newer node, an older gateway).
+    golden(
+        Packet::report(
+            node(0x111),
+            status(
+                FwPhase::Other(0x40),
+                FwRefusal::Other(0x41),
+                0xFFFF,
+                0xFFFF,
+                0xFFFF,
+            ),
+        ),
+        0x1E00_0111,
+        &[0x40, 0x41, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF],
+    );
+    let phases = [
+        (FwPhase::Idle, 0, "idle"),
+        (FwPhase::Header, 1, "header"),
+        (FwPhase::Erasing, 2, "erasing"),
+        (FwPhase::Receiving, 3, "receiving"),
+        (FwPhase::Complete, 4, "complete"),
+        (FwPhase::Verifying, 5, "verifying"),
+        (FwPhase::Rebooting, 6, "rebooting"),
+        (FwPhase::Refused, 7, "refused"),
+        (FwPhase::Trial, 8, "trial"),
+        (FwPhase::Reverted, 9, "reverted"),
+    ];
+    assert_eq!(phases.len(), FwPhase::KNOWN.len());
+    for (p, raw, name) in phases {
+        assert_eq!(
+            (p.to_raw(), FwPhase::from_raw(raw), p.to_string()),
+            (raw, p, name.to_string())
+        );
+    }
+    let reasons = [
+        (FwRefusal::None, 0, "none"),
+        (FwRefusal::BadSignature, 1, "bad_signature"),
+        (FwRefusal::UnknownKey, 2, "unknown_key"),
+        (FwRefusal::WrongBoard, 3, "wrong_board"),
+        (FwRefusal::Truncated, 4, "truncated"),
+        (FwRefusal::Corrupted, 5, "corrupted"),
+        (FwRefusal::IncompatibleProtocol, 6, "incompatible_protocol"),
+        (FwRefusal::Downgrade, 7, "downgrade"),
+        (FwRefusal::TooLarge, 8, "too_large"),
+        (FwRefusal::BadImage, 9, "bad_image"),
+        (FwRefusal::FlashError, 10, "flash_error"),
+        (FwRefusal::Unconfirmed, 11, "unconfirmed"),
+        (FwRefusal::Busy, 12, "busy"),
+    ];
+    assert_eq!(reasons.len(), FwRefusal::KNOWN.len());
+    for (r, raw, name) in reasons {
+        assert_eq!(
+            (r.to_raw(), FwRefusal::from_raw(raw), r.to_string()),
+            (raw, r, name.to_string())
+        );
+    }
+}
+
+#[test]
+fn fw_addresses_and_priority() {
+    let addr = |kind| DecodeError::Address { kind };
+    // Transfer commands come from the gateway, to one node or to all; a status goes to the gateway.
+    rejected(0x1F00_0111, &[0; 8], addr(Kind::FwData));
+    rejected(0x1B11_1222, &[0; 8], addr(Kind::FwBegin));
+    rejected(0x1EFF_F111, &[0; 8], addr(Kind::FwStatus));
+    // Firmware traffic loses arbitration to everything else, the data frames to every other kind.
+    let ids = FW_KINDS_BY_PRIORITY.map(|k| (k as u32) << 24);
+    for other in Kind::ALL
+        .iter()
+        .filter(|k| !FW_KINDS_BY_PRIORITY.contains(k))
+    {
+        assert!(((*other as u32) << 24) < ids[0], "{other:?}");
+    }
+    assert!(ids.windows(2).all(|w| w[0] < w[1]));
+    assert_eq!(*FW_KINDS_BY_PRIORITY.last().unwrap(), Kind::FwData);
+}
+
+const FW_KINDS_BY_PRIORITY: [Kind; 5] = ihex_proto::FW_KINDS;
+
+/// The worked example of `docs/protocol.md` ("Firmware transfer"), frame by frame.
+#[test]
+fn firmware_update_dump() {
+    let id = 0x7A3C_19E4;
+    let n = node(0x111);
+    let status = |phase, reason, first_missing, run, missing| {
+        Packet::report(
+            n,
+            Message::FwStatus(FwStatus {
+                phase,
+                reason,
+                first_missing,
+                run,
+                missing,
+            }),
+        )
+    };
+    // 51 296 bytes are 8 550 frames.
+    assert_eq!(51_296usize.div_ceil(FW_DATA_LEN), 8550);
+    golden(
+        Packet::command(
+            ALL,
+            Message::FwBegin {
+                image_id: id,
+                len: 51_296,
+                force: false,
+            },
+        ),
+        0x1BFF_F000,
+        &[0xE4, 0x19, 0x3C, 0x7A, 0x60, 0xC8, 0x00, 0x00],
+    );
+    golden(
+        status(FwPhase::Header, FwRefusal::None, 0, 32, 32),
+        0x1E00_0111,
+        &[0x01, 0x00, 0x00, 0x00, 0x20, 0x00, 0x20, 0x00],
+    );
+    golden(
+        Packet::command(
+            ALL,
+            Message::FwData {
+                index: 0,
+                data: [0x69, 0x48, 0x58, 0x49, 0x01, 0x00],
+            },
+        ),
+        0x1FFF_F000,
+        &[0x00, 0x00, 0x69, 0x48, 0x58, 0x49, 0x01, 0x00],
+    );
+    golden(
+        status(FwPhase::Receiving, FwRefusal::None, 32, 8518, 8518),
+        0x1E00_0111,
+        &[0x03, 0x00, 0x20, 0x00, 0x46, 0x21, 0x46, 0x21],
+    );
+    golden(
+        Packet::command(
+            ALL,
+            Message::FwData {
+                index: 32,
+                data: [0; 6],
+            },
+        ),
+        0x1FFF_F000,
+        &[0x20, 0x00, 0, 0, 0, 0, 0, 0],
+    );
+    golden(
+        Packet::command(ALL, Message::FwQuery { image_id: id }),
+        0x1DFF_F000,
+        &[0xE4, 0x19, 0x3C, 0x7A],
+    );
+    golden(
+        status(FwPhase::Receiving, FwRefusal::None, 100, 12, 12),
+        0x1E00_0111,
+        &[0x03, 0x00, 0x64, 0x00, 0x0C, 0x00, 0x0C, 0x00],
+    );
+    let resend = Packet::command(
+        n,
+        Message::FwData {
+            index: 100,
+            data: [0; 6],
+        },
+    );
+    assert_eq!(resend.encode().0, 0x1F11_1000);
+    assert_eq!(resend.encode().1[..2], [0x64, 0x00]);
+    golden(
+        status(FwPhase::Complete, FwRefusal::None, 0, 0, 0),
+        0x1E00_0111,
+        &[0x04, 0, 0, 0, 0, 0, 0, 0],
+    );
+    golden(
+        Packet::command(
+            ALL,
+            Message::FwEnd {
+                image_id: id,
+                action: FwAction::Commit,
+            },
+        ),
+        0x1CFF_F000,
+        &[0xE4, 0x19, 0x3C, 0x7A, 0x01],
+    );
+    golden(
+        status(FwPhase::Verifying, FwRefusal::None, 0, 0, 0),
+        0x1E00_0111,
+        &[0x05, 0, 0, 0, 0, 0, 0, 0],
+    );
+    golden(
+        status(FwPhase::Rebooting, FwRefusal::None, 0, 0, 0),
+        0x1E00_0111,
+        &[0x06, 0, 0, 0, 0, 0, 0, 0],
+    );
+    golden(
+        Packet::report(
+            n,
+            Message::BootUp {
+                version: ihex_proto::PROTOCOL_VERSION,
+                role: BootRole::Static,
+                ports: 6,
+                reset: ResetReason::Software,
+            },
+        ),
+        0x0B00_0111,
+        &[0x01, 0x02, 0x00, 0x06, 0x02],
+    );
+    golden(
+        Packet::command(ALL, Message::HealthCheck { seq: 7 }),
+        0x0FFF_F000,
+        &[0x07],
+    );
+    golden(
+        Packet::report(
+            n,
+            Message::HealthReply(HealthReply {
+                seq: 7,
+                flags: HealthFlags(0),
+                loops: 0,
+                tec: 0,
+                rec: 0,
+                uptime_s: 1,
+            }),
+        ),
+        0x1000_0111,
+        &[0x07, 0x00, 0x00, 0x00, 0x00, 0x01, 0x00, 0x00],
+    );
+    golden(
+        status(FwPhase::Refused, FwRefusal::Downgrade, 0, 0, 0),
+        0x1E00_0111,
+        &[0x07, 0x07, 0, 0, 0, 0, 0, 0],
+    );
 }

@@ -42,6 +42,12 @@ pub fn list_command(request_id: &str) -> String {
     json!({"cmd": "list", "request_id": request_id}).to_string()
 }
 
+/// `{"cmd":"fw_update","image":…,"nodes":…,"force":…,"request_id":…}`.
+pub fn fw_update_command(image: &str, nodes: &str, force: bool, request_id: &str) -> String {
+    json!({"cmd": "fw_update", "image": image, "nodes": nodes, "force": force, "request_id": request_id})
+        .to_string()
+}
+
 /// A request ID unique enough for one broker: tool name, process, time.
 pub fn new_request_id(what: &str) -> String {
     let nanos = std::time::SystemTime::now()
@@ -149,6 +155,41 @@ pub fn id_from_state_topic(root: &str, topic: &str) -> Option<NodeId> {
         .strip_prefix('/')?
         .strip_suffix("/state")?;
     id.parse().ok()
+}
+
+#[cfg(test)]
+mod fw_tests {
+    use super::*;
+
+    #[test]
+    fn fw_update_command_is_the_documented_json() {
+        let c: Value =
+            serde_json::from_str(&fw_update_command("a.ihex", "111,112", false, "r")).unwrap();
+        assert_eq!(
+            c,
+            json!({"cmd":"fw_update","image":"a.ihex","nodes":"111,112","force":false,"request_id":"r"})
+        );
+    }
+
+    #[test]
+    fn progress_and_report_events_parse_as_the_gateways() {
+        let p: GatewayEvent = serde_json::from_str(
+            r#"{"event":"fw_progress","payload":{"request_id":"u1","node":"111","phase":"receiving","percent":62}}"#,
+        )
+        .unwrap();
+        assert!(matches!(p, GatewayEvent::FwProgress(ref p) if p.percent == 62));
+        let r: GatewayEvent = serde_json::from_str(
+            r#"{"event":"fw_report","payload":{"request_id":"u1","image_id":"7a3c19e4","version":"1.3.0","duration_ms":41230,
+ "frames_sent":8560,"bus_share":50,"nodes":[{"node":"111","outcome":"updated","reason":null,"duration_ms":40110},
+ {"node":"112","outcome":"refused","reason":"downgrade","duration_ms":310}]}}"#,
+        )
+        .unwrap();
+        let GatewayEvent::FwReport(r) = r else {
+            panic!()
+        };
+        assert!(!r.all_updated());
+        assert_eq!(r.nodes[1].reason.as_deref(), Some("downgrade"));
+    }
 }
 
 #[cfg(test)]

@@ -1,4 +1,7 @@
-//! `ihex-provision`: give sub-controllers their node IDs (serial or CAN) and watch the gateway's events.
+//! `ihex-provision`: give sub-controllers their node IDs (serial or CAN), watch the gateway's events,
+//! make signed firmware images and update nodes through the gateway (`fw`).
+
+mod fw;
 
 use std::{path::PathBuf, process::ExitCode, time::Duration};
 
@@ -31,6 +34,11 @@ enum Cmd {
     Can(CanArgs),
     /// Wait for an event from the gateway (optionally after sending a command); exit 0 once it arrives.
     WaitEvent(WaitArgs),
+    /// Firmware images: make a signing key, pack and sign the firmware, inspect an image.
+    Fw {
+        #[command(subcommand)]
+        cmd: fw::FwCmd,
+    },
 }
 
 #[derive(Args)]
@@ -53,7 +61,7 @@ struct SerialArgs {
 }
 
 #[derive(Args)]
-struct BrokerArgs {
+pub(crate) struct BrokerArgs {
     /// The gateway's MQTT broker, HOST[:PORT].
     #[arg(long, env = "IHEX_BROKER", default_value = "127.0.0.1:1883")]
     broker: String,
@@ -157,6 +165,11 @@ fn main() -> ExitCode {
         Cmd::Serial(a) => run_serial(a),
         Cmd::Can(a) => tokio_main(run_can(a)),
         Cmd::WaitEvent(a) => tokio_main(run_wait(a)),
+        Cmd::Fw { cmd } => match fw::run(cmd) {
+            Ok(true) => Ok(()),
+            Ok(false) => return ExitCode::FAILURE,
+            Err(e) => Err(e),
+        },
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -167,7 +180,7 @@ fn main() -> ExitCode {
     }
 }
 
-fn tokio_main(f: impl std::future::Future<Output = Result<()>>) -> Result<()> {
+fn tokio_main<T>(f: impl std::future::Future<Output = Result<T>>) -> Result<T> {
     tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()

@@ -20,7 +20,7 @@ use ihex_proto::{
     BootRole, NodeId, ResetReason, Uid,
 };
 use ihex_provision::serial::{SerialError, SerialPort, Session};
-use ihex_sc_core::{Config, Millis, Node, Output};
+use ihex_sc_core::{Config, Millis, Node, Output, UpdateConfig};
 use rustix::{
     event::{poll, PollFd, PollFlags, Timespec},
     pty::{grantpt, openpt, ptsname, unlockpt, OpenptFlags},
@@ -68,6 +68,12 @@ impl Board {
             node_id,
             reset: ResetReason::PowerOn,
             firmware: Default::default(),
+            update: UpdateConfig {
+                board: ihex_image::Board::NUCLEO_F303RE,
+                key: ihex_image::test_key::PUBLIC,
+                layout: &ihex_image::board::F303RE,
+                reverted: false,
+            },
         };
         let seen = Arc::new(Mutex::new(Seen {
             node_id,
@@ -147,7 +153,8 @@ fn drain(node: &mut Node, file: &mut File, fail_store: bool, seen: &Mutex<Seen>,
                     node.handle_store_failed(now);
                 }
             }
-            Output::Frame(_) | Output::FiltersChanged => {}
+            // Frames go nowhere (no bus here), and no update reaches a board over its UART.
+            _ => {}
         }
     }
     seen.lock().unwrap().node_id = node.node_id();

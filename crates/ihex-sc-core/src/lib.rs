@@ -19,7 +19,10 @@
 //! 2. drain [`Node::poll_output`] until `None` and carry each [`Output`] out in order:
 //!    [`Output::Frame`] → transmit; [`Output::Uart`] → write the two bytes; [`Output::StoreId`] →
 //!    persist (report failure with [`Node::handle_store_failed`]); [`Output::FiltersChanged`] →
-//!    reinstall `ihex_proto::filter::sc_filters(node.node_id())` before sending the frames after it.
+//!    reinstall `ihex_proto::filter::sc_filters(node.node_id())` before sending the frames after it;
+//!    the firmware-update outputs ([`Output::EraseDfu`], [`Output::WriteDfu`],
+//!    [`Output::HashDfu`], [`Output::MarkUpdated`], [`Output::MarkBooted`], [`Output::Reset`]) as
+//!    described under *Firmware update*, reporting each result with its `handle_fw_*` method.
 //!
 //! Time is [`Millis`] from any monotonic origin; it may stand still, and a clock going backwards is
 //! treated as no time passing.
@@ -127,6 +130,47 @@
 //! port is sent at once. It answers `PowerSet` / `DockConfirm` / `DockRefuse` / `DockLink` with
 //! `Unsupported`.
 //!
+//! # Firmware update
+//!
+//! The node receives a signed image (`ihex-image`: header + ed25519 signature + payload) into its
+//! DFU slot; the transfer messages are `ihex_proto`'s `FwBegin`, `FwData`, `FwQuery`, `FwEnd` and
+//! `FwStatus` (own ID or broadcast; an unconfigured node takes no part). `Config::update` gives
+//! the board, the trusted key and the flash layout. At most one transfer (a *session*) at a time:
+//!
+//! | phase | how it is reached | what the node does |
+//! |---|---|---|
+//! | `header` | `FwBegin { image_id, len, force }` | keeps frames `0..32` (the signed header) in RAM; writes nothing |
+//! | — refused | the header is complete | `ihex_image::check_signed` with the node's key and policy (board, load address, protocol major, slot size, no downgrade unless `force`), the header's length against `len`, its image ID (first 4 bytes of the payload SHA-512) against `image_id`; each failure → `Refused` with its reason |
+//! | `erasing` | the header passed | [`Output::EraseDfu`] for the image's length; frames are not taken |
+//! | `receiving` | [`Node::handle_fw_erased`] `Ok` | the header's chunks go to flash from RAM; every further frame goes into its 24-byte chunk (4 frames, [`CHUNK_LEN`]), a complete chunk to [`Output::WriteDfu`]; up to 4 chunks are assembled at once, a fifth pushes out the one started longest ago (its frames count as missing again) |
+//! | `complete` | every chunk written | waits |
+//! | `verifying` | `FwEnd { Commit }` | [`Output::HashDfu`] of the header block: must equal the checked header followed by zeros; then of the payload: must equal its signed hash (else `Refused Corrupted`); then [`Output::MarkUpdated`] |
+//! | `rebooting` | [`Node::handle_fw_marked`] `Ok` | [`Output::Reset`] [`RESET_DELAY_MS`] later |
+//!
+//! `FwStatus { phase, reason, first_missing, run, missing }` goes out when the begin arrives (or
+//! is refused), when the node is ready (`receiving`, after the erase), complete, refused, verifying
+//! and rebooting, and in answer to every `FwQuery`; `first_missing`/`run` name the first run of
+//! missing frames (in whole chunks; header frames while in `header`), `missing` counts them all.
+//! A query or end for another image than the session's is answered `idle` — or `trial` while the
+//! node runs an unconfirmed image, or `reverted` when the bootloader reverted one at this boot.
+//!
+//! A begin with the session's image ID and length resumes it (a restarted gateway); any other
+//! begin, or a begin after a refusal, starts over. While `verifying` or `rebooting`, a begin for
+//! another image is answered `Refused Busy`. `FwEnd { Abort }` drops the session (not once
+//! `rebooting`). A commit before `complete` only answers the status. A flash failure
+//! ([`Node::handle_fw_erased`] / [`Node::handle_fw_hashed`] / [`Node::handle_fw_marked`] with
+//! `Err`, [`Node::handle_fw_write_failed`]) ends the session `Refused FlashError`. The session
+//! lives in RAM: after a reset the gateway starts over. No refusal touches the running image.
+//!
+//! **Trial boot.** With `Config::firmware.trial` (the bootloader has just swapped a new image in)
+//! the node refuses every begin (`Refused Unconfirmed`: the DFU slot now holds the image to go back
+//! to) and asks for [`Output::MarkBooted`] once it has *joined the bus* — any valid command from
+//! the gateway arrived (the gateway checks health every second) — *and* the adapter's self-test
+//! passed ([`Node::handle_self_test`]); [`Node::handle_fw_confirmed`] `Ok` clears the trial flag
+//! (reported in `StateReport::Firmware`). A failed self-test asks for [`Output::Reset`] at once,
+//! and an image still unconfirmed [`TRIAL_CONFIRM_MS`] after boot asks for it then: the bootloader
+//! reverts it at that reset.
+//!
 //! # CAN controller state
 //!
 //! [`Node::handle_can_status`] records TEC/REC for health replies. Entering error-passive (TEC or
@@ -140,7 +184,10 @@
 //! then the oldest `HealthReply` or `StateReport` goes first (the gateway asks again), then the
 //! oldest `BootUp`, then the oldest dock, handshake or assignment report; `Ack`s, `Fault`s and
 //! non-frame outputs are never sacrificed for another output (only if nothing else is left is the
-//! newest one lost). [`Node::dropped_outputs`] counts the losses.
+//! newest one lost). [`Node::dropped_outputs`] counts the losses. `FwStatus` reports go first, with
+//! the health replies (the gateway queries again); a data frame that arrives while
+//! the queue is full is not taken at all (it stays missing), so no write the core counts as done is
+//! lost.
 #![cfg_attr(not(test), no_std)]
 #![warn(missing_docs)]
 #![forbid(unsafe_code)]
@@ -153,8 +200,9 @@ mod time;
 
 pub use actuator::{Actuators, BuzzerOutput, LedOutput};
 pub use node::{
-    Config, FirmwareIdentity, Node, Output, DEBOUNCE_MS, HANDSHAKE_SETTLE_MS, IDENTIFY_BUZZER,
-    IDENTIFY_LED, UART_IDLE_RESET_MS,
+    Config, FirmwareIdentity, FlashError, Node, Output, UpdateConfig, CHUNK_LEN, DEBOUNCE_MS,
+    HANDSHAKE_SETTLE_MS, IDENTIFY_BUZZER, IDENTIFY_LED, MAX_IMAGE_LEN, RESET_DELAY_MS,
+    TRIAL_CONFIRM_MS, UART_IDLE_RESET_MS,
 };
 pub use queue::OUTPUT_QUEUE_LEN;
 pub use time::Millis;

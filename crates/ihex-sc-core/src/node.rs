@@ -3,6 +3,11 @@
 mod command;
 mod ident;
 mod state;
+mod update;
+
+pub use update::{
+    FlashError, UpdateConfig, CHUNK_LEN, MAX_IMAGE_LEN, RESET_DELAY_MS, TRIAL_CONFIRM_MS,
+};
 
 use ihex_proto::{
     uart::{UartDecoder, UartError, UartReply},
@@ -68,8 +73,11 @@ pub struct Config {
     pub node_id: Option<NodeId>,
     /// Why the node started (reported in the boot-up announcement).
     pub reset: ResetReason,
-    /// The firmware it runs (reported on a state query).
+    /// The firmware it runs (reported on a state query); `trial` is cleared once the core has
+    /// confirmed the image.
     pub firmware: FirmwareIdentity,
+    /// What it needs to take firmware updates.
+    pub update: UpdateConfig,
 }
 
 /// Something the adapter must do.
@@ -85,6 +93,37 @@ pub enum Output {
     /// Reconfigure the CAN acceptance filters: the node ID changed
     /// (use `ihex_proto::filter::sc_filters(node.node_id())`).
     FiltersChanged,
+    /// Erase the DFU slot's pages that hold its first `len` bytes; report with
+    /// [`Node::handle_fw_erased`].
+    EraseDfu {
+        /// Bytes from the slot's start (a multiple of [`CHUNK_LEN`]).
+        len: u32,
+    },
+    /// Program `data` at `offset` of the (erased) DFU slot; report a failure with
+    /// [`Node::handle_fw_write_failed`].
+    WriteDfu {
+        /// Offset in the slot (a multiple of [`CHUNK_LEN`]).
+        offset: u32,
+        /// The bytes.
+        data: [u8; CHUNK_LEN],
+    },
+    /// Read `len` bytes of the DFU slot from `offset` back and hash them (SHA-512,
+    /// `ihex_image::Hasher`); report with [`Node::handle_fw_hashed`].
+    HashDfu {
+        /// Offset in the slot.
+        offset: u32,
+        /// Bytes.
+        len: u32,
+    },
+    /// Tell the bootloader to swap the DFU image in at the next reset (embassy-boot
+    /// `mark_updated`); report with [`Node::handle_fw_marked`].
+    MarkUpdated,
+    /// Confirm the running image (embassy-boot `mark_booted`); report with
+    /// [`Node::handle_fw_confirmed`].
+    MarkBooted,
+    /// Reset the chip (the bootloader then swaps a marked image in, or reverts one on trial).
+    /// Nothing the core asks after this matters.
+    Reset,
 }
 
 /// One sub-controller's complete behaviour.
@@ -126,6 +165,8 @@ pub struct Node {
     bus_off_count: u32,
     /// The actuator state the adapter last saw through [`Node::actuators_changed`].
     shown: Option<Actuators>,
+    /// Firmware update and trial boot.
+    update: update::Update,
 }
 
 impl Node {
@@ -160,6 +201,7 @@ impl Node {
             bus_off: false,
             bus_off_count: 0,
             shown: None,
+            update: update::Update::new(config.firmware.trial, now),
         };
         if node.config.node_id.is_some() {
             node.announce(now);
@@ -269,6 +311,7 @@ impl Node {
                 self.identify_until,
                 self.buzzer_end,
                 self.handshake_at,
+                self.update.deadline(),
             ])
             .flatten()
             .min()
@@ -378,6 +421,7 @@ impl Node {
         if self.identify_until.is_some_and(|t| now >= t) {
             self.identify_until = None;
         }
+        self.advance_update(now);
     }
 
     /// A debounced loop level changed.

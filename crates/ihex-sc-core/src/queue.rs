@@ -28,12 +28,12 @@ const ESSENTIAL: u8 = 3;
 fn rank(o: &Output) -> u8 {
     match o {
         Output::Frame(p) => match p.msg {
-            Message::HealthReply(_) | Message::StateReport(_) => 0,
+            Message::HealthReply(_) | Message::StateReport(_) | Message::FwStatus(_) => 0,
             Message::BootUp { .. } => 1,
             Message::Ack { .. } | Message::Fault { .. } => ESSENTIAL,
             _ => 2,
         },
-        Output::Uart(_) | Output::StoreId(_) | Output::FiltersChanged => ESSENTIAL,
+        _ => ESSENTIAL,
     }
 }
 
@@ -64,6 +64,11 @@ impl OutputQueue {
                 let _ = self.items.push(o);
             }
         }
+    }
+
+    /// True while another output fits without dropping one.
+    pub(crate) fn has_room(&self) -> bool {
+        !self.items.is_full()
     }
 
     /// Takes the oldest output.

@@ -1202,10 +1202,13 @@ fn bus_off_reported_after_recovery_with_count() {
 #[test]
 fn node_is_small_enough_for_the_firmware() {
     // sc-fw has 16 KiB of static RAM for everything; the node state must stay a small part of it.
+    // About half is the firmware update's receiver: the received-chunks bitmap of a 128 KiB slot
+    // (683 bytes), the signed header (192), four chunks being assembled, and the output queue's
+    // room for a 24-byte chunk to write.
     let size = std::mem::size_of::<Node>();
     println!(
         "size_of::<Node>() = {size}, Output = {}",
         std::mem::size_of::<Output>()
     );
-    assert!(size <= 1536, "Node grew to {size} bytes");
+    assert!(size <= 3072, "Node grew to {size} bytes");
 }

@@ -22,6 +22,7 @@ pub mod config;
 pub mod demo;
 pub mod error;
 pub mod feed;
+pub mod fw;
 pub mod log;
 pub mod mqtt;
 pub mod run;

@@ -197,6 +197,7 @@ impl Gateway {
             feed,
             views,
             stats: mqtt_stats,
+            fw_dir: config.settings.fw_dir.clone(),
         };
         let result = core.run(can_in, mqtt_in, &mut tasks, &cancel).await;
 
@@ -226,6 +227,8 @@ struct Core {
     /// The island view's requests for views of the bridge.
     views: ViewRequests,
     stats: Arc<MqttStats>,
+    /// `--fw-dir`: where `fw_update` images are read from.
+    fw_dir: Option<std::path::PathBuf>,
 }
 
 impl Core {
@@ -289,6 +292,12 @@ impl Core {
                 _ = self.pub_tx.reserve(), if publications_waiting => {}
             }
         }
+        if self.bridge.fw_update_running() {
+            // Best effort: the aborts and the report go out if the tasks still run.
+            self.bridge
+                .cancel_fw_update("the gateway stopped", Instant::now());
+            self.carry_out();
+        }
         self.flush_at_shutdown().await;
         Ok(())
     }
@@ -297,6 +306,10 @@ impl Core {
     /// (the channel holds a whole window, so a full channel is a failed send the bridge hears
     /// about), publications while the MQTT task has room (the bridge keeps the rest).
     fn carry_out(&mut self) {
+        while let Some(load) = self.bridge.poll_fw_load() {
+            let bytes = crate::fw::read_image(self.fw_dir.as_deref(), &load.image);
+            self.bridge.handle_fw_image(load, bytes, Instant::now());
+        }
         let now = Instant::now();
         while let Some(t) = self.bridge.poll_transmit(now) {
             let reason = match self.can_tx.try_send(t) {

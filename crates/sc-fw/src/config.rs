@@ -1,28 +1,26 @@
-//! The configuration record in the last flash page: load at boot, store when the node is given an ID.
+//! The configuration record in the last flash page (its own partition of the flash layout): load at
+//! boot, store when the node is given an ID.
 
 use defmt::{info, warn};
-use embassy_stm32::flash::{Blocking, Flash, FLASH_BASE};
+use embedded_storage::nor_flash::{NorFlash, ReadNorFlash};
 use ihex_proto::BootRole;
 
-use crate::board::{CONFIG_PAGE_ADDR, CONFIG_PAGE_SIZE};
 use crate::record::{Record, RecordError, LEN};
-
-/// Offset of the configuration page from the start of flash.
-const OFFSET: u32 = CONFIG_PAGE_ADDR - FLASH_BASE as u32;
+use crate::update::Part;
 
 /// Why storing failed.
-#[derive(Clone, Copy, Debug, defmt::Format)]
+#[derive(Debug, defmt::Format)]
 pub enum StoreError {
     /// Erase or write reported an error.
-    Flash(embassy_stm32::flash::Error),
+    Flash(embassy_embedded_hal::flash::partition::Error<embassy_stm32::flash::Error>),
     /// The read-back bytes differ from what was written.
     Verify,
 }
 
 /// The stored record, `None` for a factory-fresh board or an unreadable record (logged).
-pub fn load(flash: &mut Flash<'_, Blocking>) -> Option<Record> {
+pub fn load(page: &mut Part) -> Option<Record> {
     let mut b = [0u8; LEN];
-    if let Err(e) = flash.blocking_read(OFFSET, &mut b) {
+    if let Err(e) = page.read(0, &mut b) {
         warn!("config: read failed: {}", e);
         return None;
     }
@@ -43,17 +41,12 @@ pub fn load(flash: &mut Flash<'_, Blocking>) -> Option<Record> {
 }
 
 /// Erases the page and writes `record`, then reads it back.
-pub fn store(flash: &mut Flash<'_, Blocking>, record: &Record) -> Result<(), StoreError> {
-    flash
-        .blocking_erase(OFFSET, OFFSET + CONFIG_PAGE_SIZE)
-        .map_err(StoreError::Flash)?;
-    flash
-        .blocking_write(OFFSET, &record.encode())
-        .map_err(StoreError::Flash)?;
+pub fn store(page: &mut Part, record: &Record) -> Result<(), StoreError> {
+    let len = page.capacity() as u32;
+    page.erase(0, len).map_err(StoreError::Flash)?;
+    page.write(0, &record.encode()).map_err(StoreError::Flash)?;
     let mut back = [0u8; LEN];
-    flash
-        .blocking_read(OFFSET, &mut back)
-        .map_err(StoreError::Flash)?;
+    page.read(0, &mut back).map_err(StoreError::Flash)?;
     if Record::decode(&back) != Ok(*record) {
         return Err(StoreError::Verify);
     }

@@ -14,6 +14,8 @@ pub mod can;
 pub mod clock;
 pub mod config;
 pub mod event;
+pub mod image;
 pub mod record;
 pub mod reset;
 pub mod tasks;
+pub mod update;

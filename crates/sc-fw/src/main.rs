@@ -13,11 +13,11 @@ use embassy_stm32::timer::low_level::CountingMode;
 use embassy_stm32::timer::simple_pwm::{PwmPin, SimplePwm};
 use embassy_stm32::usart::{self, BufferedUart};
 use embassy_stm32::{bind_interrupts, can, peripherals};
-use ihex_proto::{BootRole, FirmwareVersion, Port, Uid};
-use ihex_sc_core::{FirmwareIdentity, Node};
+use ihex_proto::{BootRole, Port, Uid};
+use ihex_sc_core::Node;
 use ihex_sc_fw::board::{self, ExtiIrqs};
 use ihex_sc_fw::tasks::{self, led::PWM_HZ, node::now};
-use ihex_sc_fw::{can as sc_can, clock, config, reset, take_board};
+use ihex_sc_fw::{can as sc_can, clock, config, image, reset, take_board, update};
 use static_cell::StaticCell;
 use {defmt_rtt as _, panic_probe as _};
 
@@ -32,21 +32,8 @@ bind_interrupts!(struct Irqs {
 /// Dock ports of a hexagonal element (signal loops `loop0`..`loop5` of the pin map).
 const PORTS: u8 = 6;
 
-/// This firmware's version, from the crate's (checked at compile time).
-const VERSION: FirmwareVersion = match FirmwareVersion::parse(env!("CARGO_PKG_VERSION")) {
-    Some(v) => v,
-    None => panic!("the crate version must be MAJOR.MINOR.PATCH with numbers up to 255"),
-};
-
-/// What the node reports about its firmware. The image hash stays unknown (zeros) and the image is
-/// never a trial one until the firmware-update work (bootloader, image header) supplies both.
-const FIRMWARE: FirmwareIdentity = FirmwareIdentity {
-    version: VERSION,
-    image_hash: [0; 7],
-    trial: false,
-};
-
 static CAN: StaticCell<Can<'static>> = StaticCell::new();
+static NODE: StaticCell<Node> = StaticCell::new();
 static UART_TX_BUF: StaticCell<[u8; 32]> = StaticCell::new();
 static UART_RX_BUF: StaticCell<[u8; 64]> = StaticCell::new();
 
@@ -76,8 +63,21 @@ async fn main(spawner: Spawner) {
     };
     drop(role_pin);
 
-    let mut flash = Flash::new_blocking(p.FLASH);
-    let record = config::load(&mut flash);
+    let mut parts = update::split(Flash::new_blocking(p.FLASH));
+    let mut updater = update::Updater::new(parts.dfu, parts.state);
+    let boot_state = updater.boot_state();
+    let header = update::running_header(&mut parts.active);
+    match (&header, image::stored_info()) {
+        (Some(h), _) => info!(
+            "image: {} {}, protocol {}.{}, sha512 {}, {}",
+            h.board, h.version, h.protocol.0, h.protocol.1, h.payload_hash, boot_state
+        ),
+        (None, info) => info!(
+            "image: no header in the active slot (flashed by probe-rs), built as {}, {}",
+            info, boot_state
+        ),
+    }
+    let record = config::load(&mut parts.config);
     if let Some(r) = &record {
         config::check_role(r, role);
     }
@@ -85,7 +85,7 @@ async fn main(spawner: Spawner) {
     let uid = Uid(embassy_stm32::uid::uid());
     info!(
         "iHEX SC {} up: reset {}, role {}, node ID {}, uid {=[u8]:02x}",
-        VERSION, reset, role, node_id, uid.0
+        image::VERSION, reset, role, node_id, uid.0
     );
 
     // CAN: the protocol's bit timing and filter banks, both read back from the registers.
@@ -102,7 +102,9 @@ async fn main(spawner: Spawner) {
     let banks = unwrap!(sc_can::banks_for(node_id));
     unwrap!(sc_can::apply_filters(&mut can.modify_filters(), &banks));
     can.enable().await;
-    if !(sc_can::verify_bit_timing(&timing) && sc_can::verify_filters(&banks)) {
+    // The self-test a new image on trial must pass before it confirms itself.
+    let self_test = sc_can::verify_bit_timing(&timing) && sc_can::verify_filters(&banks);
+    if !self_test {
         warn!("CAN registers differ from the protocol's values (see above)");
     }
     let (can_tx, can_rx) = can.split();
@@ -166,17 +168,20 @@ async fn main(spawner: Spawner) {
         board::LOOP5_ACTIVE_LOW,
     ];
 
-    let node = Node::new(
+    // In a static, not in the node task's future: the node (its update receiver above all) is a
+    // few KiB, which the future would otherwise hold twice (argument and local).
+    let node = NODE.init(Node::new(
         ihex_sc_core::Config {
             role,
             ports: PORTS,
             uid,
             node_id,
             reset,
-            firmware: FIRMWARE,
+            firmware: image::identity(header.as_ref(), boot_state),
+            update: image::update_config(boot_state),
         },
         now(),
-    );
+    ));
 
     let status_led = Output::new(b.status_led, Level::Low, Speed::Low);
     spawner.spawn(unwrap!(tasks::watchdog::watchdog(p.IWDG, status_led)));
@@ -194,5 +199,12 @@ async fn main(spawner: Spawner) {
         )));
     }
     let relay = tasks::relay::Relay::new(relay, board::RELAY_ACTIVE_LOW);
-    spawner.spawn(unwrap!(tasks::node::node(node, flash, relay, role)));
+    spawner.spawn(unwrap!(tasks::node::node(
+        node,
+        parts.config,
+        updater,
+        relay,
+        role,
+        self_test
+    )));
 }

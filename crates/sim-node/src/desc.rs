@@ -8,9 +8,8 @@
 //! ports = 6                     # dock ports with a signal loop (0..=8, default 6)
 //! uid = "0123456789abcdef00000111"   # optional 96-bit unique ID, 24 hex digits
 //! unconfigured = false          # optional: a factory-fresh board with no stored ID (default false)
-//! firmware = "0.1.0"            # optional: the firmware version it reports (default: this crate's)
-//! image_hash = "0011223344aabb" # optional: the first 7 bytes of its image hash, 14 hex digits
-//!                               # (default: derived from the version)
+//! firmware = "0.1.0"            # optional: the firmware version it is flashed with (default: this
+//!                               # crate's); its image hash is that image's (deterministic per version)
 //! hex = [0, 0]                  # optional: where the gateway's island view draws it (axial hex
 //!                               # coordinates q, r; docs/web.md)
 //!
@@ -134,7 +133,6 @@ struct StaticRaw {
     #[serde(default)]
     unconfigured: bool,
     firmware: Option<Version>,
-    image_hash: Option<HexHash>,
     hex: Option<Spanned<[i32; 2]>>,
 }
 
@@ -152,16 +150,15 @@ struct MobileRaw {
     unconfigured: bool,
     dock: Option<DockRaw>,
     firmware: Option<Version>,
-    image_hash: Option<HexHash>,
 }
 
-/// An element's firmware from its optional `firmware` and `image_hash` keys.
-fn firmware_identity(firmware: Option<Version>, image_hash: Option<HexHash>) -> FirmwareIdentity {
+/// An element's firmware from its optional `firmware` key: the factory image of that version.
+fn firmware_identity(firmware: Option<Version>) -> FirmwareIdentity {
     let version = firmware.map_or(DEFAULT_FIRMWARE, |v| v.0);
     FirmwareIdentity {
         version,
-        image_hash: image_hash.map_or_else(|| simulated_image_hash(version), |h| h.0),
-        // A simulated board always runs a confirmed image.
+        image_hash: simulated_image_hash(version),
+        // A board starts with a confirmed image; updates over the bus change that.
         trial: false,
     }
 }
@@ -210,29 +207,6 @@ impl<'de> Deserialize<'de> for Version {
     }
 }
 
-/// The first 7 bytes of an image hash, written as 14 hex digits.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-struct HexHash([u8; 7]);
-
-impl<'de> Deserialize<'de> for HexHash {
-    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
-        let s = String::deserialize(d)?;
-        let bad = || {
-            serde::de::Error::custom(format!(
-                "image_hash {s:?}: the first 7 bytes of the image hash are 14 hex digits"
-            ))
-        };
-        if s.len() != 14 || !s.is_ascii() {
-            return Err(bad());
-        }
-        let mut h = [0u8; 7];
-        for (i, b) in h.iter_mut().enumerate() {
-            *b = u8::from_str_radix(&s[2 * i..2 * i + 2], 16).map_err(|_| bad())?;
-        }
-        Ok(HexHash(h))
-    }
-}
-
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 struct HexUid([u8; 12]);
 
@@ -257,20 +231,11 @@ pub fn derived_uid(id: NodeId) -> Uid {
     Uid(uid)
 }
 
-/// The image hash a virtual board reports when the file gives none: deterministic per version
-/// (every board with the same version has the same "image", as on a real bench), different for
-/// different versions, never all zero (which would mean "unknown").
+/// The image hash a virtual board reports when the file gives none: that of the image it is first
+/// flashed with ([`crate::board::factory_image`]) — deterministic per version, different for
+/// different versions, as on a real bench.
 pub fn simulated_image_hash(version: FirmwareVersion) -> [u8; 7] {
-    // A salt keeps these apart from the derived UIDs, which mix small numbers too.
-    let v =
-        u64::from(version.major) << 16 | u64::from(version.minor) << 8 | u64::from(version.patch);
-    let z = splitmix64(v ^ 0x1EC5_1A6E_0000_0000);
-    let mut h = [0u8; 7];
-    h.copy_from_slice(&z.to_be_bytes()[..7]);
-    if h == [0; 7] {
-        h[6] = 1;
-    }
-    h
+    crate::board::factory_image_hash(version)
 }
 
 /// SplitMix64's output function: a fixed, well-spread 64-bit mix of `x`.
@@ -377,7 +342,7 @@ impl IslandDesc {
                 ports: ports_of(&s.ports)?,
                 uid,
                 configured: !s.unconfigured,
-                firmware: firmware_identity(s.firmware, s.image_hash),
+                firmware: firmware_identity(s.firmware),
                 hex,
             });
         }
@@ -439,7 +404,7 @@ impl IslandDesc {
                 uid,
                 configured: !m.unconfigured,
                 dock,
-                firmware: firmware_identity(m.firmware, m.image_hash),
+                firmware: firmware_identity(m.firmware),
             });
         }
         Ok(desc)
@@ -481,7 +446,6 @@ id = "2"
 port = 1
 dock = { static = "111", port = 3 }
 firmware = "0.9.0"
-image_hash = "00112233AABBCC"
 
 [[mobile]]
 id = "3"
@@ -513,13 +477,8 @@ unconfigured = true
         );
         let v123 = FirmwareVersion::new(1, 2, 3);
         assert_eq!(d.statics[1].firmware, fw(v123, simulated_image_hash(v123)));
-        assert_eq!(
-            d.mobiles[0].firmware,
-            fw(
-                FirmwareVersion::new(0, 9, 0),
-                [0x00, 0x11, 0x22, 0x33, 0xAA, 0xBB, 0xCC]
-            )
-        );
+        let v090 = FirmwareVersion::new(0, 9, 0);
+        assert_eq!(d.mobiles[0].firmware, fw(v090, simulated_image_hash(v090)));
         assert_eq!(d.mobiles[1].firmware, d.statics[0].firmware);
     }
 
@@ -640,13 +599,10 @@ unconfigured = true
                 "MAJOR.MINOR.PATCH",
             ),
             ("[[mobile]]\nid = \"1\"\nfirmware = \"1.2.300\"\n", "line 3"),
+            // The image hash is the image's: the file cannot set it.
             (
-                "[[static]]\nid = \"1\"\nimage_hash = \"0011\"\n",
-                "14 hex digits",
-            ),
-            (
-                "[[static]]\nid = \"1\"\nimage_hash = \"0011223344556g\"\n",
-                "14 hex digits",
+                "[[static]]\nid = \"1\"\nimage_hash = \"00112233445566\"\n",
+                "image_hash",
             ),
             ("[[static]]\nid = \"1\"\nfirmware = 1\n", "line 3"),
             ("[[static]]\nid = \"1\"\nhex = [1]\n", "line 3"),

@@ -18,7 +18,7 @@
 use std::collections::BTreeMap;
 
 use embedded_can::Frame as EmbeddedFrame;
-use ihex_proto::{filter::sc_filters, BootRole, NodeId, Port, ResetReason, Uid};
+use ihex_proto::{filter::sc_filters, BootRole, FirmwareVersion, NodeId, Port, ResetReason, Uid};
 use ihex_sc_core::{Actuators, BuzzerOutput, Config, FirmwareIdentity, Millis, Node, Output};
 use socketcan::CanFrame;
 use tokio::{
@@ -28,6 +28,7 @@ use tokio::{
 };
 
 use crate::{
+    board::{self, Board, Carried},
     desc::IslandDesc,
     link::{Link, LinkError, LinkTx},
 };
@@ -97,6 +98,30 @@ pub enum IslandError {
     /// The island task has stopped.
     #[error("the island is not running")]
     Stopped,
+    /// The element's board does not start (its bootloader failed, or its slot holds no image).
+    #[error("\"{0}\" does not boot: {1}")]
+    Boot(NodeId, board::BootFailure),
+    /// A simulated image could not be made.
+    #[error("simulated image: {0}")]
+    Image(String),
+}
+
+/// The images boards start with, made once per version.
+#[derive(Default)]
+struct Images(BTreeMap<(u8, u8, u8), Vec<u8>>);
+
+impl Images {
+    /// A board whose active slot holds the factory image of `version`.
+    fn factory(&mut self, version: FirmwareVersion) -> Result<Board, IslandError> {
+        let key = (version.major, version.minor, version.patch);
+        let img = match self.0.entry(key) {
+            std::collections::btree_map::Entry::Occupied(e) => e.into_mut(),
+            std::collections::btree_map::Entry::Vacant(e) => e.insert(
+                board::factory_image(version).map_err(|e| IslandError::Image(e.to_string()))?,
+            ),
+        };
+        Ok(Board::with_image(img))
+    }
 }
 
 /// Something that changed in the island (see [`IslandHandle::subscribe`]).
@@ -297,7 +322,6 @@ struct Element {
     role: BootRole,
     ports: u8,
     uid: Uid,
-    firmware: FirmwareIdentity,
     /// The "flash": the ID the board boots with.
     stored_id: Option<NodeId>,
     /// Mobile: its own port it docks by.
@@ -308,6 +332,12 @@ struct Element {
     loops: u8,
     on_bus: bool,
     live: Option<Live>,
+    /// Its flash and bootloader: the images it runs.
+    board: Board,
+    /// The identity of the image it last booted (reported while powered off too).
+    firmware: FirmwareIdentity,
+    /// Why it starts next time (a reset the node asked for is a software reset).
+    next_reset: ResetReason,
 }
 
 type Received = (NodeId, u64, CanFrame);
@@ -347,34 +377,42 @@ impl Island {
             levels: Vec::new(),
         };
         let zero = Port::new(0).expect("port 0 exists");
+        // Every board starts with a confirmed image of its version, as flashed with a probe.
+        let mut images = Images::default();
         for s in &desc.statics {
+            let board = images.factory(s.firmware.version)?;
             island.add(Element {
                 name: s.id,
                 role: BootRole::Static,
                 ports: s.ports,
                 uid: s.uid,
-                firmware: s.firmware,
                 stored_id: s.configured.then_some(s.id),
                 own_port: zero,
                 docked: None,
                 loops: 0,
                 on_bus: true,
                 live: None,
+                board,
+                firmware: s.firmware,
+                next_reset: ResetReason::PowerOn,
             });
         }
         for m in &desc.mobiles {
+            let board = images.factory(m.firmware.version)?;
             island.add(Element {
                 name: m.id,
                 role: BootRole::Mobile,
                 ports: m.ports,
                 uid: m.uid,
-                firmware: m.firmware,
                 stored_id: m.configured.then_some(m.id),
                 own_port: m.port,
                 docked: m.dock,
                 loops: if m.dock.is_some() { m.port.mask() } else { 0 },
                 on_bus: true,
                 live: None,
+                board,
+                firmware: m.firmware,
+                next_reset: ResetReason::PowerOn,
             });
             if let Some((s, p)) = m.dock {
                 if let Some(st) = island.elements.get_mut(&s) {
@@ -573,16 +611,22 @@ impl Island {
             .elements
             .get_mut(&name)
             .ok_or(IslandError::UnknownNode(name))?;
+        // The bootloader first: it may swap in an update, or revert one that never confirmed.
+        let booted = board::boot(&mut e.board, ihex_image::test_key::PUBLIC)
+            .map_err(|err| IslandError::Boot(name, err))?;
         tx.set_filters(&sc_filters(e.stored_id))?;
+        e.firmware = booted.firmware;
         let config = Config {
             role: e.role,
             ports: e.ports,
             uid: e.uid,
             node_id: e.stored_id,
-            reset: ResetReason::PowerOn,
-            firmware: e.firmware,
+            reset: std::mem::replace(&mut e.next_reset, ResetReason::PowerOn),
+            firmware: booted.firmware,
+            update: booted.update,
         };
         let mut node = Node::new(config, now);
+        node.handle_self_test(booted.self_test(), now);
         for p in 0..e.ports.min(Port::COUNT) {
             let port = Port::new(p).expect("p < Port::COUNT");
             let closed = e.loops & port.mask() != 0;
@@ -649,23 +693,48 @@ impl Island {
     /// Carries out every node's outputs, then brings mobile power in line with the relays, until
     /// nothing changes any more.
     async fn settle(&mut self) {
-        // Mobiles cannot power other elements, so this converges in two rounds; the bound is a guard.
-        for _ in 0..4 {
-            self.drain_all().await;
-            if !self.reconcile_power() {
+        // Mobiles cannot power other elements, so this converges in two rounds (a node's reset adds
+        // one: it boots again with outputs of its own); the bound is a guard.
+        for _ in 0..6 {
+            let reset = self.drain_all().await;
+            if !self.reconcile_power() && !reset {
                 break;
             }
         }
     }
 
-    async fn drain_all(&mut self) {
+    /// Carries out every node's outputs; true when a node reset (and has new outputs).
+    async fn drain_all(&mut self) -> bool {
         let now = self.now();
         let mut events = Vec::new();
+        let mut resets = Vec::new();
         for e in self.elements.values_mut() {
-            drain(e, now, &mut events, None).await;
+            if drain(e, now, &mut events, None).await {
+                resets.push(e.name);
+            }
         }
         for ev in events {
             self.emit(ev);
+        }
+        let reset = !resets.is_empty();
+        for name in resets {
+            self.reset(name);
+        }
+        reset
+    }
+
+    /// The node asked for a reset (to swap an update in, or to revert one on trial): it starts
+    /// again through its bootloader, as after a software reset. Its relay drops meanwhile.
+    fn reset(&mut self, name: NodeId) {
+        let Some(e) = self.elements.get_mut(&name) else {
+            return;
+        };
+        e.next_reset = ResetReason::Software;
+        tracing::info!(node = %name, "reset");
+        self.power_off(name);
+        let now = self.now();
+        if let Err(err) = self.boot(name, now) {
+            tracing::error!(node = %name, %err, "does not come back after its reset");
         }
     }
 
@@ -841,9 +910,12 @@ impl Island {
         }
         let mut reply = Vec::new();
         let mut events = Vec::new();
-        drain(e, now, &mut events, Some(&mut reply)).await;
+        let reset = drain(e, now, &mut events, Some(&mut reply)).await;
         for ev in events {
             self.emit(ev);
+        }
+        if reset {
+            self.reset(name);
         }
         Ok(reply)
     }
@@ -909,14 +981,27 @@ fn check(desc: &IslandDesc) -> Result<(), IslandError> {
 }
 
 /// Carries out one node's queued outputs; UART bytes go to `uart` when given (else they are logged).
+/// Returns true when the node asked for a reset.
 async fn drain(
     e: &mut Element,
     now: Millis,
     events: &mut Vec<IslandEvent>,
     mut uart: Option<&mut Vec<u8>>,
-) {
-    let Some(l) = e.live.as_mut() else { return };
+) -> bool {
+    let Some(l) = e.live.as_mut() else {
+        return false;
+    };
+    let mut reset = false;
     while let Some(out) = l.node.poll_output() {
+        let out = match board::carry_out(&mut e.board, &mut l.node, out, now) {
+            Carried::Done => continue,
+            Carried::Reset => {
+                // Whatever else it asked for is moot: the chip resets now.
+                reset = true;
+                break;
+            }
+            Carried::Other(out) => out,
+        };
         match out {
             Output::Frame(p) => {
                 if !e.on_bus {
@@ -955,7 +1040,17 @@ async fn drain(
                     tracing::error!(node = %e.name, %err, "cannot install filters");
                 }
             }
+            // `carry_out` has done these.
+            Output::EraseDfu { .. }
+            | Output::WriteDfu { .. }
+            | Output::HashDfu { .. }
+            | Output::MarkUpdated
+            | Output::MarkBooted
+            | Output::Reset => {}
         }
+    }
+    if reset {
+        return true;
     }
     if l.node.actuators_changed() {
         let a = l.node.actuators();
@@ -968,6 +1063,7 @@ async fn drain(
             actuators: a,
         });
     }
+    false
 }
 
 /// How long a finite buzzer pattern sounds (the last beep has no pause after it).

@@ -1,5 +1,7 @@
 //! Virtual iHEX sub-controllers: each one is the real [`ihex_sc_core::Node`], wired to a bus.
 //!
+//! * [`board`] — a simulated SC's flash and bootloader (embassy-boot's own swap over an in-memory
+//!   NOR flash, with power cuts on demand) and the update half of its adapter.
 //! * [`bus`] — an in-memory CAN bus ([`bus::MemBus`]) for demos and fast tests.
 //! * [`link`] — one endpoint per node on SocketCAN (`vcan0`, `can0`) or a [`bus::MemBus`].
 //! * [`desc`] — the island description file (TOML).
@@ -24,6 +26,7 @@
 #![warn(missing_docs)]
 #![forbid(unsafe_code)]
 
+pub mod board;
 pub mod bus;
 pub mod console;
 pub mod desc;

@@ -69,3 +69,8 @@ async fn state_query() {
 async fn dock_and_undock_in_real_time() {
     scenario::dock_and_undock(mem()).await;
 }
+
+#[tokio::test(start_paused = true)]
+async fn firmware_update() {
+    scenario::firmware_update(mem()).await;
+}

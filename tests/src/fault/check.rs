@@ -495,7 +495,7 @@ fn cmd_and_node(s: &Sent) -> Option<(String, String)> {
         Command::Node { target, action } => Some((action.name().to_string(), target.to_string())),
         Command::Assign { new_id, .. } => Some(("assign".into(), new_id.to_string())),
         Command::Forget { id } => Some(("forget".into(), id.to_string())),
-        Command::List => None,
+        Command::List | Command::FwUpdate { .. } => None,
     }
 }
 

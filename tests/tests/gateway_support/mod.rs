@@ -161,7 +161,17 @@ fn scaled_ms(ms: u64) -> u64 {
 impl Gateway {
     /// Starts a gateway on `iface` against `broker`, island name `island`, with a fast health check.
     pub fn start(broker: std::net::SocketAddr, iface: &str, island: &str) -> Gateway {
-        let cli = Options {
+        Gateway::start_with(broker, iface, island, |_| {})
+    }
+
+    /// [`Gateway::start`] with more options set by `tweak`.
+    pub fn start_with(
+        broker: std::net::SocketAddr,
+        iface: &str,
+        island: &str,
+        tweak: impl FnOnce(&mut Options),
+    ) -> Gateway {
+        let mut cli = Options {
             broker: Some(broker.to_string()),
             can: Some(iface.into()),
             island: Some(island.into()),
@@ -175,6 +185,7 @@ impl Gateway {
             log_dir: Some("-".into()),
             ..Options::default()
         };
+        tweak(&mut cli);
         let config = Config::resolve(cli, Options::default()).expect("valid test config");
         let stop = CancellationToken::new();
         let task = tokio::spawn(mc_gateway::run(config.clone(), stop.clone()));

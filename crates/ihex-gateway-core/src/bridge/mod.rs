@@ -17,6 +17,7 @@ mod commands;
 mod diagnostics;
 mod dock;
 mod forget;
+mod fw;
 mod health;
 mod home_assistant;
 mod output;
@@ -33,12 +34,13 @@ use ihex_proto::{
 
 pub use commands::CommandCounters;
 pub use diagnostics::{BusEvent, BusHealth, ERROR_EVENT_WINDOW};
+pub use fw::FwLoad;
 pub use output::{
     Publication, PublicationCounters, Topic, Transmit, ANSWER_BACKLOG, TRANSMIT_WINDOW,
 };
 pub use readback::{INCOMPLETE_LIMIT, MAX_QUERIES, READ_BACK_VERSION, SILENT_LIMIT};
 
-use crate::command::{self, Command, CommandError, Request};
+use crate::command::{self, Command, CommandError, FwNodes, Request};
 use crate::docking::Docking;
 use crate::event::{
     CommandRejected, CommandResult, Connection, Event, HexId, NodeList, NodeState, Outcome,
@@ -49,6 +51,7 @@ use crate::registry::{millis, Registry, Seen};
 use commands::{Accepted, Commands};
 use diagnostics::Diagnostics;
 use dock::DockParts;
+use fw::FwUpdates;
 use health::Health;
 use output::{Next, Outputs};
 use readback::{ReadBack, Reply};
@@ -71,6 +74,8 @@ pub struct BridgeConfig {
     pub tx_queue: usize,
     /// Events (other than answers) held for the adapter before the oldest is dropped and counted.
     pub event_queue: usize,
+    /// Firmware updates (`fw_update`): bus share and timeouts.
+    pub fw: crate::fwupdate::FwConfig,
 }
 
 /// Default period of the broadcast health check (the seed's 1 s).
@@ -106,6 +111,7 @@ impl Default for BridgeConfig {
             max_command_bytes: DEFAULT_MAX_COMMAND_BYTES,
             tx_queue: DEFAULT_TX_QUEUE,
             event_queue: DEFAULT_EVENT_QUEUE,
+            fw: crate::fwupdate::FwConfig::default(),
         }
     }
 }
@@ -149,6 +155,7 @@ pub struct Bridge {
     now: Instant,
     /// When the next `publications_dropped` may go out.
     next_drop_report: Instant,
+    fw: FwUpdates,
 }
 
 impl Bridge {
@@ -164,6 +171,7 @@ impl Bridge {
             diagnostics: Diagnostics::new(),
             ha: None,
             readback: ReadBack::new(config.command_timeout),
+            fw: FwUpdates::new(config.fw.clone()),
             config,
             now,
             next_drop_report: now,
@@ -321,6 +329,11 @@ impl Bridge {
                     &mut self.out,
                 )
             }
+            Command::FwUpdate {
+                image,
+                nodes,
+                force,
+            } => return self.request_fw_update(request_id, image, nodes, force),
             Command::Assign { uid, new_id, force } => {
                 if !force && self.registry.get(new_id).is_some_and(|e| e.online) {
                     return self.reject(request_id, CommandError::IdInUse(HexId(new_id)));
@@ -348,11 +361,11 @@ impl Bridge {
         delivery: Delivery,
         now: Instant,
     ) {
-        let node = match *cmd {
-            Command::Node { target, .. } => target,
-            Command::Assign { new_id, .. } => Target::Node(new_id),
-            Command::Forget { id } => Target::Node(id),
-            Command::List => Target::All,
+        let node = match cmd {
+            Command::Node { target, .. } => *target,
+            Command::Assign { new_id, .. } => Target::Node(*new_id),
+            Command::Forget { id } => Target::Node(*id),
+            Command::List | Command::FwUpdate { .. } => Target::All,
         };
         let waited = millis(now.saturating_duration_since(delivery.received));
         self.commands.count_expired();
@@ -408,9 +421,13 @@ impl Bridge {
             self.readback.want(src);
         }
         match packet.msg {
+            Message::BootUp { version, .. } => {
+                self.readback.on_boot(src, version);
+                self.fw.on_boot_up(src, now, &mut self.out);
+            }
             // Handled by `on_heard`.
             Message::HealthReply(_) => {}
-            Message::BootUp { version, .. } => self.readback.on_boot(src, version),
+            Message::FwStatus(st) => self.fw.on_status(src, st, now, &mut self.out),
             Message::Ack {
                 kind, seq, result, ..
             } => self.on_ack(src, kind, seq, result, now),
@@ -477,10 +494,12 @@ impl Bridge {
             BusEvent::BusOff => {
                 self.health.on_bus_down();
                 self.readback.on_bus_down();
+                self.fw.on_bus(true, now, &mut self.out);
             }
             BusEvent::InterfaceDown => {
                 self.health.on_bus_down();
                 self.readback.on_bus_down();
+                self.fw.on_bus(true, now, &mut self.out);
                 // The kernel drops what a downed interface had queued — or it went out just before:
                 // nobody can tell any more.
                 for p in self.out.transmit.clear_in_flight() {
@@ -496,6 +515,7 @@ impl Bridge {
                     }
                 }
                 self.health.on_recovered(now);
+                self.fw.on_bus(false, now, &mut self.out);
             }
             _ => {}
         }
@@ -570,10 +590,38 @@ impl Bridge {
         self.out.dirty.clear();
     }
 
+    /// The image file of an `fw_update` ([`Bridge::poll_fw_load`]) was read (`Ok`), or could not
+    /// be (`Err`: why, for the `command_result`). A good image starts the update.
+    pub fn handle_fw_image(&mut self, load: FwLoad, bytes: Result<Vec<u8>, String>, now: Instant) {
+        self.advance(now);
+        self.fw.on_image(load, bytes, now, &mut self.out);
+        self.settle(now);
+    }
+
+    /// Stops a running firmware update (the gateway is shutting down): its nodes are told to drop
+    /// the transfer and `fw_report` says `failed` with `reason` for every node not done yet.
+    pub fn cancel_fw_update(&mut self, reason: &str, now: Instant) {
+        self.advance(now);
+        self.fw.cancel(reason, now, &mut self.out);
+        self.settle(now);
+    }
+
+    /// True while a firmware update is loading or running.
+    pub fn fw_update_running(&self) -> bool {
+        self.fw.busy()
+    }
+
+    /// An `fw_update` whose image file the adapter must read and hand to
+    /// [`Bridge::handle_fw_image`]; `None` when there is none.
+    pub fn poll_fw_load(&mut self) -> Option<FwLoad> {
+        self.fw.poll_load()
+    }
+
     /// Advances timers: withdrawals, ack and docking timeouts, frames never confirmed, the health
-    /// broadcast and lost nodes, the report of dropped publications.
+    /// broadcast and lost nodes, the report of dropped publications, a firmware update's rounds.
     pub fn handle_timeout(&mut self, now: Instant) {
         self.advance(now);
+        self.fw.tick(now, &mut self.out);
         if let Some(cutoff) = now.checked_sub(TRANSMIT_CONFIRM_TIMEOUT) {
             for p in self.out.transmit.expire_in_flight(cutoff) {
                 tracing::warn!(
@@ -644,16 +692,25 @@ impl Bridge {
         if self.out.publish.has_unreported() {
             at(Some(self.next_drop_report));
         }
+        if let Some(d) = self.fw.deadline() {
+            next = next.min(d);
+        }
         next
     }
 
     /// The next frame to transmit at `now`, `None` when there is none or when
     /// [`TRANSMIT_WINDOW`] frames are already handed out and not yet confirmed (each must be
     /// answered by [`Bridge::handle_transmitted`], [`Bridge::handle_send_failed`] or
-    /// [`Bridge::handle_withdrawn`]).
+    /// [`Bridge::handle_withdrawn`]). A firmware update's frames come last, only when nothing
+    /// else waits, and within the update's bus share.
     pub fn poll_transmit(&mut self, now: Instant) -> Option<Transmit> {
         self.advance(now);
         loop {
+            if self.out.transmit.queued() == 0 && self.out.transmit.in_flight() < TRANSMIT_WINDOW {
+                if let Some(p) = self.fw.poll_transmit() {
+                    self.out.transmit.push(p, None);
+                }
+            }
             match self.out.transmit.pop(now)? {
                 Ok(t) => {
                     self.commands.on_handed(&t.packet, now);
@@ -698,6 +755,45 @@ impl Bridge {
                 }
             }
         }
+    }
+
+    /// `fw_update`: resolves the nodes against the registry and asks the adapter for the image.
+    fn request_fw_update(
+        &mut self,
+        request_id: Option<String>,
+        image: String,
+        nodes: FwNodes,
+        force: bool,
+    ) {
+        if self.fw.busy() {
+            return self.reject(request_id, CommandError::FwBusy);
+        }
+        let nodes = match nodes {
+            FwNodes::All => {
+                let ids = self.registry.online_ids();
+                if ids.is_empty() {
+                    return self.reject(request_id, CommandError::FwNoNodes);
+                }
+                ids
+            }
+            FwNodes::List(ids) => {
+                if let Some(&id) = ids.iter().find(|&&id| self.registry.get(id).is_none()) {
+                    let known = self.registry.known_list();
+                    let error = CommandError::UnknownNode {
+                        id: HexId(id),
+                        known,
+                    };
+                    return self.reject(request_id, error);
+                }
+                ids
+            }
+        };
+        self.fw.request(FwLoad {
+            request_id,
+            image,
+            nodes,
+            force,
+        });
     }
 
     fn reject(&mut self, request_id: Option<String>, error: CommandError) {

@@ -17,7 +17,7 @@ use field::{ms_expected, Fields};
 use json::{Json, Quote};
 
 /// Every command name, for error messages.
-pub const COMMAND_NAMES: &str = "led, buzzer, power, identify, assign, forget, list";
+pub const COMMAND_NAMES: &str = "led, buzzer, power, identify, assign, forget, list, fw_update";
 
 /// Default buzzer tone when a command gives none, in Hz.
 pub const DEFAULT_FREQ_HZ: u16 = 2000;
@@ -99,6 +99,12 @@ pub enum CommandError {
          this one by publishing an empty retained message to the topic"
     )]
     Retained,
+    /// `fw_update` while another update is loading or running.
+    #[error("fw_update: an update is running; wait for its fw_report")]
+    FwBusy,
+    /// `fw_update` to `"all"` with no node online.
+    #[error("fw_update: no node is online")]
+    FwNoNodes,
     /// Too many unanswered commands of one kind to one node: every sequence number is in use.
     #[error(
         "{cmd}: 256 {cmd} commands to node {node} are still unanswered; wait for their results"
@@ -147,7 +153,7 @@ impl NodeAction {
 }
 
 /// A validated command.
-#[derive(Clone, Copy, PartialEq, Eq, Debug)]
+#[derive(Clone, PartialEq, Eq, Debug)]
 pub enum Command {
     /// `led`, `buzzer`, `power`, `identify`.
     Node {
@@ -172,6 +178,24 @@ pub enum Command {
     },
     /// `list`: publish `node_list`.
     List,
+    /// `fw_update`: send a signed image from the gateway's firmware directory to nodes.
+    FwUpdate {
+        /// The image's file name in the firmware directory (checked: a plain name).
+        image: String,
+        /// Which nodes.
+        nodes: FwNodes,
+        /// Let the nodes take an older version than theirs.
+        force: bool,
+    },
+}
+
+/// The nodes of an `fw_update`.
+#[derive(Clone, PartialEq, Eq, Debug)]
+pub enum FwNodes {
+    /// Every node online when the update starts.
+    All,
+    /// These nodes (at least one, no repeats).
+    List(Vec<NodeId>),
 }
 
 impl Command {
@@ -182,6 +206,7 @@ impl Command {
             Command::Assign { .. } => "assign",
             Command::Forget { .. } => "forget",
             Command::List => "list",
+            Command::FwUpdate { .. } => "fw_update",
         }
     }
 }
@@ -238,6 +263,12 @@ pub const REQUEST_ID_SCAN: usize = 1 << 20;
 pub fn request_id(payload: &[u8]) -> Option<String> {
     json::top_level_string(&payload[..payload.len().min(REQUEST_ID_SCAN)], "request_id")
 }
+const FW_UPDATE_FIELDS: &[&str] = &["image", "nodes", "force"];
+/// What `fw_update`'s `image` accepts.
+const FW_IMAGE: &str =
+    "the file name of a signed image in the gateway's firmware directory (letters, digits, '.', '-', '_')";
+/// What `fw_update`'s `nodes` accepts.
+const FW_NODES: &str = "\"all\" or node ids in hex separated by commas, like \"111,112\"";
 
 /// Parses and validates one command payload. Node existence is not checked here (the registry is the
 /// bridge's); everything else is.
@@ -281,7 +312,10 @@ pub fn parse(payload: &[u8], max_bytes: usize) -> Result<Request, Rejection> {
         Ok(Some(Json::String(cmd))) => command(cmd, &members),
         Ok(Some(other)) => Err(CommandError::UnknownCmd(Quote(other).to_string())),
     };
-    let ttl = command.and_then(|c| Ok((c, field::ttl(c.name(), &members)?)));
+    let ttl = command.and_then(|c| {
+        let ttl = field::ttl(c.name(), &members)?;
+        Ok((c, ttl))
+    });
     match ttl {
         Ok((command, ttl)) => Ok(Request {
             request_id,
@@ -331,6 +365,13 @@ fn command(cmd: &str, members: &[(String, Json)]) -> Result<Command, CommandErro
             Fields::new("list", "", members, &[], "")?;
             Ok(Command::List)
         }
+        "fw_update" => fw_update(&Fields::new(
+            "fw_update",
+            "",
+            members,
+            FW_UPDATE_FIELDS,
+            "",
+        )?),
         _ => Err(CommandError::UnknownCmd(
             Quote(&Json::String(cmd.into())).to_string(),
         )),
@@ -516,9 +557,90 @@ fn assign(f: &Fields<'_>) -> Result<Command, CommandError> {
     })
 }
 
+fn fw_update(f: &Fields<'_>) -> Result<Command, CommandError> {
+    let image = f.required("image", f.str("image", FW_IMAGE)?, FW_IMAGE)?;
+    let plain = !image.is_empty()
+        && !image.starts_with('.')
+        && image.len() <= 128
+        && image
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || matches!(c, '.' | '-' | '_'));
+    if !plain {
+        return Err(f.bad("image", FW_IMAGE, &Json::String(image.into())));
+    }
+    let text = f.required("nodes", f.str("nodes", FW_NODES)?, FW_NODES)?;
+    let bad = || f.bad("nodes", FW_NODES, &Json::String(text.into()));
+    let nodes = if text == "all" {
+        FwNodes::All
+    } else {
+        let mut ids = Vec::new();
+        for part in text.split(',').map(str::trim) {
+            match part.parse::<NodeId>() {
+                Ok(id) if id.is_sc() && !ids.contains(&id) => ids.push(id),
+                _ => return Err(bad()),
+            }
+        }
+        FwNodes::List(ids)
+    };
+    Ok(Command::FwUpdate {
+        image: image.to_string(),
+        nodes,
+        force: f.bool("force")?.unwrap_or(false),
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn fw_update_forms() {
+        let r = ok(r#"{"cmd":"fw_update","image":"sc-fw-1.3.0.ihex","nodes":"all"}"#);
+        assert_eq!(
+            r.command,
+            Command::FwUpdate {
+                image: "sc-fw-1.3.0.ihex".into(),
+                nodes: FwNodes::All,
+                force: false
+            }
+        );
+        let r = ok(r#"{"cmd":"fw_update","image":"a.ihex","nodes":"111, 2","force":true}"#);
+        let Command::FwUpdate { nodes, force, .. } = r.command else {
+            panic!()
+        };
+        assert_eq!(nodes, FwNodes::List(vec![node_id(0x111), node_id(0x2)]));
+        assert!(force);
+        for (json, says) in [
+            (
+                r#"{"cmd":"fw_update","image":"../etc/passwd","nodes":"all"}"#,
+                "image",
+            ),
+            (
+                r#"{"cmd":"fw_update","image":".hidden","nodes":"all"}"#,
+                "image",
+            ),
+            (
+                r#"{"cmd":"fw_update","image":"a.ihex","nodes":"111,111"}"#,
+                "nodes",
+            ),
+            (
+                r#"{"cmd":"fw_update","image":"a.ihex","nodes":"fff"}"#,
+                "nodes",
+            ),
+            (r#"{"cmd":"fw_update","image":"a.ihex"}"#, "nodes"),
+            (r#"{"cmd":"fw_update","nodes":"all"}"#, "image"),
+        ] {
+            let e = err(json.as_bytes()).error.to_string();
+            assert!(
+                e.starts_with("fw_update: ") && e.contains(says),
+                "{json}: {e}"
+            );
+        }
+    }
+
+    fn node_id(raw: u16) -> NodeId {
+        NodeId::new_sc(raw).unwrap()
+    }
 
     fn ok(json: &str) -> Request {
         parse(json.as_bytes(), 4096).unwrap_or_else(|r| panic!("{json}: rejected: {}", r.error))

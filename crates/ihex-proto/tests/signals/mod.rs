@@ -181,6 +181,34 @@ pub fn expected(msg: &Message) -> Vec<Expected> {
             v.extend(dock_partner(partner, ["partner", "partner_port"]));
             v
         }
+        Message::FwBegin {
+            image_id,
+            len,
+            force,
+        } => vec![
+            n("image_id", image_id),
+            n("len", len),
+            named("force", force, Some(if force { "on" } else { "off" })),
+            n("flags_reserved", 0u8),
+        ],
+        Message::FwEnd { image_id, action } => vec![
+            n("image_id", image_id),
+            named("action", action.to_raw(), Some(action.name())),
+        ],
+        Message::FwQuery { image_id } => vec![n("image_id", image_id)],
+        Message::FwStatus(st) => vec![
+            named("phase", st.phase.to_raw(), st.phase.name()),
+            named("reason", st.reason.to_raw(), st.reason.name()),
+            n("first_missing", st.first_missing),
+            n("run", st.run),
+            n("missing", st.missing),
+        ],
+        Message::FwData { index, data } => {
+            let mut v = vec![n("index", index)];
+            const NAMES: [&str; 6] = ["data_0", "data_1", "data_2", "data_3", "data_4", "data_5"];
+            v.extend(data.iter().zip(NAMES).map(|(b, name)| n(name, *b)));
+            v
+        }
     }
 }
 

@@ -5,8 +5,9 @@
 
 use ihex_proto::{
     AckResult, BootRole, BuzzerCommand, DockPartner, DockRefuseReason, DockState, FaultCode,
-    FirmwareVersion, HealthFlags, HealthReply, Kind, LedCommand, Message, NodeId, Packet, Port,
-    PowerState, ResetReason, Rgb, StateParts, StateReport,
+    FirmwareVersion, FwAction, FwPhase, FwRefusal, FwStatus, HealthFlags, HealthReply, Kind,
+    LedCommand, Message, NodeId, Packet, Port, PowerState, ResetReason, Rgb, StateParts,
+    StateReport, FW_BEGIN_MAX_LEN,
 };
 use proptest::prelude::*;
 
@@ -237,6 +238,43 @@ pub fn message() -> impl Strategy<Value = Message> {
             port,
             partner
         }),
+        fw_message(),
+    ]
+}
+
+/// A firmware-transfer message.
+pub fn fw_message() -> impl Strategy<Value = Message> {
+    prop_oneof![
+        (any::<u32>(), 0..=FW_BEGIN_MAX_LEN, any::<bool>()).prop_map(|(image_id, len, force)| {
+            Message::FwBegin {
+                image_id,
+                len,
+                force,
+            }
+        }),
+        (
+            any::<u32>(),
+            prop_oneof![Just(FwAction::Commit), Just(FwAction::Abort)]
+        )
+            .prop_map(|(image_id, action)| Message::FwEnd { image_id, action }),
+        any::<u32>().prop_map(|image_id| Message::FwQuery { image_id }),
+        (
+            any::<u8>(),
+            any::<u8>(),
+            any::<u16>(),
+            any::<u16>(),
+            any::<u16>()
+        )
+            .prop_map(|(phase, reason, first_missing, run, missing)| {
+                Message::FwStatus(FwStatus {
+                    phase: FwPhase::from_raw(phase),
+                    reason: FwRefusal::from_raw(reason),
+                    first_missing,
+                    run,
+                    missing,
+                })
+            }),
+        (any::<u16>(), any::<[u8; 6]>()).prop_map(|(index, data)| Message::FwData { index, data }),
     ]
 }
 

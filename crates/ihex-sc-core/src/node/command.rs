@@ -57,7 +57,10 @@ impl Node {
             msg if !msg.kind().is_command() => {}
             // An unconfigured node takes part in nothing but ID assignment.
             _ if self.config.node_id.is_none() => {}
-            msg => self.on_command(msg, now),
+            msg => {
+                self.heard_gateway();
+                self.on_command(msg, now);
+            }
         }
     }
 
@@ -100,6 +103,14 @@ impl Node {
                 self.report(Message::HealthReply(h));
             }
             Message::StateQuery { seq, parts } => self.on_state_query(seq, parts, now),
+            Message::FwBegin {
+                image_id,
+                len,
+                force,
+            } => self.on_fw_begin(image_id, len, force),
+            Message::FwData { index, data } => self.on_fw_data(index, data),
+            Message::FwQuery { image_id } => self.on_fw_query(image_id),
+            Message::FwEnd { image_id, action } => self.on_fw_end(image_id, action),
             // Assignment is dispatched before this; reports never get here.
             _ => {}
         }

@@ -1,8 +1,9 @@
 //! Test harness shared by the behaviour tests: build nodes, send commands, collect outputs.
 #![allow(dead_code)]
 
+use ihex_image::board::F303RE;
 use ihex_proto::{BootRole, FirmwareVersion, Message, NodeId, Packet, Port, ResetReason, Uid};
-use ihex_sc_core::{Config, FirmwareIdentity, Millis, Node, Output};
+use ihex_sc_core::{Config, FirmwareIdentity, Millis, Node, Output, UpdateConfig};
 
 pub const ID: u16 = 0x111;
 pub const UID: [u8; 12] = [1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12];
@@ -11,6 +12,14 @@ pub const FIRMWARE: FirmwareIdentity = FirmwareIdentity {
     version: FirmwareVersion::new(1, 4, 2),
     image_hash: [0xA1, 0xA2, 0xA3, 0xA4, 0xA5, 0xA6, 0xA7],
     trial: false,
+};
+
+/// Every test node takes F303RE images signed with the test key.
+pub const UPDATE: UpdateConfig = UpdateConfig {
+    board: ihex_image::Board::NUCLEO_F303RE,
+    key: ihex_image::test_key::PUBLIC,
+    layout: &F303RE,
+    reverted: false,
 };
 
 pub fn id() -> NodeId {
@@ -29,6 +38,7 @@ pub fn config(role: BootRole, ports: u8, node_id: Option<NodeId>) -> Config {
         node_id,
         reset: ResetReason::PowerOn,
         firmware: FIRMWARE,
+        update: UPDATE,
     }
 }
 

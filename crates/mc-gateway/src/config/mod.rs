@@ -16,7 +16,7 @@ use std::{
     time::Duration,
 };
 
-use ihex_gateway_core::{bridge, ha, topic, BridgeConfig};
+use ihex_gateway_core::{bridge, fwupdate, ha, topic, BridgeConfig};
 
 use crate::error::ConfigError;
 use options::{default_text, ms, options, setting_type, setting_value};
@@ -110,6 +110,12 @@ options! {
     /// Largest accepted command payload, bytes (larger ones are `command_rejected`).
     max_command_bytes: usize = {bridge::DEFAULT_MAX_COMMAND_BYTES}, env "IHEX_MAX_COMMAND_BYTES",
         value "BYTES", range 64..=1048576;
+    /// Directory of signed firmware images an `fw_update` command may name by file name
+    /// (`docs/firmware-update.md`); without it `fw_update` fails and says so.
+    fw_dir: PathBuf = (text "none: `fw_update` is off"), env "IHEX_FW_DIR", value "DIR";
+    /// Largest share of the bus a firmware update's frames take, % (counted in bits on the wire).
+    fw_bus_share: u8 = {fwupdate::DEFAULT_BUS_SHARE}, env "IHEX_FW_BUS_SHARE", value "PERCENT",
+        range 1..=100;
     /// Receive buffer asked for on the CAN socket (`SO_RCVBUFFORCE` as root, else `SO_RCVBUF`),
     /// bytes.
     rx_buffer: usize = 4194304, env "IHEX_RX_BUFFER", value "BYTES", range 4096..=268435456;
@@ -487,6 +493,13 @@ impl Config {
             max_command_bytes: s.max_command_bytes,
             tx_queue: s.tx_queue,
             event_queue: s.mqtt_queue,
+            fw: fwupdate::FwConfig {
+                bitrate: s.bitrate,
+                bus_share: s.fw_bus_share,
+                // A node answers an update's requests as it acks a command.
+                reply_timeout: Duration::from_millis(s.command_timeout_ms),
+                ..fwupdate::FwConfig::default()
+            },
         };
 
         let dir = match s.log_dir.as_deref() {

@@ -25,7 +25,7 @@ macro_rules! option_types {
         }
     )*};
 }
-option_types!(String, PathBuf, u16, u32, u64, usize, SocketAddr);
+option_types!(String, PathBuf, u8, u16, u32, u64, usize, SocketAddr);
 
 impl OptionType for bool {
     const SWITCH: bool = true;
@@ -52,7 +52,7 @@ macro_rules! from_default_same {
         }
     )*};
 }
-from_default_same!(bool, u16, u32, u64, usize, SocketAddr);
+from_default_same!(bool, u8, u16, u32, u64, usize, SocketAddr);
 
 impl FromDefault<&'static str> for String {
     fn from_default(v: &'static str) -> Self {

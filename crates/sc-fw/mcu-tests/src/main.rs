@@ -20,7 +20,11 @@ use ihex_proto::{
     AckResult, BootRole, DockPartner, DockState, FirmwareVersion, Kind, Message, NodeId, Packet,
     Port, ResetReason, StateParts, StateReport, Uid,
 };
-use ihex_sc_core::{Config, FirmwareIdentity, Millis, Node, Output, DEBOUNCE_MS};
+use ihex_proto::{FwAction, FwPhase, FwRefusal, FW_DATA_LEN};
+use ihex_sc_core::{
+    Config, FirmwareIdentity, FlashError, Millis, Node, Output, UpdateConfig, DEBOUNCE_MS,
+    RESET_DELAY_MS,
+};
 
 struct Suite {
     passed: u32,
@@ -58,6 +62,12 @@ fn config(node_id: Option<NodeId>, role: BootRole) -> Config {
             version: FirmwareVersion::new(1, 2, 3),
             image_hash: [7; 7],
             trial: false,
+        },
+        update: UpdateConfig {
+            board: ihex_image::Board::NUCLEO_F303RE,
+            key: ihex_image::test_key::PUBLIC,
+            layout: &ihex_image::board::F303RE,
+            reverted: false,
         },
     }
 }
@@ -360,6 +370,183 @@ fn firmware_modules(s: &mut Suite) {
     );
 }
 
+/// An update image packed on the host with the test key (build.rs, 4000-byte payload, version
+/// 1.2.3, protocol 1.x).
+static IMAGE: &[u8] = include_bytes!(concat!(env!("OUT_DIR"), "/test-image.img"));
+
+/// The image's checks, run with salty's Cortex-M4 field arithmetic, must agree with the host's.
+fn image_checks(s: &mut Suite) {
+    use ihex_image::{
+        board::F303RE, check_signed, test_key, verify_image, Board, Hasher, ImageError, Policy,
+        HEADER_BLOCK,
+    };
+    let policy = Policy::new(
+        Board::NUCLEO_F303RE,
+        &F303RE,
+        1,
+        FirmwareVersion::new(1, 0, 0),
+    );
+    let key = test_key::PUBLIC;
+    s.check(
+        "host-signed image verifies (ed25519 + SHA-512)",
+        verify_image(IMAGE, &key, &policy)
+            .is_ok_and(|h| h.version == FirmwareVersion::new(1, 2, 3)),
+    );
+    let mut buf = [0u8; 4512];
+    buf.copy_from_slice(IMAGE);
+    buf[HEADER_BLOCK + 17] ^= 0x40;
+    s.check(
+        "a changed payload byte is Corrupted",
+        verify_image(&buf, &key, &policy) == Err(ImageError::Corrupted),
+    );
+    buf.copy_from_slice(IMAGE);
+    buf[130] ^= 0x01;
+    s.check(
+        "a changed signature byte is BadSignature",
+        check_signed(&buf, &key, &policy) == Err(ImageError::BadSignature),
+    );
+    let mut older = policy;
+    older.running = FirmwareVersion::new(2, 0, 0);
+    s.check(
+        "an older image is a Downgrade",
+        matches!(
+            check_signed(IMAGE, &key, &older),
+            Err(ImageError::Downgrade { .. })
+        ),
+    );
+    let mut h = Hasher::new();
+    h.update(b"a");
+    h.update(b"bc");
+    s.check(
+        "SHA-512(abc) in pieces",
+        h.finish().prefix::<4>() == [0xdd, 0xaf, 0x35, 0xa1],
+    );
+}
+
+/// The adapter's flash for [`update_on_m4`]: the DFU slot in RAM (the image's chunks, rounded up).
+struct Dfu {
+    mem: [u8; 4608],
+    marked: bool,
+    reset: bool,
+    refused: Option<FwRefusal>,
+    complete: bool,
+    rebooting: bool,
+}
+
+impl Dfu {
+    /// Carries out the node's outputs as the node task does, reporting back.
+    fn run(&mut self, n: &mut Node, t: u64) {
+        let now = Millis(t);
+        while let Some(o) = n.poll_output() {
+            match o {
+                Output::EraseDfu { len } => {
+                    let ok = len as usize <= self.mem.len();
+                    self.mem.fill(0xFF);
+                    n.handle_fw_erased(if ok { Ok(()) } else { Err(FlashError) }, now);
+                }
+                Output::WriteDfu { offset, data } => {
+                    let at = offset as usize;
+                    match self.mem.get_mut(at..at + data.len()) {
+                        Some(dst) if dst.iter().all(|&b| b == 0xFF) => dst.copy_from_slice(&data),
+                        _ => n.handle_fw_write_failed(now),
+                    }
+                }
+                Output::HashDfu { offset, len } => {
+                    let r = self
+                        .mem
+                        .get(offset as usize..(offset + len) as usize)
+                        .map(ihex_image::Hasher::digest)
+                        .ok_or(FlashError);
+                    n.handle_fw_hashed(r, now);
+                }
+                Output::MarkUpdated => {
+                    self.marked = true;
+                    n.handle_fw_marked(Ok(()), now);
+                }
+                Output::Reset => self.reset = true,
+                Output::Frame(Packet {
+                    msg: Message::FwStatus(st),
+                    ..
+                }) => match st.phase {
+                    FwPhase::Refused => self.refused = Some(st.reason),
+                    FwPhase::Complete => self.complete = true,
+                    FwPhase::Rebooting => self.rebooting = true,
+                    _ => {}
+                },
+                _ => {}
+            }
+        }
+    }
+}
+
+/// The node's firmware-update receiver on the Cortex-M4: the host-signed image sent frame by frame,
+/// checked, written, verified and installed; and a byte changed on the way refused at the commit.
+fn update_on_m4(s: &mut Suite) {
+    let own = id(0x111);
+    let image_id = ihex_image::Header::parse(IMAGE).map_or(0, |h| h.image_id());
+    let run = |corrupt: Option<usize>| -> Dfu {
+        let mut n = Node::new(config(Some(own), BootRole::Static), Millis(0));
+        let mut dfu = Dfu {
+            mem: [0; 4608],
+            marked: false,
+            reset: false,
+            refused: None,
+            complete: false,
+            rebooting: false,
+        };
+        let _ = drain(&mut n);
+        let begin = Message::FwBegin {
+            image_id,
+            len: IMAGE.len() as u32,
+            force: false,
+        };
+        let (raw, d) = Packet::command(NodeId::BROADCAST, begin).encode();
+        n.handle_frame(raw, true, false, &d, Millis(1));
+        dfu.run(&mut n, 1);
+        for (i, chunk) in IMAGE.chunks(FW_DATA_LEN).enumerate() {
+            let mut data = [0xFF; FW_DATA_LEN];
+            data[..chunk.len()].copy_from_slice(chunk);
+            if corrupt.is_some_and(|c| c / FW_DATA_LEN == i) {
+                data[0] ^= 0x10;
+            }
+            let p = Packet::command(
+                NodeId::BROADCAST,
+                Message::FwData {
+                    index: i as u16,
+                    data,
+                },
+            );
+            let (raw, d) = p.encode();
+            n.handle_frame(raw, true, false, &d, Millis(2));
+            dfu.run(&mut n, 2);
+        }
+        let commit = Message::FwEnd {
+            image_id,
+            action: FwAction::Commit,
+        };
+        let (raw, d) = Packet::command(own, commit).encode();
+        n.handle_frame(raw, true, false, &d, Millis(3));
+        dfu.run(&mut n, 3);
+        n.tick(Millis(3 + RESET_DELAY_MS));
+        dfu.run(&mut n, 3 + RESET_DELAY_MS);
+        dfu
+    };
+    let good = run(None);
+    s.check(
+        "update: every frame written, the image in the DFU slot byte for byte",
+        good.complete && good.mem[..IMAGE.len()] == *IMAGE,
+    );
+    s.check(
+        "update: verified, marked for the bootloader, reset",
+        good.rebooting && good.marked && good.reset && good.refused.is_none(),
+    );
+    let bad = run(Some(ihex_image::HEADER_BLOCK + 1000));
+    s.check(
+        "update: a payload byte changed on the way is refused corrupted at the commit",
+        bad.complete && bad.refused == Some(FwRefusal::Corrupted) && !bad.marked && !bad.reset,
+    );
+}
+
 #[entry]
 fn main() -> ! {
     let mut s = Suite {
@@ -370,6 +557,8 @@ fn main() -> ! {
     state_read_back(&mut s);
     unconfigured_node_gets_id_over_uart(&mut s);
     firmware_modules(&mut s);
+    image_checks(&mut s);
+    update_on_m4(&mut s);
     hprintln!(
         "{} passed, {} failed (Cortex-M4, QEMU mps2-an386)",
         s.passed,
@@ -390,5 +579,7 @@ fn main() -> ! {
 fn panic(info: &core::panic::PanicInfo) -> ! {
     hprintln!("PANIC {}", info);
     debug::exit(debug::EXIT_FAILURE);
-    loop {}
+    loop {
+        cortex_m::asm::wfi();
+    }
 }

@@ -1,18 +1,19 @@
 //! The node task: owns the `ihex_sc_core::Node` and the flash, feeds it the events, runs its timers
-//! and carries out its outputs.
+//! and carries out its outputs — the firmware-update ones on the DFU slot and the bootloader state
+//! ([`crate::update::Updater`]).
 
 use defmt::{info, warn};
 use embassy_futures::select::{select, Either};
-use embassy_stm32::flash::{Blocking, Flash};
 use embassy_time::{with_timeout, Duration, Instant, Timer};
 use ihex_proto::BootRole;
-use ihex_sc_core::{Millis, Node, Output};
+use ihex_sc_core::{FlashError, Millis, Node, Output};
 
 use super::relay::Relay;
 use super::watchdog::{beat, Beat};
 use crate::config;
 use crate::event::{Event, BUZZER, CAN_TX, EVENTS, FILTERS, FILTERS_DONE, LED, UART_TX};
 use crate::record::Record;
+use crate::update::{Part, Updater};
 
 /// Longest sleep between two passes (keeps the heartbeat going when the core has no timer pending).
 pub const MAX_SLEEP_MS: u64 = 100;
@@ -24,18 +25,28 @@ pub fn now() -> Millis {
     Millis(Instant::now().as_millis())
 }
 
-/// Runs the node forever.
+/// Runs the node forever. `self_test` is the start-up self-test's verdict (a new image on trial
+/// confirms itself only if it passed).
 #[embassy_executor::task]
 pub async fn node(
-    mut node: Node,
-    mut flash: Flash<'static, Blocking>,
+    node: &'static mut Node,
+    mut flash: Part,
+    mut updater: Updater,
     mut relay: Relay,
     role: BootRole,
+    self_test: bool,
 ) {
     let mut dropped_frames = 0u32;
+    node.handle_self_test(self_test, now());
+    let mut io = Io {
+        flash: &mut flash,
+        updater: &mut updater,
+        role,
+        dropped: &mut dropped_frames,
+    };
     // The core reports its actuators as changed on the first call after `Node::new`.
-    publish(&mut node, &mut relay);
-    drain(&mut node, &mut flash, role, &mut dropped_frames).await;
+    publish(node, &mut relay);
+    drain(node, &mut io).await;
     loop {
         let t = now();
         let wake = match node.poll_at() {
@@ -67,9 +78,17 @@ pub async fn node(
         }
         beat(Beat::Node as usize);
         // Actuators first: the relay must be off before the DockRemoved that goes with it leaves.
-        publish(&mut node, &mut relay);
-        drain(&mut node, &mut flash, role, &mut dropped_frames).await;
+        publish(node, &mut relay);
+        drain(node, &mut io).await;
     }
+}
+
+/// What carrying out the outputs needs.
+struct Io<'a> {
+    flash: &'a mut Part,
+    updater: &'a mut Updater,
+    role: BootRole,
+    dropped: &'a mut u32,
 }
 
 fn publish(node: &mut Node, relay: &mut Relay) {
@@ -81,20 +100,15 @@ fn publish(node: &mut Node, relay: &mut Relay) {
     }
 }
 
-async fn drain(
-    node: &mut Node,
-    flash: &mut Flash<'static, Blocking>,
-    role: BootRole,
-    dropped: &mut u32,
-) {
+async fn drain(node: &mut Node, io: &mut Io<'_>) {
     while let Some(out) = node.poll_output() {
         match out {
             Output::Frame(p) => {
                 if CAN_TX.try_send(p).is_err() {
-                    *dropped = dropped.wrapping_add(1);
+                    *io.dropped = io.dropped.wrapping_add(1);
                     warn!(
                         "can tx queue full, frame dropped ({} so far): {}",
-                        *dropped, p
+                        *io.dropped, p
                     );
                 }
             }
@@ -104,8 +118,11 @@ async fn drain(
                 }
             }
             Output::StoreId(id) => {
-                let record = Record { node_id: id, role };
-                match config::store(flash, &record) {
+                let record = Record {
+                    node_id: id,
+                    role: io.role,
+                };
+                match config::store(io.flash, &record) {
                     Ok(()) => info!("node ID {} stored in flash", id),
                     Err(e) => {
                         warn!("storing node ID {} failed: {}", id, e);
@@ -124,6 +141,45 @@ async fn drain(
                 {
                     warn!("CAN filters not confirmed within {} ms", FILTER_WAIT_MS);
                 }
+            }
+            // Firmware update: each result goes straight back to the core, whose next outputs
+            // this loop then carries out.
+            Output::EraseDfu { len } => {
+                info!("update: erasing {} bytes of the DFU slot", len);
+                let r = io.updater.erase_dfu(len).await.map_err(|_| FlashError);
+                node.handle_fw_erased(r, now());
+            }
+            Output::WriteDfu { offset, data } => {
+                if io.updater.write_dfu(offset, &data).is_err() {
+                    node.handle_fw_write_failed(now());
+                }
+            }
+            Output::HashDfu { offset, len } => {
+                let r = io
+                    .updater
+                    .hash_dfu(offset, len)
+                    .await
+                    .map_err(|_| FlashError);
+                node.handle_fw_hashed(r, now());
+            }
+            Output::MarkUpdated => {
+                let r = io.updater.mark_updated().map_err(|_| FlashError);
+                if r.is_ok() {
+                    info!("update: verified and marked; resetting into it shortly");
+                }
+                node.handle_fw_marked(r, now());
+            }
+            Output::MarkBooted => {
+                let r = io.updater.mark_booted().map_err(|_| FlashError);
+                if r.is_ok() {
+                    info!("update: this image is confirmed");
+                }
+                node.handle_fw_confirmed(r, now());
+            }
+            Output::Reset => {
+                // The core waited for its last frames to leave; the bootloader takes it from here.
+                info!("update: reset");
+                cortex_m::peripheral::SCB::sys_reset();
             }
         }
     }

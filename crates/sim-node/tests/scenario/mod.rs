@@ -51,7 +51,6 @@ ports = 6
 id = "112"
 ports = 4
 firmware = "2.3.4"
-image_hash = "00112233445566"
 
 [[static]]
 id = "120"
@@ -793,7 +792,7 @@ pub async fn state_query(link: Link) {
         identity(
             0x112,
             FirmwareVersion::new(2, 3, 4),
-            [0x00, 0x11, 0x22, 0x33, 0x44, 0x55, 0x66]
+            sim_node::desc::simulated_image_hash(FirmwareVersion::new(2, 3, 4))
         )
     );
     let r2 = state_reply(&mut gw, id(2), 0x40).await;
@@ -834,5 +833,111 @@ pub async fn state_query(link: Link) {
             count: 0
         }]
     );
+    island.shutdown().await;
+}
+
+/// A firmware update of one element through the bus: the transfer, the commit, the reset into
+/// the new image on trial, its confirmation once it hears the gateway — and the new version and
+/// image hash reported, while the other elements keep theirs.
+pub async fn firmware_update(link: Link) {
+    use ihex_proto::{FwAction, FwPhase, FwStatus, FW_DATA_LEN};
+    use sim_node::board::{sim_image, SimFirmware};
+
+    let (mut gw, island) = start(&link, ISLAND).await;
+    let new_version = FirmwareVersion::new(9, 0, 1);
+    let img = sim_image(
+        new_version,
+        SimFirmware { confirms: true },
+        3000,
+        &ihex_image::SigningKey::test_key(),
+    )
+    .expect("image");
+    let header = ihex_image::Header::parse(&img).expect("header");
+    let image_id = header.image_id();
+    let status = |phase| {
+        move |p: &Packet| {
+            p.src == id(0x111)
+                && matches!(p.msg, Message::FwStatus(FwStatus { phase: ph, .. }) if ph == phase)
+        }
+    };
+
+    gw.send(
+        id(0x111),
+        Message::FwBegin {
+            image_id,
+            len: img.len() as u32,
+            force: false,
+        },
+    )
+    .await;
+    gw.expect("header phase", status(FwPhase::Header)).await;
+    // The data go to everybody: the other nodes have no transfer and ignore them.
+    for (i, chunk) in img.chunks(FW_DATA_LEN).enumerate() {
+        let mut data = [0xFF; FW_DATA_LEN];
+        data[..chunk.len()].copy_from_slice(chunk);
+        gw.send(
+            NodeId::BROADCAST,
+            Message::FwData {
+                index: i as u16,
+                data,
+            },
+        )
+        .await;
+    }
+    gw.expect("ready after the erase", status(FwPhase::Receiving))
+        .await;
+    gw.expect("transfer complete", status(FwPhase::Complete))
+        .await;
+    gw.send(
+        id(0x111),
+        Message::FwEnd {
+            image_id,
+            action: FwAction::Commit,
+        },
+    )
+    .await;
+    gw.expect("installed", status(FwPhase::Rebooting)).await;
+    // The reset: the bootloader swaps the image in, the node announces itself again.
+    gw.expect("boot-up after the update", |p| {
+        p.src == id(0x111)
+            && matches!(
+                p.msg,
+                Message::BootUp {
+                    reset: ResetReason::Software,
+                    ..
+                }
+            )
+    })
+    .await;
+    let firmware = |reports: &[StateReport]| {
+        reports.iter().find_map(|r| match *r {
+            StateReport::Firmware { version, trial } => Some((version, trial)),
+            _ => None,
+        })
+    };
+    let ask = |seq| Message::StateQuery {
+        seq,
+        parts: StateParts(StateParts::IDENTITY),
+    };
+    // The query is the gateway heard, and the simulated firmware passed its self-test: the node
+    // confirms its image right after answering (still on trial in this answer).
+    gw.send(id(0x111), ask(0x51)).await;
+    let r = state_reply(&mut gw, id(0x111), 0x51).await;
+    assert_eq!(firmware(&r), Some((new_version, true)), "{r:?}");
+    gw.send(id(0x111), ask(0x52)).await;
+    let r = state_reply(&mut gw, id(0x111), 0x52).await;
+    assert_eq!(firmware(&r), Some((new_version, false)), "{r:?}");
+    assert!(
+        r.contains(&StateReport::ImageHash(header.payload_hash.prefix::<7>())),
+        "{r:?}"
+    );
+    assert_eq!(
+        island.view(id(0x111)).await.unwrap().firmware.version,
+        new_version
+    );
+    // Another element still runs what it was flashed with.
+    gw.send(id(0x112), ask(0x53)).await;
+    let r = state_reply(&mut gw, id(0x112), 0x53).await;
+    assert_eq!(firmware(&r), Some((FirmwareVersion::new(2, 3, 4), false)));
     island.shutdown().await;
 }

@@ -1,0 +1,307 @@
+//! The bridge's side of a firmware update: `fw_update` asks the adapter for the image file
+//! ([`FwLoad`]: the core reads no files), the image is checked, then one [`FwSender`] runs at a
+//! time; its frames go out only when the bridge has nothing else to send, and its events are
+//! published like every other.
+
+use std::collections::VecDeque;
+use std::time::Instant;
+
+use ihex_proto::{FwStatus, NodeId, Packet};
+
+use super::output::Outputs;
+use crate::event::{CommandResult, Event, Outcome, Target};
+use crate::fwupdate::{FwConfig, FwImage, FwSender};
+
+/// An `fw_update` waiting for its image: the adapter reads `image` from the firmware directory
+/// and hands the bytes (or why it could not) to [`super::Bridge::handle_fw_image`].
+#[derive(Clone, PartialEq, Eq, Debug)]
+pub struct FwLoad {
+    /// The command's `request_id`.
+    pub request_id: Option<String>,
+    /// The file name (a plain name, checked by the command parser).
+    pub image: String,
+    /// The nodes, resolved when the command arrived.
+    pub nodes: Vec<NodeId>,
+    /// Allow a downgrade.
+    pub force: bool,
+}
+
+/// The update state of the bridge.
+#[derive(Debug)]
+pub(super) struct FwUpdates {
+    config: FwConfig,
+    loads: VecDeque<FwLoad>,
+    /// A load was handed to the adapter and not answered yet.
+    loading: bool,
+    sender: Option<FwSender>,
+}
+
+impl FwUpdates {
+    pub(super) fn new(config: FwConfig) -> Self {
+        FwUpdates {
+            config,
+            loads: VecDeque::new(),
+            loading: false,
+            sender: None,
+        }
+    }
+
+    /// An update is loading or running: a second one is refused.
+    pub(super) fn busy(&self) -> bool {
+        self.loading || !self.loads.is_empty() || self.sender.is_some()
+    }
+
+    pub(super) fn request(&mut self, load: FwLoad) {
+        self.loads.push_back(load);
+    }
+
+    pub(super) fn poll_load(&mut self) -> Option<FwLoad> {
+        let load = self.loads.pop_front()?;
+        self.loading = true;
+        Some(load)
+    }
+
+    /// The image file arrived (or not): start the update, or answer why not. Either way the
+    /// command gets its one `command_result`.
+    pub(super) fn on_image(
+        &mut self,
+        load: FwLoad,
+        bytes: Result<Vec<u8>, String>,
+        now: Instant,
+        out: &mut Outputs,
+    ) {
+        self.loading = false;
+        let checked = bytes.and_then(|b| FwImage::check(b).map_err(|e| e.to_string()));
+        let (result, reason) = match checked {
+            Err(why) => (Outcome::Failed, Some(format!("{}: {why}", load.image))),
+            Ok(_) if self.sender.is_some() => (
+                Outcome::Failed,
+                Some("an update is already running".to_string()),
+            ),
+            Ok(image) => {
+                tracing::info!(
+                    image = %load.image,
+                    version = %image.version(),
+                    nodes = load.nodes.len(),
+                    "firmware update starts"
+                );
+                self.sender = Some(FwSender::new(
+                    image,
+                    load.nodes.iter().copied(),
+                    load.force,
+                    load.request_id.clone(),
+                    self.config.clone(),
+                    now,
+                ));
+                (Outcome::Ok, None)
+            }
+        };
+        out.emit(Event::CommandResult(CommandResult {
+            request_id: load.request_id,
+            cmd: "fw_update".into(),
+            node: match load.nodes.as_slice() {
+                [one] => Target::Node(*one),
+                _ => Target::All,
+            },
+            result,
+            reason,
+            acked: None,
+            refused: None,
+            missing: None,
+        }));
+        self.drain(out);
+    }
+
+    pub(super) fn on_status(&mut self, src: NodeId, st: FwStatus, now: Instant, out: &mut Outputs) {
+        if let Some(s) = self.sender.as_mut() {
+            s.handle_status(src, st, now);
+        }
+        self.drain(out);
+    }
+
+    pub(super) fn on_boot_up(&mut self, src: NodeId, now: Instant, out: &mut Outputs) {
+        if let Some(s) = self.sender.as_mut() {
+            s.handle_boot_up(src, now);
+        }
+        self.drain(out);
+    }
+
+    pub(super) fn on_bus(&mut self, down: bool, now: Instant, out: &mut Outputs) {
+        if let Some(s) = self.sender.as_mut() {
+            if down {
+                s.handle_bus_down(now);
+            } else {
+                s.handle_bus_recovered(now);
+            }
+        }
+        self.drain(out);
+    }
+
+    pub(super) fn tick(&mut self, now: Instant, out: &mut Outputs) {
+        if let Some(s) = self.sender.as_mut() {
+            s.handle_timeout(now);
+        }
+        self.drain(out);
+    }
+
+    pub(super) fn cancel(&mut self, reason: &str, now: Instant, out: &mut Outputs) {
+        if let Some(s) = self.sender.as_mut() {
+            s.cancel(reason, now);
+        }
+        self.drain(out);
+    }
+
+    pub(super) fn deadline(&self) -> Option<Instant> {
+        self.sender.as_ref().and_then(FwSender::poll_timeout)
+    }
+
+    pub(super) fn poll_transmit(&mut self) -> Option<Packet> {
+        let s = self.sender.as_mut()?;
+        let p = s.poll_transmit();
+        if s.is_done() && s.poll_event().is_none() {
+            self.sender = None;
+        }
+        p
+    }
+
+    /// Moves the sender's events to the publications; drops a finished sender once its last
+    /// frames (an abort) are out.
+    fn drain(&mut self, out: &mut Outputs) {
+        let Some(s) = self.sender.as_mut() else {
+            return;
+        };
+        while let Some(e) = s.poll_event() {
+            out.emit(e);
+        }
+        if s.is_done() {
+            self.sender = None;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use ihex_image::{pack, Board, SigningKey};
+    use ihex_proto::{FirmwareVersion, FwPhase, FwRefusal, Message, Packet};
+    use serde_json::json;
+
+    use super::super::test_support::{command, drain, id, with_nodes};
+    use super::*;
+
+    fn image_bytes() -> Vec<u8> {
+        let key = SigningKey::from_text(ihex_image::test_key::SECRET_TEXT).unwrap();
+        let version = FirmwareVersion {
+            major: 1,
+            minor: 3,
+            patch: 0,
+        };
+        pack(
+            Board::SIM,
+            ihex_proto::PROTOCOL_VERSION,
+            version,
+            &[7; 600],
+            &key,
+        )
+        .unwrap()
+    }
+
+    #[test]
+    fn fw_update_loads_the_image_starts_and_answers_once() {
+        let (mut b, t0) = with_nodes(&[2, 0x111]);
+        let cmd = json!({"cmd":"fw_update","image":"a.ihex","nodes":"all","request_id":"u1"});
+        let out = command(&mut b, cmd.clone(), t0);
+        assert!(out.events.is_empty() && out.sent.is_empty());
+        let load = b.poll_fw_load().expect("the image is asked for");
+        assert_eq!(load.image, "a.ihex");
+        assert_eq!(load.nodes, vec![id(2), id(0x111)]);
+        // A second update meanwhile is refused.
+        let out = command(&mut b, cmd, t0);
+        assert!(out.one("command_rejected")["reason"]
+            .as_str()
+            .unwrap()
+            .contains("an update is running"));
+
+        b.handle_fw_image(load, Ok(image_bytes()), t0);
+        let out = drain(&mut b);
+        let result = out.one("command_result");
+        assert_eq!(result["result"], "ok");
+        assert_eq!(result["request_id"], "u1");
+        // The begins went out, one per node.
+        let begins: Vec<_> = out
+            .sent
+            .iter()
+            .filter(|p| matches!(p.msg, Message::FwBegin { .. }))
+            .map(|p| p.dest)
+            .collect();
+        assert_eq!(begins, vec![id(2), id(0x111)]);
+
+        // A command during the update goes out before any more update frames.
+        for n in [2, 0x111] {
+            let st = FwStatus {
+                first_missing: 0,
+                run: 32,
+                missing: 32,
+                ..FwStatus::phase(FwPhase::Header, FwRefusal::None)
+            };
+            b.handle_packet(Packet::report(id(n), Message::FwStatus(st)), t0);
+        }
+        b.handle_command(br#"{"cmd":"power","node":"2","on":true}"#, t0);
+        let first = b.poll_transmit(t0).unwrap().packet;
+        assert!(matches!(first.msg, Message::PowerSet { .. }), "{first:?}");
+        let next = b.poll_transmit(t0).unwrap().packet;
+        assert!(
+            matches!(next.msg, Message::FwData { index: 0, .. }),
+            "{next:?}"
+        );
+        assert_eq!(next.dest, NodeId::BROADCAST);
+
+        // Both refuse: the update ends with one report.
+        for n in [2, 0x111] {
+            let st = FwStatus::phase(FwPhase::Refused, FwRefusal::WrongBoard);
+            b.handle_packet(Packet::report(id(n), Message::FwStatus(st)), t0);
+        }
+        let out = drain(&mut b);
+        let report = out.one("fw_report");
+        assert_eq!(report["nodes"][0]["outcome"], "refused");
+        assert_eq!(report["nodes"][0]["reason"], "wrong_board");
+        assert!(!b.fw_update_running());
+    }
+
+    #[test]
+    fn a_bad_or_missing_image_fails_the_command_with_the_reason() {
+        let (mut b, t0) = with_nodes(&[2]);
+        for (bytes, says) in [
+            (Err("no such file".to_string()), "no such file"),
+            (Ok(image_bytes()[..700].to_vec()), "truncated"),
+        ] {
+            command(
+                &mut b,
+                json!({"cmd":"fw_update","image":"x.ihex","nodes":"2"}),
+                t0,
+            );
+            let load = b.poll_fw_load().unwrap();
+            b.handle_fw_image(load, bytes, t0);
+            let out = drain(&mut b);
+            let r = out.one("command_result");
+            assert_eq!(r["result"], "failed");
+            assert!(r["reason"].as_str().unwrap().contains(says), "{r}");
+            assert!(out.sent.is_empty());
+            assert!(!b.fw_update_running());
+        }
+    }
+
+    #[test]
+    fn unknown_nodes_are_rejected() {
+        let (mut b, t0) = with_nodes(&[2]);
+        let out = command(
+            &mut b,
+            json!({"cmd":"fw_update","image":"x.ihex","nodes":"2,5"}),
+            t0,
+        );
+        assert!(out.one("command_rejected")["reason"]
+            .as_str()
+            .unwrap()
+            .starts_with("unknown node 5"));
+        assert!(b.poll_fw_load().is_none());
+    }
+}

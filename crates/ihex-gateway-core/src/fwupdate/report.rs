@@ -1,0 +1,74 @@
+//! What an update publishes: `fw_progress` per node (throttled) and one `fw_report` at the end.
+
+use serde::{Deserialize, Serialize};
+
+use crate::event::HexId;
+
+/// How one node's update ended.
+#[derive(Clone, Copy, PartialEq, Eq, Debug, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum NodeOutcome {
+    /// The new image runs and confirmed itself.
+    Updated,
+    /// The node refused the image (see `reason`); it runs its image as before.
+    Refused,
+    /// The new image never confirmed itself and the bootloader put the old one back.
+    Reverted,
+    /// The node stopped answering (see `reason` for the step).
+    Unreachable,
+    /// The update was stopped before this node was done (see `reason`).
+    Failed,
+}
+
+/// Payload of `fw_progress`: where one node is.
+#[derive(Clone, PartialEq, Eq, Debug, Serialize, Deserialize)]
+pub struct FwProgress {
+    /// The `fw_update` command's `request_id`.
+    pub request_id: Option<String>,
+    /// The node.
+    pub node: HexId,
+    /// `begin`, a transfer phase the node reported (`header`, `erasing`, `receiving`,
+    /// `complete`, `verifying`, `rebooting`), or `confirming` (the new image on trial).
+    pub phase: String,
+    /// Share of the image the node holds, 0–100.
+    pub percent: u8,
+}
+
+/// One node's line in `fw_report`.
+#[derive(Clone, PartialEq, Eq, Debug, Serialize, Deserialize)]
+pub struct NodeReport {
+    /// The node.
+    pub node: HexId,
+    /// How it ended.
+    pub outcome: NodeOutcome,
+    /// Why, for `refused` (the node's refusal name), `unreachable` and `failed`.
+    pub reason: Option<String>,
+    /// From the start of the update to this node's outcome, ms.
+    pub duration_ms: u64,
+}
+
+/// Payload of `fw_report`: the end of an update.
+#[derive(Clone, PartialEq, Eq, Debug, Serialize, Deserialize)]
+pub struct FwReport {
+    /// The `fw_update` command's `request_id`.
+    pub request_id: Option<String>,
+    /// The image's ID (8 hex digits).
+    pub image_id: String,
+    /// The image's firmware version.
+    pub version: String,
+    /// From start to the last outcome, ms.
+    pub duration_ms: u64,
+    /// Data frames sent (every node, resends included).
+    pub frames_sent: u64,
+    /// Bus share the update was capped to, %.
+    pub bus_share: u8,
+    /// Per node, by ID.
+    pub nodes: Vec<NodeReport>,
+}
+
+impl FwReport {
+    /// True when every node ended `updated`.
+    pub fn all_updated(&self) -> bool {
+        self.nodes.iter().all(|n| n.outcome == NodeOutcome::Updated)
+    }
+}

@@ -1,0 +1,289 @@
+//! `ihex-provision fw …`: the lab PC's firmware-image verbs — make a signing key, pack and sign the
+//! firmware ELF into an update image, inspect an image, and update nodes through the gateway
+//! (`fw update`: the `fw_update` command over MQTT, for an image in the gateway's firmware
+//! directory; progress and the report printed).
+
+use std::fs;
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, Context, Result};
+use clap::{Args, Subcommand};
+use ihex_image::{
+    load_public, pack, pack_elf, Board, FirmwareVersion, Inspection, PackOverrides, PublicKey,
+    SigningKey,
+};
+
+/// The `fw` verbs.
+#[derive(Subcommand)]
+pub enum FwCmd {
+    /// Generate a signing key pair: OUT.secret (keep it off the bench) and OUT.pub (build the
+    /// firmware with IHEX_FW_PUBKEY=OUT.pub).
+    Keygen(KeygenArgs),
+    /// Pack and sign a firmware ELF (or a flat binary with --raw) into an update image.
+    Pack(PackArgs),
+    /// Show what an image says about itself and check it (signature with --key or --test-key).
+    Inspect(InspectArgs),
+    /// Update nodes through the gateway (MQTT): send `fw_update` for an image in the gateway's
+    /// firmware directory (--fw-dir), print progress and the report; exit 1 unless every node
+    /// was updated.
+    Update(UpdateArgs),
+}
+
+/// `fw update`.
+#[derive(Args)]
+pub struct UpdateArgs {
+    #[command(flatten)]
+    broker: crate::BrokerArgs,
+    /// The image's file name in the gateway's firmware directory (copy it there first). A local
+    /// file of that path is checked first; its file name is what the gateway is asked for.
+    image: PathBuf,
+    /// Which nodes: `all` (every node online) or node IDs in hex, comma-separated (`111,112`).
+    #[arg(long, default_value = "all")]
+    nodes: String,
+    /// Let the nodes take an older version (a downgrade).
+    #[arg(long)]
+    force: bool,
+    /// Give up waiting for the report after this many seconds.
+    #[arg(long, default_value_t = 600)]
+    timeout_secs: u64,
+}
+
+/// `fw keygen`.
+#[derive(Args)]
+pub struct KeygenArgs {
+    /// Path stem of the two key files (OUT.secret, OUT.pub); neither may exist.
+    #[arg(long)]
+    out: PathBuf,
+}
+
+/// Which key signs (`pack`) or verifies (`inspect`).
+#[derive(Args)]
+#[group(required = false, multiple = false)]
+pub struct KeyArgs {
+    /// The key file: the secret key for `pack`, the public key for `inspect`.
+    #[arg(long)]
+    key: Option<PathBuf>,
+    /// Use the committed TEST key (tests and the simulator only: anybody can sign with it).
+    #[arg(long)]
+    test_key: bool,
+}
+
+/// `fw pack`.
+#[derive(Args)]
+pub struct PackArgs {
+    /// The firmware ELF (crates/sc-fw/target/thumbv7em-none-eabihf/release/ihex-sc-fw).
+    input: PathBuf,
+    #[command(flatten)]
+    key: KeyArgs,
+    /// The image file to write (default: <input name>-<version>.img in the current folder).
+    #[arg(long, short)]
+    out: Option<PathBuf>,
+    /// INPUT is a flat binary that runs at the board's load address, not an ELF (then --board,
+    /// --version and --protocol are required).
+    #[arg(long)]
+    raw: bool,
+    /// The board (nucleo-f303re, sim, or a number); from the ELF's IHEX_FW_INFO when it has one.
+    #[arg(long)]
+    board: Option<Board>,
+    /// The firmware version MAJOR.MINOR.PATCH; from the ELF's IHEX_FW_INFO when it has one.
+    #[arg(long)]
+    version: Option<FirmwareVersion>,
+    /// The CAN protocol version MAJOR.MINOR; from the ELF's IHEX_FW_INFO when it has one.
+    #[arg(long, value_parser = parse_protocol)]
+    protocol: Option<(u8, u8)>,
+}
+
+/// `fw inspect`.
+#[derive(Args)]
+pub struct InspectArgs {
+    /// The image file.
+    image: PathBuf,
+    #[command(flatten)]
+    key: KeyArgs,
+}
+
+/// `1.0` → `(1, 0)`.
+fn parse_protocol(s: &str) -> Result<(u8, u8), String> {
+    let bad = || format!("{s:?} is not a protocol version MAJOR.MINOR");
+    let (major, minor) = s.trim().split_once('.').ok_or_else(bad)?;
+    Ok((
+        major.parse().map_err(|_| bad())?,
+        minor.parse().map_err(|_| bad())?,
+    ))
+}
+
+/// Runs a `fw` verb; `Ok(false)` when `inspect` found a problem (exit status 1).
+pub fn run(cmd: FwCmd) -> Result<bool> {
+    match cmd {
+        FwCmd::Keygen(a) => keygen(&a.out).map(|()| true),
+        FwCmd::Pack(a) => pack_cmd(a).map(|()| true),
+        FwCmd::Inspect(a) => inspect(a),
+        FwCmd::Update(a) => crate::tokio_main(update(a)),
+    }
+}
+
+/// `fw update`: `Ok(true)` when every node ended `updated`.
+async fn update(a: UpdateArgs) -> Result<bool> {
+    use ihex_gateway_core::event::Event as GatewayEvent;
+    use ihex_provision::api;
+    use ihex_provision::mqtt::Session;
+
+    let name = a
+        .image
+        .file_name()
+        .and_then(|n| n.to_str())
+        .context("IMAGE must end in a file name")?
+        .to_owned();
+    if a.image.is_file() {
+        let bytes = fs::read(&a.image).with_context(|| format!("reading {}", a.image.display()))?;
+        let image = ihex_gateway_core::fwupdate::FwImage::check(bytes)
+            .with_context(|| format!("{} is not an image to send", a.image.display()))?;
+        println!(
+            "{name}: version {}, {} bytes; the gateway reads it from its firmware directory",
+            image.version(),
+            image.len()
+        );
+    }
+    let broker = a.broker.broker()?;
+    let topics = a.broker.topics();
+    let deadline = tokio::time::Instant::now() + std::time::Duration::from_secs(a.timeout_secs);
+    let mut session = Session::connect(
+        &broker,
+        std::slice::from_ref(&topics.events),
+        std::time::Duration::from_secs(10),
+    )
+    .await?;
+    let request_id = api::new_request_id("fw");
+    let cmd = api::fw_update_command(&name, &a.nodes, a.force, &request_id);
+    session.publish(&topics.commands, cmd).await?;
+    while let Some(msg) = session.recv_until(deadline).await? {
+        let Ok(event) = serde_json::from_slice::<GatewayEvent>(&msg.payload) else {
+            continue;
+        };
+        if let Some(api::Outcome::Failed { reason, .. }) = api::outcome(&event, &request_id) {
+            session.close().await;
+            bail!("the gateway did not start the update: {reason}");
+        }
+        match event {
+            GatewayEvent::FwProgress(p) if p.request_id.as_deref() == Some(&request_id) => {
+                println!("{:>4} {:<10} {:>3} %", p.node, p.phase, p.percent);
+            }
+            GatewayEvent::FwReport(r) if r.request_id.as_deref() == Some(&request_id) => {
+                session.close().await;
+                println!(
+                    "image {} version {}: {} data frames in {:.1} s at a {} % bus share",
+                    r.image_id,
+                    r.version,
+                    r.frames_sent,
+                    r.duration_ms as f64 / 1000.0,
+                    r.bus_share
+                );
+                for n in &r.nodes {
+                    let outcome = serde_json::to_value(n.outcome)?;
+                    let outcome = outcome.as_str().unwrap_or("?");
+                    match &n.reason {
+                        Some(why) => println!("{:>4} {outcome}: {why}", n.node),
+                        None => println!("{:>4} {outcome}", n.node),
+                    }
+                }
+                return Ok(r.all_updated());
+            }
+            _ => {}
+        }
+    }
+    session.close().await;
+    bail!("no fw_report within {} s", a.timeout_secs)
+}
+
+fn keygen(out: &Path) -> Result<()> {
+    let secret = with_suffix(out, "secret");
+    let public = with_suffix(out, "pub");
+    let key = SigningKey::generate()?;
+    key.save(&secret, &public)?;
+    println!("key ID {}", key.public().id());
+    println!(
+        "secret key: {} (signs images: keep it off the bench, back it up)",
+        secret.display()
+    );
+    println!(
+        "public key: {} (build the firmware with IHEX_FW_PUBKEY={0})",
+        public.display()
+    );
+    Ok(())
+}
+
+/// `stem.suffix`, keeping any dots already in the stem's name.
+fn with_suffix(stem: &Path, suffix: &str) -> PathBuf {
+    let mut name = stem.as_os_str().to_owned();
+    name.push(".");
+    name.push(suffix);
+    PathBuf::from(name)
+}
+
+fn pack_cmd(a: PackArgs) -> Result<()> {
+    let key = match (&a.key.key, a.key.test_key) {
+        (Some(path), _) => SigningKey::load(path)?,
+        (None, true) => SigningKey::test_key(),
+        (None, false) => bail!("give the signing key: --key LAB.secret (or --test-key)"),
+    };
+    let input = fs::read(&a.input).with_context(|| format!("reading {}", a.input.display()))?;
+    let overrides = PackOverrides {
+        board: a.board,
+        protocol: a.protocol,
+        version: a.version,
+    };
+    let image = if a.raw {
+        let (Some(board), Some(protocol), Some(version)) = (a.board, a.protocol, a.version) else {
+            bail!("--raw needs --board, --version and --protocol");
+        };
+        pack(board, protocol, version, &input, &key)?
+    } else {
+        pack_elf(&input, overrides, &key)?
+    };
+    let inspection = Inspection::of(&image, Some(&key.public()))?;
+    let out = a.out.unwrap_or_else(|| {
+        let name = a.input.file_stem().unwrap_or_default().to_string_lossy();
+        PathBuf::from(format!("{name}-{}.img", inspection.header.version))
+    });
+    fs::write(&out, &image).with_context(|| format!("writing {}", out.display()))?;
+    print!("{inspection}");
+    if key.public() == ihex_image::test_key::PUBLIC {
+        println!("signed with the TEST key: only boards built with the test key accept it");
+    }
+    println!("wrote {} ({} bytes)", out.display(), image.len());
+    Ok(())
+}
+
+fn inspect(a: InspectArgs) -> Result<bool> {
+    let key: Option<PublicKey> = match (&a.key.key, a.key.test_key) {
+        (Some(path), _) => Some(load_public(path)?),
+        (None, true) => Some(ihex_image::test_key::PUBLIC),
+        (None, false) => None,
+    };
+    let image = fs::read(&a.image).with_context(|| format!("reading {}", a.image.display()))?;
+    let inspection = Inspection::of(&image, key.as_ref())?;
+    print!("{inspection}");
+    Ok(inspection.is_good())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn protocol_versions() {
+        assert_eq!(parse_protocol("1.0"), Ok((1, 0)));
+        assert_eq!(parse_protocol(" 2.13 "), Ok((2, 13)));
+        for bad in ["1", "1.", ".1", "1.2.3", "256.0", "a.b"] {
+            assert!(parse_protocol(bad).is_err(), "{bad}");
+        }
+    }
+
+    #[test]
+    fn key_file_names_keep_dots_in_the_stem() {
+        assert_eq!(
+            with_suffix(Path::new("keys/lab.2026"), "pub"),
+            PathBuf::from("keys/lab.2026.pub")
+        );
+    }
+}

@@ -1,0 +1,128 @@
+//! `ihex-provision fw keygen | pack | inspect`, run as the lab would run them.
+
+use std::fs;
+use std::path::PathBuf;
+use std::process::{Command, Output};
+
+fn tool(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_ihex-provision"))
+        .args(args)
+        .output()
+        .expect("runs")
+}
+
+fn text(o: &Output) -> String {
+    format!(
+        "{}{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    )
+}
+
+struct Dir(PathBuf);
+
+impl Dir {
+    fn new(name: &str) -> Dir {
+        let d = std::env::temp_dir().join(format!("ihex-fw-{name}-{}", std::process::id()));
+        let _ = fs::remove_dir_all(&d);
+        fs::create_dir_all(&d).unwrap();
+        Dir(d)
+    }
+    fn path(&self, f: &str) -> String {
+        self.0.join(f).display().to_string()
+    }
+}
+
+impl Drop for Dir {
+    fn drop(&mut self) {
+        let _ = fs::remove_dir_all(&self.0);
+    }
+}
+
+#[test]
+fn keygen_pack_inspect() {
+    let d = Dir::new("cycle");
+    let out = tool(&["fw", "keygen", "--out", &d.path("lab")]);
+    assert!(out.status.success(), "{}", text(&out));
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt;
+        let mode = fs::metadata(d.path("lab.secret"))
+            .unwrap()
+            .permissions()
+            .mode();
+        assert_eq!(mode & 0o777, 0o600, "the secret key is private");
+    }
+    let again = tool(&["fw", "keygen", "--out", &d.path("lab")]);
+    assert!(!again.status.success() && text(&again).contains("refusing to overwrite"));
+
+    let payload: Vec<u8> = (0..3000u32).map(|i| (i * 13) as u8).collect();
+    fs::write(d.path("app.bin"), &payload).unwrap();
+    let img = d.path("app.img");
+    let out = tool(&[
+        "fw",
+        "pack",
+        "--raw",
+        &d.path("app.bin"),
+        "--board",
+        "nucleo-f303re",
+        "--version",
+        "1.4.2",
+        "--protocol",
+        "1.0",
+        "--key",
+        &d.path("lab.secret"),
+        "-o",
+        &img,
+    ]);
+    assert!(out.status.success(), "{}", text(&out));
+    assert!(text(&out).contains("version       1.4.2"), "{}", text(&out));
+    let bytes = fs::read(&img).unwrap();
+    assert_eq!(bytes.len(), 512 + payload.len());
+    assert_eq!(&bytes[512..], &payload[..]);
+
+    let ok = tool(&["fw", "inspect", &img, "--key", &d.path("lab.pub")]);
+    assert!(ok.status.success(), "{}", text(&ok));
+    assert!(text(&ok).contains("signature     ok"));
+    // The test key does not verify the lab's image.
+    let other = tool(&["fw", "inspect", &img, "--test-key"]);
+    assert!(!other.status.success());
+    assert!(
+        text(&other).contains("signature     BAD"),
+        "{}",
+        text(&other)
+    );
+    // A changed payload byte is caught.
+    let mut bad = bytes;
+    bad[2000] ^= 1;
+    fs::write(&img, &bad).unwrap();
+    let corrupt = tool(&["fw", "inspect", &img]);
+    assert!(!corrupt.status.success());
+    assert!(text(&corrupt).contains("payload hash  BAD"));
+}
+
+#[test]
+fn pack_refuses_without_a_key_or_the_header_fields() {
+    let d = Dir::new("refuse");
+    fs::write(d.path("app.bin"), [1u8; 64]).unwrap();
+    let no_key = tool(&[
+        "fw",
+        "pack",
+        "--raw",
+        &d.path("app.bin"),
+        "--board",
+        "sim",
+        "--version",
+        "1.0.0",
+        "--protocol",
+        "1.0",
+    ]);
+    assert!(!no_key.status.success());
+    assert!(text(&no_key).contains("--key"), "{}", text(&no_key));
+    let no_version = tool(&["fw", "pack", "--raw", &d.path("app.bin"), "--test-key"]);
+    assert!(!no_version.status.success());
+    assert!(text(&no_version).contains("--raw needs"));
+    let not_elf = tool(&["fw", "pack", &d.path("app.bin"), "--test-key"]);
+    assert!(!not_elf.status.success());
+    assert!(text(&not_elf).contains("ELF"), "{}", text(&not_elf));
+}
