@@ -206,7 +206,10 @@ impl PublishQueue {
     }
 
     /// Queues publications that follow the one just taken, ahead of everything else.
-    pub(super) fn push_kept_next(&mut self, publications: impl DoubleEndedIterator<Item = Publication>) {
+    pub(super) fn push_kept_next(
+        &mut self,
+        publications: impl DoubleEndedIterator<Item = Publication>,
+    ) {
         for p in publications.rev() {
             self.kept.push_front((0, p));
         }
