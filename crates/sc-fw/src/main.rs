@@ -85,7 +85,11 @@ async fn main(spawner: Spawner) {
     let uid = Uid(embassy_stm32::uid::uid());
     info!(
         "iHEX SC {} up: reset {}, role {}, node ID {}, uid {=[u8]:02x}",
-        image::VERSION, reset, role, node_id, uid.0
+        image::VERSION,
+        reset,
+        role,
+        node_id,
+        uid.0
     );
 
     // CAN: the protocol's bit timing and filter banks, both read back from the registers.
