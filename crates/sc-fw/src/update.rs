@@ -154,7 +154,7 @@ impl Updater {
             }
             h.update(&buf[..n]);
             done += n as u32;
-            if done % F303RE.page == 0 {
+            if done.is_multiple_of(F303RE.page) {
                 beat(Beat::Node as usize);
                 embassy_futures::yield_now().await;
             }
