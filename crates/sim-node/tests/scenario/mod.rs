@@ -886,8 +886,50 @@ pub async fn firmware_update(link: Link) {
     }
     gw.expect("ready after the erase", status(FwPhase::Receiving))
         .await;
-    gw.expect("transfer complete", status(FwPhase::Complete))
+    // A burst can lose frames on a loaded machine (a socket's receive buffer overflows): like the
+    // gateway's sender, ask what is missing and send only that until the node has it all.
+    let mut complete = gw
+        .within(scaled(Duration::from_secs(2)), status(FwPhase::Complete))
         .await;
+    for _ in 0..50 {
+        if complete.is_some() {
+            break;
+        }
+        gw.send(id(0x111), Message::FwQuery { image_id }).await;
+        let answer = gw
+            .within(scaled(Duration::from_secs(2)), |p| {
+                p.src == id(0x111) && matches!(p.msg, Message::FwStatus(_))
+            })
+            .await;
+        let Some(Packet {
+            msg: Message::FwStatus(st),
+            ..
+        }) = answer
+        else {
+            continue;
+        };
+        if st.phase == FwPhase::Complete {
+            complete = answer;
+            break;
+        }
+        let first = usize::from(st.first_missing);
+        for i in first..first + usize::from(st.run.max(1)) {
+            let Some(chunk) = img.chunks(FW_DATA_LEN).nth(i) else {
+                break;
+            };
+            let mut data = [0xFF; FW_DATA_LEN];
+            data[..chunk.len()].copy_from_slice(chunk);
+            gw.send(
+                NodeId::BROADCAST,
+                Message::FwData {
+                    index: i as u16,
+                    data,
+                },
+            )
+            .await;
+        }
+    }
+    assert!(complete.is_some(), "the transfer never completed");
     gw.send(
         id(0x111),
         Message::FwEnd {
