@@ -322,7 +322,8 @@ fn run_stage(stage: Stage, args: &TestArgs) -> Result<Done> {
                     )
                     // The vcan stage builds with the same features and leaves the TLS tests to
                     // this one.
-                    .args(["test", "--workspace", "--features", cmd::HOST_FEATURES]),
+                    .args(["test", "--workspace", "--no-fail-fast"])
+                    .args(["--features", cmd::HOST_FEATURES]),
             ) {
                 failures.push(format!("{e:#}"));
             }
