@@ -57,6 +57,13 @@ async fn a_restarted_gateway_reads_the_island_back_and_runs_no_retained_command(
         )
         .await
         .unwrap();
+    // Stored by the broker before the next gateway subscribes: published after that, it would reach
+    // the gateway live (without the retain flag) and rightly be carried out.
+    client
+        .expect("the retained command on the broker", |m| {
+            m.topic == commands && m.payload.windows(7).any(|w| w == b"\"stale\"")
+        })
+        .await;
 
     let gateway = Gateway::start(addr, &iface, "restart");
     let rejected = client
