@@ -615,7 +615,20 @@ pub fn parse_host_port(s: &str) -> Result<(String, u16), ConfigError> {
 mod tests {
     use super::*;
 
+    /// Held while arguments are parsed: parsing reads the `IHEX_*` environment, which
+    /// `environment_sits_between_cli_and_file` sets for a moment (tests run in parallel threads).
+    static ENV: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
+    fn env_lock() -> std::sync::MutexGuard<'static, ()> {
+        ENV.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
     fn cli(args: &[&str]) -> Options {
+        let _env = env_lock();
+        parse(args)
+    }
+
+    fn parse(args: &[&str]) -> Options {
         let mut argv = vec!["mc-gateway"];
         argv.extend_from_slice(args);
         Options::from_args(argv).expect("valid arguments")
@@ -701,12 +714,14 @@ mod tests {
 
     #[test]
     fn environment_sits_between_cli_and_file() {
-        // Variables unique to this test, so parallel tests do not see them.
+        // Under the lock every parse takes, so parallel tests never see these variables.
+        let env = env_lock();
         std::env::set_var("IHEX_DOCK_TIMEOUT_MS", "1234");
         std::env::set_var("IHEX_COMMAND_TIMEOUT_MS", "77");
-        let parsed = cli(&["--command-timeout-ms", "88"]);
+        let parsed = parse(&["--command-timeout-ms", "88"]);
         std::env::remove_var("IHEX_DOCK_TIMEOUT_MS");
         std::env::remove_var("IHEX_COMMAND_TIMEOUT_MS");
+        drop(env);
         let f = file("dock_timeout_ms = 999\ncommand_timeout_ms = 999\n");
         let c = Config::resolve(parsed, f).unwrap();
         assert_eq!(
@@ -834,6 +849,7 @@ mod tests {
 
     #[test]
     fn malformed_command_line_values_name_their_flag() {
+        let _env = env_lock();
         for (args, flag) in [
             (&["--broker-listen", "nowhere"][..], "--broker-listen"),
             (&["--lost-after", "three"][..], "--lost-after"),
