@@ -365,6 +365,8 @@ pub enum Event {
     FwProgress(crate::fwupdate::FwProgress),
     /// A firmware update ended: every node's outcome.
     FwReport(crate::fwupdate::FwReport),
+    /// An image uploaded over MQTT was stored, or rejected.
+    FwUpload(crate::fwupdate::FwUpload),
 }
 
 impl Event {
@@ -388,6 +390,7 @@ impl Event {
             Event::SimRejected(_) => "sim_rejected",
             Event::FwProgress(_) => "fw_progress",
             Event::FwReport(_) => "fw_report",
+            Event::FwUpload(_) => "fw_upload",
         }
     }
 

@@ -16,6 +16,8 @@ pub const AVAILABILITY: &str = "ihex/gateway/availability";
 pub const NODE_STATE_ROOT: &str = "ihex/node";
 /// Topic of the simulated island's control commands (demo mode only).
 pub const SIM: &str = "ihex/sim";
+/// Root of the firmware upload topics `<root>/<name>`: signed images handed to the gateway.
+pub const FW_UPLOAD: &str = "ihex/fw/upload";
 
 /// The concrete topic names one gateway uses, every one already under the island prefix.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -30,6 +32,8 @@ pub struct Topics {
     pub node_state_root: String,
     /// Subscribed in demo mode: simulated island control.
     pub sim: String,
+    /// Root of the subscribed `<root>/<name>`: firmware images uploaded for `fw_update`.
+    pub fw_upload: String,
     /// Home Assistant's topics (discovery, status) and the gateway's own for it; Home Assistant's
     /// defaults until [`Topics::with_ha`].
     pub ha: HaTopics,
@@ -54,6 +58,7 @@ impl Topics {
             availability: p(availability),
             node_state_root: p(node_state_root),
             sim: p(SIM),
+            fw_upload: p(FW_UPLOAD),
             ha: HaTopics::defaults(island),
         }
     }
@@ -72,6 +77,19 @@ impl Topics {
     /// The retained state topic of one node (`<root>/<id>/state`, id in lower-case hex like events).
     pub fn node_state(&self, id: NodeId) -> String {
         format!("{}/{}/state", self.node_state_root, id)
+    }
+
+    /// The subscription of the upload topics (`<root>/+`).
+    pub fn fw_upload_filter(&self) -> String {
+        format!("{}/+", self.fw_upload)
+    }
+
+    /// The image name of an upload topic, `None` for any other topic.
+    pub fn parse_fw_upload<'a>(&self, topic: &'a str) -> Option<&'a str> {
+        topic
+            .strip_prefix(self.fw_upload.as_str())?
+            .strip_prefix('/')
+            .filter(|name| !name.is_empty() && !name.contains('/'))
     }
 
     /// The concrete name of a logical topic.
@@ -165,6 +183,18 @@ mod tests {
         assert_eq!(t.events, "lab-a/EventsTopic");
         assert_eq!(t.availability, "lab-a/ihex/gateway/availability");
         assert_eq!(t.sim, "lab-a/ihex/sim");
+        assert_eq!(t.fw_upload_filter(), "lab-a/ihex/fw/upload/+");
+        assert_eq!(
+            t.parse_fw_upload("lab-a/ihex/fw/upload/sc-1.2.ihex"),
+            Some("sc-1.2.ihex")
+        );
+        for other in [
+            "lab-a/ihex/fw/upload/",
+            "lab-a/ihex/fw/upload",
+            "lab-b/ihex/fw/upload/x",
+        ] {
+            assert_eq!(t.parse_fw_upload(other), None, "{other}");
+        }
         let id = NodeId::new(0xabc).unwrap();
         assert_eq!(t.resolve(Topic::NodeState(id)), "lab-a/ihex/node/abc/state");
         let b = Topics::new(
@@ -179,6 +209,7 @@ mod tests {
             (&t.commands, &b.commands),
             (&t.events, &b.events),
             (&t.sim, &b.sim),
+            (&t.fw_upload, &b.fw_upload),
         ] {
             assert_ne!(x, y);
         }

@@ -1,7 +1,8 @@
-//! The bridge's side of a firmware update: `fw_update` asks the adapter for the image file
-//! ([`FwLoad`]: the core reads no files), the image is checked, then one [`FwSender`] runs at a
-//! time; its frames go out only when the bridge has nothing else to send, and its events are
-//! published like every other.
+//! The bridge's side of a firmware update: images uploaded over MQTT are checked and kept
+//! ([`Uploads`]); `fw_update` takes the uploaded image of that name, else asks the adapter for
+//! the file ([`FwLoad`]: the core reads no files); the image is checked, then one [`FwSender`]
+//! runs at a time; its frames go out only when the bridge has nothing else to send, and its
+//! events are published like every other.
 
 use std::collections::VecDeque;
 use std::time::Instant;
@@ -10,7 +11,7 @@ use ihex_proto::{FwStatus, NodeId, Packet};
 
 use super::output::Outputs;
 use crate::event::{CommandResult, Event, Outcome, Target};
-use crate::fwupdate::{FwConfig, FwImage, FwSender};
+use crate::fwupdate::{FwConfig, FwImage, FwSender, Uploads};
 
 /// An `fw_update` waiting for its image: the adapter reads `image` from the firmware directory
 /// and hands the bytes (or why it could not) to [`super::Bridge::handle_fw_image`].
@@ -34,6 +35,7 @@ pub(super) struct FwUpdates {
     /// A load was handed to the adapter and not answered yet.
     loading: bool,
     sender: Option<FwSender>,
+    uploads: Uploads,
 }
 
 impl FwUpdates {
@@ -43,6 +45,7 @@ impl FwUpdates {
             loads: VecDeque::new(),
             loading: false,
             sender: None,
+            uploads: Uploads::default(),
         }
     }
 
@@ -51,8 +54,37 @@ impl FwUpdates {
         self.loading || !self.loads.is_empty() || self.sender.is_some()
     }
 
-    pub(super) fn request(&mut self, load: FwLoad) {
-        self.loads.push_back(load);
+    /// An `fw_update`: starts at once with the uploaded image of that name, else asks the
+    /// adapter for the file.
+    pub(super) fn request(&mut self, load: FwLoad, now: Instant, out: &mut Outputs) {
+        match self.uploads.get(&load.image) {
+            Some(image) => {
+                let image = Ok(image.bytes().to_vec());
+                self.loading = true;
+                self.on_image(load, image, now, out);
+            }
+            None => self.loads.push_back(load),
+        }
+    }
+
+    /// An image uploaded over MQTT: checked, kept when good, answered either way.
+    pub(super) fn on_upload(
+        &mut self,
+        name: &str,
+        bytes: Vec<u8>,
+        retained: bool,
+        out: &mut Outputs,
+    ) {
+        let answer = self
+            .uploads
+            .receive(name, bytes, retained, self.config.trusted_key.as_ref());
+        tracing::info!(
+            image = %name,
+            result = ?answer.result,
+            reason = answer.reason.as_deref().unwrap_or(""),
+            "firmware image uploaded"
+        );
+        out.emit(Event::FwUpload(answer));
     }
 
     pub(super) fn poll_load(&mut self) -> Option<FwLoad> {
@@ -288,6 +320,36 @@ mod tests {
             assert!(out.sent.is_empty());
             assert!(!b.fw_update_running());
         }
+    }
+
+    #[test]
+    fn an_uploaded_image_is_answered_and_used_without_reading_a_file() {
+        let (mut b, t0) = with_nodes(&[2]);
+        b.handle_fw_upload("up.ihex", image_bytes()[..900].to_vec(), false, t0);
+        let out = drain(&mut b);
+        let a = out.one("fw_upload");
+        assert_eq!(a["result"], "rejected");
+        assert!(a["reason"].as_str().unwrap().contains("truncated"), "{a}");
+
+        b.handle_fw_upload("up.ihex", image_bytes(), false, t0);
+        let out = drain(&mut b);
+        let a = out.one("fw_upload");
+        assert_eq!(
+            (a["name"].as_str(), a["result"].as_str()),
+            (Some("up.ihex"), Some("stored"))
+        );
+        assert_eq!(a["version"], "1.3.0");
+        assert_eq!(a["signature"], "unchecked");
+
+        let cmd = json!({"cmd":"fw_update","image":"up.ihex","nodes":"2","request_id":"u"});
+        let out = command(&mut b, cmd, t0);
+        assert!(b.poll_fw_load().is_none(), "no file is asked for");
+        assert_eq!(out.one("command_result")["result"], "ok");
+        assert!(out
+            .sent
+            .iter()
+            .any(|p| matches!(p.msg, Message::FwBegin { .. }) && p.dest == id(2)));
+        assert!(b.fw_update_running());
     }
 
     #[test]

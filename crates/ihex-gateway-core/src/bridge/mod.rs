@@ -598,6 +598,15 @@ impl Bridge {
         self.settle(now);
     }
 
+    /// An image uploaded over MQTT under `name` (the last level of its topic; `retained`: the
+    /// broker delivered it as retained). It is checked and kept for `fw_update`, and answered
+    /// with `fw_upload` (`stored`, or `rejected` with the reason).
+    pub fn handle_fw_upload(&mut self, name: &str, bytes: Vec<u8>, retained: bool, now: Instant) {
+        self.advance(now);
+        self.fw.on_upload(name, bytes, retained, &mut self.out);
+        self.settle(now);
+    }
+
     /// Stops a running firmware update (the gateway is shutting down): its nodes are told to drop
     /// the transfer and `fw_report` says `failed` with `reason` for every node not done yet.
     pub fn cancel_fw_update(&mut self, reason: &str, now: Instant) {
@@ -788,12 +797,17 @@ impl Bridge {
                 ids
             }
         };
-        self.fw.request(FwLoad {
-            request_id,
-            image,
-            nodes,
-            force,
-        });
+        let now = self.now;
+        self.fw.request(
+            FwLoad {
+                request_id,
+                image,
+                nodes,
+                force,
+            },
+            now,
+            &mut self.out,
+        );
     }
 
     fn reject(&mut self, request_id: Option<String>, error: CommandError) {

@@ -142,7 +142,8 @@ pub(super) struct PublishQueue {
     unreported: BTreeMap<&'static str, u64>,
 }
 
-/// Events that answer a command: never dropped.
+/// Events that answer a command (or an upload, or end an update a client waits for): never
+/// dropped.
 fn is_answer(e: &Event) -> bool {
     matches!(
         e,
@@ -150,6 +151,8 @@ fn is_answer(e: &Event) -> bool {
             | Event::CommandRejected(_)
             | Event::NodeList(_)
             | Event::PublicationsDropped(_)
+            | Event::FwUpload(_)
+            | Event::FwReport(_)
     )
 }
 

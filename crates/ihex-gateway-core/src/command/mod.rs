@@ -557,15 +557,20 @@ fn assign(f: &Fields<'_>) -> Result<Command, CommandError> {
     })
 }
 
+/// A firmware image name `fw_update` and an upload may use: 1 to 128 of `A-Za-z0-9._-`, not
+/// starting with `.` — a plain file name, never a path.
+pub fn is_image_name(name: &str) -> bool {
+    !name.is_empty()
+        && !name.starts_with('.')
+        && name.len() <= 128
+        && name
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || matches!(c, '.' | '-' | '_'))
+}
+
 fn fw_update(f: &Fields<'_>) -> Result<Command, CommandError> {
     let image = f.required("image", f.str("image", FW_IMAGE)?, FW_IMAGE)?;
-    let plain = !image.is_empty()
-        && !image.starts_with('.')
-        && image.len() <= 128
-        && image
-            .chars()
-            .all(|c| c.is_ascii_alphanumeric() || matches!(c, '.' | '-' | '_'));
-    if !plain {
+    if !is_image_name(image) {
         return Err(f.bad("image", FW_IMAGE, &Json::String(image.into())));
     }
     let text = f.required("nodes", f.str("nodes", FW_NODES)?, FW_NODES)?;

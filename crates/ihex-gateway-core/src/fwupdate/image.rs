@@ -57,6 +57,11 @@ impl FwImage {
         &self.header
     }
 
+    /// The whole image file.
+    pub fn bytes(&self) -> &[u8] {
+        &self.bytes
+    }
+
     /// The ID a transfer names the image by ([`Header::image_id`]).
     pub fn image_id(&self) -> u32 {
         self.header.image_id()

@@ -21,6 +21,7 @@ mod image;
 mod report;
 #[cfg(test)]
 mod tests;
+mod upload;
 
 use std::collections::{BTreeMap, VecDeque};
 use std::time::{Duration, Instant};
@@ -30,6 +31,7 @@ use ihex_proto::{FwAction, FwPhase, FwStatus, Message, NodeId, Packet};
 pub use bucket::BitBucket;
 pub use image::{FwImage, FwImageError};
 pub use report::{FwProgress, FwReport, NodeOutcome, NodeReport};
+pub use upload::{FwUpload, UploadResult, Uploads, MAX_UPLOAD, UPLOADS_KEPT};
 
 use crate::event::{Event, HexId};
 
@@ -61,6 +63,9 @@ pub struct FwConfig {
     pub confirm_poll: Duration,
     /// Shortest interval between two `fw_progress` events of a node in the same phase.
     pub progress_interval: Duration,
+    /// The lab's public key: an image uploaded over MQTT must be signed with it. `None`: the
+    /// gateway checks everything of an upload but its signature (the nodes check that).
+    pub trusted_key: Option<ihex_image::PublicKey>,
 }
 
 impl Default for FwConfig {
@@ -75,6 +80,7 @@ impl Default for FwConfig {
             confirm_timeout: Duration::from_secs(90),
             confirm_poll: Duration::from_secs(1),
             progress_interval: Duration::from_secs(1),
+            trusted_key: None,
         }
     }
 }
