@@ -300,6 +300,34 @@ mod tests {
     }
 
     #[test]
+    fn update_frames_never_fill_the_transmit_window() {
+        let (mut b, t0) = with_nodes(&[2]);
+        b.handle_fw_upload("a.ihex", image_bytes(), false, t0);
+        command(
+            &mut b,
+            json!({"cmd":"fw_update","image":"a.ihex","nodes":"2"}),
+            t0,
+        );
+        let st = FwStatus {
+            first_missing: 0,
+            run: 32,
+            missing: 32,
+            ..FwStatus::phase(FwPhase::Header, FwRefusal::None)
+        };
+        b.handle_packet(Packet::report(id(2), Message::FwStatus(st)), t0);
+        // Handed out and never confirmed: the update stops at its part of the window.
+        let mut out = 0;
+        while let Some(t) = b.poll_transmit(t0) {
+            assert!(matches!(t.packet.msg, Message::FwData { .. }), "{t:?}");
+            out += 1;
+        }
+        assert_eq!(out, crate::bridge::FW_WINDOW);
+        b.handle_command(br#"{"cmd":"power","node":"2","on":true}"#, t0);
+        let t = b.poll_transmit(t0).expect("the command goes out at once");
+        assert!(matches!(t.packet.msg, Message::PowerSet { .. }), "{t:?}");
+    }
+
+    #[test]
     fn a_bad_or_missing_image_fails_the_command_with_the_reason() {
         let (mut b, t0) = with_nodes(&[2]);
         for (bytes, says) in [

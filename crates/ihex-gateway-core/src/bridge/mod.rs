@@ -56,6 +56,10 @@ use health::Health;
 use output::{Next, Outputs};
 use readback::{ReadBack, Reply};
 
+/// The part of the [`TRANSMIT_WINDOW`] a firmware update's frames may fill: a command that comes
+/// while they are out is handed on at once, never behind a full window of update frames.
+pub const FW_WINDOW: usize = TRANSMIT_WINDOW / 2;
+
 /// Tunables of the bridge (the CLI/TOML configuration fills these in).
 #[derive(Clone, Debug)]
 pub struct BridgeConfig {
@@ -711,11 +715,12 @@ impl Bridge {
     /// [`TRANSMIT_WINDOW`] frames are already handed out and not yet confirmed (each must be
     /// answered by [`Bridge::handle_transmitted`], [`Bridge::handle_send_failed`] or
     /// [`Bridge::handle_withdrawn`]). A firmware update's frames come last, only when nothing
-    /// else waits, and within the update's bus share.
+    /// else waits, within the update's bus share, and only while fewer than [`FW_WINDOW`] frames
+    /// are out: the rest of the window is always free for a command that comes meanwhile.
     pub fn poll_transmit(&mut self, now: Instant) -> Option<Transmit> {
         self.advance(now);
         loop {
-            if self.out.transmit.queued() == 0 && self.out.transmit.in_flight() < TRANSMIT_WINDOW {
+            if self.out.transmit.queued() == 0 && self.out.transmit.in_flight() < FW_WINDOW {
                 if let Some(p) = self.fw.poll_transmit() {
                     self.out.transmit.push(p, None);
                 }
