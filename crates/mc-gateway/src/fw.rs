@@ -1,6 +1,7 @@
-//! The firmware directory (`--fw-dir`): an `fw_update` names an image file in it, and the shell
-//! reads it for the core (which reads no files). Only plain names reach here (the command
-//! parser refuses paths), and a file larger than a transfer can carry is not read.
+//! The firmware directory (`--fw-dir`): an `fw_update` that names no uploaded image names an
+//! image file in it, and the shell reads it for the core (which reads no files). Only plain names
+//! reach here (the command parser refuses paths), and a file larger than a transfer can carry is
+//! not read.
 
 use std::path::Path;
 
@@ -9,7 +10,9 @@ use ihex_proto::FW_MAX_LEN;
 /// Reads `name` from `dir`; `Err` is the reason `command_result` gives.
 pub fn read_image(dir: Option<&Path>, name: &str) -> Result<Vec<u8>, String> {
     let dir = dir.ok_or_else(|| {
-        "the gateway serves no firmware directory (start it with --fw-dir DIR)".to_string()
+        "no image of that name was uploaded (ihex/fw/upload/NAME), and the gateway serves no \
+         firmware directory (--fw-dir DIR)"
+            .to_string()
     })?;
     let path = dir.join(name);
     let len = std::fs::metadata(&path)
@@ -38,7 +41,7 @@ mod tests {
         let e = read_image(Some(dir.path()), "b.ihex").unwrap_err();
         assert!(e.starts_with("cannot read") && e.contains("b.ihex"), "{e}");
         let e = read_image(None, "a.ihex").unwrap_err();
-        assert!(e.contains("--fw-dir"), "{e}");
+        assert!(e.contains("--fw-dir") && e.contains("uploaded"), "{e}");
         let big = std::fs::File::create(dir.path().join("big")).unwrap();
         big.set_len(u64::from(FW_MAX_LEN) + 1).unwrap();
         assert!(read_image(Some(dir.path()), "big")

@@ -97,6 +97,15 @@ pub enum MqttInput {
     },
     /// A message on Home Assistant's status topic (its birth message is `online`).
     HaStatus(Vec<u8>),
+    /// A firmware image on an upload topic (`<root>/<name>`).
+    FwUpload {
+        /// The last level of the topic.
+        name: String,
+        /// The image bytes as received.
+        payload: Bytes,
+        /// The broker delivered it as a retained message (refused by the core).
+        retained: bool,
+    },
     /// A ConnAck: the session is (re)established and subscribed.
     Connected,
 }
@@ -403,6 +412,12 @@ impl MqttTask {
                             received: Instant::now(),
                             retained: p.retain,
                         }
+                    } else if let Some(name) = self.topics.parse_fw_upload(&p.topic) {
+                        MqttInput::FwUpload {
+                            name: name.to_owned(),
+                            payload: p.payload,
+                            retained: p.retain,
+                        }
                     } else if self.ha && p.topic == self.topics.ha.status {
                         MqttInput::HaStatus(p.payload.to_vec())
                     } else if self.ha && self.topics.ha.parse_command(&p.topic).is_some() {
@@ -521,7 +536,7 @@ impl MqttTask {
 
     /// Subscribes and announces `online`; runs on every ConnAck (a clean session forgets both).
     fn on_connack(&self, client: &AsyncClient) {
-        let mut filters = vec![self.topics.commands.clone()];
+        let mut filters = vec![self.topics.commands.clone(), self.topics.fw_upload_filter()];
         if self.ha {
             filters.push(self.topics.ha.status.clone());
             filters.push(self.topics.ha.command_filter());

@@ -266,7 +266,7 @@ pub fn request_id(payload: &[u8]) -> Option<String> {
 const FW_UPDATE_FIELDS: &[&str] = &["image", "nodes", "force"];
 /// What `fw_update`'s `image` accepts.
 const FW_IMAGE: &str =
-    "the file name of a signed image in the gateway's firmware directory (letters, digits, '.', '-', '_')";
+    "the name of an uploaded image or of a file in the gateway's firmware directory (letters, digits, '.', '-', '_')";
 /// What `fw_update`'s `nodes` accepts.
 const FW_NODES: &str = "\"all\" or node ids in hex separated by commas, like \"111,112\"";
 

@@ -110,9 +110,14 @@ options! {
     /// Largest accepted command payload, bytes (larger ones are `command_rejected`).
     max_command_bytes: usize = {bridge::DEFAULT_MAX_COMMAND_BYTES}, env "IHEX_MAX_COMMAND_BYTES",
         value "BYTES", range 64..=1048576;
-    /// Directory of signed firmware images an `fw_update` command may name by file name
-    /// (`docs/firmware-update.md`); without it `fw_update` fails and says so.
-    fw_dir: PathBuf = (text "none: `fw_update` is off"), env "IHEX_FW_DIR", value "DIR";
+    /// Directory of signed firmware images an `fw_update` command may name by file name, besides
+    /// the images uploaded over MQTT (`docs/firmware-update.md`).
+    fw_dir: PathBuf = (text "none: only uploaded images"), env "IHEX_FW_DIR", value "DIR";
+    /// The lab's public key file (`lab.pub`): an image uploaded over MQTT must be signed with it
+    /// (`docs/firmware-update.md`). Without it the gateway checks everything of an upload but its
+    /// signature, which each node checks anyway.
+    fw_key: PathBuf = (text "none: uploads' signatures unchecked"), env "IHEX_FW_KEY",
+        value "FILE";
     /// Largest share of the bus a firmware update's frames take, % (counted in bits on the wire).
     fw_bus_share: u8 = {fwupdate::DEFAULT_BUS_SHARE}, env "IHEX_FW_BUS_SHARE", value "PERCENT",
         range 1..=100;
@@ -485,6 +490,12 @@ impl Config {
             ));
         }
 
+        let trusted_key = s
+            .fw_key
+            .as_deref()
+            .map(ihex_image::load_public)
+            .transpose()
+            .map_err(|e| ConfigError::invalid("fw-key", e.to_string()))?;
         let bridge = BridgeConfig {
             health_period: Duration::from_millis(s.health_period_ms),
             lost_after_misses: s.lost_after,
@@ -498,6 +509,7 @@ impl Config {
                 bus_share: s.fw_bus_share,
                 // A node answers an update's requests as it acks a command.
                 reply_timeout: Duration::from_millis(s.command_timeout_ms),
+                trusted_key,
                 ..fwupdate::FwConfig::default()
             },
         };
