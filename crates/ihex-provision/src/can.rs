@@ -25,6 +25,10 @@ pub struct Topics {
     pub events: String,
     /// Root of the retained `<root>/<id>/state` topics (`ihex/node`).
     pub node_state_root: String,
+    /// The gateway's retained `online`/`offline` (its default name).
+    pub availability: String,
+    /// Root of the firmware upload topics `<root>/<name>`.
+    pub fw_upload: String,
 }
 
 impl Topics {
@@ -40,6 +44,8 @@ impl Topics {
             commands: p(commands),
             events: p(events),
             node_state_root: p(node_state_root),
+            availability: p(ihex_gateway_core::topic::AVAILABILITY),
+            fw_upload: p(ihex_gateway_core::topic::FW_UPLOAD),
         }
     }
 }

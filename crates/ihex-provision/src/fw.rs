@@ -1,17 +1,23 @@
 //! `ihex-provision fw …`: the lab PC's firmware-image verbs — make a signing key, pack and sign the
 //! firmware ELF into an update image, inspect an image, and update nodes through the gateway
-//! (`fw update`: the `fw_update` command over MQTT, for an image in the gateway's firmware
-//! directory; progress and the report printed).
+//! (`fw update`: the image uploaded over MQTT — or named in the gateway's firmware directory —
+//! then the `fw_update` command; progress and the report printed).
 
 use std::fs;
 use std::path::{Path, PathBuf};
+use std::time::Duration;
 
 use anyhow::{bail, Context, Result};
 use clap::{Args, Subcommand};
+use ihex_gateway_core::fwupdate::{FwImage, NodeOutcome, UploadResult, MAX_UPLOAD};
 use ihex_image::{
     load_public, pack, pack_elf, Board, FirmwareVersion, Inspection, PackOverrides, PublicKey,
     SigningKey,
 };
+use ihex_provision::api::{self, GatewayEvent};
+use ihex_provision::can::Topics;
+use ihex_provision::mqtt::Session;
+use tokio::time::Instant;
 
 /// The `fw` verbs.
 #[derive(Subcommand)]
@@ -23,9 +29,8 @@ pub enum FwCmd {
     Pack(PackArgs),
     /// Show what an image says about itself and check it (signature with --key or --test-key).
     Inspect(InspectArgs),
-    /// Update nodes through the gateway (MQTT): send `fw_update` for an image in the gateway's
-    /// firmware directory (--fw-dir), print progress and the report; exit 1 unless every node
-    /// was updated.
+    /// Update nodes through the gateway (MQTT): upload the image, send `fw_update`, print
+    /// progress and the report; exit 1 unless every node was updated.
     Update(UpdateArgs),
 }
 
@@ -34,8 +39,8 @@ pub enum FwCmd {
 pub struct UpdateArgs {
     #[command(flatten)]
     broker: crate::BrokerArgs,
-    /// The image's file name in the gateway's firmware directory (copy it there first). A local
-    /// file of that path is checked first; its file name is what the gateway is asked for.
+    /// The image file: checked here, uploaded to the gateway over MQTT under its file name. A
+    /// name that is no local file is asked of the gateway's firmware directory (--fw-dir).
     image: PathBuf,
     /// Which nodes: `all` (every node online) or node IDs in hex, comma-separated (`111,112`).
     #[arg(long, default_value = "all")]
@@ -122,46 +127,113 @@ pub fn run(cmd: FwCmd) -> Result<bool> {
     }
 }
 
+/// How long the gateway has to show itself (its retained `online`) and to answer an upload.
+const GATEWAY_WAIT: Duration = Duration::from_secs(10);
+
 /// `fw update`: `Ok(true)` when every node ended `updated`.
 async fn update(a: UpdateArgs) -> Result<bool> {
-    use ihex_gateway_core::event::Event as GatewayEvent;
-    use ihex_provision::api;
-    use ihex_provision::mqtt::Session;
-
     let name = a
         .image
         .file_name()
         .and_then(|n| n.to_str())
         .context("IMAGE must end in a file name")?
         .to_owned();
-    if a.image.is_file() {
+    // A local file is checked here and uploaded; any other name is one in the gateway's
+    // firmware directory.
+    let upload = if a.image.is_file() {
+        if !ihex_gateway_core::command::is_image_name(&name) {
+            bail!("{name:?}: an image name is 1 to 128 of A-Z a-z 0-9 . - _ (rename the file)");
+        }
         let bytes = fs::read(&a.image).with_context(|| format!("reading {}", a.image.display()))?;
-        let image = ihex_gateway_core::fwupdate::FwImage::check(bytes)
+        if bytes.len() > MAX_UPLOAD {
+            bail!(
+                "{} is {} bytes; an image slot takes at most {MAX_UPLOAD}",
+                a.image.display(),
+                bytes.len()
+            );
+        }
+        let image = FwImage::check(bytes.clone())
             .with_context(|| format!("{} is not an image to send", a.image.display()))?;
         println!(
-            "{name}: version {}, {} bytes; the gateway reads it from its firmware directory",
+            "{name}: version {}, board {}, {} bytes",
             image.version(),
+            image.header().board,
             image.len()
         );
-    }
+        Some(bytes)
+    } else {
+        println!("{name}: no such local file; asking the gateway for its own copy (--fw-dir)");
+        None
+    };
     let broker = a.broker.broker()?;
     let topics = a.broker.topics();
-    let deadline = tokio::time::Instant::now() + std::time::Duration::from_secs(a.timeout_secs);
     let mut session = Session::connect(
         &broker,
-        std::slice::from_ref(&topics.events),
-        std::time::Duration::from_secs(10),
+        &[topics.events.clone(), topics.availability.clone()],
+        GATEWAY_WAIT,
     )
     .await?;
+    let outcome = drive(&mut session, &topics, &a, &name, upload).await;
+    session.close().await;
+    outcome
+}
+
+/// Waits for the gateway, uploads, sends `fw_update` and follows it to the report.
+async fn drive(
+    session: &mut Session,
+    topics: &Topics,
+    a: &UpdateArgs,
+    name: &str,
+    upload: Option<Vec<u8>>,
+) -> Result<bool> {
+    wait_online(session, topics).await?;
+    if let Some(bytes) = upload {
+        session
+            .publish(&format!("{}/{name}", topics.fw_upload), bytes)
+            .await?;
+        let deadline = Instant::now() + GATEWAY_WAIT;
+        let answer = loop {
+            let Some(msg) = session.recv_until(deadline).await? else {
+                bail!(
+                    "the gateway did not answer the upload on {}/{name} within {} s (a gateway \
+                     older than image uploads? then copy the file into its --fw-dir)",
+                    topics.fw_upload,
+                    GATEWAY_WAIT.as_secs()
+                );
+            };
+            match serde_json::from_slice::<GatewayEvent>(&msg.payload) {
+                Ok(GatewayEvent::FwUpload(u)) if u.name == name => break u,
+                _ => {}
+            }
+        };
+        if answer.result != UploadResult::Stored {
+            bail!(
+                "the gateway rejected the image: {}",
+                answer.reason.as_deref().unwrap_or("no reason given")
+            );
+        }
+        println!(
+            "uploaded: image {} version {} (signature {} by the gateway)",
+            answer.image_id.as_deref().unwrap_or("?"),
+            answer.version.as_deref().unwrap_or("?"),
+            answer.signature.as_deref().unwrap_or("?")
+        );
+    }
+    let deadline = Instant::now() + Duration::from_secs(a.timeout_secs);
     let request_id = api::new_request_id("fw");
-    let cmd = api::fw_update_command(&name, &a.nodes, a.force, &request_id);
+    let cmd = api::fw_update_command(name, &a.nodes, a.force, &request_id);
     session.publish(&topics.commands, cmd).await?;
     while let Some(msg) = session.recv_until(deadline).await? {
+        if msg.topic == topics.availability {
+            if msg.payload == b"offline" {
+                bail!("the gateway went offline during the update");
+            }
+            continue;
+        }
         let Ok(event) = serde_json::from_slice::<GatewayEvent>(&msg.payload) else {
             continue;
         };
         if let Some(api::Outcome::Failed { reason, .. }) = api::outcome(&event, &request_id) {
-            session.close().await;
             bail!("the gateway did not start the update: {reason}");
         }
         match event {
@@ -169,7 +241,6 @@ async fn update(a: UpdateArgs) -> Result<bool> {
                 println!("{:>4} {:<10} {:>3} %", p.node, p.phase, p.percent);
             }
             GatewayEvent::FwReport(r) if r.request_id.as_deref() == Some(&request_id) => {
-                session.close().await;
                 println!(
                     "image {} version {}: {} data frames in {:.1} s at a {} % bus share",
                     r.image_id,
@@ -186,13 +257,44 @@ async fn update(a: UpdateArgs) -> Result<bool> {
                         None => println!("{:>4} {outcome}", n.node),
                     }
                 }
+                let updated = r
+                    .nodes
+                    .iter()
+                    .filter(|n| n.outcome == NodeOutcome::Updated)
+                    .count();
+                println!("{updated} of {} nodes updated", r.nodes.len());
                 return Ok(r.all_updated());
             }
             _ => {}
         }
     }
-    session.close().await;
-    bail!("no fw_report within {} s", a.timeout_secs)
+    bail!(
+        "no fw_report within {} s (--timeout-secs); the update may still run: watch {}",
+        a.timeout_secs,
+        topics.events
+    )
+}
+
+/// Fails unless the gateway's retained availability says `online`.
+async fn wait_online(session: &mut Session, topics: &Topics) -> Result<()> {
+    let deadline = Instant::now() + GATEWAY_WAIT;
+    while let Some(msg) = session.recv_until(deadline).await? {
+        if msg.topic == topics.availability {
+            if msg.payload == b"online" {
+                return Ok(());
+            }
+            bail!(
+                "the gateway is {} ({} says so): start it, or check --island",
+                String::from_utf8_lossy(&msg.payload),
+                topics.availability
+            );
+        }
+    }
+    bail!(
+        "no gateway: nothing on {} within {} s (is it running, on this broker, with this --island?)",
+        topics.availability,
+        GATEWAY_WAIT.as_secs()
+    )
 }
 
 fn keygen(out: &Path) -> Result<()> {

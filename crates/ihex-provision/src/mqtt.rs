@@ -6,6 +6,9 @@ use std::{collections::VecDeque, time::Duration};
 use rumqttc::{AsyncClient, Event, MqttOptions, Packet, QoS};
 use tokio::{sync::mpsc, task::JoinHandle, time::Instant};
 
+/// Largest packet sent or received: a firmware upload (at most 128 KiB) and its topic fit.
+pub const MAX_PACKET: usize = 1 << 20;
+
 /// Errors of the MQTT session.
 #[derive(Debug, thiserror::Error)]
 pub enum MqttError {
@@ -108,7 +111,9 @@ impl Session {
         let client_id = format!("ihex-provision-{}", std::process::id());
         let mut opts = MqttOptions::new(client_id, broker.host.clone(), broker.port);
         opts.set_keep_alive(Duration::from_secs(20))
-            .set_clean_session(true);
+            .set_clean_session(true)
+            // Firmware uploads go out whole (rumqttc's default limit is 10 KiB).
+            .set_max_packet_size(MAX_PACKET, MAX_PACKET);
         if let Some((user, pass)) = &broker.credentials {
             opts.set_credentials(user.clone(), pass.clone());
         }
@@ -176,8 +181,8 @@ impl Session {
         }
     }
 
-    /// Publishes `payload` on `topic` at QoS 1.
-    pub async fn publish(&self, topic: &str, payload: String) -> Result<(), MqttError> {
+    /// Publishes `payload` on `topic` at QoS 1, not retained.
+    pub async fn publish(&self, topic: &str, payload: impl Into<Vec<u8>>) -> Result<(), MqttError> {
         self.client
             .publish(topic, QoS::AtLeastOnce, false, payload)
             .await?;
