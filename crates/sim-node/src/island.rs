@@ -475,7 +475,13 @@ impl Island {
                     }
                     Some(c) => self.command(c).await,
                 },
-                Some((name, epoch, frame)) = frames_rx.recv() => self.frame(name, epoch, frame),
+                Some((name, epoch, frame)) = frames_rx.recv() => {
+                    self.frame(name, epoch, frame);
+                    // Only the node that heard the frame can have new outputs: settling every
+                    // node per frame made a broadcast cost nodes² (20 nodes starved the task).
+                    self.settle_one(name).await;
+                    continue;
+                }
                 _ = tokio::time::sleep_until(deadline.unwrap_or_else(Instant::now)), if deadline.is_some() => {
                     self.timers();
                     last_timer = Some(Instant::now());
@@ -700,6 +706,26 @@ impl Island {
             if !self.reconcile_power() && !reset {
                 break;
             }
+        }
+    }
+
+    /// [`Island::settle`] after an input to `name` alone: carries out its outputs; the whole
+    /// island settles only when that changed more (a reset, mobile power).
+    async fn settle_one(&mut self, name: NodeId) {
+        let now = self.now();
+        let mut events = Vec::new();
+        let reset = match self.elements.get_mut(&name) {
+            Some(e) => drain(e, now, &mut events, None).await,
+            None => false,
+        };
+        for ev in events {
+            self.emit(ev);
+        }
+        if reset {
+            self.reset(name);
+        }
+        if reset || self.reconcile_power() {
+            self.settle().await;
         }
     }
 
