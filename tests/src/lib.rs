@@ -6,6 +6,7 @@
 //! otherwise inside a QEMU microVM (see `docs/testing.md`).
 #![warn(missing_docs)]
 
+pub mod bin;
 pub mod broker;
 pub mod can;
 pub mod fault;

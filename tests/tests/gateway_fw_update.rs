@@ -1,9 +1,13 @@
-//! Firmware update end to end over vcan + Mosquitto: the real gateway (`fw_update` from its
-//! `--fw-dir`) updates a simulated island whose nodes run the real update receiver over a
-//! simulated flash with embassy-boot's swap. An image signed with an unknown key is refused by
-//! every node, which keep their version; a test-signed image updates them all, and each reports
-//! the new version. (Commands during an update are not asserted here: in the VM a `led` to a
-//! node under update timed out — see docs/firmware-update.md.)
+//! Firmware update end to end over vcan + Mosquitto: the real gateway updates a simulated island
+//! whose nodes run the real update receiver over a simulated flash with embassy-boot's swap.
+//! 1. `fw_update` of an image in the gateway's `--fw-dir`, signed with a key the nodes do not
+//!    trust: every node refuses, and keeps its version.
+//! 2. The real `ihex-provision fw update` uploads that image over MQTT: the gateway (with the
+//!    test key as `--fw-key`) rejects the upload, and the CLI fails saying why.
+//! 3. `ihex-provision fw update` of the test-signed image, a local file: uploaded, every node
+//!    updated, the CLI exits 0 and every node reports the new version. During the transfer a
+//!    command to a node under update and a docking complete (their latency belongs to
+//!    `cargo xtask bench`, not here).
 #![cfg(feature = "vcan")]
 
 mod gateway_support;
@@ -17,19 +21,20 @@ use serde_json::Value;
 use sim_node::board::{sim_image, SimFirmware};
 use sim_node::{link::Link, Island, IslandDesc};
 
-/// Static elements in the island. The issue asks for 20: in the TCG microVM 20 simulated nodes
-/// cannot keep up with the broadcast (they lose frames and the update took minutes), so the VM
-/// test uses 4 (docs/firmware-update.md).
+/// Static elements in the island.
 const NODES: u16 = 4;
-/// Payload of the test images: small, so the transfer is seconds even under emulation.
-const PAYLOAD: usize = 4 * 1024;
+/// Payload of the test images: large enough that commands and a docking land inside the transfer,
+/// small enough that it takes seconds under emulation.
+const PAYLOAD: usize = 8 * 1024;
 /// How long a whole update may take (scaled in the VM).
-const UPDATE_WAIT: Duration = Duration::from_secs(120);
+const UPDATE_WAIT: Duration = Duration::from_secs(60);
 
 fn island(n: u16) -> String {
-    (0..n)
+    let statics: String = (0..n)
         .map(|i| format!("[[static]]\nid = \"{:x}\"\nports = 6\n\n", 0x101 + i))
-        .collect()
+        .collect();
+    // A mobile element, undocked: it docks during the update.
+    format!("{statics}[[mobile]]\nid = \"2\"\nport = 0\n")
 }
 
 async fn report(client: &mut Client, events: &str, request_id: &str) -> Value {
@@ -38,22 +43,55 @@ async fn report(client: &mut Client, events: &str, request_id: &str) -> Value {
     ihex_tests::within_or_panic(deadline, "fw_report", wait).await["payload"].clone()
 }
 
+/// Runs `ihex-provision fw update IMAGE --nodes all` against the test's broker and island name;
+/// the output is read while it runs (its progress lines must never block it).
+fn provision_update(
+    broker: std::net::SocketAddr,
+    island: &str,
+    image: &std::path::Path,
+) -> tokio::task::JoinHandle<std::process::Output> {
+    let bin =
+        ihex_tests::bin::workspace_binary("ihex-provision", ihex_tests::bin::PROVISION_BIN_ENV)
+            .unwrap_or_else(|e| panic!("{e}"));
+    let timeout = ihex_tests::time::scaled(UPDATE_WAIT).as_secs().to_string();
+    let child = tokio::process::Command::new(bin)
+        .args(["fw", "update"])
+        .arg(image)
+        .args(["--nodes", "all", "--timeout-secs", &timeout])
+        .args(["--broker", &broker.to_string(), "--island", island])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .kill_on_drop(true)
+        .spawn()
+        .expect("run ihex-provision");
+    tokio::spawn(async move {
+        child
+            .wait_with_output()
+            .await
+            .expect("ihex-provision output")
+    })
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn an_island_is_updated_with_one_command() {
     let broker = Mosquitto::start().expect("start mosquitto");
     let addr = broker.addr();
     let iface = ihex_tests::can::lease();
-    let fw_dir = std::env::temp_dir().join(format!("ihex-fw-{}", std::process::id()));
+    let work = std::env::temp_dir().join(format!("ihex-fw-{}", std::process::id()));
+    // The gateway's firmware directory, and the lab PC's folder the CLI uploads from.
+    let (fw_dir, lab) = (work.join("gateway"), work.join("lab"));
     std::fs::create_dir_all(&fw_dir).unwrap();
+    std::fs::create_dir_all(&lab).unwrap();
     let new_version = FirmwareVersion::new(9, 0, 1);
+    let test_key = ihex_image::SigningKey::test_key();
     let good = sim_image(
         new_version,
         SimFirmware { confirms: true },
         PAYLOAD,
-        &ihex_image::SigningKey::test_key(),
+        &test_key,
     )
     .unwrap();
-    std::fs::write(fw_dir.join("good.ihex"), &good).unwrap();
+    std::fs::write(lab.join("good.ihex"), &good).unwrap();
     let stranger = ihex_image::SigningKey::generate().unwrap();
     let foreign = sim_image(
         new_version,
@@ -63,10 +101,21 @@ async fn an_island_is_updated_with_one_command() {
     )
     .unwrap();
     std::fs::write(fw_dir.join("foreign.ihex"), &foreign).unwrap();
+    std::fs::write(lab.join("foreign.ihex"), &foreign).unwrap();
+    let key_file = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../crates/ihex-image/test-key/ihex-test-key.pub");
 
     let name = "fw";
     let dir = fw_dir.clone();
-    let gateway = Gateway::start_with(addr, &iface, name, move |o| o.fw_dir = Some(dir));
+    // The default 50 % share paces a real bus; the simulated nodes run on an emulated CPU in the
+    // VM, as many times slower as the tests' deadlines are stretched: pace the update alike.
+    let slowdown = ihex_tests::time::scaled(Duration::from_secs(1)).as_secs_f64();
+    let bus_share = (50.0 / slowdown).clamp(5.0, 50.0) as u8;
+    let gateway = Gateway::start_with(addr, &iface, name, move |o| {
+        o.fw_dir = Some(dir);
+        o.fw_key = Some(key_file);
+        o.fw_bus_share = Some(bus_share);
+    });
     let mut client = Client::connect(addr, "test-fw", &[format!("{name}/#")]);
     let avail = gateway.config.topics.availability.clone();
     client
@@ -87,7 +136,8 @@ async fn an_island_is_updated_with_one_command() {
     assert_ne!(old_version, new_version);
     let commands = gateway.commands();
 
-    // 1. Signed with a key the nodes do not trust: every node refuses, and keeps its image.
+    // 1. From the firmware directory, signed with a key the nodes do not trust: every node
+    //    refuses, and keeps its image.
     client
         .publish(
             &commands,
@@ -112,37 +162,96 @@ async fn an_island_is_updated_with_one_command() {
         );
     }
 
-    // 2. The test-signed image, to all.
-    let started = std::time::Instant::now();
-    client
-        .publish(
-            &commands,
-            r#"{"cmd":"fw_update","image":"good.ihex","nodes":"all","request_id":"g1"}"#,
-        )
-        .await;
-    let r = client
-        .expect_event(&events, "command_result", |p| p["request_id"] == "g1")
-        .await;
-    assert_eq!(r["payload"]["result"], "ok", "{r}");
-    let rep = report(&mut client, &events, "g1").await;
-    eprintln!(
-        "{NODES} nodes, {PAYLOAD} B payload: updated in {:?} ({} data frames sent)",
-        started.elapsed(),
-        rep["frames_sent"]
+    // 2. The CLI uploads the foreign image: the gateway rejects it, the CLI says why.
+    let wait = ihex_tests::time::scaled(gateway_support::WAIT);
+    let cli = provision_update(addr, name, &lab.join("foreign.ihex"));
+    let out = ihex_tests::within_or_panic(wait, "ihex-provision with a foreign image", cli)
+        .await
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{stderr}");
+    assert!(
+        stderr.contains("the gateway rejected the image") && stderr.contains("gateway's key"),
+        "{stderr}"
     );
-    let nodes = rep["nodes"].as_array().unwrap();
-    assert_eq!(nodes.len(), usize::from(NODES), "{rep}");
-    assert!(nodes.iter().all(|n| n["outcome"] == "updated"), "{rep}");
-    assert_eq!(rep["version"], "9.0.1");
+    let r = client
+        .expect_event(&events, "fw_upload", |p| p["name"] == "foreign.ihex")
+        .await;
+    assert_eq!(r["payload"]["result"], "rejected", "{r}");
+
+    // 3. The test-signed image, from the lab's folder, to all: one CLI run.
+    let started = std::time::Instant::now();
+    let cli = provision_update(addr, name, &lab.join("good.ihex"));
+    let r = client
+        .expect_event(&events, "fw_upload", |p| p["name"] == "good.ihex")
+        .await;
+    assert_eq!(r["payload"]["result"], "stored", "{r}");
+    assert_eq!(r["payload"]["signature"], "verified", "{r}");
+    // Once the broadcast runs, a command to a node under update and a docking must complete.
+    let target = ids[0].clone();
+    client
+        .expect_event(&events, "fw_progress", |p| {
+            p["node"] == target.as_str() && p["phase"] == "receiving"
+        })
+        .await;
+    let led = format!(r#"{{"cmd":"led","node":"{target}","color":"red","request_id":"during"}}"#);
+    client.publish(&commands, led).await;
+    ihex_tests::within_or_panic(wait, "dock", island.dock(id("2"), id(&target), 3))
+        .await
+        .expect("dock");
+    let (mut acked, mut docked) = (None, false);
+    while acked.is_none() || !docked {
+        let m = client
+            .expect(
+                "the command's result and the docking during the update",
+                |m| {
+                    let v = m.json();
+                    m.topic == events
+                        && ((v["event"] == "command_result"
+                            && v["payload"]["request_id"] == "during")
+                            || (v["event"] == "new_connection" && v["payload"]["n"]["id"] == "2"))
+                },
+            )
+            .await
+            .json();
+        if m["event"] == "command_result" {
+            acked = Some(m["payload"]["result"].clone());
+        } else {
+            docked = true;
+        }
+    }
+    assert_eq!(acked.unwrap(), "ok");
+    let out = ihex_tests::within_or_panic(
+        ihex_tests::time::scaled(UPDATE_WAIT),
+        "ihex-provision fw update",
+        cli,
+    )
+    .await
+    .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    eprintln!(
+        "{NODES} nodes, {PAYLOAD} B payload, {bus_share} % bus share: uploaded and updated in \
+         {:?}\n{stdout}",
+        started.elapsed()
+    );
+    assert!(
+        out.status.success(),
+        "{stdout}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(
+        stdout.contains(&format!("{NODES} of {NODES} nodes updated")),
+        "{stdout}"
+    );
     for n in &ids {
         let fw = island.view(id(n)).await.unwrap().firmware;
-        // (`updated` above is the node's own answer that its image is confirmed; the island's
-        // view keeps the identity of the boot, trial flag included.)
+        // (`updated` is the node's own answer that its image is confirmed; the island's view
+        // keeps the identity of the boot, trial flag included.)
         assert_eq!(fw.version, new_version, "node {n}");
     }
 
     gateway.shutdown().await;
     island.shutdown().await;
     drop(broker);
-    let _ = std::fs::remove_dir_all(&fw_dir);
+    let _ = std::fs::remove_dir_all(&work);
 }

@@ -295,6 +295,13 @@ fn build_tests() -> Result<Vec<(String, PathBuf)>> {
 /// host stage runs them); `faults`, the fault suite, finds contract violations in the gateway that
 /// lands with it (docs/testing.md, "Known violations"), so it runs in `cargo xtask soak` only.
 const NOT_IN_STAGE: [&str; 3] = ["security (test)", "bridge (test)", "faults (test)"];
+/// The workspace programs tests run as child processes, and the variable that tells them where
+/// the program is (`IHEX_GATEWAY_BIN`: the fault suite; `IHEX_PROVISION_BIN`:
+/// `gateway_fw_update`).
+const CARRIED_PROGRAMS: [(&str, &str); 2] = [
+    ("mc-gateway", "IHEX_GATEWAY_BIN"),
+    ("ihex-provision", "IHEX_PROVISION_BIN"),
+];
 /// The fault suite's test, skipped by name where the stage runs `cargo test` natively.
 const FAULT_SUITE_TEST: &str = "the_gateway_keeps_its_contract_under_faults";
 
@@ -306,19 +313,27 @@ fn run_in_vm(settings: VmSettings, only: Option<&str>) -> Result<()> {
             None => !NOT_IN_STAGE.contains(&name.as_str()),
         })
         .collect();
-    // The fault suite runs the gateway binary (built with the tests: mc-gateway has tests of its
-    // own binary), found beside the test binaries' `deps/` folder.
-    let gateway = cmd::target_dir().join("debug").join("mc-gateway");
-    if !gateway.is_file() {
-        bail!("no {} after building the tests", gateway.display());
+    // Tests run the workspace's programs as users do (the fault suite the gateway, the firmware
+    // update test ihex-provision): built with the tests (each has tests of its own binary),
+    // found beside the test binaries' `deps/` folder.
+    let mut programs = Vec::new();
+    for (name, env) in CARRIED_PROGRAMS {
+        let path = cmd::target_dir().join("debug").join(name);
+        if !path.is_file() {
+            bail!("no {} after building the tests", path.display());
+        }
+        programs.push((env, stripped_copy(&path)));
     }
-    let gateway = stripped_copy(&gateway);
     let vm = test_vm(settings)?;
     let broker = HostBroker::start()?;
     // The binaries are dynamically linked: their libraries (glibc) go in at the host's paths.
     let mut files = repo_files();
-    files.push(gateway.clone());
-    for path in bins.iter().map(|(_, p)| p).chain([&gateway]) {
+    files.extend(programs.iter().map(|(_, p)| p.clone()));
+    for path in bins
+        .iter()
+        .map(|(_, p)| p)
+        .chain(programs.iter().map(|(_, p)| p))
+    {
         for lib in shared_libraries(path)? {
             if !files.contains(&lib) {
                 files.push(lib);
@@ -336,7 +351,9 @@ fn run_in_vm(settings: VmSettings, only: Option<&str>) -> Result<()> {
             .collect(),
         env: {
             let mut env = guest_env(broker.as_ref());
-            env.push(("IHEX_GATEWAY_BIN".into(), gateway.display().to_string()));
+            for (var, path) in &programs {
+                env.push((var.to_string(), path.display().to_string()));
+            }
             env
         },
         cwd: Some(cmd::root().join("tests")),
@@ -410,11 +427,13 @@ pub fn vm_run(settings: VmSettings, binary: &Path, args: &[String]) -> Result<i3
         .to_string_lossy()
         .into_owned();
     let mut files = repo_files();
-    // The fault suite runs this gateway binary as a child process: it must be in the VM too.
-    if let Some(gw) = std::env::var_os("IHEX_GATEWAY_BIN") {
-        let gw = PathBuf::from(gw);
-        files.extend(shared_libraries(&gw)?);
-        files.push(gw);
+    // Programs the tests run as child processes must be in the VM too.
+    for (_, var) in CARRIED_PROGRAMS {
+        if let Some(program) = std::env::var_os(var) {
+            let program = PathBuf::from(program);
+            files.extend(shared_libraries(&program)?);
+            files.push(program);
+        }
     }
     let payload = Payload {
         programs: vec![Program {
