@@ -456,6 +456,19 @@ impl Proc {
         }
         Ok(())
     }
+
+    /// Waits until `addr` accepts TCP connections (or the process ends, or `within` passes).
+    pub(crate) fn wait_listening(&mut self, addr: SocketAddr, within: Duration) -> Result<()> {
+        let deadline = Instant::now() + within;
+        while TcpStream::connect_timeout(&addr, Duration::from_millis(200)).is_err() {
+            self.check_alive()?;
+            if Instant::now() > deadline {
+                bail!("{} did not listen on {addr} within {within:?}", self.name);
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        Ok(())
+    }
 }
 
 pub(crate) fn free_port() -> Result<u16> {
@@ -490,14 +503,7 @@ fn start_mosquitto(bin: &Path, dir: &Path, nagle: bool) -> Result<(Proc, SocketA
         child,
         name: "mosquitto",
     };
-    let deadline = Instant::now() + Duration::from_secs(20);
-    while TcpStream::connect_timeout(&addr, Duration::from_millis(200)).is_err() {
-        p.check_alive()?;
-        if Instant::now() > deadline {
-            bail!("mosquitto did not listen on {addr} within 20 s");
-        }
-        std::thread::sleep(Duration::from_millis(20));
-    }
+    p.wait_listening(addr, Duration::from_secs(20))?;
     Ok((p, addr))
 }
 

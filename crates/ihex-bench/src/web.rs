@@ -86,18 +86,6 @@ fn sse_reader(http: SocketAddr) -> Result<Receiver<(Instant, String)>> {
     Ok(rx)
 }
 
-fn wait_listening(addr: SocketAddr, gateway: &mut Proc) -> Result<()> {
-    let deadline = Instant::now() + Duration::from_secs(30);
-    while TcpStream::connect_timeout(&addr, Duration::from_millis(200)).is_err() {
-        gateway.check_alive()?;
-        if Instant::now() > deadline {
-            bail!("the demo gateway did not listen on {addr} within 30 s");
-        }
-        std::thread::sleep(Duration::from_millis(50));
-    }
-    Ok(())
-}
-
 /// One probe: an LED command with a fresh `request_id`; when its `command_result` reached the
 /// MQTT client and the event stream.
 struct Probe {
@@ -204,8 +192,8 @@ pub fn run(
         child,
         name: "mc-gateway (demo)",
     };
-    wait_listening(broker, &mut gateway)?;
-    wait_listening(http, &mut gateway)?;
+    gateway.wait_listening(broker, Duration::from_secs(30))?;
+    gateway.wait_listening(http, Duration::from_secs(30))?;
     let mqtt = Mqtt::connect(broker, &["EventsTopic"])?;
     let sse = sse_reader(http)?;
 
