@@ -126,3 +126,56 @@ fn pack_refuses_without_a_key_or_the_header_fields() {
     assert!(!not_elf.status.success());
     assert!(text(&not_elf).contains("ELF"), "{}", text(&not_elf));
 }
+
+#[test]
+fn update_checks_the_image_and_needs_a_gateway() {
+    let d = Dir::new("update");
+    // Not an image: refused before any broker is asked.
+    fs::write(d.path("junk.img"), b"not an image").unwrap();
+    let out = tool(&[
+        "fw",
+        "update",
+        &d.path("junk.img"),
+        "--broker",
+        "127.0.0.1:1",
+    ]);
+    assert!(!out.status.success());
+    assert!(
+        text(&out).contains("is not an image to send"),
+        "{}",
+        text(&out)
+    );
+    // Larger than a slot: refused before reading it as an image.
+    fs::write(d.path("big.img"), vec![0u8; 128 * 1024 + 1]).unwrap();
+    let out = tool(&[
+        "fw",
+        "update",
+        &d.path("big.img"),
+        "--broker",
+        "127.0.0.1:1",
+    ]);
+    assert!(!out.status.success());
+    assert!(text(&out).contains("at most 131072"), "{}", text(&out));
+    // A good image, but no broker: a clear error, not a hang.
+    fs::write(d.path("app.bin"), [7u8; 100]).unwrap();
+    let img = d.path("app.img");
+    let packed = tool(&[
+        "fw",
+        "pack",
+        "--raw",
+        &d.path("app.bin"),
+        "--board",
+        "sim",
+        "--version",
+        "1.0.0",
+        "--protocol",
+        "1.2",
+        "--test-key",
+        "-o",
+        &img,
+    ]);
+    assert!(packed.status.success(), "{}", text(&packed));
+    let out = tool(&["fw", "update", &img, "--broker", "127.0.0.1:1"]);
+    assert!(!out.status.success());
+    assert!(text(&out).contains("MQTT"), "{}", text(&out));
+}
