@@ -21,8 +21,8 @@ use serde_json::Value;
 use sim_node::board::{sim_image, SimFirmware};
 use sim_node::{link::Link, Island, IslandDesc};
 
-/// Static elements in the island.
-const NODES: u16 = 4;
+/// Static elements in the island: the 20.
+const NODES: u16 = 20;
 /// Payload of the test images: large enough that commands and a docking land inside the transfer,
 /// small enough that it takes seconds under emulation.
 const PAYLOAD: usize = 8 * 1024;
@@ -115,6 +115,10 @@ async fn an_island_is_updated_with_one_command() {
         o.fw_dir = Some(dir);
         o.fw_key = Some(key_file);
         o.fw_bus_share = Some(bus_share);
+        // `nodes: all` is every node online: 20 emulated nodes miss the rig's 200 ms health
+        // checks under load, and a node counted lost would be left out of the update.
+        o.health_period_ms =
+            Some(ihex_tests::time::scaled(Duration::from_secs(1)).as_millis() as u64);
     });
     let mut client = Client::connect(addr, "test-fw", &[format!("{name}/#")]);
     let avail = gateway.config.topics.availability.clone();
