@@ -21,8 +21,27 @@ impl fmt::Display for HexId {
 
 impl Serialize for HexId {
     fn serialize<S: Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
-        s.collect_str(&self.0)
+        let mut buf = [0; 4];
+        s.serialize_str(hex(self.0, &mut buf))
     }
+}
+
+/// `id` as its [`fmt::Display`] writes it (lower-case hex, no leading zeros), without the
+/// formatting machinery: nearly every publication names a node, and `collect_str` was a tenth of
+/// an event's serialisation.
+fn hex(id: NodeId, buf: &mut [u8; 4]) -> &str {
+    const DIGITS: &[u8; 16] = b"0123456789abcdef";
+    let mut v = id.get();
+    let mut i = buf.len();
+    loop {
+        i -= 1;
+        buf[i] = DIGITS[usize::from(v & 0xf)];
+        v >>= 4;
+        if v == 0 || i == 0 {
+            break;
+        }
+    }
+    std::str::from_utf8(&buf[i..]).unwrap_or_default()
 }
 
 impl<'de> Deserialize<'de> for HexId {
@@ -73,7 +92,10 @@ impl fmt::Display for Target {
 
 impl Serialize for Target {
     fn serialize<S: Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
-        s.collect_str(self)
+        match self {
+            Target::Node(id) => HexId(*id).serialize(s),
+            Target::All => s.serialize_str("all"),
+        }
     }
 }
 
@@ -599,6 +621,17 @@ mod tests {
 
     fn id(raw: u16) -> HexId {
         HexId(NodeId::new(raw).unwrap())
+    }
+
+    #[test]
+    fn ids_serialise_as_their_display_text() {
+        for raw in [0, 1, 0xf, 0x10, 0xab, 0x111, 0x7ff, NodeId::MAX_RAW] {
+            let h = id(raw);
+            assert_eq!(serde_json::to_string(&h).unwrap(), format!("\"{h}\""));
+            let t = Target::Node(h.0);
+            assert_eq!(serde_json::to_string(&t).unwrap(), format!("\"{t}\""));
+        }
+        assert_eq!(serde_json::to_string(&Target::All).unwrap(), "\"all\"");
     }
 
     #[test]

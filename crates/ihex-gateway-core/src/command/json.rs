@@ -147,7 +147,8 @@ impl<'de> Visitor<'de> for JsonVisitor {
     }
 
     fn visit_seq<A: SeqAccess<'de>>(self, mut seq: A) -> Result<Json, A::Error> {
-        let mut items = Vec::new();
+        // Commands' arrays are short (a colour): one allocation instead of growing from empty.
+        let mut items = Vec::with_capacity(seq.size_hint().unwrap_or(4).min(4));
         while let Some(v) = seq.next_element()? {
             items.push(v);
         }
@@ -155,7 +156,8 @@ impl<'de> Visitor<'de> for JsonVisitor {
     }
 
     fn visit_map<A: MapAccess<'de>>(self, mut map: A) -> Result<Json, A::Error> {
-        let mut members = Vec::new();
+        // A command has a handful of members: one allocation instead of growing from empty.
+        let mut members = Vec::with_capacity(map.size_hint().unwrap_or(8).min(8));
         while let Some((k, v)) = map.next_entry::<String, Json>()? {
             members.push((k, v));
         }
