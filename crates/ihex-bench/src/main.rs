@@ -78,8 +78,9 @@ enum Cmd {
         #[arg(long)]
         out: PathBuf,
     },
-    /// Combine live.json, callgrind.json and firmware.json of DIR into results.json, the plots and
-    /// the table.
+    /// Combine live.json, callgrind.json and firmware.json of DIR (and the baseline's
+    /// baseline-commit.txt, baseline-live.json, baseline-callgrind.json when present) into
+    /// results.json, the plots and the table.
     Report {
         /// Folder with the parts (target/bench).
         #[arg(long)]
@@ -160,6 +161,22 @@ fn main() -> Result<()> {
             match read("firmware.json") {
                 Some(b) => r.firmware = Some(serde_json::from_slice(&b).context("firmware.json")?),
                 None => r.missing.push("firmware sizes (no firmware.json)".into()),
+            }
+            if let Some(commit) = read("baseline-commit.txt") {
+                let commit = String::from_utf8_lossy(&commit).trim().to_owned();
+                let live = match read("baseline-live.json") {
+                    Some(b) => Some(serde_json::from_slice(&b).context("baseline-live.json")?),
+                    None => None,
+                };
+                let callgrind = match read("baseline-callgrind.json") {
+                    Some(b) => Some(serde_json::from_slice(&b).context("baseline-callgrind.json")?),
+                    None => None,
+                };
+                r.baseline = Some(report::Baseline {
+                    commit,
+                    live,
+                    callgrind,
+                });
             }
             if let Some(b) = read("missing.json") {
                 let more: Vec<String> = serde_json::from_slice(&b).context("missing.json")?;
