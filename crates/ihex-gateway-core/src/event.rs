@@ -26,6 +26,26 @@ impl Serialize for HexId {
     }
 }
 
+/// A protocol version as events and state documents show it, `"major.minor"` (what
+/// `format!("{major}.{minor}")` writes, without the formatting machinery: every `BootUp` and
+/// every state document carries one).
+pub fn version_text((major, minor): (u8, u8)) -> String {
+    let mut s = String::with_capacity(7);
+    for (i, n) in [major, minor].into_iter().enumerate() {
+        if i > 0 {
+            s.push('.');
+        }
+        if n >= 100 {
+            s.push(char::from(b'0' + n / 100));
+        }
+        if n >= 10 {
+            s.push(char::from(b'0' + n / 10 % 10));
+        }
+        s.push(char::from(b'0' + n % 10));
+    }
+    s
+}
+
 /// `id` as its [`fmt::Display`] writes it (lower-case hex, no leading zeros), without the
 /// formatting machinery: nearly every publication names a node, and `collect_str` was a tenth of
 /// an event's serialisation.
@@ -621,6 +641,21 @@ mod tests {
 
     fn id(raw: u16) -> HexId {
         HexId(NodeId::new(raw).unwrap())
+    }
+
+    #[test]
+    fn versions_read_as_format_writes_them() {
+        for v in [
+            (0, 0),
+            (1, 0),
+            (1, 2),
+            (9, 10),
+            (10, 99),
+            (100, 255),
+            (255, 9),
+        ] {
+            assert_eq!(version_text(v), format!("{}.{}", v.0, v.1));
+        }
     }
 
     #[test]

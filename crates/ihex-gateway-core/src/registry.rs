@@ -112,7 +112,7 @@ impl NodeEntry {
             online: self.online,
             role: self.role(),
             ports: self.ports,
-            version: self.version.map(|(a, b)| format!("{a}.{b}")),
+            version: self.version.map(crate::event::version_text),
             firmware: self.firmware.map(|(version, trial)| Firmware {
                 version: version.to_string(),
                 trial,
