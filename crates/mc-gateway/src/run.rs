@@ -3,7 +3,7 @@
 //! options, and in the demo the embedded broker, the simulated island and its control client — and
 //! [`Gateway::run`] only runs them: the CAN tasks, the MQTT task, and the core loop, one task that
 //! owns the [`Bridge`], feeds it inputs and timeouts and carries out its outputs without waiting.
-//! The loop takes every input already waiting (up to [`BATCH`] of a kind) before it carries out the
+//! The loop takes every input already waiting (up to `BATCH` of a kind) before it carries out the
 //! outputs, so a busy bus costs one turn of the loop per batch of frames, not per frame.
 //! Every channel is bounded, and what gives when one is full is the bridge's choice: frames wait in
 //! the bridge while its transmit window is full, publications wait in the bridge (answers kept,
