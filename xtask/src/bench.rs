@@ -2,7 +2,9 @@
 //! benchmark for the static musl target, counts instructions per bridged frame under callgrind,
 //! reads the release firmware's size, runs the live benchmark over real SocketCAN (native vcan, or
 //! the microVM of [`crate::vcan::test_vm`]) with a real Mosquitto, and has `ihex-bench report`
-//! write `target/bench/results.json`, the SVG plots and the table. See docs/benchmarks.md.
+//! write `target/bench/results.json`, the SVG plots and the table. A baseline commit's gateway
+//! (issue 15: "today's figures next to the new ones") is built from the cargo cache and measured in
+//! the same run by the same harness. See docs/benchmarks.md.
 
 use std::fs;
 use std::io::Read;
@@ -29,8 +31,8 @@ pub struct BenchArgs {
     /// Virtual CPUs of the microVM (1 keeps latency figures meaningful under TCG).
     #[arg(long, env = "IHEX_BENCH_SMP", default_value_t = 1)]
     smp: u32,
-    /// Kill the VM after this many seconds.
-    #[arg(long, default_value_t = 900)]
+    /// Kill the VM after this many seconds (both gateways' runs together).
+    #[arg(long, default_value_t = 2400)]
     vm_timeout: u64,
     /// Latency probes per series.
     #[arg(long, default_value_t = 300)]
@@ -53,6 +55,71 @@ pub struct BenchArgs {
     /// Skip the island view's latency (the demo gateway on the host).
     #[arg(long)]
     no_web: bool,
+    /// Measure the gateway of this commit beside this one, in the same run with the same harness
+    /// (its tree exported with `git archive` and built offline under target/bench/). The default
+    /// is the state issue 15 measured.
+    #[arg(long, env = "IHEX_BENCH_BASELINE", default_value = BASELINE)]
+    baseline: String,
+    /// Measure this gateway only.
+    #[arg(long)]
+    no_baseline: bool,
+}
+
+/// The commit whose figures issue 15 quotes ("today's"): the gateway before its core split.
+const BASELINE: &str = "baf77e8";
+
+/// A built baseline: its gateway and its own benchmark binary (for its callgrind workload).
+struct BaselineBuild {
+    commit: String,
+    gateway: PathBuf,
+    bench: PathBuf,
+}
+
+/// Exports `commit`'s tree under target/bench/baseline-COMMIT/src (once) and builds its gateway
+/// and benchmark as [`build`] does, offline (the dependencies come from the cargo cache), into a
+/// target directory of its own (its Cargo.lock differs from ours).
+fn build_baseline(commit: &str) -> Result<BaselineBuild> {
+    let dir = cmd::target_dir()
+        .join("bench")
+        .join(format!("baseline-{commit}"));
+    let src = dir.join("src");
+    if !src.join("Cargo.toml").exists() {
+        fs::create_dir_all(&src)?;
+        let tar = dir.join("src.tar");
+        cmd::run(
+            Command::new("git")
+                .current_dir(cmd::root())
+                .args(["archive", "--format=tar", "-o"])
+                .arg(&tar)
+                .arg(commit),
+        )?;
+        cmd::run(Command::new("tar").arg("-xf").arg(&tar).arg("-C").arg(&src))?;
+        fs::remove_file(&tar)?;
+    }
+    let target = dir.join("target");
+    cmd::run(
+        cmd::cargo()
+            .current_dir(&src)
+            .env("CARGO_TARGET_DIR", &target)
+            .args([
+                "build",
+                "--offline",
+                "--release",
+                "--target",
+                MUSL,
+                "-p",
+                "mc-gateway",
+                "-p",
+                "ihex-bench",
+                "--no-default-features",
+            ]),
+    )?;
+    let bin = |name: &str| target.join(MUSL).join("release").join(name);
+    Ok(BaselineBuild {
+        commit: commit.to_owned(),
+        gateway: bin("mc-gateway"),
+        bench: bin("ihex-bench"),
+    })
 }
 
 fn musl_release(name: &str) -> PathBuf {
@@ -145,8 +212,28 @@ fn live_args(gateway: &Path, args: &BenchArgs) -> Vec<String> {
     v
 }
 
-/// Runs the live part; returns the machine description.
-fn live(gateway: &Path, bench: &Path, args: &BenchArgs, out: &Path) -> Result<String> {
+/// Accepts one connection on `listener` in the background and hands over what it sent.
+fn receive(listener: TcpListener) -> mpsc::Receiver<std::io::Result<Vec<u8>>> {
+    let (tx, rx) = mpsc::channel();
+    std::thread::spawn(move || {
+        if let Ok((mut s, _)) = listener.accept() {
+            let mut buf = Vec::new();
+            let _ = tx.send(s.read_to_end(&mut buf).map(|_| buf));
+        }
+    });
+    rx
+}
+
+/// Runs the live part for `gateway` and, when given, the baseline's gateway after it (the same
+/// harness, the same VM boot); writes `out` and `baseline_out`; returns the machine description.
+fn live(
+    gateway: &Path,
+    baseline: Option<&Path>,
+    bench: &Path,
+    args: &BenchArgs,
+    out: &Path,
+    baseline_out: &Path,
+) -> Result<String> {
     let mosquitto = cmd::find("mosquitto")
         .ok_or_else(|| anyhow!("mosquitto not installed (Debian: apt-get install mosquitto)"))?;
     let mode = Mode::from_env(args.vm)?;
@@ -155,14 +242,18 @@ fn live(gateway: &Path, bench: &Path, args: &BenchArgs, out: &Path) -> Result<St
         _ => vcan::native_interfaces(true),
     };
     if native.is_some() {
-        let mut c = Command::new(bench);
-        c.args(live_args(gateway, args))
-            .arg("--mosquitto")
-            .arg(&mosquitto)
-            .arg("--out")
-            .arg(out);
-        cmd::run(&mut c)?;
-        return Ok(format!("native vcan on the host ({})", host_cpu()));
+        let machine = format!("native vcan on the host ({})", host_cpu());
+        for (gw, out) in std::iter::once((gateway, out)).chain(baseline.map(|b| (b, baseline_out)))
+        {
+            let mut c = Command::new(bench);
+            c.args(live_args(gw, args))
+                .arg("--mosquitto")
+                .arg(&mosquitto)
+                .arg("--out")
+                .arg(out);
+            cmd::run(&mut c)?;
+        }
+        return Ok(machine);
     }
     if mode == Mode::Native {
         bail!("IHEX_VCAN=native but this kernel cannot create vcan interfaces");
@@ -173,43 +264,54 @@ fn live(gateway: &Path, bench: &Path, args: &BenchArgs, out: &Path) -> Result<St
         memory_mb: 1024,
     };
     let vm = vcan::test_vm(settings)?;
-    // The guest sends its results back over the user-mode network (10.0.2.2 is our loopback).
-    let listener = TcpListener::bind((Ipv4Addr::LOCALHOST, 0))?;
-    let port = listener.local_addr()?.port();
-    let (tx, rx) = mpsc::channel();
-    std::thread::spawn(move || {
-        if let Ok((mut s, _)) = listener.accept() {
-            let mut buf = Vec::new();
-            let _ = tx.send(s.read_to_end(&mut buf).map(|_| buf));
-        }
-    });
-    let mut program_args = live_args(gateway, args);
-    program_args.extend([
-        "--mosquitto".into(),
-        mosquitto.to_string_lossy().into_owned(),
-        "--report".into(),
-        format!("10.0.2.2:{port}"),
-    ]);
-    let payload = Payload {
-        programs: vec![Program {
-            name: "ihex-bench live".into(),
+    // Each run sends its results back over the user-mode network (10.0.2.2 is our loopback).
+    let mut programs = Vec::new();
+    let mut results = Vec::new();
+    for (name, gw, out) in std::iter::once(("ihex-bench live", gateway, out))
+        .chain(baseline.map(|b| ("ihex-bench live (baseline)", b, baseline_out)))
+    {
+        let listener = TcpListener::bind((Ipv4Addr::LOCALHOST, 0))?;
+        let port = listener.local_addr()?.port();
+        results.push((name, receive(listener), out));
+        let mut program_args = live_args(gw, args);
+        program_args.extend([
+            "--mosquitto".into(),
+            mosquitto.to_string_lossy().into_owned(),
+            "--report".into(),
+            format!("10.0.2.2:{port}"),
+        ]);
+        programs.push(Program {
+            name: name.into(),
             path: bench.to_path_buf(),
             args: program_args,
-        }],
+        });
+    }
+    let payload = Payload {
+        programs,
         env: vec![("RUST_BACKTRACE".into(), "1".into())],
         cwd: None,
-        // The gateway goes in at its host path; the program itself is copied by the VM runner.
-        files: vec![gateway.to_path_buf()],
+        // The gateways go in at their host paths; the program itself is copied by the VM runner.
+        files: std::iter::once(gateway)
+            .chain(baseline)
+            .map(Path::to_path_buf)
+            .collect(),
     };
     let outcomes = vm.run(&payload)?;
-    if let Some(o) = outcomes.iter().find(|o| o.code != 0) {
-        bail!("ihex-bench live failed in the VM (exit {})", o.code);
+    let mut failed = Vec::new();
+    for ((name, rx, out), o) in results.into_iter().zip(&outcomes) {
+        if o.code != 0 {
+            failed.push(format!("{name} failed in the VM (exit {})", o.code));
+            continue;
+        }
+        let bytes = rx
+            .recv_timeout(Duration::from_secs(10))
+            .map_err(|_| anyhow!("{name}: the VM finished without sending results"))?
+            .context("reading the results from the VM")?;
+        fs::write(out, bytes)?;
     }
-    let bytes = rx
-        .recv_timeout(Duration::from_secs(10))
-        .map_err(|_| anyhow!("the VM finished without sending results"))?
-        .context("reading the results from the VM")?;
-    fs::write(out, bytes)?;
+    if !failed.is_empty() {
+        bail!("{}", failed.join("; "));
+    }
     Ok(format!(
         "QEMU TCG microVM, {} vCPU, Debian kernel, on a {}",
         settings.smp,
@@ -246,12 +348,30 @@ pub fn run(args: BenchArgs, firmware_dir: &Path) -> Result<()> {
         "callgrind.json",
         "firmware.json",
         "missing.json",
+        "baseline-commit.txt",
+        "baseline-live.json",
+        "baseline-callgrind.json",
         "web.json",
     ] {
         let _ = fs::remove_file(dir.join(f));
     }
     let (gateway, bench) = build()?;
     let mut missing = Vec::new();
+    let baseline = if args.no_baseline {
+        None
+    } else {
+        println!("\n==> xtask bench: build the baseline {}", args.baseline);
+        match build_baseline(&args.baseline) {
+            Ok(b) => {
+                fs::write(dir.join("baseline-commit.txt"), &b.commit)?;
+                Some(b)
+            }
+            Err(e) => {
+                missing.push(format!("baseline {}: {e:#}", args.baseline));
+                None
+            }
+        }
+    };
 
     println!("\n==> xtask bench: instructions per bridged frame (callgrind)");
     if cmd::exists("valgrind") {
@@ -260,6 +380,15 @@ pub fn run(args: BenchArgs, firmware_dir: &Path) -> Result<()> {
             .arg(dir.join("callgrind.json"));
         if let Err(e) = cmd::run(&mut c) {
             missing.push(format!("callgrind: {e:#}"));
+        }
+        if let Some(b) = &baseline {
+            // Its own workload: the same definition of a bridged frame, on its own bridge API.
+            let mut c = Command::new(&b.bench);
+            c.args(["callgrind", "--n", &args.callgrind_n.to_string(), "--out"])
+                .arg(dir.join("baseline-callgrind.json"));
+            if let Err(e) = cmd::run(&mut c) {
+                missing.push(format!("baseline callgrind: {e:#}"));
+            }
         }
     } else {
         missing.push("callgrind: valgrind not installed (apt-get install valgrind)".into());
@@ -279,7 +408,15 @@ pub fn run(args: BenchArgs, firmware_dir: &Path) -> Result<()> {
         missing.push("live benchmark: --no-live".into());
     } else {
         println!("\n==> xtask bench: live (SocketCAN + Mosquitto + mc-gateway)");
-        match live(&gateway, &bench, &args, &dir.join("live.json")) {
+        let baseline_gateway = baseline.as_ref().map(|b| b.gateway.as_path());
+        match live(
+            &gateway,
+            baseline_gateway,
+            &bench,
+            &args,
+            &dir.join("live.json"),
+            &dir.join("baseline-live.json"),
+        ) {
             Ok(m) => machine = m,
             Err(e) => missing.push(format!("live benchmark: {e:#}")),
         }

@@ -183,11 +183,19 @@ fn led_filter() -> CanFilter {
     ))
 }
 
-/// Counts `command_result` failures and `command_rejected` events; the first reason seen.
-fn failures(mqtt: &Mqtt, quiet: Duration) -> Option<String> {
-    let (mut n, mut first) = (0usize, None);
-    while let Some((_, ev)) = mqtt.next_event(quiet) {
+/// Reads answers until `want` `led` commands were answered `ok` or nothing came for `quiet`:
+/// the `ok` count, and the failed or rejected ones with the first reason seen.
+fn answers(mqtt: &Mqtt, want: usize, quiet: Duration) -> (usize, Option<String>) {
+    let (mut ok, mut n, mut first) = (0usize, 0usize, None);
+    while ok < want {
+        let Some((_, ev)) = mqtt.next_event(quiet) else {
+            break;
+        };
         let reason = match ev {
+            Event::CommandResult(r) if r.result == Outcome::Ok => {
+                ok += usize::from(r.cmd == "led");
+                continue;
+            }
             Event::CommandResult(r) if r.result != Outcome::Ok => {
                 let outcome = serde_json::to_value(r.result).unwrap_or_default();
                 format!(
@@ -202,7 +210,8 @@ fn failures(mqtt: &Mqtt, quiet: Duration) -> Option<String> {
         n += 1;
         first.get_or_insert(reason);
     }
-    first.map(|r| format!("{n} commands failed or rejected, e.g. {r}"))
+    let note = first.map(|r| format!("{n} commands failed or rejected, e.g. {r}"));
+    (ok, note)
 }
 
 /// The nodes' side of commands: acks every LedSet addressed to a known node, as an SC does, so the
@@ -626,6 +635,7 @@ impl Bench {
             }),
             gateway_cpu_ms: cpu1 - cpu0,
             note: None,
+            results: None,
         };
         println!(
             "bench: CAN->MQTT {:>8.0} fps offered, {:>8.0} sent, {}/{} events, lag {:.0} ms{}",
@@ -835,13 +845,12 @@ impl Bench {
         let (received, last) = reader
             .join()
             .map_err(|_| anyhow!("command reader panicked"))?;
+        // Every command's answer: the bench acked each frame as its node, so each must end in a
+        // `command_result` ok on EventsTopic. The gateway's CPU is read once they are in, so it
+        // includes publishing them.
+        let (results, note) = answers(&self.mqtt, sent, Duration::from_secs(2));
         let cpu1 = cpu_ms(self.gw.pid())?;
         self.gw.check_alive()?;
-        let note = if received < sent {
-            failures(&self.mqtt, Duration::from_millis(500))
-        } else {
-            None
-        };
         let t = Trial {
             offered_fps: rate,
             sent_fps: sent as f64 / secs,
@@ -853,13 +862,15 @@ impl Bench {
             }),
             gateway_cpu_ms: cpu1 - cpu0,
             note,
+            results: Some(results),
         };
         println!(
-            "bench: MQTT->CAN {:>8.0} cmd/s offered, {:>8.0} sent, {}/{} frames, lag {:.0} ms{}{}",
+            "bench: MQTT->CAN {:>8.0} cmd/s offered, {:>8.0} sent, {}/{} frames, {} results ok, lag {:.0} ms{}{}",
             t.offered_fps,
             t.sent_fps,
             t.received,
             t.sent,
+            results,
             t.lag_ms,
             if t.sustained() {
                 ""

@@ -99,8 +99,9 @@ enum Cmd {
         #[arg(long)]
         out: PathBuf,
     },
-    /// Combine live.json, callgrind.json, firmware.json and web.json of DIR into results.json, the plots and
-    /// the table.
+    /// Combine live.json, callgrind.json, firmware.json and web.json of DIR (and the baseline's
+    /// baseline-commit.txt, baseline-live.json, baseline-callgrind.json when present) into
+    /// results.json, the plots and the table.
     Report {
         /// Folder with the parts (target/bench).
         #[arg(long)]
@@ -206,6 +207,22 @@ fn main() -> Result<()> {
             match read("firmware.json") {
                 Some(b) => r.firmware = Some(serde_json::from_slice(&b).context("firmware.json")?),
                 None => r.missing.push("firmware sizes (no firmware.json)".into()),
+            }
+            if let Some(commit) = read("baseline-commit.txt") {
+                let commit = String::from_utf8_lossy(&commit).trim().to_owned();
+                let live = match read("baseline-live.json") {
+                    Some(b) => Some(serde_json::from_slice(&b).context("baseline-live.json")?),
+                    None => None,
+                };
+                let callgrind = match read("baseline-callgrind.json") {
+                    Some(b) => Some(serde_json::from_slice(&b).context("baseline-callgrind.json")?),
+                    None => None,
+                };
+                r.baseline = Some(report::Baseline {
+                    commit,
+                    live,
+                    callgrind,
+                });
             }
             match read("web.json") {
                 Some(b) => r.web = Some(serde_json::from_slice(&b).context("web.json")?),

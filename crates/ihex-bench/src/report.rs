@@ -65,6 +65,201 @@ pub struct Results {
     pub web: Option<WebResults>,
     /// Why a part is missing.
     pub missing: Vec<String>,
+    /// The same measurements of an earlier gateway, taken in the same run with the same harness.
+    #[serde(default)]
+    pub baseline: Option<Baseline>,
+}
+
+/// An earlier gateway measured beside this one (`cargo xtask bench --baseline COMMIT`): its live
+/// figures come from this run's harness driving that commit's `mc-gateway`; its instruction counts
+/// from that commit's own `ihex-bench` workload (the same definition of a bridged frame).
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+pub struct Baseline {
+    /// The commit measured.
+    pub commit: String,
+    /// Its live figures, if that part ran.
+    pub live: Option<LiveResults>,
+    /// Its instruction counts, if valgrind was available.
+    pub callgrind: Option<Callgrind>,
+}
+
+/// The goals of issue 15 (a gateway that keeps up with a saturated bus), as pass/FAIL lines:
+/// printed, never asserted.
+fn throughput_goals(o: &mut String, r: &Results) {
+    let Some(l) = &r.live else { return };
+    let base = r.baseline.as_ref();
+    let _ = writeln!(
+        o,
+        "\ngoals of issue 15 (informative; never fail the command)"
+    );
+    let _ = writeln!(
+        o,
+        "  CAN->MQTT sustained >= 3,125 reports/s  {}  ({:.0})",
+        pass(l.can_to_mqtt_fps >= 3125.0),
+        l.can_to_mqtt_fps
+    );
+    let _ = writeln!(
+        o,
+        "  MQTT->CAN >= 3,000 acked cmd/s, every command_result delivered  {}  ({:.0})",
+        pass(l.mqtt_to_can_cps >= 3000.0),
+        l.mqtt_to_can_cps
+    );
+    match base.and_then(|b| b.live.as_ref()) {
+        Some(b) => {
+            let _ = writeln!(
+                o,
+                "  CPU per 1,000 reports <= 1/3 of {}'s  {}  ({:.1} vs {:.1} ms: {:.2}x)",
+                base.map_or("", |b| b.commit.as_str()),
+                pass(l.cpu_ms_per_1k_reports * 3.0 <= b.cpu_ms_per_1k_reports),
+                l.cpu_ms_per_1k_reports,
+                b.cpu_ms_per_1k_reports,
+                l.cpu_ms_per_1k_reports / b.cpu_ms_per_1k_reports
+            );
+        }
+        None => {
+            let _ = writeln!(
+                o,
+                "  CPU per 1,000 reports <= 1/3 of the baseline's  (no baseline)"
+            );
+        }
+    }
+    if let (Some(c), Some(b)) = (&r.callgrind, base.and_then(|b| b.callgrind.as_ref())) {
+        for (name, new, old) in [
+            ("CAN->event", &c.can_to_event, &b.can_to_event),
+            ("command->frame", &c.command_to_frame, &b.command_to_frame),
+        ] {
+            let _ = writeln!(
+                o,
+                "  instructions per {name} halved  {}  ({:.0} vs {:.0}: {:.2}x)",
+                pass(new.per_frame * 2.0 <= old.per_frame),
+                new.per_frame,
+                old.per_frame,
+                new.per_frame / old.per_frame
+            );
+        }
+    }
+    let _ = writeln!(
+        o,
+        "  peak RSS <= 4 MiB (no embedded broker, no web view)  {}  ({:.1} MiB)",
+        pass(l.gateway_vmhwm_kib <= 4 * 1024),
+        l.gateway_vmhwm_kib as f64 / 1024.0
+    );
+    let added =
+        added_us(&l.frame_to_event_idle, l, false).max(added_us(&l.cmd_to_frame_idle, l, false));
+    let _ = writeln!(
+        o,
+        "  gateway-added latency p50 at idle <= 1 ms  {}  ({:.0} us, the larger of both directions; estimate)",
+        pass(added <= 1000.0),
+        added
+    );
+}
+
+/// This gateway next to the baseline, figure by figure, with the ratio new / old.
+fn comparison(o: &mut String, r: &Results) {
+    let Some(b) = &r.baseline else { return };
+    let _ = writeln!(
+        o,
+        "\nthis build vs {} (same harness, same run)      new        old    new/old",
+        b.commit
+    );
+    let mut row = |name: &str, new: f64, old: f64, unit: &str| {
+        let _ = writeln!(
+            o,
+            "  {name:<38} {new:>9.1} {old:>10.1} {:>9.2}x  {unit}",
+            new / old
+        );
+    };
+    if let (Some(l), Some(ol)) = (&r.live, &b.live) {
+        row(
+            "CAN->MQTT sustained, zero loss",
+            l.can_to_mqtt_fps,
+            ol.can_to_mqtt_fps,
+            "reports/s",
+        );
+        row(
+            "MQTT->CAN sustained, all answered",
+            l.mqtt_to_can_cps,
+            ol.mqtt_to_can_cps,
+            "cmd/s",
+        );
+        row("MQTT->CAN burst", l.burst_cps, ol.burst_cps, "cmd/s");
+        row(
+            "CPU per 1,000 reports",
+            l.cpu_ms_per_1k_reports,
+            ol.cpu_ms_per_1k_reports,
+            "ms",
+        );
+        row(
+            "CPU per 1,000 commands",
+            l.cpu_ms_per_1k_commands,
+            ol.cpu_ms_per_1k_commands,
+            "ms",
+        );
+        row(
+            "CPU per 1,000 background frames",
+            l.cpu_ms_per_1k_background,
+            ol.cpu_ms_per_1k_background,
+            "ms",
+        );
+        row(
+            "peak RSS (VmHWM)",
+            l.gateway_vmhwm_kib as f64 / 1024.0,
+            ol.gateway_vmhwm_kib as f64 / 1024.0,
+            "MiB",
+        );
+        row(
+            "frame->event p50, idle",
+            l.frame_to_event_idle.p50_us,
+            ol.frame_to_event_idle.p50_us,
+            "us",
+        );
+        row(
+            "command->frame p50, idle",
+            l.cmd_to_frame_idle.p50_us,
+            ol.cmd_to_frame_idle.p50_us,
+            "us",
+        );
+        row(
+            "gateway-added p50, idle (estimate)",
+            added_us(&l.frame_to_event_idle, l, false).max(added_us(
+                &l.cmd_to_frame_idle,
+                l,
+                false,
+            )),
+            added_us(&ol.frame_to_event_idle, ol, false).max(added_us(
+                &ol.cmd_to_frame_idle,
+                ol,
+                false,
+            )),
+            "us",
+        );
+        row(
+            "frame->event p50, bus full",
+            l.frame_to_event_load.p50_us,
+            ol.frame_to_event_load.p50_us,
+            "us",
+        );
+        row(
+            "command->frame p50, bus full",
+            l.cmd_to_frame_load.p50_us,
+            ol.cmd_to_frame_load.p50_us,
+            "us",
+        );
+    }
+    if let (Some(c), Some(oc)) = (&r.callgrind, &b.callgrind) {
+        row(
+            "instructions per CAN->event",
+            c.can_to_event.per_frame,
+            oc.can_to_event.per_frame,
+            "",
+        );
+        row(
+            "instructions per command->frame",
+            c.command_to_frame.per_frame,
+            oc.command_to_frame.per_frame,
+            "",
+        );
+    }
 }
 
 fn pass(ok: bool) -> &'static str {
@@ -285,6 +480,8 @@ pub fn table(r: &Results) -> String {
             let _ = writeln!(o, "note: {n}");
         }
     }
+    comparison(&mut o, r);
+    throughput_goals(&mut o, r);
     if let Some(w) = &r.web {
         web_table(&mut o, w);
     }
@@ -559,6 +756,60 @@ mod tests {
         );
         assert!(
             t.contains("peak RSS < 10 MiB                       pass"),
+            "{t}"
+        );
+    }
+
+    #[test]
+    fn the_baseline_is_compared_and_the_goals_judged() {
+        let mut l = sample();
+        l.can_to_mqtt_fps = 4000.0;
+        l.cpu_ms_per_1k_reports = 100.0;
+        let mut old = sample();
+        old.cpu_ms_per_1k_reports = 400.0;
+        let cost = |per_frame| PathCost {
+            per_frame,
+            ..Default::default()
+        };
+        let r = Results {
+            machine: "test".into(),
+            live: Some(l),
+            callgrind: Some(Callgrind {
+                can_to_event: cost(4000.0),
+                command_to_frame: cost(7000.0),
+                ..Default::default()
+            }),
+            baseline: Some(Baseline {
+                commit: "abc1234".into(),
+                live: Some(old),
+                callgrind: Some(Callgrind {
+                    can_to_event: cost(9000.0),
+                    command_to_frame: cost(12000.0),
+                    ..Default::default()
+                }),
+            }),
+            ..Default::default()
+        };
+        let t = table(&r);
+        assert!(t.contains("this build vs abc1234"), "{t}");
+        assert!(
+            t.contains("CAN->MQTT sustained >= 3,125 reports/s  pass"),
+            "{t}"
+        );
+        assert!(
+            t.contains("CPU per 1,000 reports <= 1/3 of abc1234's  pass"),
+            "{t}"
+        );
+        assert!(
+            t.contains("instructions per CAN->event halved  pass"),
+            "{t}"
+        );
+        assert!(
+            t.contains("instructions per command->frame halved  FAIL"),
+            "{t}"
+        );
+        assert!(
+            t.contains("peak RSS <= 4 MiB (no embedded broker, no web view)  FAIL"),
             "{t}"
         );
     }

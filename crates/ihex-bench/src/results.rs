@@ -25,12 +25,18 @@ pub struct Trial {
     /// What the gateway said about lost commands (`command_result` failures, rejections).
     #[serde(default)]
     pub note: Option<String>,
+    /// Command trials: `command_result` events with result `ok` received (each command's answer
+    /// after the bench acked its frame as the node); `None` for report trials.
+    #[serde(default)]
+    pub results: Option<usize>,
 }
 
 impl Trial {
-    /// No loss and no backlog left behind.
+    /// No loss (and for commands every `command_result` delivered) and no backlog left behind.
     pub fn sustained(&self) -> bool {
-        self.received == self.sent && self.lag_ms <= 250.0
+        self.received == self.sent
+            && self.results.is_none_or(|r| r == self.sent)
+            && self.lag_ms <= 250.0
     }
 }
 

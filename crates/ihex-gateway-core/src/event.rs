@@ -21,8 +21,47 @@ impl fmt::Display for HexId {
 
 impl Serialize for HexId {
     fn serialize<S: Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
-        s.collect_str(&self.0)
+        let mut buf = [0; 4];
+        s.serialize_str(hex(self.0, &mut buf))
     }
+}
+
+/// A protocol version as events and state documents show it, `"major.minor"` (what
+/// `format!("{major}.{minor}")` writes, without the formatting machinery: every `BootUp` and
+/// every state document carries one).
+pub fn version_text((major, minor): (u8, u8)) -> String {
+    let mut s = String::with_capacity(7);
+    for (i, n) in [major, minor].into_iter().enumerate() {
+        if i > 0 {
+            s.push('.');
+        }
+        if n >= 100 {
+            s.push(char::from(b'0' + n / 100));
+        }
+        if n >= 10 {
+            s.push(char::from(b'0' + n / 10 % 10));
+        }
+        s.push(char::from(b'0' + n % 10));
+    }
+    s
+}
+
+/// `id` as its [`fmt::Display`] writes it (lower-case hex, no leading zeros), without the
+/// formatting machinery: nearly every publication names a node, and `collect_str` was a tenth of
+/// an event's serialisation.
+fn hex(id: NodeId, buf: &mut [u8; 4]) -> &str {
+    const DIGITS: &[u8; 16] = b"0123456789abcdef";
+    let mut v = id.get();
+    let mut i = buf.len();
+    loop {
+        i -= 1;
+        buf[i] = DIGITS[usize::from(v & 0xf)];
+        v >>= 4;
+        if v == 0 || i == 0 {
+            break;
+        }
+    }
+    std::str::from_utf8(&buf[i..]).unwrap_or_default()
 }
 
 impl<'de> Deserialize<'de> for HexId {
@@ -73,7 +112,10 @@ impl fmt::Display for Target {
 
 impl Serialize for Target {
     fn serialize<S: Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
-        s.collect_str(self)
+        match self {
+            Target::Node(id) => HexId(*id).serialize(s),
+            Target::All => s.serialize_str("all"),
+        }
     }
 }
 
@@ -602,6 +644,32 @@ mod tests {
 
     fn id(raw: u16) -> HexId {
         HexId(NodeId::new(raw).unwrap())
+    }
+
+    #[test]
+    fn versions_read_as_format_writes_them() {
+        for v in [
+            (0, 0),
+            (1, 0),
+            (1, 2),
+            (9, 10),
+            (10, 99),
+            (100, 255),
+            (255, 9),
+        ] {
+            assert_eq!(version_text(v), format!("{}.{}", v.0, v.1));
+        }
+    }
+
+    #[test]
+    fn ids_serialise_as_their_display_text() {
+        for raw in [0, 1, 0xf, 0x10, 0xab, 0x111, 0x7ff, NodeId::MAX_RAW] {
+            let h = id(raw);
+            assert_eq!(serde_json::to_string(&h).unwrap(), format!("\"{h}\""));
+            let t = Target::Node(h.0);
+            assert_eq!(serde_json::to_string(&t).unwrap(), format!("\"{t}\""));
+        }
+        assert_eq!(serde_json::to_string(&Target::All).unwrap(), "\"all\"");
     }
 
     #[test]

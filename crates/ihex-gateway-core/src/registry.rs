@@ -60,8 +60,8 @@ pub struct NodeEntry {
     pub loops: u8,
     /// When an acknowledgement last changed `led`, `buzzer` or `relay`.
     pub acked_at: Option<Instant>,
-    /// The stable part of the state document last published (see [`Registry::state_changed`]).
-    published: Option<NodeState>,
+    /// What the state document last published showed (see [`Registry::state_changed`]).
+    published: Option<Shown>,
 }
 
 impl NodeEntry {
@@ -112,7 +112,7 @@ impl NodeEntry {
             online: self.online,
             role: self.role(),
             ports: self.ports,
-            version: self.version.map(|(a, b)| format!("{a}.{b}")),
+            version: self.version.map(crate::event::version_text),
             firmware: self.firmware.map(|(version, trial)| Firmware {
                 version: version.to_string(),
                 trial,
@@ -151,16 +151,44 @@ pub(crate) fn millis(d: std::time::Duration) -> u64 {
     u64::try_from(d.as_millis()).unwrap_or(u64::MAX)
 }
 
-/// Strips what changes on every health reply, so that only real changes trigger a retained publish.
-fn stable(mut s: NodeState) -> NodeState {
-    s.last_seen_ms = 0;
-    s.first_seen_ms = 0;
-    if let Some(r) = &mut s.reported {
-        r.tec = 0;
-        r.rec = 0;
-        r.uptime_s = 0;
+/// What a node's state document shows apart from ages and health counters (tec, rec, uptime),
+/// which change on every health reply: compared instead of the document itself, because every
+/// frame from a node asks whether its document changed and building one allocates its strings.
+#[derive(Clone, PartialEq, Eq, Debug)]
+struct Shown {
+    online: bool,
+    role: Option<BootRole>,
+    ports: Option<u8>,
+    version: Option<(u8, u8)>,
+    firmware: Option<(FirmwareVersion, bool, [u8; 7])>,
+    uid: Option<Uid>,
+    led: Option<LedCommand>,
+    buzzer: Option<BuzzerCommand>,
+    relay: Option<bool>,
+    loops: u8,
+    flags: Option<HealthFlags>,
+    links: Vec<Link>,
+}
+
+impl Shown {
+    fn of(e: &NodeEntry, links: &[Link]) -> Shown {
+        Shown {
+            online: e.online,
+            role: e.role,
+            ports: e.ports,
+            version: e.version,
+            firmware: e
+                .firmware
+                .map(|(v, trial)| (v, trial, e.image_hash.unwrap_or_default())),
+            uid: e.uid,
+            led: e.led,
+            buzzer: e.buzzer,
+            relay: e.relay,
+            loops: e.loops,
+            flags: e.health.map(|h| h.flags),
+            links: links.to_vec(),
+        }
     }
-    s
 }
 
 /// All known nodes, by ID.
@@ -298,17 +326,18 @@ impl Registry {
         }
     }
 
-    /// True when the state document of `id` differs from the last one published (ignoring counters
-    /// and ages), and remembers `doc` as published.
-    pub fn state_changed(&mut self, id: NodeId, doc: &NodeState) -> bool {
+    /// True when the state document of `id` with docking `links` would differ from the last one
+    /// published (ignoring ages and health counters), and remembers it as published. Compares what
+    /// the document is built from, without building it.
+    pub fn state_changed(&mut self, id: NodeId, links: &[Link]) -> bool {
         let Some(e) = self.nodes.get_mut(&id) else {
             return false;
         };
-        let s = stable(doc.clone());
-        if e.published.as_ref() == Some(&s) {
+        let shown = Shown::of(e, links);
+        if e.published.as_ref() == Some(&shown) {
             return false;
         }
-        e.published = Some(s);
+        e.published = Some(shown);
         true
     }
 }
@@ -386,22 +415,25 @@ mod tests {
         assert_eq!(e.relay, Some(true));
         let doc = e.state(vec![], t0);
         assert_eq!(doc.loops, vec![0, 3]);
-        assert!(r.state_changed(id(7), &doc));
-        assert!(!r.state_changed(id(7), &doc));
+        assert!(r.state_changed(id(7), &[]));
+        assert!(!r.state_changed(id(7), &[]));
         // Only the uptime moved: no publish.
         r.record_health(
             id(7),
             reply(1, HealthFlags::MOBILE | HealthFlags::RELAY, 11),
             None,
         );
-        let doc = r
-            .get(id(7))
-            .unwrap()
-            .state(vec![], t0 + Duration::from_secs(1));
-        assert!(!r.state_changed(id(7), &doc));
+        assert!(!r.state_changed(id(7), &[]));
         // The relay went off: publish.
         r.record_health(id(7), reply(2, HealthFlags::MOBILE, 12), None);
-        let doc = r.get(id(7)).unwrap().state(vec![], t0);
-        assert!(r.state_changed(id(7), &doc));
+        assert!(r.state_changed(id(7), &[]));
+        // A docking link appeared: publish.
+        let link = Link {
+            port: 1,
+            peer: HexId(id(8)),
+            peer_port: 0,
+        };
+        assert!(r.state_changed(id(7), std::slice::from_ref(&link)));
+        assert!(!r.state_changed(id(7), &[link]));
     }
 }

@@ -1,12 +1,27 @@
 //! Logging set-up for the binary: human-readable lines on stderr and JSON lines in a rotated file,
-//! both written by background threads (`tracing-appender` non-blocking writers, lossy when full), so
-//! logging never blocks the data path. Keep the returned [`LogGuard`] until shutdown: dropping it
-//! flushes what is still buffered.
+//! both written by background threads (`tracing-appender` non-blocking writers, lossy when full:
+//! [`BUFFERED_LINES`] lines each), so logging never blocks the data path. Keep the returned
+//! [`LogGuard`] until shutdown: dropping it flushes what is still buffered.
 
-use tracing_appender::{non_blocking::WorkerGuard, rolling};
+use tracing_appender::{
+    non_blocking::{NonBlocking, NonBlockingBuilder, WorkerGuard},
+    rolling,
+};
 use tracing_subscriber::{fmt, layer::SubscriberExt, util::SubscriberInitExt, EnvFilter, Layer};
 
 use crate::config::{LogConfig, Rotation};
+
+/// Lines each log writer buffers for its thread before further lines are dropped. The crate's
+/// default, 128,000, allocates and touches a 4 MB channel per writer at start-up: half the
+/// gateway's resident memory (docs/benchmarks.md); a burst of this many lines outruns no disk.
+pub const BUFFERED_LINES: usize = 4096;
+
+/// A non-blocking writer of [`BUFFERED_LINES`] lines around `w`.
+fn non_blocking<W: std::io::Write + Send + 'static>(w: W) -> (NonBlocking, WorkerGuard) {
+    NonBlockingBuilder::default()
+        .buffered_lines_limit(BUFFERED_LINES)
+        .finish(w)
+}
 
 /// Name of the log files: `mc-gateway.<date>.jsonl` in the log directory.
 pub const FILE_PREFIX: &str = "mc-gateway";
@@ -60,7 +75,7 @@ pub fn init(cfg: &LogConfig) -> Result<LogGuard, LogError> {
         std::io::IsTerminal::is_terminal(&std::io::stderr()),
         std::env::var_os("NO_COLOR"),
     );
-    let (term, g) = tracing_appender::non_blocking(std::io::stderr());
+    let (term, g) = non_blocking(std::io::stderr());
     guards.push(g);
     let term_layer = fmt::layer()
         .with_ansi(ansi)
@@ -85,7 +100,7 @@ pub fn init(cfg: &LogConfig) -> Result<LogGuard, LogError> {
                 .max_log_files(30)
                 .build(dir)
                 .map_err(|e| LogError::File(dir.display().to_string(), e.to_string()))?;
-            let (file, g) = tracing_appender::non_blocking(appender);
+            let (file, g) = non_blocking(appender);
             guards.push(g);
             Some(
                 fmt::layer()

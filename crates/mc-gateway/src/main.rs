@@ -6,7 +6,10 @@ use std::process::ExitCode;
 use anyhow::Context as _;
 use tokio_util::sync::CancellationToken;
 
-#[tokio::main]
+// One thread: the gateway's tasks hand every frame and publication to each other, which on one
+// thread costs no cross-thread wake-up, and a Pi-class island never needs a second core for it
+// (docs/benchmarks.md: CPU per 1,000 frames, peak RSS).
+#[tokio::main(flavor = "current_thread")]
 async fn main() -> ExitCode {
     match run().await {
         Ok(()) => ExitCode::SUCCESS,

@@ -556,17 +556,19 @@ impl MqttTask {
     /// Hands queued publications to rumqttc until its channel is full.
     fn flush(&self, client: &AsyncClient, backlog: &mut VecDeque<Outbound>) {
         while let Some(p) = backlog.pop_front() {
-            match client.try_publish(
-                p.topic.clone(),
-                QoS::AtLeastOnce,
-                p.retain,
-                p.payload.clone(),
-            ) {
+            // Moved, not copied: a refused request comes back whole in the error.
+            match client.try_publish(p.topic, QoS::AtLeastOnce, p.retain, p.payload) {
                 Ok(()) => {
                     self.stats.published.fetch_add(1, Ordering::Relaxed);
                 }
-                Err(ClientError::TryRequest(_)) | Err(ClientError::Request(_)) => {
-                    backlog.push_front(p);
+                Err(ClientError::TryRequest(r)) | Err(ClientError::Request(r)) => {
+                    if let Request::Publish(p) = r {
+                        backlog.push_front(Outbound {
+                            topic: p.topic,
+                            payload: p.payload.into(),
+                            retain: p.retain,
+                        });
+                    }
                     return;
                 }
             }

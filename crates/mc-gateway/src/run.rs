@@ -3,6 +3,8 @@
 //! options, and in the demo the embedded broker, the simulated island and its control client — and
 //! [`Gateway::run`] only runs them: the CAN tasks, the MQTT task, and the core loop, one task that
 //! owns the [`Bridge`], feeds it inputs and timeouts and carries out its outputs without waiting.
+//! The loop takes every input already waiting (up to `BATCH` of a kind) before it carries out the
+//! outputs, so a busy bus costs one turn of the loop per batch of frames, not per frame.
 //! Every channel is bounded, and what gives when one is full is the bridge's choice: frames wait in
 //! the bridge while its transmit window is full, publications wait in the bridge (answers kept,
 //! state documents coalesced, other events shed and counted) while the MQTT task has no room, and
@@ -34,6 +36,9 @@ const CAN_INPUTS: usize = 1024;
 const MQTT_INPUTS: usize = 256;
 /// Publications from the core waiting for the MQTT task (the bridge holds the rest, by its rules).
 const PUBLICATIONS: usize = 256;
+/// Inputs of one kind the core takes per turn of its loop when they are already waiting (the
+/// answers' bound [`Bridge::wants_commands`] is checked before each command).
+const BATCH: usize = 64;
 /// How long the core spends at shutdown handing its last publications to the MQTT task.
 const SHUTDOWN_FLUSH: Duration = Duration::from_secs(1);
 
@@ -263,14 +268,12 @@ impl Core {
                 }
                 _ = tokio::time::sleep_until(deadline) => self.bridge.handle_timeout(Instant::now()),
                 Some(input) = can_in.recv() => {
-                    let now = Instant::now();
-                    match input {
-                        CanInput::Packet(p) => self.bridge.handle_packet(p, now),
-                        CanInput::Undecodable { raw_id, data, err } => self.bridge.handle_undecodable(raw_id, &data, err, now),
-                        CanInput::Bus(ev) => self.bridge.handle_bus_event(ev, now),
-                        CanInput::SendFailed(p, reason) => self.bridge.handle_send_failed(p, &reason, now),
-                        CanInput::Transmitted(p) => self.bridge.handle_transmitted(p, now),
-                        CanInput::Withdrawn(p) => self.bridge.handle_withdrawn(p, now),
+                    on_can(&mut self.bridge, input);
+                    // Every frame already waiting, in one turn of the loop: the turn itself (its
+                    // timer, the outputs handed on) costs more than a frame.
+                    for _ in 1..BATCH {
+                        let Ok(input) = can_in.try_recv() else { break };
+                        on_can(&mut self.bridge, input);
                     }
                 }
                 req = self.views.next() => {
@@ -279,16 +282,16 @@ impl Core {
                 }
                 // While answers cannot be handed on, commands stay with the MQTT task (unacknowledged,
                 // so the broker holds back more): answers are never dropped and stay bounded.
-                Some(input) = mqtt_in.recv(), if wants_commands => match input {
-                    MqttInput::Command { payload, received, retained } => {
-                        let delivery = Delivery { received, retained };
-                        self.bridge.handle_delivered_command(&payload, delivery, Instant::now());
+                Some(input) = mqtt_in.recv(), if wants_commands => {
+                    on_mqtt(&mut self.bridge, input);
+                    for _ in 1..BATCH {
+                        if !self.bridge.wants_commands() {
+                            break;
+                        }
+                        let Ok(input) = mqtt_in.try_recv() else { break };
+                        on_mqtt(&mut self.bridge, input);
                     }
-                    MqttInput::HaCommand { topic, payload } => self.bridge.handle_ha_command(&topic, &payload, Instant::now()),
-                    MqttInput::HaStatus(payload) => self.bridge.handle_ha_status(&payload, Instant::now()),
-                    MqttInput::FwUpload { name, payload, retained } => self.bridge.handle_fw_upload(&name, payload.to_vec(), retained, Instant::now()),
-                    MqttInput::Connected => self.bridge.handle_mqtt_connected(Instant::now()),
-                },
+                }
                 // Room for publications again: the loop's top hands them on.
                 _ = self.pub_tx.reserve(), if publications_waiting => {}
             }
@@ -345,6 +348,44 @@ impl Core {
                 }
             }
         }
+    }
+}
+
+/// One input from the CAN tasks into the bridge.
+fn on_can(bridge: &mut Bridge, input: CanInput) {
+    let now = Instant::now();
+    match input {
+        CanInput::Packet(p) => bridge.handle_packet(p, now),
+        CanInput::Undecodable { raw_id, data, err } => {
+            bridge.handle_undecodable(raw_id, &data, err, now)
+        }
+        CanInput::Bus(ev) => bridge.handle_bus_event(ev, now),
+        CanInput::SendFailed(p, reason) => bridge.handle_send_failed(p, &reason, now),
+        CanInput::Transmitted(p) => bridge.handle_transmitted(p, now),
+        CanInput::Withdrawn(p) => bridge.handle_withdrawn(p, now),
+    }
+}
+
+/// One input from the MQTT task (or the island view) into the bridge.
+fn on_mqtt(bridge: &mut Bridge, input: MqttInput) {
+    let now = Instant::now();
+    match input {
+        MqttInput::Command {
+            payload,
+            received,
+            retained,
+        } => {
+            let delivery = Delivery { received, retained };
+            bridge.handle_delivered_command(&payload, delivery, now);
+        }
+        MqttInput::HaCommand { topic, payload } => bridge.handle_ha_command(&topic, &payload, now),
+        MqttInput::HaStatus(payload) => bridge.handle_ha_status(&payload, now),
+        MqttInput::FwUpload {
+            name,
+            payload,
+            retained,
+        } => bridge.handle_fw_upload(&name, payload.to_vec(), retained, now),
+        MqttInput::Connected => bridge.handle_mqtt_connected(now),
     }
 }
 

@@ -118,17 +118,37 @@ fn key_of(p: &Packet) -> Option<PendingKey> {
     }
 }
 
+/// A [`PendingKey`] packed into one integer with the same order (destination, then kind, then
+/// seq): the tables are searched on every command, ack and echo, and comparing one `u32` costs a
+/// fraction of comparing the tuple (callgrind: a third of the instructions of a command).
+#[derive(Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Debug)]
+struct Packed(u32);
+
+impl Packed {
+    fn new((dest, kind, seq): PendingKey) -> Packed {
+        Packed(u32::from(dest.get()) << 16 | u32::from(kind as u8) << 8 | u32::from(seq))
+    }
+
+    /// The key again; `None` cannot happen for a key packed by [`Packed::new`].
+    fn key(self) -> Option<PendingKey> {
+        let dest = NodeId::new((self.0 >> 16) as u16)?;
+        let kind = Kind::from_raw((self.0 >> 8) as u8)?;
+        Some((dest, kind, self.0 as u8))
+    }
+}
+
 /// The pending commands, also indexed by deadline: the core loop asks for the next deadline on every
 /// turn, and a scan of thousands of unanswered commands (a node that never acks, a flood of commands)
 /// made that turn quadratic.
 #[derive(Debug, Default)]
 struct Pending {
-    by_key: BTreeMap<PendingKey, PendingCommand>,
-    by_deadline: BTreeSet<(Instant, PendingKey)>,
+    by_key: BTreeMap<Packed, PendingCommand>,
+    by_deadline: BTreeSet<(Instant, Packed)>,
 }
 
 impl Pending {
     fn insert(&mut self, key: PendingKey, p: PendingCommand) {
+        let key = Packed::new(key);
         self.by_deadline.insert((p.deadline, key));
         if let Some(old) = self.by_key.insert(key, p) {
             self.by_deadline.remove(&(old.deadline, key));
@@ -136,35 +156,48 @@ impl Pending {
     }
 
     fn remove(&mut self, key: &PendingKey) -> Option<PendingCommand> {
-        let p = self.by_key.remove(key)?;
-        self.by_deadline.remove(&(p.deadline, *key));
+        let key = Packed::new(*key);
+        let p = self.by_key.remove(&key)?;
+        self.by_deadline.remove(&(p.deadline, key));
         Some(p)
     }
 
     fn get(&self, key: &PendingKey) -> Option<&PendingCommand> {
-        self.by_key.get(key)
+        self.by_key.get(&Packed::new(*key))
     }
 
     /// Mutable access for progress (acks of a broadcast, the frame's fate); the deadline changes
     /// only through [`Pending::set_deadline`].
     fn get_mut(&mut self, key: &PendingKey) -> Option<&mut PendingCommand> {
-        self.by_key.get_mut(key)
+        self.by_key.get_mut(&Packed::new(*key))
     }
 
     fn set_deadline(&mut self, key: &PendingKey, deadline: Instant) {
-        if let Some(p) = self.by_key.get_mut(key) {
-            self.by_deadline.remove(&(p.deadline, *key));
+        let key = Packed::new(*key);
+        if let Some(p) = self.by_key.get_mut(&key) {
+            self.by_deadline.remove(&(p.deadline, key));
             p.deadline = deadline;
-            self.by_deadline.insert((deadline, *key));
+            self.by_deadline.insert((deadline, key));
         }
     }
 
     fn contains_key(&self, key: &PendingKey) -> bool {
-        self.by_key.contains_key(key)
+        self.by_key.contains_key(&Packed::new(*key))
     }
 
-    fn iter(&self) -> impl Iterator<Item = (&PendingKey, &PendingCommand)> {
-        self.by_key.iter()
+    /// The seqs pending for `dest` and `kind`, as a 256-bit set (bit `seq` of word `seq / 64`).
+    fn taken_seqs(&self, dest: NodeId, kind: Kind) -> [u64; 4] {
+        let mut taken = [0u64; 4];
+        let first = Packed::new((dest, kind, 0));
+        let last = Packed::new((dest, kind, u8::MAX));
+        for k in self.by_key.range(first..=last).map(|(k, _)| k.0 as u8) {
+            taken[usize::from(k >> 6)] |= 1 << (k & 63);
+        }
+        taken
+    }
+
+    fn iter(&self) -> impl Iterator<Item = (PendingKey, &PendingCommand)> {
+        self.by_key.iter().filter_map(|(k, p)| Some((k.key()?, p)))
     }
 
     fn next_deadline(&self) -> Option<Instant> {
@@ -176,7 +209,7 @@ impl Pending {
         self.by_deadline
             .iter()
             .take_while(|(d, _)| *d <= now)
-            .map(|(_, k)| *k)
+            .filter_map(|(_, k)| k.key())
             .collect()
     }
 }
@@ -239,10 +272,19 @@ impl Commands {
     /// A sequence number not in use by a pending frame of this kind to this destination; `None`
     /// when all 256 are in use.
     fn alloc_seq(&mut self, dest: NodeId, kind: Kind) -> Option<Seq> {
+        let seq = self.next_seq;
+        if !self.pending.contains_key(&(dest, kind, seq)) {
+            self.next_seq = seq.wrapping_add(1);
+            return Some(seq);
+        }
+        // Taken: read the seqs taken for this destination and kind in one walk of the table
+        // (probing seq after seq cost a table search each, dozens per command once a node stops
+        // acking).
+        let taken = self.pending.taken_seqs(dest, kind);
         for _ in 0..=u8::MAX {
             let seq = self.next_seq;
             self.next_seq = seq.wrapping_add(1);
-            if !self.pending.contains_key(&(dest, kind, seq)) {
+            if taken[usize::from(seq >> 6)] & 1 << (seq & 63) == 0 {
                 return Some(seq);
             }
         }
@@ -518,7 +560,7 @@ impl Commands {
                 .pending
                 .iter()
                 .find(|(_, p)| p.select.as_ref() == Some(packet))
-                .map(|(k, _)| *k),
+                .map(|(k, _)| k),
             _ => key_of(packet).filter(|k| {
                 self.pending
                     .get(k)

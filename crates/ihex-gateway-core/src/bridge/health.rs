@@ -116,7 +116,7 @@ impl Health {
                     out.emit(Event::NodeRebooted(NodeRebooted {
                         id: HexId(src),
                         reset: reset.to_string(),
-                        version: format!("{}.{}", version.0, version.1),
+                        version: crate::event::version_text(version),
                         role: role.unwrap_or(Role::Static),
                     }));
                 }

@@ -751,21 +751,23 @@ impl Bridge {
                 Next::Event(e) => return Some(Publication::Event(e)),
                 Next::Kept(p) => return Some(p),
                 Next::State { id, forced } => {
-                    let Some(doc) = self.node_state(id, self.now) else {
+                    let links = self.docking.links_of(id);
+                    let changed = self.registry.state_changed(id, &links);
+                    if !(changed || forced) {
+                        continue;
+                    }
+                    let Some(doc) = self.registry.get(id).map(|e| e.state(links, self.now)) else {
                         continue;
                     };
-                    let changed = self.registry.state_changed(id, &doc);
-                    if changed || forced {
-                        self.out.publish.count_state();
-                        // Home Assistant's config and light state follow the document.
-                        if let (Some(ha), Some(entry)) = (&mut self.ha, self.registry.get(id)) {
-                            let follow = ha.on_state(&doc, entry, forced);
-                            self.out
-                                .publish
-                                .push_kept_next(follow.into_iter().map(Publication::Ha));
-                        }
-                        return Some(Publication::State(doc));
+                    self.out.publish.count_state();
+                    // Home Assistant's config and light state follow the document.
+                    if let (Some(ha), Some(entry)) = (&mut self.ha, self.registry.get(id)) {
+                        let follow = ha.on_state(&doc, entry, forced);
+                        self.out
+                            .publish
+                            .push_kept_next(follow.into_iter().map(Publication::Ha));
                     }
+                    return Some(Publication::State(doc));
                 }
             }
         }
@@ -943,9 +945,14 @@ impl Bridge {
             let online = |id| registry.get(id).is_some_and(|e| e.online);
             self.readback.poll(online, now, &mut self.out);
         }
-        for id in std::mem::take(&mut self.out.dirty) {
+        let mut dirty = std::mem::take(&mut self.out.dirty);
+        dirty.sort_unstable();
+        dirty.dedup();
+        for id in dirty.drain(..) {
             self.out.publish.push_state(id, false);
         }
+        // Kept, with its capacity, for the next input.
+        self.out.dirty = dirty;
     }
 }
 

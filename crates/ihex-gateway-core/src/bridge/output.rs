@@ -443,8 +443,10 @@ pub(super) struct Outputs {
     pub(super) transmit: TransmitQueue,
     /// Publications.
     pub(super) publish: PublishQueue,
-    /// Nodes whose state document may have changed since it was last published.
-    pub(super) dirty: BTreeSet<NodeId>,
+    /// Nodes whose state document may have changed since it was last published, in any order and
+    /// possibly repeated (nearly every frame touches its node: a set would allocate a tree node
+    /// per input; the bridge sorts and dedups once per input instead).
+    pub(super) dirty: Vec<NodeId>,
     /// Nodes whose real state the bridge is no longer sure of (a command to them timed out).
     pub(super) unsure: BTreeSet<NodeId>,
 }
@@ -454,7 +456,7 @@ impl Outputs {
         Outputs {
             transmit: TransmitQueue::new(tx_queue),
             publish: PublishQueue::new(event_queue),
-            dirty: BTreeSet::new(),
+            dirty: Vec::new(),
             unsure: BTreeSet::new(),
         }
     }
@@ -477,7 +479,7 @@ impl Outputs {
 
     /// Marks a node's state document for publication (if it changed) at the end of the input.
     pub(super) fn touch(&mut self, id: NodeId) {
-        self.dirty.insert(id);
+        self.dirty.push(id);
     }
 }
 

@@ -68,6 +68,10 @@ pub(super) struct ReadBack {
     timeout: Duration,
     seq: Seq,
     nodes: BTreeMap<NodeId, NodeQuery>,
+    /// False only when no node is due: [`ReadBack::poll`] runs after every input and would
+    /// otherwise walk every node each time. Set by whatever may make a node due, cleared by the
+    /// walk that finds none left.
+    maybe_due: bool,
     /// Complete replies applied since start.
     replies: u64,
 }
@@ -79,6 +83,7 @@ impl ReadBack {
             timeout,
             seq: 0,
             nodes: BTreeMap::new(),
+            maybe_due: false,
             replies: 0,
         }
     }
@@ -88,6 +93,7 @@ impl ReadBack {
         let q = self.nodes.entry(id).or_default();
         if !q.unsupported {
             q.due = true;
+            self.maybe_due = true;
         }
     }
 
@@ -104,6 +110,7 @@ impl ReadBack {
         q.incomplete = 0;
         q.unsupported = version < READ_BACK_VERSION;
         q.due = !q.unsupported;
+        self.maybe_due |= q.due;
     }
 
     /// `id` was lost: a question in flight is void; it is asked again when it is back.
@@ -111,6 +118,7 @@ impl ReadBack {
         if let Some(q) = self.nodes.get_mut(&id) {
             if q.asking.take().is_some() {
                 q.due = !q.unsupported;
+                self.maybe_due |= q.due;
             }
         }
     }
@@ -121,6 +129,7 @@ impl ReadBack {
         if let Some(q) = self.nodes.get_mut(&id) {
             if q.asking.take().is_some() {
                 q.due = !q.unsupported;
+                self.maybe_due |= q.due;
             }
         }
     }
@@ -131,6 +140,7 @@ impl ReadBack {
         for q in self.nodes.values_mut() {
             if q.asking.take().is_some() {
                 q.due = !q.unsupported;
+                self.maybe_due |= q.due;
             }
         }
     }
@@ -167,6 +177,7 @@ impl ReadBack {
         if usize::from(count) != asking.reports.len() {
             q.incomplete += 1;
             q.due = q.incomplete < INCOMPLETE_LIMIT;
+            self.maybe_due |= q.due;
             tracing::debug!(node = %src, count, got = asking.reports.len(), "state reply with parts missing");
             return None;
         }
@@ -192,6 +203,7 @@ impl ReadBack {
                     q.due = false;
                 } else {
                     q.due = true;
+                    self.maybe_due = true;
                 }
             }
         }
@@ -205,13 +217,19 @@ impl ReadBack {
         now: Instant,
         out: &mut Outputs,
     ) {
+        if !self.maybe_due {
+            return;
+        }
         let mut asking = self.nodes.values().filter(|q| q.asking.is_some()).count();
+        let mut still_due = false;
         let mut next_seq = self.seq;
         for (&id, q) in &mut self.nodes {
             if asking >= MAX_QUERIES {
+                still_due = true;
                 break;
             }
             if !q.due || q.asking.is_some() || !online(id) {
+                still_due |= q.due;
                 continue;
             }
             let seq = next_seq;
@@ -233,6 +251,7 @@ impl ReadBack {
             ));
         }
         self.seq = next_seq;
+        self.maybe_due = still_due;
     }
 
     /// When the earliest question in flight counts as unanswered.

@@ -2,6 +2,7 @@
 //! it is read, every mistake a [`CommandError`] worded for the person who sent the command (the
 //! field, what it accepts, what it got) — never a parser's internals.
 
+use std::borrow::Cow;
 use std::time::Duration;
 
 use ihex_proto::unit;
@@ -14,7 +15,7 @@ pub(crate) struct Fields<'a> {
     cmd: &'static str,
     /// `"blink."` for the members of `blink`, `""` at the top.
     prefix: &'static str,
-    members: &'a [(String, Json)],
+    members: &'a [(Cow<'a, str>, Json<'a>)],
 }
 
 /// Fields every command may have: `cmd`, then those listed as accepted besides its own.
@@ -23,7 +24,7 @@ pub(super) const COMMON: [&str; 3] = ["cmd", "request_id", "ttl_ms"];
 /// `ttl_ms` of `cmd`'s object (already checked for repeats by [`Fields::new`]).
 pub(super) fn ttl(
     cmd: &'static str,
-    members: &[(String, Json)],
+    members: &[(Cow<'_, str>, Json<'_>)],
 ) -> Result<Option<Duration>, CommandError> {
     let f = Fields {
         cmd,
@@ -56,7 +57,7 @@ impl<'a> Fields<'a> {
     pub(crate) fn new(
         cmd: &'static str,
         prefix: &'static str,
-        members: &'a [(String, Json)],
+        members: &'a [(Cow<'a, str>, Json<'a>)],
         allowed: &[&str],
         hint: &str,
     ) -> Result<Fields<'a>, CommandError> {
@@ -67,7 +68,7 @@ impl<'a> Fields<'a> {
     /// [`Fields::new`] at the top, but `cmd` and `request_id` are as unknown as any other name.
     pub(crate) fn object(
         cmd: &'static str,
-        members: &'a [(String, Json)],
+        members: &'a [(Cow<'a, str>, Json<'a>)],
         allowed: &[&str],
     ) -> Result<Fields<'a>, CommandError> {
         Fields::check(cmd, "", members, allowed, "", false)
@@ -77,7 +78,7 @@ impl<'a> Fields<'a> {
     fn check(
         cmd: &'static str,
         prefix: &'static str,
-        members: &'a [(String, Json)],
+        members: &'a [(Cow<'a, str>, Json<'a>)],
         allowed: &[&str],
         hint: &str,
         top: bool,
@@ -91,8 +92,8 @@ impl<'a> Fields<'a> {
                     ),
                 });
             }
-            let common = top && COMMON.contains(&name.as_str());
-            if !common && !allowed.contains(&name.as_str()) {
+            let common = top && COMMON.contains(&name.as_ref());
+            if !common && !allowed.contains(&name.as_ref()) {
                 let mut accepted = allowed.to_vec();
                 if top {
                     accepted.extend(&COMMON[1..]);
@@ -114,7 +115,7 @@ impl<'a> Fields<'a> {
     }
 
     /// The value of `name`; `None` when it is absent or `null` ("not given").
-    pub(crate) fn get(&self, name: &str) -> Option<&'a Json> {
+    pub(crate) fn get(&self, name: &str) -> Option<&'a Json<'a>> {
         match self.members.iter().find(|(n, _)| n == name) {
             None | Some((_, Json::Null)) => None,
             Some((_, v)) => Some(v),

@@ -1,8 +1,10 @@
 //! The JSON text of a command as a tree that keeps what `serde_json::Value` hides: object members in
 //! their order and every repeated key (so a duplicate can be refused instead of the last one
 //! silently winning). Parsing is serde_json's (with its nesting limit); reading the tree is
-//! `field`'s.
+//! `field`'s. Keys and strings borrow from the text when they have no escapes: a command's
+//! members cost no allocation each.
 
+use std::borrow::Cow;
 use std::fmt;
 
 use serde::de::{
@@ -10,9 +12,9 @@ use serde::de::{
 };
 use serde_json::Number;
 
-/// A JSON value, objects as member lists.
+/// A JSON value, objects as member lists; strings borrowed from the text where they can be.
 #[derive(Clone, PartialEq, Debug)]
-pub enum Json {
+pub enum Json<'a> {
     /// `null`.
     Null,
     /// `true` / `false`.
@@ -20,16 +22,16 @@ pub enum Json {
     /// A number as written (integer or not).
     Number(Number),
     /// A string.
-    String(String),
+    String(Cow<'a, str>),
     /// An array.
-    Array(Vec<Json>),
+    Array(Vec<Json<'a>>),
     /// An object: its members in order, repeated keys included.
-    Object(Vec<(String, Json)>),
+    Object(Vec<(Cow<'a, str>, Json<'a>)>),
 }
 
-impl Json {
+impl<'a> Json<'a> {
     /// Parses JSON text; the error is serde_json's (position included).
-    pub fn parse(text: &str) -> Result<Json, serde_json::Error> {
+    pub fn parse(text: &'a str) -> Result<Json<'a>, serde_json::Error> {
         serde_json::from_str(text)
     }
 
@@ -50,7 +52,7 @@ impl Json {
 const QUOTE_MAX: usize = 60;
 
 /// The value as compact JSON, cut to a readable length: what a reason quotes after `got`.
-pub struct Quote<'a>(pub &'a Json);
+pub struct Quote<'a>(pub &'a Json<'a>);
 
 impl fmt::Display for Quote<'_> {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
@@ -62,7 +64,7 @@ impl fmt::Display for Quote<'_> {
     }
 }
 
-impl fmt::Display for Json {
+impl fmt::Display for Json<'_> {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
             Json::Null => f.write_str("null"),
@@ -102,61 +104,80 @@ fn write_str(f: &mut fmt::Formatter<'_>, s: &str) -> fmt::Result {
     }
 }
 
-impl<'de> Deserialize<'de> for Json {
-    fn deserialize<D: Deserializer<'de>>(d: D) -> Result<Json, D::Error> {
+impl<'de> Deserialize<'de> for Json<'de> {
+    fn deserialize<D: Deserializer<'de>>(d: D) -> Result<Json<'de>, D::Error> {
         d.deserialize_any(JsonVisitor)
+    }
+}
+
+/// An object key, borrowed from the text when it has no escapes (serde's own `Cow<str>` always
+/// copies).
+struct Key<'a>(Cow<'a, str>);
+
+impl<'de> Deserialize<'de> for Key<'de> {
+    fn deserialize<D: Deserializer<'de>>(d: D) -> Result<Key<'de>, D::Error> {
+        match d.deserialize_str(JsonVisitor)? {
+            Json::String(s) => Ok(Key(s)),
+            other => Err(de::Error::custom(format!("a key, not {}", other.kind()))),
+        }
     }
 }
 
 struct JsonVisitor;
 
 impl<'de> Visitor<'de> for JsonVisitor {
-    type Value = Json;
+    type Value = Json<'de>;
 
     fn expecting(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         f.write_str("any JSON value")
     }
 
-    fn visit_unit<E: de::Error>(self) -> Result<Json, E> {
+    fn visit_unit<E: de::Error>(self) -> Result<Json<'de>, E> {
         Ok(Json::Null)
     }
 
-    fn visit_bool<E: de::Error>(self, v: bool) -> Result<Json, E> {
+    fn visit_bool<E: de::Error>(self, v: bool) -> Result<Json<'de>, E> {
         Ok(Json::Bool(v))
     }
 
-    fn visit_i64<E: de::Error>(self, v: i64) -> Result<Json, E> {
+    fn visit_i64<E: de::Error>(self, v: i64) -> Result<Json<'de>, E> {
         Ok(Json::Number(v.into()))
     }
 
-    fn visit_u64<E: de::Error>(self, v: u64) -> Result<Json, E> {
+    fn visit_u64<E: de::Error>(self, v: u64) -> Result<Json<'de>, E> {
         Ok(Json::Number(v.into()))
     }
 
-    fn visit_f64<E: de::Error>(self, v: f64) -> Result<Json, E> {
+    fn visit_f64<E: de::Error>(self, v: f64) -> Result<Json<'de>, E> {
         // JSON text has no NaN or infinity, so this is always a number.
         Ok(Number::from_f64(v).map_or(Json::Null, Json::Number))
     }
 
-    fn visit_str<E: de::Error>(self, v: &str) -> Result<Json, E> {
-        Ok(Json::String(v.to_owned()))
+    fn visit_borrowed_str<E: de::Error>(self, v: &'de str) -> Result<Json<'de>, E> {
+        Ok(Json::String(Cow::Borrowed(v)))
     }
 
-    fn visit_string<E: de::Error>(self, v: String) -> Result<Json, E> {
-        Ok(Json::String(v))
+    fn visit_str<E: de::Error>(self, v: &str) -> Result<Json<'de>, E> {
+        Ok(Json::String(Cow::Owned(v.to_owned())))
     }
 
-    fn visit_seq<A: SeqAccess<'de>>(self, mut seq: A) -> Result<Json, A::Error> {
-        let mut items = Vec::new();
+    fn visit_string<E: de::Error>(self, v: String) -> Result<Json<'de>, E> {
+        Ok(Json::String(Cow::Owned(v)))
+    }
+
+    fn visit_seq<A: SeqAccess<'de>>(self, mut seq: A) -> Result<Json<'de>, A::Error> {
+        // Commands' arrays are short (a colour): one allocation instead of growing from empty.
+        let mut items = Vec::with_capacity(seq.size_hint().unwrap_or(4).min(4));
         while let Some(v) = seq.next_element()? {
             items.push(v);
         }
         Ok(Json::Array(items))
     }
 
-    fn visit_map<A: MapAccess<'de>>(self, mut map: A) -> Result<Json, A::Error> {
-        let mut members = Vec::new();
-        while let Some((k, v)) = map.next_entry::<String, Json>()? {
+    fn visit_map<A: MapAccess<'de>>(self, mut map: A) -> Result<Json<'de>, A::Error> {
+        // A command has a handful of members: one allocation instead of growing from empty.
+        let mut members = Vec::with_capacity(map.size_hint().unwrap_or(8).min(8));
+        while let Some((Key(k), v)) = map.next_entry::<Key<'de>, Json<'de>>()? {
             members.push((k, v));
         }
         Ok(Json::Object(members))
@@ -264,14 +285,29 @@ mod tests {
     fn objects_keep_order_and_repeated_keys() {
         let j = Json::parse(r#"{"b":1,"a":[true,null,"x\"y"],"b":2.5}"#).unwrap();
         let Json::Object(m) = &j else { panic!() };
-        let keys: Vec<&str> = m.iter().map(|(k, _)| k.as_str()).collect();
+        let keys: Vec<&str> = m.iter().map(|(k, _)| k.as_ref()).collect();
         assert_eq!(keys, ["b", "a", "b"]);
         assert_eq!(j.to_string(), r#"{"b":1,"a":[true,null,"x\"y"],"b":2.5}"#);
     }
 
     #[test]
+    fn keys_and_strings_borrow_from_the_text_unless_escaped() {
+        let j = Json::parse(r#"{"cmd":"led","n\u006fde":"x\"y"}"#).unwrap();
+        let Json::Object(m) = &j else { panic!() };
+        assert!(matches!(
+            m[0],
+            (Cow::Borrowed("cmd"), Json::String(Cow::Borrowed("led")))
+        ));
+        let (key, Json::String(value)) = &m[1] else {
+            panic!()
+        };
+        assert!(matches!(key, Cow::Owned(k) if k == "node"));
+        assert!(matches!(value, Cow::Owned(v) if v == "x\"y"));
+    }
+
+    #[test]
     fn quotes_are_cut_to_a_readable_length() {
-        let long = Json::String("x".repeat(100));
+        let long = Json::String("x".repeat(100).into());
         let q = Quote(&long).to_string();
         assert_eq!(q.chars().count(), QUOTE_MAX + 1);
         assert!(q.ends_with('…'));

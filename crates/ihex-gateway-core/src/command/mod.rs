@@ -8,6 +8,7 @@
 pub(crate) mod field;
 pub mod json;
 
+use std::borrow::Cow;
 use std::time::Duration;
 
 use ihex_proto::{BuzzerCommand, LedCommand, Message, NodeId, Rgb, Seq, Uid};
@@ -300,7 +301,7 @@ pub fn parse(payload: &[u8], max_bytes: usize) -> Result<Request, Rejection> {
     // The request id first: a rejection echoes it whenever it can be read.
     let request_id = match one("request_id").map_err(|e| reject(None, e))? {
         None | Some(Json::Null) => None,
-        Some(Json::String(s)) => Some(s.clone()),
+        Some(Json::String(s)) => Some(s.to_string()),
         Some(other) => {
             let error = CommandError::RequestId(Quote(other).to_string());
             return Err(reject(None, error));
@@ -326,7 +327,7 @@ pub fn parse(payload: &[u8], max_bytes: usize) -> Result<Request, Rejection> {
     }
 }
 
-fn command(cmd: &str, members: &[(String, Json)]) -> Result<Command, CommandError> {
+fn command(cmd: &str, members: &[(Cow<'_, str>, Json<'_>)]) -> Result<Command, CommandError> {
     match cmd {
         "led" => led(&Fields::new("led", "", members, LED_FIELDS, "")?),
         "buzzer" => buzzer(&Fields::new("buzzer", "", members, BUZZER_FIELDS, "")?),

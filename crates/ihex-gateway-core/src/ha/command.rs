@@ -15,6 +15,7 @@
 //! - `identify` (button): `PRESS`, an identify of [`DEFAULT_IDENTIFY_S`] seconds.
 
 use ihex_proto::{unit, BuzzerCommand, LedCommand, NodeId, Rgb};
+use std::borrow::Cow;
 
 use super::light::{EFFECTS, EFFECT_BLINK, EFFECT_OFF};
 use super::topic::{Entity, HaTopics};
@@ -143,17 +144,17 @@ fn word<'a>(cmd: &'static str, text: &str, words: &[&'a str]) -> Result<&'a str,
             message: format!(
                 "the payload must be {}; got {}",
                 words.join(" or "),
-                Quote(&Json::String(text.to_owned()))
+                Quote(&Json::String(text.into()))
             ),
         })
 }
 
 /// The members of a JSON object payload.
-fn object(
+fn object<'a>(
     cmd: &'static str,
-    text: &str,
+    text: &'a str,
     example: &str,
-) -> Result<Vec<(String, Json)>, CommandError> {
+) -> Result<Vec<(Cow<'a, str>, Json<'a>)>, CommandError> {
     match Json::parse(text).map_err(|e| CommandError::Json(e.to_string()))? {
         Json::Object(members) => Ok(members),
         other => Err(CommandError::Invalid {
