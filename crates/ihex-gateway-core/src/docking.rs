@@ -755,11 +755,7 @@ mod tests {
         d.on_handshake(id(3), port(0), &[], t0);
         // 2 got power on 0x111 port 3 (the relay was on): port 1 is taken, port 3 is free; a loop
         // of the mobile element itself does not count.
-        let closed = [
-            (id(0x111), port(1)),
-            (id(0x111), port(3)),
-            (id(2), port(0)),
-        ];
+        let closed = [(id(0x111), port(1)), (id(0x111), port(3)), (id(2), port(0))];
         let c = conn((id(0x111), port(3)), (id(2), port(0)));
         assert_eq!(
             d.on_handshake(id(2), port(0), &closed, t0 + T),

@@ -286,6 +286,7 @@ impl Core {
                     }
                     MqttInput::HaCommand { topic, payload } => self.bridge.handle_ha_command(&topic, &payload, Instant::now()),
                     MqttInput::HaStatus(payload) => self.bridge.handle_ha_status(&payload, Instant::now()),
+                    MqttInput::RetainedState { id, payload } => self.bridge.handle_retained_state(id, &payload, Instant::now()),
                     MqttInput::Connected => self.bridge.handle_mqtt_connected(Instant::now()),
                 },
                 // Room for publications again: the loop's top hands them on.

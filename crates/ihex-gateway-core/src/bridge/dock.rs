@@ -431,8 +431,13 @@ mod tests {
         let out = drain(&mut b);
         assert!(out.named("fault").is_empty(), "{:?}", out.events);
         assert_eq!(
-            out.raw_events.iter().filter(|e| e.contains("new_connection")).collect::<Vec<_>>(),
-            [r#"{"event":"new_connection","payload":{"n":{"id":"2","port":0},"n-1":{"id":"111","port":3}}}"#]
+            out.raw_events
+                .iter()
+                .filter(|e| e.contains("new_connection"))
+                .collect::<Vec<_>>(),
+            [
+                r#"{"event":"new_connection","payload":{"n":{"id":"2","port":0},"n-1":{"id":"111","port":3}}}"#
+            ]
         );
         // The port is confirmed (it holds the relay like any docking), then linked.
         let to_111: Vec<_> = out
@@ -451,7 +456,12 @@ mod tests {
             ),
             "{to_111:?}"
         );
-        let st = out.states.iter().rev().find(|(i, _)| *i == id(0x111)).unwrap();
+        let st = out
+            .states
+            .iter()
+            .rev()
+            .find(|(i, _)| *i == id(0x111))
+            .unwrap();
         assert_eq!(
             st.1["connections"],
             json!([{"port": 3, "peer": "2", "peer_port": 0}])

@@ -914,7 +914,7 @@ impl Bridge {
         };
         // Each actuator on its own: an LED acknowledged after the question does not make the
         // reported buzzer any older.
-        let older = |acked: Option<Instant>| !acked.is_some_and(|t| t >= asked);
+        let older = |acked: Option<Instant>| acked.is_none_or(|t| t < asked);
         let acked = e.acked_at;
         let mut docks = Vec::new();
         let (mut low, mut high) = (None, None);
