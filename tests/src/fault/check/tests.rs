@@ -312,6 +312,45 @@ fn a_rejection_without_request_id_goes_to_the_newest_open_command() {
 }
 
 #[test]
+fn an_answer_without_request_id_goes_to_the_command_that_needs_it() {
+    // #1 is published during a cut (it never reached the gateway: no answer needed), #2 after the
+    // recovery; the one answer fits both windows and is #2's. (The first guess, the oldest open
+    // command, gave it to #1 and found #2 unanswered: a soak run's false violation.)
+    let mut t = T::new();
+    t.fault(100, 1, Fault::ProxyCut { ms: 100 }, 400)
+        .received(150, AVAIL, "offline")
+        .received(390, AVAIL, "online")
+        .led(200, 1, [1, 0, 0], None)
+        .led(500, 2, [2, 0, 0], None)
+        .result(600, None, "ok")
+        .at(5000, Entry::Note("end".into()));
+    t.trace.records.sort_by_key(|r| r.at);
+    let r = t.check();
+    assert!(r.ok(), "{r}");
+    assert_eq!((r.answered, r.lost_in_faults), (1, 1), "{r}");
+    // Answers are moved along when that answers everyone: #1's rejection (guessed for #2, the
+    // newest) and #2's result, which only #2 can own... here any result can be either's.
+    let reject =
+        r#"{"event":"command_rejected","payload":{"request_id":null,"reason":"unknown node 2"}}"#;
+    let mut t = T::new();
+    t.led(100, 1, [1, 0, 0], None)
+        .led(200, 2, [2, 0, 0], None)
+        .received(300, EVENTS, reject)
+        .result(400, None, "ok")
+        .at(5000, Entry::Note("end".into()));
+    let r = t.check();
+    assert!(r.ok(), "{r}");
+    assert_eq!(r.answered, 2);
+    // Still one answer too few for two commands that both need one.
+    let mut t = T::new();
+    t.led(100, 1, [1, 0, 0], None)
+        .led(200, 2, [2, 0, 0], None)
+        .result(400, None, "ok")
+        .at(5000, Entry::Note("end".into()));
+    assert_eq!(rules(&t.check()), [Rule::OneAnswer]);
+}
+
+#[test]
 fn a_late_answer_is_not_given_to_a_command_long_past_its_deadline() {
     // #1 (lost: sent at 100, deadline 100 + 1000 + 2 × 500) cannot own an answer at 5000; #2 does.
     let mut t = T::new();
