@@ -11,11 +11,11 @@
 //! A mobile element that gets power while already docked — on a port whose relay is on for
 //! another element, or switched on by a `power` command after a failed docking — sends its
 //! handshake with no docking pending. It is *adopted*: when exactly one closed signal loop of an
-//! online static element has no element recorded on it, that is where it docked (the static
-//! element is sent `DockConfirm`, so the port powers and unpowers it like any docking, then the
-//! usual `new_connection` and `DockLink`). Otherwise the handshake is kept for the docking
-//! timeout: a static element's report of a new docking in that time is answered by it at once
-//! (the handshake overtook the report).
+//! online static element whose relay is on has no element recorded on it, that is where it docked
+//! (the static element is sent `DockConfirm`, so the port powers and unpowers it like any docking,
+//! then the usual `new_connection` and `DockLink`). Otherwise the handshake is kept for a quarter
+//! of the docking timeout: a report of a new docking by a static element whose relay is on in that
+//! time is answered by it at once (the handshake overtook the report).
 
 use std::collections::{BTreeMap, VecDeque};
 use std::time::{Duration, Instant};
@@ -240,22 +240,27 @@ impl Docking {
             confirm_seq: None,
         });
         out.push(Step::Confirm { node, port });
-        // A handshake that overtook this report (the element got power before the confirm, from a
-        // relay already on) completes the docking at once.
+    }
+
+    /// A handshake that overtook the report of the docking just started (the element got power
+    /// before the confirm, from a relay already on) completes it at once.
+    fn claim_unclaimed(&mut self, node: NodeId, port: Port, now: Instant, out: &mut Vec<Step>) {
         self.drop_stale_unclaimed(now);
-        if let Some(i) = self.unclaimed.iter().position(|&(m, _, _)| m != node) {
-            if let Some((m, mp, _)) = self.unclaimed.remove(i) {
-                self.complete((node, port), (m, mp), false, now, out);
-                self.next(now, out);
-            }
+        let Some(i) = self.unclaimed.iter().position(|&(m, _, _)| m != node) else {
+            return;
+        };
+        if let Some((m, mp, _)) = self.unclaimed.remove(i) {
+            self.complete((node, port), (m, mp), false, now, out);
+            self.next(now, out);
         }
     }
 
-    /// Forgets unclaimed handshakes older than the docking timeout.
+    /// Forgets unclaimed handshakes older than a quarter of the docking timeout: the race with the
+    /// report lasts one debounce, and a stale one must not be given to a later docking.
     fn drop_stale_unclaimed(&mut self, now: Instant) {
-        let timeout = self.timeout;
+        let keep = self.timeout / 4;
         self.unclaimed
-            .retain(|&(_, _, at)| now.saturating_duration_since(at) < timeout);
+            .retain(|&(_, _, at)| now.saturating_duration_since(at) < keep);
     }
 
     /// Records the docking of `mobile` on the static element's port `stat` and publishes it.
@@ -288,8 +293,15 @@ impl Docking {
         }
     }
 
-    /// `DockDetected{port}` from the static `node`.
-    pub fn on_detected(&mut self, node: NodeId, port: Port, now: Instant) -> Vec<Step> {
+    /// `DockDetected{port}` from the static `node`; `relay_on`: its relay is on, so the element
+    /// there may already have power (and its handshake may have overtaken this report).
+    pub fn on_detected(
+        &mut self,
+        node: NodeId,
+        port: Port,
+        relay_on: bool,
+        now: Instant,
+    ) -> Vec<Step> {
         let mut out = Vec::new();
         if let Some(r) = self.connections.get_mut(&(node, port)) {
             if r.adopted && now.saturating_duration_since(r.since) < self.timeout {
@@ -299,7 +311,12 @@ impl Docking {
             }
         }
         match self.pending {
-            None => self.start(node, port, now, &mut out),
+            None => {
+                self.start(node, port, now, &mut out);
+                if relay_on {
+                    self.claim_unclaimed(node, port, now, &mut out);
+                }
+            }
             // Repeated report of what is already in progress or waiting: nothing new to do.
             Some(p) if p.node == node && p.port == port => {}
             Some(_) if self.queue.contains(&(node, port)) => {}
@@ -330,8 +347,8 @@ impl Docking {
     }
 
     /// `Handshake{port}` from `node` (the mobile element and its own port). `closed` lists the
-    /// closed signal loops of the online static elements (static element, its port): where a
-    /// handshake that no docking waits for may be adopted.
+    /// closed signal loops of the online static elements whose relay is on (static element, its
+    /// port): where a handshake that no docking waits for may be adopted.
     pub fn on_handshake(
         &mut self,
         node: NodeId,
@@ -609,7 +626,7 @@ mod tests {
         let t0 = Instant::now();
         let mut d = Docking::new(T, 2);
         assert_eq!(
-            d.on_detected(id(0x111), port(3), t0),
+            d.on_detected(id(0x111), port(3), false, t0),
             vec![Step::Confirm {
                 node: id(0x111),
                 port: port(3)
@@ -654,19 +671,19 @@ mod tests {
     fn queue_is_fifo_bounded_and_deduplicated() {
         let t0 = Instant::now();
         let mut d = Docking::new(T, 2);
-        d.on_detected(id(1), port(0), t0);
+        d.on_detected(id(1), port(0), false, t0);
         assert!(
-            d.on_detected(id(1), port(0), t0).is_empty(),
+            d.on_detected(id(1), port(0), false, t0).is_empty(),
             "repeat of the pending one"
         );
-        assert!(d.on_detected(id(2), port(1), t0).is_empty());
+        assert!(d.on_detected(id(2), port(1), false, t0).is_empty());
         assert!(
-            d.on_detected(id(2), port(1), t0).is_empty(),
+            d.on_detected(id(2), port(1), false, t0).is_empty(),
             "repeat of a queued one"
         );
-        assert!(d.on_detected(id(3), port(2), t0).is_empty());
+        assert!(d.on_detected(id(3), port(2), false, t0).is_empty());
         assert_eq!(
-            d.on_detected(id(4), port(3), t0),
+            d.on_detected(id(4), port(3), false, t0),
             vec![Step::RefuseBusy {
                 node: id(4),
                 port: port(3)
@@ -706,9 +723,9 @@ mod tests {
     fn removal_cancels_pending_and_queued() {
         let t0 = Instant::now();
         let mut d = Docking::new(T, 4);
-        d.on_detected(id(1), port(0), t0);
-        d.on_detected(id(2), port(1), t0);
-        d.on_detected(id(3), port(2), t0);
+        d.on_detected(id(1), port(0), false, t0);
+        d.on_detected(id(2), port(1), false, t0);
+        d.on_detected(id(3), port(2), false, t0);
         assert!(
             d.on_removed(id(2), port(1), t0).is_empty(),
             "queued one dropped silently"
@@ -734,7 +751,7 @@ mod tests {
             [Step::UnexpectedHandshake { .. }]
         ));
         // Kept for the docking timeout only: a report after that is a docking of its own.
-        d.on_detected(id(1), port(0), t0 + T);
+        d.on_detected(id(1), port(0), false, t0 + T);
         assert!(d.connections().is_empty());
         assert!(matches!(
             d.on_handshake(id(1), port(0), &[], t0 + T)[..],
@@ -751,7 +768,7 @@ mod tests {
     fn a_handshake_with_no_docking_pending_is_adopted_by_the_one_free_closed_loop() {
         let t0 = Instant::now();
         let mut d = Docking::new(T, 4);
-        d.on_detected(id(0x111), port(1), t0);
+        d.on_detected(id(0x111), port(1), false, t0);
         d.on_handshake(id(3), port(0), &[], t0);
         // 2 got power on 0x111 port 3 (the relay was on): port 1 is taken, port 3 is free; a loop
         // of the mobile element itself does not count.
@@ -769,7 +786,7 @@ mod tests {
         );
         assert!(d.links_of(id(2)).len() == 1);
         // The static element's report of that docking, overtaken by the handshake, starts nothing.
-        assert!(d.on_detected(id(0x111), port(3), t0 + T).is_empty());
+        assert!(d.on_detected(id(0x111), port(3), false, t0 + T).is_empty());
         assert_eq!(d.pending(), None);
         // The same handshake again (the element restarted on a port that stayed powered): no
         // change, no fault.
@@ -793,7 +810,12 @@ mod tests {
         ));
         let c = conn((id(0x111), port(3)), (id(2), port(0)));
         assert_eq!(
-            d.on_detected(id(0x111), port(3), t0 + T - Duration::from_millis(1)),
+            d.on_detected(
+                id(0x111),
+                port(3),
+                true,
+                t0 + T / 4 - Duration::from_millis(1)
+            ),
             vec![
                 Step::Confirm {
                     node: id(0x111),
@@ -804,7 +826,7 @@ mod tests {
         );
         assert_eq!(d.pending(), None);
         // Used once: the next report waits for its own handshake.
-        d.on_detected(id(0x111), port(4), t0 + T);
+        d.on_detected(id(0x111), port(4), false, t0 + T);
         assert!(d.pending().is_some());
         // A confirm sent for the docking already completed does not stand for the pending one.
         d.confirm_sent(id(0x111), port(3), 5);
@@ -815,9 +837,9 @@ mod tests {
     fn timeout_withdraws_only_the_port_when_others_are_docked() {
         let t0 = Instant::now();
         let mut d = Docking::new(T, 4);
-        d.on_detected(id(1), port(0), t0);
+        d.on_detected(id(1), port(0), false, t0);
         d.on_handshake(id(2), port(0), &[], t0);
-        d.on_detected(id(1), port(1), t0);
+        d.on_detected(id(1), port(1), false, t0);
         let steps = d.tick(t0 + T);
         assert_eq!(
             steps[0],
@@ -838,7 +860,7 @@ mod tests {
     fn refused_confirm_fails_only_for_matching_seq() {
         let t0 = Instant::now();
         let mut d = Docking::new(T, 4);
-        d.on_detected(id(1), port(5), t0);
+        d.on_detected(id(1), port(5), false, t0);
         d.confirm_sent(id(1), port(5), 7);
         assert!(d.on_confirm_refused(id(1), 6, "busy", t0).is_empty());
         let steps = d.on_confirm_refused(id(1), 7, "invalid_state", t0);
@@ -857,10 +879,10 @@ mod tests {
     fn lost_mobile_removes_its_connection_and_redock_replaces_stale_record() {
         let t0 = Instant::now();
         let mut d = Docking::new(T, 4);
-        d.on_detected(id(1), port(0), t0);
+        d.on_detected(id(1), port(0), false, t0);
         d.on_handshake(id(2), port(0), &[], t0);
         // Docked again on the same port without a DockRemoved in between.
-        let steps = d.on_detected(id(1), port(0), t0);
+        let steps = d.on_detected(id(1), port(0), false, t0);
         assert_eq!(
             steps[0],
             Step::Removed(conn((id(1), port(0)), (id(2), port(0))))
@@ -887,12 +909,12 @@ mod tests {
     fn a_forgotten_element_leaves_no_connection_report_or_pending_docking() {
         let t0 = Instant::now();
         let mut d = Docking::new(T, 4);
-        d.on_detected(id(0x111), port(3), t0);
+        d.on_detected(id(0x111), port(3), false, t0);
         d.on_handshake(id(2), port(0), &[], t0);
         // 111 reports another docking (pending), then one more (queued); 112 one (queued).
-        d.on_detected(id(0x111), port(4), t0);
-        d.on_detected(id(0x111), port(5), t0);
-        d.on_detected(id(0x112), port(1), t0);
+        d.on_detected(id(0x111), port(4), false, t0);
+        d.on_detected(id(0x111), port(5), false, t0);
+        d.on_detected(id(0x112), port(1), false, t0);
         let steps = d.forget(id(0x111), t0);
         assert_eq!(
             steps,
@@ -956,7 +978,7 @@ mod tests {
             vec![Step::Removed(c)]
         );
         // A record made after the question was asked is not judged by its answer.
-        d.on_detected(id(0x111), port(1), later);
+        d.on_detected(id(0x111), port(1), false, later);
         d.on_handshake(id(5), port(0), &[], later);
         assert!(d.reconcile(id(0x111), &[], t0).is_empty());
         assert_eq!(d.connections().len(), 1);
@@ -974,7 +996,7 @@ mod tests {
             ]
         );
         // The docking in progress is left alone.
-        d.on_detected(id(0x112), port(4), later + T);
+        d.on_detected(id(0x112), port(4), false, later + T);
         assert!(d
             .reconcile(
                 id(0x112),

@@ -140,7 +140,9 @@ fn send_dock_refuse(
 mod tests {
     use super::super::test_support::*;
     use super::super::*;
-    use ihex_proto::{AckResult, BootRole, DockRefuseReason, Kind, Message, Packet, ResetReason};
+    use ihex_proto::{
+        AckResult, BootRole, DockRefuseReason, HealthFlags, Kind, Message, Packet, ResetReason,
+    };
     use serde_json::json;
 
     #[test]
@@ -408,14 +410,20 @@ mod tests {
     fn an_element_powered_while_docked_is_adopted_by_the_free_closed_loop() {
         // The demo island's start: 2 sits on 0x111 port 3 with the relay off; the gateway only
         // knows the closed loop from 0x111's health replies. A `power` command switches the relay
-        // on, 2 boots and handshakes with no docking pending.
-        let (mut b, t0) = with_nodes(&[0x111]);
-        let mut health = reply(1, 0);
+        // on, 2 boots and handshakes with no docking pending. (0x112's loop 1 is closed too, but
+        // its relay is off: nobody there has power.)
+        let (mut b, t0) = with_nodes(&[0x111, 0x112]);
+        let mut health = reply(1, HealthFlags::RELAY);
         if let Message::HealthReply(h) = &mut health {
             h.loops = 1 << 3;
         }
+        let mut unpowered = reply(1, 0);
+        if let Message::HealthReply(h) = &mut unpowered {
+            h.loops = 1 << 1;
+        }
         b.handle_timeout(t0 + S);
         b.handle_packet(Packet::report(id(0x111), health), t0 + S);
+        b.handle_packet(Packet::report(id(0x112), unpowered), t0 + S);
         drain(&mut b);
         let boot = Message::BootUp {
             version: (1, 2),

@@ -457,7 +457,8 @@ impl Bridge {
                 if let Some(e) = self.registry.get_mut(src) {
                     e.loops |= port.mask();
                 }
-                let steps = self.docking.on_detected(src, port, now);
+                let relay_on = self.registry.get(src).is_some_and(relay_on);
+                let steps = self.docking.on_detected(src, port, relay_on, now);
                 self.apply(steps, now);
             }
             Message::DockRemoved { port } => {
@@ -884,12 +885,12 @@ impl Bridge {
         }
     }
 
-    /// The closed signal loops of the online static elements (static element, its port): where a
-    /// mobile element whose handshake no docking awaited can be docked.
+    /// The closed signal loops of the online static elements whose relay is on (static element,
+    /// its port): where a mobile element whose handshake no docking awaited can have got power.
     fn closed_static_loops(&self) -> Vec<(NodeId, Port)> {
         self.registry
             .iter()
-            .filter(|e| e.online && e.role == Some(BootRole::Static))
+            .filter(|e| e.online && e.role == Some(BootRole::Static) && relay_on(e))
             .flat_map(|e| {
                 (0..8u8)
                     .filter(move |p| e.loops & (1 << p) != 0)
@@ -977,6 +978,14 @@ impl Bridge {
             self.out.publish.push_state(id, false);
         }
     }
+}
+
+/// The node's relay is on as far as the bridge knows: acknowledged or read back, or in its last
+/// health reply (either may be the newer).
+fn relay_on(e: &crate::registry::NodeEntry) -> bool {
+    e.relay == Some(true)
+        || e.health
+            .is_some_and(|h| h.flags.contains(ihex_proto::HealthFlags::RELAY))
 }
 
 /// `BadFrame` detail class of a frame whose kind the node does not know.
