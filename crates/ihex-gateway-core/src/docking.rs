@@ -421,6 +421,42 @@ impl Docking {
         }
     }
 
+    /// Pairs a mobile element that is docked but recorded nowhere with the one place it can be:
+    /// its handshake never reached us (it got power while our bus was down, or while another
+    /// docking was pending). `mobiles`: online mobile elements with a closed loop (the element,
+    /// its lowest closed port); `closed`: the closed loops of online static elements whose relay is
+    /// on. Only with no docking in progress or waiting, and exactly one unrecorded element of each.
+    pub fn adopt_unrecorded(
+        &mut self,
+        mobiles: &[(NodeId, Port)],
+        closed: &[(NodeId, Port)],
+        now: Instant,
+    ) -> Vec<Step> {
+        let mut out = Vec::new();
+        if self.pending.is_some() || !self.queue.is_empty() || !self.unclaimed.is_empty() {
+            return out;
+        }
+        let docked: Vec<NodeId> = self.connections.values().map(|r| r.mobile.0).collect();
+        let lone: Vec<(NodeId, Port)> = mobiles
+            .iter()
+            .copied()
+            .filter(|m| !docked.contains(&m.0))
+            .collect();
+        let free: Vec<(NodeId, Port)> = closed
+            .iter()
+            .copied()
+            .filter(|s| !self.connections.contains_key(s))
+            .collect();
+        if let ([mobile], [stat]) = (&lone[..], &free[..]) {
+            out.push(Step::Adopt {
+                node: stat.0,
+                port: stat.1,
+            });
+            self.complete(*stat, *mobile, true, now, &mut out);
+        }
+        out
+    }
+
     /// The static `node` answered the confirm `seq` with a refusal named `reason`.
     pub fn on_confirm_refused(
         &mut self,
@@ -798,6 +834,39 @@ mod tests {
             [Step::UnexpectedHandshake { .. }]
         ));
         assert_eq!(d.connections().len(), 2);
+    }
+
+    #[test]
+    fn a_docked_element_whose_handshake_was_lost_is_paired_with_the_one_free_powered_loop() {
+        let t0 = Instant::now();
+        let mut d = Docking::new(T, 4);
+        d.on_detected(id(0x111), port(3), false, t0);
+        d.on_handshake(id(2), port(0), &[], t0);
+        let mobiles = [(id(2), port(0)), (id(3), port(1))];
+        let c = conn((id(0x112), port(2)), (id(3), port(1)));
+        // Not while a docking is in progress: its handshake may still come.
+        d.on_detected(id(0x111), port(4), false, t0);
+        assert!(d
+            .adopt_unrecorded(&mobiles, &[(id(0x112), port(2))], t0)
+            .is_empty());
+        d.tick(t0 + T);
+        // 2 is recorded on 0x111 port 3; 3 on the one free loop.
+        let closed = [(id(0x111), port(3)), (id(0x112), port(2))];
+        assert_eq!(
+            d.adopt_unrecorded(&mobiles, &closed, t0 + T),
+            vec![
+                Step::Adopt {
+                    node: id(0x112),
+                    port: port(2)
+                },
+                Step::Connected(c)
+            ]
+        );
+        assert!(d.adopt_unrecorded(&mobiles, &closed, t0 + T).is_empty());
+        // Two unrecorded elements for two loops: nobody can tell which is where.
+        let mut d = Docking::new(T, 4);
+        let two = [(id(0x111), port(3)), (id(0x112), port(2))];
+        assert!(d.adopt_unrecorded(&mobiles, &two, t0).is_empty());
     }
 
     #[test]

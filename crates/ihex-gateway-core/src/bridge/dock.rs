@@ -482,4 +482,42 @@ mod tests {
         let out = drain(&mut b);
         assert!(out.sent.is_empty() && out.events.is_empty(), "{out:?}");
     }
+
+    #[test]
+    fn a_docked_element_whose_handshake_was_lost_is_found_by_its_health_replies() {
+        // 3 got power on 0x111 port 3 while the bus was down: its handshake is gone, but its
+        // health replies show a closed loop, as do 0x111's (relay on).
+        let (mut b, t0) = with_nodes(&[0x111]);
+        let with_loops = |flags: u8, loops: u8| {
+            let mut r = reply(1, flags);
+            if let Message::HealthReply(h) = &mut r {
+                h.loops = loops;
+            }
+            r
+        };
+        b.handle_timeout(t0 + S);
+        b.handle_packet(
+            Packet::report(id(0x111), with_loops(HealthFlags::RELAY, 1 << 3)),
+            t0 + S,
+        );
+        b.handle_packet(
+            Packet::report(id(3), with_loops(HealthFlags::MOBILE, 1 << 1)),
+            t0 + S,
+        );
+        b.handle_timeout(t0 + S + MS);
+        let out = drain(&mut b);
+        assert_eq!(
+            out.raw_events
+                .iter()
+                .filter(|e| e.contains("new_connection"))
+                .collect::<Vec<_>>(),
+            [
+                r#"{"event":"new_connection","payload":{"n":{"id":"3","port":1},"n-1":{"id":"111","port":3}}}"#
+            ]
+        );
+        assert!(out.sent.iter().any(|p| p.dest == id(0x111)
+            && matches!(p.msg, Message::DockLink { partner: Some(m), .. } if m.node == id(3))));
+        b.handle_timeout(t0 + 2 * S);
+        assert!(drain(&mut b).named("new_connection").is_empty());
+    }
 }

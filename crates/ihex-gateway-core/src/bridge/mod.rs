@@ -668,6 +668,7 @@ impl Bridge {
         self.republish_inherited(now);
         let steps = self.docking.tick(now);
         self.apply(steps, now);
+        self.adopt_unrecorded(now);
         let Bridge {
             registry,
             docking,
@@ -898,6 +899,45 @@ impl Bridge {
                     .map(move |p| (e.id, p))
             })
             .collect()
+    }
+
+    /// Pairs a docked mobile element recorded nowhere (its handshake was lost) with the one free
+    /// closed loop of a powered static element — once the mobile element has answered a health
+    /// check (its handshake, sent at boot, came before) and no read-back of a static element is
+    /// outstanding (its own record of the docking comes first,
+    /// silently, after a gateway restart). Static elements of protocol 1.0 keep no record and are
+    /// left out: a docking they had before a restart stays unknown, as documented.
+    fn adopt_unrecorded(&mut self, now: Instant) {
+        if self.health.bus_down() {
+            return;
+        }
+        let statics_settled = self
+            .registry
+            .iter()
+            .filter(|e| e.role == Some(BootRole::Static))
+            .all(|e| !self.readback.pending(e.id));
+        if !statics_settled {
+            return;
+        }
+        let mobiles: Vec<(NodeId, Port)> = self
+            .registry
+            .iter()
+            .filter(|e| e.online && e.role == Some(BootRole::Mobile) && e.health.is_some())
+            .filter_map(|e| {
+                let low = (0..8u8).find(|p| e.loops & (1 << p) != 0)?;
+                Some((e.id, Port::new(low)?))
+            })
+            .collect();
+        if mobiles.is_empty() {
+            return;
+        }
+        let closed: Vec<(NodeId, Port)> = self
+            .closed_static_loops()
+            .into_iter()
+            .filter(|(s, _)| self.readback.supports(*s))
+            .collect();
+        let steps = self.docking.adopt_unrecorded(&mobiles, &closed, now);
+        self.apply(steps, now);
     }
 
     /// A node's complete answer to a state query: what it reports replaces what the bridge
