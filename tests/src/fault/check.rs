@@ -453,10 +453,10 @@ pub fn check(trace: &Trace) -> Report {
         }
     }
     // Answers still without an owner go to commands that may take them.
-    for c in 0..sent.len() {
-        if !owned[c] {
+    for (c, owns) in owned.iter_mut().enumerate() {
+        if !*owns {
             let mut seen = vec![false; null_answers.len()];
-            owned[c] = augment(c, &can_own, &mut owner, &mut seen);
+            *owns = augment(c, &can_own, &mut owner, &mut seen);
         }
     }
     for (i, a) in null_answers.iter().enumerate() {
