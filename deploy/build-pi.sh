@@ -1,13 +1,15 @@
 #!/usr/bin/env bash
 [ -n "${BASH_VERSION:-}" ] || exec bash "$0" "$@"   # also when started as `sh script`
 # Cross-compile the iHEX host binaries for the Raspberry Pi (64-bit Raspberry Pi OS): mc-gateway,
-# sim-node and ihex-provision, the gateway as deployed (without the demo: --no-default-features).
+# sim-node and ihex-provision, the gateway as deployed: without the demo (--no-default-features),
+# with the island view (feature mc-gateway/web; --no-web leaves it out).
 #
 #   deploy/build-pi.sh                        # glibc (>= 2.29) and static musl builds
 #   deploy/build-pi.sh --musl                 # only the static musl build
 #   deploy/build-pi.sh --gnu -p mc-gateway    # one package, glibc only
 #   deploy/build-pi.sh --musl --profile arm64-check   # what deploy/check-arm64.sh runs
 #   deploy/build-pi.sh --features mc-gateway/demo   # with the demo (embedded broker, simulated island)
+#   deploy/build-pi.sh --no-web               # a gateway without the island view (no axum)
 #
 # musl is linked by rust-lld (shipped with rustup: no C toolchain needed); glibc by cargo-zigbuild,
 # which pins the glibc version (IHEX_PI_GLIBC, default 2.29; bullseye has 2.31, bookworm 2.36).
@@ -23,6 +25,7 @@ GNU=1 MUSL=1
 PROFILE=release
 PACKAGES=()
 FEATURES=()
+WEB=1
 while [ $# -gt 0 ]; do
     case "$1" in
         --gnu) MUSL=0 ;;
@@ -30,6 +33,7 @@ while [ $# -gt 0 ]; do
         -p|--package) PACKAGES+=("$2"); shift ;;
         --profile) PROFILE="$2"; shift ;;
         --features) FEATURES+=(--features "$2"); shift ;;
+        --no-web) WEB=0 ;;
         -h|--help) sed -n '/^# /,/^[^#]/{/^[^#]/q;s/^# \{0,1\}//p}' "$0"; exit 0 ;;
         *) echo "build-pi.sh: unknown argument $1 (see --help)" >&2; exit 2 ;;
     esac
@@ -78,7 +82,11 @@ for t in "${targets[@]}"; do
     # One cargo invocation for all packages (shared dependencies are built once, with the same
     # features); only if that fails, one by one, so what does build is still produced and named.
     pkg_args=()
-    for p in "${PACKAGES[@]}"; do pkg_args+=(-p "$p"); done
+    for p in "${PACKAGES[@]}"; do
+        pkg_args+=(-p "$p")
+        # The island view is a feature of the gateway alone: name it only when it is built.
+        [ "$p" = mc-gateway ] && [ $WEB = 1 ] && pkg_args+=(--features mc-gateway/web)
+    done
     say "building ${PACKAGES[*]} for $t ($PROFILE)"
     if "${build[@]}" "${pkg_args[@]}"; then
         built+=("$t:all")
@@ -86,7 +94,9 @@ for t in "${targets[@]}"; do
     fi
     for p in "${PACKAGES[@]}"; do
         say "building $p alone for $t"
-        if "${build[@]}" -p "$p"; then
+        web=()
+        [ "$p" = mc-gateway ] && [ $WEB = 1 ] && web=(--features mc-gateway/web)
+        if "${build[@]}" -p "$p" "${web[@]}"; then
             built+=("$t:$p")
         else
             failed+=("$p ($t)")

@@ -10,7 +10,8 @@
 #   3. the gateway under test on vcan0, built as for the Pi (without the demo), with the Pi's
 #      deploy/etc/gateway.toml and --can vcan0 --island arm64;
 #   4. an LED command to the island's first element whose command_result must be "ok"
-#      (MQTT -> CAN frame -> virtual SC -> ack frame -> MQTT); then `ihex-provision can` gives the
+#      (MQTT -> CAN frame -> virtual SC -> ack frame -> MQTT); the island view (gateway.toml's
+#      http = 0.0.0.0:8080) lists that element in GET /api/island; then `ihex-provision can` gives the
 #      island's factory-fresh board its ID by UID (a taken ID refused first) and its node_online follows.
 # Exit code 0 only if all of it happened; the VM is killed after a bounded time (IHEX_ARM64_TIMEOUT s).
 #
@@ -216,7 +217,20 @@ if [ $rc = 0 ]; then
         > /tmp/result.json 2> /tmp/wait.err; rc=$?
     [ $rc = 0 ] && echo "ihex-vm: event: $(cat /tmp/result.json)"
 fi
-# 4. (cont.) CAN ID assignment by UID through the gateway (only if the island has a factory-fresh board)
+# 5. the island view of the Pi's gateway.toml (http = 0.0.0.0:8080): its snapshot lists the node
+if [ $rc = 0 ]; then
+    # busybox's nc, not its wget: the static wget crashes in this initramfs (no NSS files). Its
+    # input stays open a while: nc may give up on the connection as soon as its input ends; the
+    # answer (HTTP/1.0) ends with the connection.
+    { printf 'GET /api/island HTTP/1.0\r\nHost: 127.0.0.1\r\n\r\n'; sleep 5; } \
+        | nc 127.0.0.1 8080 > /tmp/island.json
+    if grep -q '"id":"@NODE@"' /tmp/island.json; then
+        echo "ihex-vm: island view: $(head -n 1 /tmp/island.json | tr -d '\r'), $(grep -o '"id":"@NODE@"[^}]\{0,100\}' /tmp/island.json | head -n 1)"
+    else
+        echo "ihex-vm: FAIL: GET /api/island did not list @NODE@: $(head -c 400 /tmp/island.json 2>/dev/null)"; rc=1
+    fi
+fi
+# 6. CAN ID assignment by UID through the gateway (only if the island has a factory-fresh board)
 if [ $rc = 0 ] && [ -n "@UID@" ]; then
     ./ihex-provision wait-event --broker $B --island arm64 --event node_online --match id=@NEWID@ \
         --ready-file /tmp/ready2 --timeout-secs 60 > /tmp/online2.json 2> /tmp/wait.err &
@@ -266,6 +280,6 @@ set -e
 grep -q "IHEX-ARM64-RESULT rc=0" "$LOG" || die "no event from the aarch64 gateway (console: $LOG)"
 how="static musl binaries"
 [ "$USE_GNU" = 1 ] && how="musl gateway, glibc sim-node ($(grep -o 'GLIBC [0-9.]*' "$LOG" | head -1))"
-what="node_online from vcan0, LED command acknowledged"
+what="node_online from vcan0, LED command acknowledged, island view served"
 [ -n "${UID_HEX:-}" ] && what="$what, node $NEWID assigned by UID over CAN"
 say "OK ($how): on a real arm64 kernel the aarch64 gateway did it all: $what"

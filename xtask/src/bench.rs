@@ -50,6 +50,9 @@ pub struct BenchArgs {
     /// Keep Mosquitto's default Nagle algorithm on its sockets (to compare; see docs/benchmarks.md).
     #[arg(long)]
     mosquitto_nagle: bool,
+    /// Skip the island view's latency (the demo gateway on the host).
+    #[arg(long)]
+    no_web: bool,
 }
 
 fn musl_release(name: &str) -> PathBuf {
@@ -214,6 +217,26 @@ fn live(gateway: &Path, bench: &Path, args: &BenchArgs, out: &Path) -> Result<St
     ))
 }
 
+/// The island view's latency: the gateway as the README's first command runs it (default
+/// features: embedded broker, simulated island, web view), optimised, on this machine — the page's
+/// event stream has nothing to do with CAN, so no VM is needed.
+fn web(bench: &Path, out: &Path) -> Result<()> {
+    cmd::run(cmd::cargo().current_dir(cmd::root()).args([
+        "build",
+        "--release",
+        "-p",
+        "mc-gateway",
+    ]))?;
+    let gateway = cmd::target_dir().join("release").join("mc-gateway");
+    cmd::run(
+        Command::new(bench)
+            .args(["web", "--gateway"])
+            .arg(&gateway)
+            .arg("--out")
+            .arg(out),
+    )
+}
+
 /// `cargo xtask bench`.
 pub fn run(args: BenchArgs, firmware_dir: &Path) -> Result<()> {
     let dir = cmd::target_dir().join("bench");
@@ -223,6 +246,7 @@ pub fn run(args: BenchArgs, firmware_dir: &Path) -> Result<()> {
         "callgrind.json",
         "firmware.json",
         "missing.json",
+        "web.json",
     ] {
         let _ = fs::remove_file(dir.join(f));
     }
@@ -258,6 +282,14 @@ pub fn run(args: BenchArgs, firmware_dir: &Path) -> Result<()> {
         match live(&gateway, &bench, &args, &dir.join("live.json")) {
             Ok(m) => machine = m,
             Err(e) => missing.push(format!("live benchmark: {e:#}")),
+        }
+    }
+    if args.no_web {
+        missing.push("island view latency: --no-web".into());
+    } else {
+        println!("\n==> xtask bench: island view latency (the demo gateway on this machine)");
+        if let Err(e) = web(&bench, &dir.join("web.json")) {
+            missing.push(format!("island view latency: {e:#}"));
         }
     }
     fs::write(dir.join("missing.json"), serde_json::to_vec(&missing)?)?;

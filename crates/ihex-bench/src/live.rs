@@ -347,15 +347,15 @@ fn bare_pair(iface: &str, n: usize, rounds: usize, notes: &mut Vec<String>) -> R
 // ---------------------------------------------------------------------------------------------
 // MQTT side
 
-struct Mqtt {
-    client: Client,
+pub(crate) struct Mqtt {
+    pub(crate) client: Client,
     rx: Receiver<(Instant, String, Vec<u8>)>,
     overflow: Arc<AtomicU64>,
     _thread: JoinHandle<()>,
 }
 
 impl Mqtt {
-    fn connect(addr: SocketAddr, topics: &[&str]) -> Result<Mqtt> {
+    pub(crate) fn connect(addr: SocketAddr, topics: &[&str]) -> Result<Mqtt> {
         let mut o = MqttOptions::new(
             format!("ihex-bench-{}", std::process::id()),
             addr.ip().to_string(),
@@ -402,7 +402,7 @@ impl Mqtt {
     }
 
     /// The next event on `EventsTopic`, read as the gateway core's typed event (others are skipped).
-    fn next_event(&self, timeout: Duration) -> Option<(Instant, Event)> {
+    pub(crate) fn next_event(&self, timeout: Duration) -> Option<(Instant, Event)> {
         let deadline = Instant::now() + timeout;
         loop {
             let left = deadline.checked_duration_since(Instant::now())?;
@@ -433,9 +433,9 @@ impl Mqtt {
 // ---------------------------------------------------------------------------------------------
 // Processes
 
-struct Proc {
-    child: Child,
-    name: &'static str,
+pub(crate) struct Proc {
+    pub(crate) child: Child,
+    pub(crate) name: &'static str,
 }
 
 impl Drop for Proc {
@@ -446,19 +446,32 @@ impl Drop for Proc {
 }
 
 impl Proc {
-    fn pid(&self) -> u32 {
+    pub(crate) fn pid(&self) -> u32 {
         self.child.id()
     }
 
-    fn check_alive(&mut self) -> Result<()> {
+    pub(crate) fn check_alive(&mut self) -> Result<()> {
         if let Some(status) = self.child.try_wait()? {
             bail!("{} exited during the benchmark ({status})", self.name);
         }
         Ok(())
     }
+
+    /// Waits until `addr` accepts TCP connections (or the process ends, or `within` passes).
+    pub(crate) fn wait_listening(&mut self, addr: SocketAddr, within: Duration) -> Result<()> {
+        let deadline = Instant::now() + within;
+        while TcpStream::connect_timeout(&addr, Duration::from_millis(200)).is_err() {
+            self.check_alive()?;
+            if Instant::now() > deadline {
+                bail!("{} did not listen on {addr} within {within:?}", self.name);
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        Ok(())
+    }
 }
 
-fn free_port() -> Result<u16> {
+pub(crate) fn free_port() -> Result<u16> {
     Ok(TcpListener::bind((Ipv4Addr::LOCALHOST, 0))?
         .local_addr()?
         .port())
@@ -490,14 +503,7 @@ fn start_mosquitto(bin: &Path, dir: &Path, nagle: bool) -> Result<(Proc, SocketA
         child,
         name: "mosquitto",
     };
-    let deadline = Instant::now() + Duration::from_secs(20);
-    while TcpStream::connect_timeout(&addr, Duration::from_millis(200)).is_err() {
-        p.check_alive()?;
-        if Instant::now() > deadline {
-            bail!("mosquitto did not listen on {addr} within 20 s");
-        }
-        std::thread::sleep(Duration::from_millis(20));
-    }
+    p.wait_listening(addr, Duration::from_secs(20))?;
     Ok((p, addr))
 }
 

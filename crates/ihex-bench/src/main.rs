@@ -9,6 +9,7 @@ use ihex_bench::{report, workload};
 
 mod callgrind;
 mod live;
+mod web;
 
 #[derive(Parser)]
 #[command(
@@ -60,6 +61,26 @@ enum Cmd {
         #[arg(long)]
         out: Option<PathBuf>,
     },
+    /// The island view's latency: the demo gateway (embedded broker, simulated island, web view)
+    /// on this machine; LED commands over MQTT, their results read from `/api/events` and by an
+    /// MQTT client.
+    Web {
+        /// The mc-gateway binary, built with its default features (demo and web).
+        #[arg(long)]
+        gateway: PathBuf,
+        /// Use this MQTT broker (the simulated island with it) instead of the embedded one.
+        #[arg(long)]
+        broker: Option<std::net::SocketAddr>,
+        /// Probes (after the warm-up).
+        #[arg(long, default_value_t = 300)]
+        probes: usize,
+        /// Pause between probes, ms.
+        #[arg(long, default_value_t = 20)]
+        gap_ms: u64,
+        /// Write the figures (JSON) here.
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
     /// Drive the sans-IO bridge over a fixed workload (run under callgrind).
     Workload {
         /// Which path.
@@ -78,7 +99,7 @@ enum Cmd {
         #[arg(long)]
         out: PathBuf,
     },
-    /// Combine live.json, callgrind.json and firmware.json of DIR into results.json, the plots and
+    /// Combine live.json, callgrind.json, firmware.json and web.json of DIR into results.json, the plots and
     /// the table.
     Report {
         /// Folder with the parts (target/bench).
@@ -127,6 +148,31 @@ fn main() -> Result<()> {
                 })
             );
         }
+        Cmd::Web {
+            gateway,
+            broker,
+            probes,
+            gap_ms,
+            out,
+        } => {
+            let w = web::run(
+                &gateway,
+                broker,
+                probes,
+                std::time::Duration::from_millis(gap_ms),
+            )?;
+            if let Some(out) = out {
+                std::fs::write(&out, serde_json::to_vec_pretty(&w)?)?;
+            }
+            println!(
+                "{}",
+                report::table(&report::Results {
+                    machine: "this machine".into(),
+                    web: Some(w),
+                    ..Default::default()
+                })
+            );
+        }
         Cmd::Workload { path, n } => {
             let p = match path {
                 WorkPath::Can => workload::Path::CanToEvent,
@@ -160,6 +206,10 @@ fn main() -> Result<()> {
             match read("firmware.json") {
                 Some(b) => r.firmware = Some(serde_json::from_slice(&b).context("firmware.json")?),
                 None => r.missing.push("firmware sizes (no firmware.json)".into()),
+            }
+            match read("web.json") {
+                Some(b) => r.web = Some(serde_json::from_slice(&b).context("web.json")?),
+                None => r.missing.push("island view latency (no web.json)".into()),
             }
             if let Some(b) = read("missing.json") {
                 let more: Vec<String> = serde_json::from_slice(&b).context("missing.json")?;

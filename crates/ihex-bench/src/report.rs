@@ -5,7 +5,7 @@ use std::fmt::Write as _;
 
 use serde::{Deserialize, Serialize};
 
-use crate::results::{LiveResults, Trial};
+use crate::results::{LiveResults, Trial, WebResults};
 use crate::stats::Summary;
 
 /// Instructions per bridged frame on one path.
@@ -60,6 +60,9 @@ pub struct Results {
     pub callgrind: Option<Callgrind>,
     /// Firmware images, if a release build was found.
     pub firmware: Option<Vec<Firmware>>,
+    /// The island view's latency, if it was measured.
+    #[serde(default)]
+    pub web: Option<WebResults>,
     /// Why a part is missing.
     pub missing: Vec<String>,
 }
@@ -282,10 +285,56 @@ pub fn table(r: &Results) -> String {
             let _ = writeln!(o, "note: {n}");
         }
     }
+    if let Some(w) = &r.web {
+        web_table(&mut o, w);
+    }
     for m in &r.missing {
         let _ = writeln!(o, "missing: {m}");
     }
     o
+}
+
+/// The island view's section of the table.
+fn web_table(o: &mut String, w: &WebResults) {
+    let ms = |v: f64| v / 1000.0;
+    let _ = writeln!(
+        o,
+        "
+island view (demo gateway on the host: embedded broker, simulated island)   p50 / p99 / max ms"
+    );
+    for (name, s) in [
+        ("LED command -> result on /api/events", &w.command_to_page),
+        (
+            "LED command -> result at an MQTT client",
+            &w.command_to_mqtt,
+        ),
+        (
+            "/api/events minus MQTT client, per probe",
+            &w.page_minus_mqtt,
+        ),
+    ] {
+        let _ = writeln!(
+            o,
+            "  {name:<42} {:>7.2} {:>7.2} {:>7.2}",
+            ms(s.p50_us),
+            ms(s.p99_us),
+            ms(s.max_us)
+        );
+    }
+    let outcomes: Vec<String> = w.outcomes.iter().map(|(k, n)| format!("{n} {k}")).collect();
+    let _ = writeln!(
+        o,
+        "  {} probes: {}; {} without both answers within 2 s",
+        w.probes,
+        outcomes.join(", "),
+        w.lost
+    );
+    let _ = writeln!(
+        o,
+        "  goal: an event on the page <= 100 ms after publication   {}  (p99 upper bound {:.1} ms)",
+        pass(w.lost == 0 && w.command_to_page.n > 0 && w.command_to_page.p99_us <= 100_000.0),
+        ms(w.command_to_page.p99_us)
+    );
 }
 
 const W: f64 = 640.0;

@@ -113,3 +113,21 @@ pub struct LiveResults {
     /// Notes about the run (fallbacks taken, anomalies).
     pub notes: Vec<String>,
 }
+
+/// The island view's latency (`ihex-bench web`, the demo gateway on the host).
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+pub struct WebResults {
+    /// Probes measured (after the warm-up).
+    pub probes: usize,
+    /// Probes whose result did not reach both readers within 2 s.
+    pub lost: usize,
+    /// How the measured probes ended, by `result`, with their counts.
+    pub outcomes: Vec<(String, usize)>,
+    /// LED command published → its `command_result` read from `/api/events` (the page's stream):
+    /// an upper bound of the publication-to-page delay.
+    pub command_to_page: Summary,
+    /// The same command → its `command_result` at an MQTT subscriber of the embedded broker.
+    pub command_to_mqtt: Summary,
+    /// Per probe, the stream's arrival minus the MQTT subscriber's (negative: the page was first).
+    pub page_minus_mqtt: Summary,
+}

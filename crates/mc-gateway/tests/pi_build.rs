@@ -1,4 +1,4 @@
-//! The Pi build (`--no-default-features`) links neither the embedded broker (rumqttd) nor the
+//! The Pi build (`--no-default-features`, with or without `web`) links neither the embedded broker (rumqttd) nor the
 //! simulator (sim-node): checked on cargo's own dependency tree, so a new dependency path that drags
 //! either in fails here.
 
@@ -35,13 +35,20 @@ fn has(tree: &str, krate: &str) -> bool {
 
 #[test]
 fn the_pi_build_links_neither_the_broker_nor_the_simulator() {
-    let pi = normal_deps(&["--no-default-features"]);
-    assert!(has(&pi, "ihex-gateway-core"), "{pi}");
-    for demo_only in ["rumqttd", "sim-node"] {
-        assert!(
-            !has(&pi, demo_only),
-            "{demo_only} is in the Pi build:\n{pi}"
-        );
+    // As deploy/build-pi.sh builds it (with the island view), and with --no-web.
+    for features in [
+        &["--no-default-features", "--features", "web"][..],
+        &["--no-default-features"][..],
+    ] {
+        let pi = normal_deps(features);
+        assert!(has(&pi, "ihex-gateway-core"), "{pi}");
+        assert_eq!(has(&pi, "axum"), features.contains(&"web"), "{pi}");
+        for demo_only in ["rumqttd", "sim-node"] {
+            assert!(
+                !has(&pi, demo_only),
+                "{demo_only} is in the Pi build ({features:?}):\n{pi}"
+            );
+        }
     }
     // The check can fail: the default build does have them.
     let default = normal_deps(&[]);

@@ -60,10 +60,13 @@ impl Bridge {
     /// Publishes `id`'s config and light state if they changed (something outside its state
     /// document did, such as its UID).
     pub(super) fn refresh_ha(&mut self, id: NodeId, now: Instant) {
+        // The very document the state topic carries (`node_state`), so the two never disagree.
+        let Some(doc) = self.node_state(id, now) else {
+            return;
+        };
         let (Some(ha), Some(entry)) = (&mut self.ha, self.registry.get(id)) else {
             return;
         };
-        let doc = entry.state(self.docking.links_of(id), now);
         let out = ha.on_state(&doc, entry, false);
         for h in out {
             self.out.publish.push_kept(Publication::Ha(h));
