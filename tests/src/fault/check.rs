@@ -824,10 +824,43 @@ struct Presence {
 }
 
 impl Presence {
-    fn at(trace: &Trace, until: Ms) -> Presence {
+    /// Presence as of `until`. A change the gateway could not see when it happened — while its
+    /// CAN interface was down or it was not running (a CAN outage or a gateway kill, from its
+    /// begin to its recovery), or shortly before, while the lost detection of `lost_grace` was
+    /// still counting — counts from that recovery: the gateway pauses lost detection while its
+    /// own bus is down (else every node would be declared lost) and a restarted one starts it
+    /// afresh, so `lost_after` health periods only start then.
+    fn at(trace: &Trace, until: Ms, lost_grace: Ms) -> Presence {
         let mut p = Presence {
             since: BTreeMap::new(),
             gone: BTreeMap::new(),
+        };
+        let mut blind: Vec<(Ms, Ms)> = Vec::new();
+        let mut begun: BTreeMap<u32, Ms> = BTreeMap::new();
+        for r in trace.records.iter().take_while(|r| r.at <= until) {
+            match &r.entry {
+                Entry::FaultBegin {
+                    fault,
+                    what: Fault::CanDown { .. } | Fault::GatewayKill { .. },
+                } => {
+                    begun.insert(*fault, r.at);
+                }
+                Entry::Recovered { fault, .. } => {
+                    if let Some(b) = begun.remove(fault) {
+                        blind.push((b, r.at));
+                    }
+                }
+                _ => {}
+            }
+        }
+        // Still blind at `until`: nothing counts yet.
+        blind.extend(begun.values().map(|&b| (b, until)));
+        let seen_at = |t: Ms, grace: Ms| {
+            blind
+                .iter()
+                .filter(|&&(b, e)| b <= t + grace && t < e)
+                .map(|&(_, e)| e)
+                .fold(t, Ms::max)
         };
         for r in trace.records.iter().take_while(|r| r.at <= until) {
             let truth = match &r.entry {
@@ -838,9 +871,9 @@ impl Presence {
             for e in truth {
                 if e.powered && e.on_bus {
                     p.gone.remove(&e.id);
-                    p.since.entry(e.id.clone()).or_insert(r.at);
+                    p.since.entry(e.id.clone()).or_insert(seen_at(r.at, 0));
                 } else if p.since.remove(&e.id).is_some() {
-                    p.gone.insert(e.id.clone(), r.at);
+                    p.gone.insert(e.id.clone(), seen_at(r.at, lost_grace));
                 } else {
                     p.gone.entry(e.id.clone()).or_insert(0);
                 }
@@ -906,7 +939,7 @@ fn check_checkpoints(trace: &Trace, report: &mut Report) {
                 message: format!("{after}: availability is {availability:?}, not online"),
             });
         }
-        let presence = Presence::at(trace, r.at);
+        let presence = Presence::at(trace, r.at, lost_grace);
         let by_id: BTreeMap<&str, &Element> = truth.iter().map(|e| (e.id.as_str(), e)).collect();
         for e in truth {
             let doc = docs.get(&e.id);

@@ -682,6 +682,52 @@ fn a_node_that_just_vanished_may_still_be_online() {
 }
 
 #[test]
+fn a_node_that_vanished_while_the_gateway_was_blind_is_given_the_lost_time_after() {
+    // 2 loses power during a CAN outage (1000..8000): the gateway cannot count its misses until
+    // 8000, so at 9000 it may still show it online; at 8000 + the lost time it may not.
+    let truth = vec![element("111", [255, 0, 0]), mobile("2", Some(("111", 3)))];
+    let mut gone = truth.clone();
+    gone[1].powered = false;
+    let checkpoint = |t: &mut T, at: Ms| {
+        t.at(
+            at,
+            Entry::Checkpoint {
+                fault: Some(1),
+                truth: gone.clone(),
+                retained: vec![
+                    online(),
+                    doc(
+                        "111",
+                        true,
+                        [255, 0, 0],
+                        true,
+                        r#"{"port":3,"peer":"2","peer_port":0}"#,
+                    ),
+                    doc(
+                        "2",
+                        true,
+                        [0, 0, 0],
+                        false,
+                        r#"{"port":0,"peer":"111","peer_port":3}"#,
+                    ),
+                ],
+            },
+        );
+    };
+    let mut t = T::new();
+    t.at(0, Entry::Truth(truth))
+        .fault(1000, 1, Fault::CanDown { ms: 6000 }, 8000)
+        .at(2000, Entry::Truth(gone.clone()));
+    t.trace.records.sort_by_key(|r| r.at);
+    checkpoint(&mut t, 9000);
+    let r = t.check();
+    assert!(r.ok(), "{r}");
+    checkpoint(&mut t, 8000 + 4 * 500 + 500 + 1);
+    let r = t.check();
+    assert_eq!(rules(&r), [Rule::Convergence, Rule::Convergence], "{r}");
+}
+
+#[test]
 fn the_report_names_the_trace_around_a_violation() {
     let mut t = T::new();
     t.led(100, 1, [9, 9, 9], Some("a"))
