@@ -18,7 +18,8 @@
 //!   away, so every delivery is a replay) has no frame and no `ok` answer.
 //! - **convergence**: at each checkpoint (2 health periods after a recovery) the retained state
 //!   documents equal the island's truth: presence, LED, buzzer, relay, dockings; `online` may lag
-//!   only for a node that vanished less than `lost_after + 1` health periods before.
+//!   only for a node that vanished less than `lost_after + 1` health periods before (counted from
+//!   the recovery when it vanished while the gateway's CAN interface was down or it was killed).
 //! - **availability**: around a fault that breaks the session, `offline` (the last will, or the
 //!   broker itself gone) and then `online`; `online` at every checkpoint; every fault recovered.
 
