@@ -7,6 +7,15 @@
 //! static element is told its partner with `DockLink`), or a static element reports a link it was
 //! given earlier (read-back after a gateway restart or a bus outage: recorded *silently*, because
 //! that docking already existed and its `new_connection` was published when it happened).
+//!
+//! A mobile element that gets power while already docked — on a port whose relay is on for
+//! another element, or switched on by a `power` command after a failed docking — sends its
+//! handshake with no docking pending. It is *adopted*: when exactly one closed signal loop of an
+//! online static element whose relay is on has no element recorded on it, that is where it docked
+//! (the static element is sent `DockConfirm`, so the port powers and unpowers it like any docking,
+//! then the usual `new_connection` and `DockLink`). Otherwise the handshake is kept for a quarter
+//! of the docking timeout: a report of a new docking by a static element whose relay is on in that
+//! time is answered by it at once (the handshake overtook the report).
 
 use std::collections::{BTreeMap, VecDeque};
 use std::time::{Duration, Instant};
@@ -41,6 +50,15 @@ pub enum Step {
     /// elements docked on it stay powered (the node switches its relay off only with no confirmed
     /// port left).
     Withdraw {
+        /// The static element.
+        node: NodeId,
+        /// Its dock port.
+        port: Port,
+    },
+    /// Send `DockConfirm{port}` to the static `node` for a docking completed without a pending
+    /// confirm (an adopted handshake): the port then holds the relay like any confirmed docking.
+    /// Nothing waits for its acknowledgement.
+    Adopt {
         /// The static element.
         node: NodeId,
         /// Its dock port.
@@ -94,7 +112,8 @@ pub struct Pending {
     pub confirm_seq: Option<u8>,
 }
 
-/// Docking state: at most one pending docking, a bounded FIFO of waiting reports, the connections.
+/// Docking state: at most one pending docking, a bounded FIFO of waiting reports, the connections,
+/// and the handshakes no docking has claimed yet.
 #[derive(Debug)]
 pub struct Docking {
     timeout: Duration,
@@ -103,6 +122,9 @@ pub struct Docking {
     queue: VecDeque<(NodeId, Port)>,
     /// (static, its port) -> the mobile element and its port, and when it was recorded.
     connections: BTreeMap<(NodeId, Port), Record>,
+    /// Handshakes that came with no docking pending and no free closed loop to adopt them: (the
+    /// mobile element, its port, when), oldest first, at most `queue_cap`.
+    unclaimed: VecDeque<(NodeId, Port, Instant)>,
 }
 
 /// A recorded connection, seen from its static element's port.
@@ -110,6 +132,9 @@ pub struct Docking {
 struct Record {
     mobile: (NodeId, Port),
     since: Instant,
+    /// Adopted before its static element's `DockDetected` may have reached us: the first such
+    /// report within the docking timeout is this docking's, not a new one.
+    adopted: bool,
 }
 
 fn conn(stat: (NodeId, Port), mobile: (NodeId, Port)) -> Connection {
@@ -137,6 +162,7 @@ impl Docking {
             pending: None,
             queue: VecDeque::new(),
             connections: BTreeMap::new(),
+            unclaimed: VecDeque::new(),
         }
     }
 
@@ -155,10 +181,13 @@ impl Docking {
         self.pending.map(|p| p.deadline)
     }
 
-    /// Remembers the sequence number of the confirm just sent for the pending docking.
-    pub fn confirm_sent(&mut self, seq: u8) {
+    /// Remembers the sequence number of the confirm just sent to `node` for its `port`, if that is
+    /// the pending docking (a confirm of a docking already completed by a handshake is not).
+    pub fn confirm_sent(&mut self, node: NodeId, port: Port, seq: u8) {
         if let Some(p) = &mut self.pending {
-            p.confirm_seq = Some(seq);
+            if p.node == node && p.port == port {
+                p.confirm_seq = Some(seq);
+            }
         }
     }
 
@@ -213,6 +242,50 @@ impl Docking {
         out.push(Step::Confirm { node, port });
     }
 
+    /// A handshake that overtook the report of the docking just started (the element got power
+    /// before the confirm, from a relay already on) completes it at once.
+    fn claim_unclaimed(&mut self, node: NodeId, port: Port, now: Instant, out: &mut Vec<Step>) {
+        self.drop_stale_unclaimed(now);
+        let Some(i) = self.unclaimed.iter().position(|&(m, _, _)| m != node) else {
+            return;
+        };
+        if let Some((m, mp, _)) = self.unclaimed.remove(i) {
+            self.complete((node, port), (m, mp), false, now, out);
+            self.next(now, out);
+        }
+    }
+
+    /// Forgets unclaimed handshakes older than a quarter of the docking timeout: the race with the
+    /// report lasts one debounce, and a stale one must not be given to a later docking.
+    fn drop_stale_unclaimed(&mut self, now: Instant) {
+        let keep = self.timeout / 4;
+        self.unclaimed
+            .retain(|&(_, _, at)| now.saturating_duration_since(at) < keep);
+    }
+
+    /// Records the docking of `mobile` on the static element's port `stat` and publishes it.
+    fn complete(
+        &mut self,
+        stat: (NodeId, Port),
+        mobile: (NodeId, Port),
+        adopted: bool,
+        now: Instant,
+        out: &mut Vec<Step>,
+    ) {
+        // A mobile element is docked by one port at a time: a previous record of that port is stale,
+        // and so is the link its static element may still hold.
+        self.forget_mobile(mobile, out);
+        self.connections.insert(
+            stat,
+            Record {
+                mobile,
+                since: now,
+                adopted,
+            },
+        );
+        out.push(Step::Connected(conn(stat, mobile)));
+    }
+
     fn next(&mut self, now: Instant, out: &mut Vec<Step>) {
         self.pending = None;
         if let Some((node, port)) = self.queue.pop_front() {
@@ -220,11 +293,30 @@ impl Docking {
         }
     }
 
-    /// `DockDetected{port}` from the static `node`.
-    pub fn on_detected(&mut self, node: NodeId, port: Port, now: Instant) -> Vec<Step> {
+    /// `DockDetected{port}` from the static `node`; `relay_on`: its relay is on, so the element
+    /// there may already have power (and its handshake may have overtaken this report).
+    pub fn on_detected(
+        &mut self,
+        node: NodeId,
+        port: Port,
+        relay_on: bool,
+        now: Instant,
+    ) -> Vec<Step> {
         let mut out = Vec::new();
+        if let Some(r) = self.connections.get_mut(&(node, port)) {
+            if r.adopted && now.saturating_duration_since(r.since) < self.timeout {
+                // The report of the docking a handshake already completed, overtaken by it.
+                r.adopted = false;
+                return out;
+            }
+        }
         match self.pending {
-            None => self.start(node, port, now, &mut out),
+            None => {
+                self.start(node, port, now, &mut out);
+                if relay_on {
+                    self.claim_unclaimed(node, port, now, &mut out);
+                }
+            }
             // Repeated report of what is already in progress or waiting: nothing new to do.
             Some(p) if p.node == node && p.port == port => {}
             Some(_) if self.queue.contains(&(node, port)) => {}
@@ -254,15 +346,19 @@ impl Docking {
         out
     }
 
-    /// `Handshake{port}` from `node` (the mobile element and its own port).
-    pub fn on_handshake(&mut self, node: NodeId, port: Port, now: Instant) -> Vec<Step> {
+    /// `Handshake{port}` from `node` (the mobile element and its own port). `closed` lists the
+    /// closed signal loops of the online static elements whose relay is on (static element, its
+    /// port): where a handshake that no docking waits for may be adopted.
+    pub fn on_handshake(
+        &mut self,
+        node: NodeId,
+        port: Port,
+        closed: &[(NodeId, Port)],
+        now: Instant,
+    ) -> Vec<Step> {
         let mut out = Vec::new();
         let Some(p) = self.pending else {
-            out.push(Step::UnexpectedHandshake {
-                node,
-                port,
-                why: "no docking is pending",
-            });
+            self.on_unawaited_handshake(node, port, closed, now, &mut out);
             return out;
         };
         if p.node == node {
@@ -273,18 +369,91 @@ impl Docking {
             });
             return out;
         }
-        // A mobile element is docked by one port at a time: a previous record of that port is stale,
-        // and so is the link its static element may still hold.
-        self.forget_mobile((node, port), &mut out);
-        self.connections.insert(
-            (p.node, p.port),
-            Record {
-                mobile: (node, port),
-                since: now,
-            },
-        );
-        out.push(Step::Connected(conn((p.node, p.port), (node, port))));
+        self.complete((p.node, p.port), (node, port), false, now, &mut out);
         self.next(now, &mut out);
+        out
+    }
+
+    /// A handshake with no docking pending: the element got power while already docked.
+    fn on_unawaited_handshake(
+        &mut self,
+        node: NodeId,
+        port: Port,
+        closed: &[(NodeId, Port)],
+        now: Instant,
+        out: &mut Vec<Step>,
+    ) {
+        let free: Vec<(NodeId, Port)> = closed
+            .iter()
+            .copied()
+            .filter(|s| s.0 != node && !self.connections.contains_key(s))
+            .collect();
+        match free[..] {
+            [stat] => {
+                // Its report, if still waiting for its turn, is answered by this handshake.
+                self.queue.retain(|&q| q != stat);
+                out.push(Step::Adopt {
+                    node: stat.0,
+                    port: stat.1,
+                });
+                self.complete(stat, (node, port), true, now, out);
+            }
+            // Already recorded where it is (it restarted on a port that stayed powered): nothing
+            // changed.
+            [] if self.connections.values().any(|r| r.mobile == (node, port)) => {}
+            _ => {
+                self.drop_stale_unclaimed(now);
+                self.unclaimed.retain(|&(m, _, _)| m != node);
+                if self.unclaimed.len() >= self.queue_cap {
+                    self.unclaimed.pop_front();
+                }
+                self.unclaimed.push_back((node, port, now));
+                out.push(Step::UnexpectedHandshake {
+                    node,
+                    port,
+                    why: if free.is_empty() {
+                        "no docking is pending and no closed signal loop is free for it"
+                    } else {
+                        "no docking is pending and several closed signal loops are free for it"
+                    },
+                });
+            }
+        }
+    }
+
+    /// Pairs a mobile element that is docked but recorded nowhere with the one place it can be:
+    /// its handshake never reached us (it got power while our bus was down, or while another
+    /// docking was pending). `mobiles`: online mobile elements with a closed loop (the element,
+    /// its lowest closed port); `closed`: the closed loops of online static elements whose relay is
+    /// on. Only with no docking in progress or waiting, and exactly one unrecorded element of each.
+    pub fn adopt_unrecorded(
+        &mut self,
+        mobiles: &[(NodeId, Port)],
+        closed: &[(NodeId, Port)],
+        now: Instant,
+    ) -> Vec<Step> {
+        let mut out = Vec::new();
+        if self.pending.is_some() || !self.queue.is_empty() || !self.unclaimed.is_empty() {
+            return out;
+        }
+        let docked: Vec<NodeId> = self.connections.values().map(|r| r.mobile.0).collect();
+        let lone: Vec<(NodeId, Port)> = mobiles
+            .iter()
+            .copied()
+            .filter(|m| !docked.contains(&m.0))
+            .collect();
+        let free: Vec<(NodeId, Port)> = closed
+            .iter()
+            .copied()
+            .filter(|s| !self.connections.contains_key(s))
+            .collect();
+        if let ([mobile], [stat]) = (&lone[..], &free[..]) {
+            out.push(Step::Adopt {
+                node: stat.0,
+                port: stat.1,
+            });
+            self.complete(*stat, *mobile, true, now, &mut out);
+        }
         out
     }
 
@@ -412,6 +581,7 @@ impl Docking {
                 Record {
                     mobile,
                     since: asked,
+                    adopted: false,
                 },
             );
             out.push(Step::Restored(conn((node, port), mobile)));
@@ -492,15 +662,15 @@ mod tests {
         let t0 = Instant::now();
         let mut d = Docking::new(T, 2);
         assert_eq!(
-            d.on_detected(id(0x111), port(3), t0),
+            d.on_detected(id(0x111), port(3), false, t0),
             vec![Step::Confirm {
                 node: id(0x111),
                 port: port(3)
             }]
         );
-        d.confirm_sent(9);
+        d.confirm_sent(id(0x111), port(3), 9);
         assert_eq!(d.deadline(), Some(t0 + T));
-        let steps = d.on_handshake(id(2), port(0), t0 + Duration::from_secs(1));
+        let steps = d.on_handshake(id(2), port(0), &[], t0 + Duration::from_secs(1));
         assert_eq!(
             steps,
             vec![Step::Connected(conn(
@@ -537,19 +707,19 @@ mod tests {
     fn queue_is_fifo_bounded_and_deduplicated() {
         let t0 = Instant::now();
         let mut d = Docking::new(T, 2);
-        d.on_detected(id(1), port(0), t0);
+        d.on_detected(id(1), port(0), false, t0);
         assert!(
-            d.on_detected(id(1), port(0), t0).is_empty(),
+            d.on_detected(id(1), port(0), false, t0).is_empty(),
             "repeat of the pending one"
         );
-        assert!(d.on_detected(id(2), port(1), t0).is_empty());
+        assert!(d.on_detected(id(2), port(1), false, t0).is_empty());
         assert!(
-            d.on_detected(id(2), port(1), t0).is_empty(),
+            d.on_detected(id(2), port(1), false, t0).is_empty(),
             "repeat of a queued one"
         );
-        assert!(d.on_detected(id(3), port(2), t0).is_empty());
+        assert!(d.on_detected(id(3), port(2), false, t0).is_empty());
         assert_eq!(
-            d.on_detected(id(4), port(3), t0),
+            d.on_detected(id(4), port(3), false, t0),
             vec![Step::RefuseBusy {
                 node: id(4),
                 port: port(3)
@@ -575,7 +745,7 @@ mod tests {
         assert_eq!(d.deadline(), Some(t0 + T + T));
         assert!(d.tick(t0 + T + T - Duration::from_millis(1)).is_empty());
         // Handshake completes it and starts the third.
-        let steps = d.on_handshake(id(9), port(4), t0 + T);
+        let steps = d.on_handshake(id(9), port(4), &[], t0 + T);
         assert_eq!(
             steps.last(),
             Some(&Step::Confirm {
@@ -589,9 +759,9 @@ mod tests {
     fn removal_cancels_pending_and_queued() {
         let t0 = Instant::now();
         let mut d = Docking::new(T, 4);
-        d.on_detected(id(1), port(0), t0);
-        d.on_detected(id(2), port(1), t0);
-        d.on_detected(id(3), port(2), t0);
+        d.on_detected(id(1), port(0), false, t0);
+        d.on_detected(id(2), port(1), false, t0);
+        d.on_detected(id(3), port(2), false, t0);
         assert!(
             d.on_removed(id(2), port(1), t0).is_empty(),
             "queued one dropped silently"
@@ -613,12 +783,14 @@ mod tests {
         let t0 = Instant::now();
         let mut d = Docking::new(T, 4);
         assert!(matches!(
-            d.on_handshake(id(2), port(0), t0)[..],
+            d.on_handshake(id(2), port(0), &[], t0)[..],
             [Step::UnexpectedHandshake { .. }]
         ));
-        d.on_detected(id(1), port(0), t0);
+        // Kept for the docking timeout only: a report after that is a docking of its own.
+        d.on_detected(id(1), port(0), false, t0 + T);
+        assert!(d.connections().is_empty());
         assert!(matches!(
-            d.on_handshake(id(1), port(0), t0)[..],
+            d.on_handshake(id(1), port(0), &[], t0 + T)[..],
             [Step::UnexpectedHandshake { .. }]
         ));
         assert!(d.connections().is_empty());
@@ -629,12 +801,114 @@ mod tests {
     }
 
     #[test]
+    fn a_handshake_with_no_docking_pending_is_adopted_by_the_one_free_closed_loop() {
+        let t0 = Instant::now();
+        let mut d = Docking::new(T, 4);
+        d.on_detected(id(0x111), port(1), false, t0);
+        d.on_handshake(id(3), port(0), &[], t0);
+        // 2 got power on 0x111 port 3 (the relay was on): port 1 is taken, port 3 is free; a loop
+        // of the mobile element itself does not count.
+        let closed = [(id(0x111), port(1)), (id(0x111), port(3)), (id(2), port(0))];
+        let c = conn((id(0x111), port(3)), (id(2), port(0)));
+        assert_eq!(
+            d.on_handshake(id(2), port(0), &closed, t0 + T),
+            vec![
+                Step::Adopt {
+                    node: id(0x111),
+                    port: port(3)
+                },
+                Step::Connected(c)
+            ]
+        );
+        assert!(d.links_of(id(2)).len() == 1);
+        // The static element's report of that docking, overtaken by the handshake, starts nothing.
+        assert!(d.on_detected(id(0x111), port(3), false, t0 + T).is_empty());
+        assert_eq!(d.pending(), None);
+        // The same handshake again (the element restarted on a port that stayed powered): no
+        // change, no fault.
+        assert!(d.on_handshake(id(2), port(0), &closed, t0 + T).is_empty());
+        // Two free loops: nobody can tell which, so a fault and nothing recorded.
+        let two = [(id(0x112), port(0)), (id(0x112), port(1))];
+        assert!(matches!(
+            d.on_handshake(id(4), port(0), &two, t0 + T)[..],
+            [Step::UnexpectedHandshake { .. }]
+        ));
+        assert_eq!(d.connections().len(), 2);
+    }
+
+    #[test]
+    fn a_docked_element_whose_handshake_was_lost_is_paired_with_the_one_free_powered_loop() {
+        let t0 = Instant::now();
+        let mut d = Docking::new(T, 4);
+        d.on_detected(id(0x111), port(3), false, t0);
+        d.on_handshake(id(2), port(0), &[], t0);
+        let mobiles = [(id(2), port(0)), (id(3), port(1))];
+        let c = conn((id(0x112), port(2)), (id(3), port(1)));
+        // Not while a docking is in progress: its handshake may still come.
+        d.on_detected(id(0x111), port(4), false, t0);
+        assert!(d
+            .adopt_unrecorded(&mobiles, &[(id(0x112), port(2))], t0)
+            .is_empty());
+        d.tick(t0 + T);
+        // 2 is recorded on 0x111 port 3; 3 on the one free loop.
+        let closed = [(id(0x111), port(3)), (id(0x112), port(2))];
+        assert_eq!(
+            d.adopt_unrecorded(&mobiles, &closed, t0 + T),
+            vec![
+                Step::Adopt {
+                    node: id(0x112),
+                    port: port(2)
+                },
+                Step::Connected(c)
+            ]
+        );
+        assert!(d.adopt_unrecorded(&mobiles, &closed, t0 + T).is_empty());
+        // Two unrecorded elements for two loops: nobody can tell which is where.
+        let mut d = Docking::new(T, 4);
+        let two = [(id(0x111), port(3)), (id(0x112), port(2))];
+        assert!(d.adopt_unrecorded(&mobiles, &two, t0).is_empty());
+    }
+
+    #[test]
+    fn a_handshake_that_overtook_the_dock_report_completes_the_docking_at_once() {
+        let t0 = Instant::now();
+        let mut d = Docking::new(T, 4);
+        assert!(matches!(
+            d.on_handshake(id(2), port(0), &[], t0)[..],
+            [Step::UnexpectedHandshake { .. }]
+        ));
+        let c = conn((id(0x111), port(3)), (id(2), port(0)));
+        assert_eq!(
+            d.on_detected(
+                id(0x111),
+                port(3),
+                true,
+                t0 + T / 4 - Duration::from_millis(1)
+            ),
+            vec![
+                Step::Confirm {
+                    node: id(0x111),
+                    port: port(3)
+                },
+                Step::Connected(c)
+            ]
+        );
+        assert_eq!(d.pending(), None);
+        // Used once: the next report waits for its own handshake.
+        d.on_detected(id(0x111), port(4), false, t0 + T);
+        assert!(d.pending().is_some());
+        // A confirm sent for the docking already completed does not stand for the pending one.
+        d.confirm_sent(id(0x111), port(3), 5);
+        assert_eq!(d.pending().and_then(|p| p.confirm_seq), None);
+    }
+
+    #[test]
     fn timeout_withdraws_only_the_port_when_others_are_docked() {
         let t0 = Instant::now();
         let mut d = Docking::new(T, 4);
-        d.on_detected(id(1), port(0), t0);
-        d.on_handshake(id(2), port(0), t0);
-        d.on_detected(id(1), port(1), t0);
+        d.on_detected(id(1), port(0), false, t0);
+        d.on_handshake(id(2), port(0), &[], t0);
+        d.on_detected(id(1), port(1), false, t0);
         let steps = d.tick(t0 + T);
         assert_eq!(
             steps[0],
@@ -655,8 +929,8 @@ mod tests {
     fn refused_confirm_fails_only_for_matching_seq() {
         let t0 = Instant::now();
         let mut d = Docking::new(T, 4);
-        d.on_detected(id(1), port(5), t0);
-        d.confirm_sent(7);
+        d.on_detected(id(1), port(5), false, t0);
+        d.confirm_sent(id(1), port(5), 7);
         assert!(d.on_confirm_refused(id(1), 6, "busy", t0).is_empty());
         let steps = d.on_confirm_refused(id(1), 7, "invalid_state", t0);
         assert_eq!(
@@ -674,15 +948,15 @@ mod tests {
     fn lost_mobile_removes_its_connection_and_redock_replaces_stale_record() {
         let t0 = Instant::now();
         let mut d = Docking::new(T, 4);
-        d.on_detected(id(1), port(0), t0);
-        d.on_handshake(id(2), port(0), t0);
+        d.on_detected(id(1), port(0), false, t0);
+        d.on_handshake(id(2), port(0), &[], t0);
         // Docked again on the same port without a DockRemoved in between.
-        let steps = d.on_detected(id(1), port(0), t0);
+        let steps = d.on_detected(id(1), port(0), false, t0);
         assert_eq!(
             steps[0],
             Step::Removed(conn((id(1), port(0)), (id(2), port(0))))
         );
-        d.on_handshake(id(3), port(1), t0);
+        d.on_handshake(id(3), port(1), &[], t0);
         assert!(
             d.on_lost(id(1)).is_empty(),
             "a lost static element keeps its records"
@@ -704,12 +978,12 @@ mod tests {
     fn a_forgotten_element_leaves_no_connection_report_or_pending_docking() {
         let t0 = Instant::now();
         let mut d = Docking::new(T, 4);
-        d.on_detected(id(0x111), port(3), t0);
-        d.on_handshake(id(2), port(0), t0);
+        d.on_detected(id(0x111), port(3), false, t0);
+        d.on_handshake(id(2), port(0), &[], t0);
         // 111 reports another docking (pending), then one more (queued); 112 one (queued).
-        d.on_detected(id(0x111), port(4), t0);
-        d.on_detected(id(0x111), port(5), t0);
-        d.on_detected(id(0x112), port(1), t0);
+        d.on_detected(id(0x111), port(4), false, t0);
+        d.on_detected(id(0x111), port(5), false, t0);
+        d.on_detected(id(0x112), port(1), false, t0);
         let steps = d.forget(id(0x111), t0);
         assert_eq!(
             steps,
@@ -730,7 +1004,7 @@ mod tests {
         assert!(d.connections().is_empty());
         assert_eq!(d.queued().count(), 0);
         // Forgetting a mobile element ends its connection too.
-        d.on_handshake(id(3), port(1), t0);
+        d.on_handshake(id(3), port(1), &[], t0);
         assert_eq!(
             d.forget(id(3), t0),
             vec![Step::Removed(conn((id(0x112), port(1)), (id(3), port(1))))]
@@ -773,8 +1047,8 @@ mod tests {
             vec![Step::Removed(c)]
         );
         // A record made after the question was asked is not judged by its answer.
-        d.on_detected(id(0x111), port(1), later);
-        d.on_handshake(id(5), port(0), later);
+        d.on_detected(id(0x111), port(1), false, later);
+        d.on_handshake(id(5), port(0), &[], later);
         assert!(d.reconcile(id(0x111), &[], t0).is_empty());
         assert_eq!(d.connections().len(), 1);
         // A mobile element reported on a new port is no longer where it was recorded.
@@ -791,7 +1065,7 @@ mod tests {
             ]
         );
         // The docking in progress is left alone.
-        d.on_detected(id(0x112), port(4), later + T);
+        d.on_detected(id(0x112), port(4), false, later + T);
         assert!(d
             .reconcile(
                 id(0x112),

@@ -58,10 +58,22 @@ pub struct NodeEntry {
     pub relay: Option<bool>,
     /// Signal-loop bitmap (bit n = port n closed).
     pub loops: u8,
-    /// When an acknowledgement last changed `led`, `buzzer` or `relay`.
-    pub acked_at: Option<Instant>,
+    /// When an acknowledgement last changed `led`, `buzzer` and `relay`, each on its own: a
+    /// read-back asked before that is older for that actuator only.
+    pub acked_at: Acked,
     /// What the state document last published showed (see [`Registry::state_changed`]).
     published: Option<Shown>,
+}
+
+/// When an acknowledgement last set each actuator of a node.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Acked {
+    /// The LED.
+    pub led: Option<Instant>,
+    /// The buzzer.
+    pub buzzer: Option<Instant>,
+    /// The relay.
+    pub relay: Option<Instant>,
 }
 
 impl NodeEntry {
@@ -85,7 +97,7 @@ impl NodeEntry {
             buzzer: None,
             relay: None,
             loops: 0,
-            acked_at: None,
+            acked_at: Acked::default(),
             published: None,
         }
     }

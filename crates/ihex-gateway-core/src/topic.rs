@@ -92,6 +92,22 @@ impl Topics {
             .filter(|name| !name.is_empty() && !name.contains('/'))
     }
 
+    /// The filter that matches every node's state topic (`<root>/+/state`).
+    pub fn node_state_filter(&self) -> String {
+        format!("{}/+/state", self.node_state_root)
+    }
+
+    /// The node whose state topic `topic` is, if it is one.
+    pub fn parse_node_state(&self, topic: &str) -> Option<NodeId> {
+        let id = topic
+            .strip_prefix(self.node_state_root.as_str())?
+            .strip_prefix('/')?
+            .strip_suffix("/state")?;
+        let node: NodeId = id.parse().ok()?;
+        // One spelling only: the one `node_state` writes.
+        (self.node_state(node) == topic).then_some(node)
+    }
+
     /// The concrete name of a logical topic.
     pub fn resolve(&self, topic: Topic) -> String {
         match topic {
@@ -168,6 +184,30 @@ mod tests {
             "ihex/node/111/state"
         );
         assert_eq!(t.resolve(Topic::Events), "EventsTopic");
+    }
+
+    #[test]
+    fn node_state_topics_parse_back() {
+        let t = Topics::new(
+            Some("lab-a"),
+            COMMANDS,
+            EVENTS,
+            AVAILABILITY,
+            NODE_STATE_ROOT,
+        );
+        let id = NodeId::new(0x111).unwrap();
+        assert_eq!(t.node_state_filter(), "lab-a/ihex/node/+/state");
+        assert_eq!(t.parse_node_state(&t.node_state(id)), Some(id));
+        for other in [
+            "ihex/node/111/state",
+            "lab-a/ihex/node/111",
+            "lab-a/ihex/node/111/state/x",
+            "lab-a/ihex/node/zz/state",
+            "lab-a/ihex/node//state",
+            "lab-a/ihex/node/0111/state",
+        ] {
+            assert_eq!(t.parse_node_state(other), None, "{other}");
+        }
     }
 
     #[test]

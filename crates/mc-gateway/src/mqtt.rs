@@ -15,6 +15,10 @@
 //! which MQTT cannot hold back, wait here up to [`HELD_MAX`] and beyond that are shed and counted
 //! ([`MqttStats::commands_shed`]).
 //!
+//! On every ConnAck it also subscribes to the island's state topics (`<root>/+/state`), to hand the
+//! core the *retained* documents an earlier run left ([`MqttInput::RetainedState`]); the first live
+//! message there (this run's own publications coming back) ends that subscription.
+//!
 //! Every packet the broker delivers is read, up to the MQTT maximum ([`MAX_INCOMING`]), so an
 //! oversized command reaches the core and is answered instead of breaking the connection.
 
@@ -105,6 +109,13 @@ pub enum MqttInput {
         payload: Bytes,
         /// The broker delivered it as a retained message (refused by the core).
         retained: bool,
+    },
+    /// A retained state document the broker delivered on subscribing to the state topics.
+    RetainedState {
+        /// The node whose topic it is.
+        id: ihex_proto::NodeId,
+        /// The document as received (empty: the topic was cleared).
+        payload: Vec<u8>,
     },
     /// A ConnAck: the session is (re)established and subscribed.
     Connected,
@@ -331,6 +342,8 @@ impl MqttTask {
         let mut delay = RECONNECT_MIN;
         let mut warn_at = WarnSchedule::new();
         let mut inputs_open = true;
+        // Subscribed to the state topics for the retained documents (see the module docs).
+        let mut reading_states = false;
         'run: loop {
             // `poll()` is not cancel-safe (dropping it mid-connect or mid-write loses the
             // connection or part of a packet), so one poll future lives until it completes while
@@ -383,6 +396,7 @@ impl MqttTask {
                         "connected to the broker"
                     );
                     self.on_connack(&client);
+                    reading_states = true;
                     // After the commands received before it, never shed.
                     if held.is_empty() {
                         match inputs.try_send(MqttInput::Connected) {
@@ -417,6 +431,26 @@ impl MqttTask {
                             name: name.to_owned(),
                             payload: p.payload,
                             retained: p.retain,
+                        }
+                    } else if let Some(id) = self.topics.parse_node_state(&p.topic) {
+                        if !p.retain {
+                            // Retained messages come right after the subscription, before anything
+                            // live: the rest are our own publications, not wanted back.
+                            if reading_states {
+                                reading_states = false;
+                                let filter = self.topics.node_state_filter();
+                                if let Err(e) = client.try_unsubscribe(filter) {
+                                    debug!(error = %e, "cannot queue the unsubscription");
+                                }
+                            }
+                            if let Some((ack, _)) = ack {
+                                acks.push_back(ack);
+                            }
+                            continue;
+                        }
+                        MqttInput::RetainedState {
+                            id,
+                            payload: p.payload.to_vec(),
                         }
                     } else if self.ha && p.topic == self.topics.ha.status {
                         MqttInput::HaStatus(p.payload.to_vec())
@@ -545,6 +579,11 @@ impl MqttTask {
             if let Err(e) = client.try_subscribe(t.clone(), QoS::AtLeastOnce) {
                 warn!(topic = %t, error = %e, "cannot queue the subscription");
             }
+        }
+        // QoS 0: retained documents need no acknowledgement.
+        let states = self.topics.node_state_filter();
+        if let Err(e) = client.try_subscribe(states.clone(), QoS::AtMostOnce) {
+            warn!(topic = %states, error = %e, "cannot queue the subscription");
         }
         if let Err(e) =
             client.try_publish(&self.topics.availability, QoS::AtLeastOnce, true, ONLINE)

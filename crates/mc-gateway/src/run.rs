@@ -385,6 +385,7 @@ fn on_mqtt(bridge: &mut Bridge, input: MqttInput) {
             payload,
             retained,
         } => bridge.handle_fw_upload(&name, payload.to_vec(), retained, now),
+        MqttInput::RetainedState { id, payload } => bridge.handle_retained_state(id, &payload, now),
         MqttInput::Connected => bridge.handle_mqtt_connected(now),
     }
 }

@@ -18,7 +18,8 @@
 //!   away, so every delivery is a replay) has no frame and no `ok` answer.
 //! - **convergence**: at each checkpoint (2 health periods after a recovery) the retained state
 //!   documents equal the island's truth: presence, LED, buzzer, relay, dockings; `online` may lag
-//!   only for a node that vanished less than `lost_after + 1` health periods before.
+//!   only for a node that vanished less than `lost_after + 1` health periods before (counted from
+//!   the recovery when it vanished while the gateway's CAN interface was down or it was killed).
 //! - **availability**: around a fault that breaks the session, `offline` (the last will, or the
 //!   broker itself gone) and then `online`; `online` at every checkpoint; every fault recovered.
 
@@ -360,9 +361,13 @@ pub fn check(trace: &Trace) -> Report {
             by_rid.insert(rid, s.n);
         }
     }
-    // Answers without a request_id: a `command_result` goes to the oldest unanswered command of
-    // the same cmd and node that can still be answered; a rejection names no command, and comes
-    // at once, so it goes to the newest unanswered one sent before it.
+    // Answers without a request_id cannot tell which of the commands they could answer is theirs:
+    // a `command_result` names its cmd and node, a rejection nothing. First a guess — a result goes
+    // to the oldest open command of its cmd and node, a rejection (it comes at once) to the newest
+    // open one — then the guess is corrected where it left a command unanswered that needed an
+    // answer while another assignment answers it (an answer given to a command lost in a fault
+    // may belong to a later one): augmenting paths, commands that must be answered first. Only
+    // what no assignment explains is a violation.
     let answerable = |at: Ms, s: &Sent, answer_at: Ms| {
         s.request_id.is_none()
             && at <= answer_at
@@ -372,7 +377,8 @@ pub fn check(trace: &Trace) -> Report {
                     + 2 * p.slack_ms
                     + 2 * windows.delay_at(at)
     };
-    let mut unmatched_null: Vec<&Answered> = Vec::new();
+    let deadline_of = |at: Ms| p.command_timeout_ms + p.slack_ms + 2 * windows.delay_at(at);
+    let mut null_answers: Vec<&Answered> = Vec::new();
     for a in &answers {
         match &a.request_id {
             Some(rid) => match by_rid.get(rid.as_str()) {
@@ -386,37 +392,90 @@ pub fn check(trace: &Trace) -> Report {
                     ),
                 }),
             },
-            None => {
-                let open = |(at, s): &&(Ms, &Sent)| {
-                    answerable(*at, s, a.at) && !answer_of.contains_key(&s.n)
-                };
-                let target = match &a.what {
-                    Some(w) => sent
-                        .iter()
-                        .filter(open)
-                        .find(|(_, s)| Some(w) == cmd_and_node(s).as_ref()),
-                    None => sent.iter().rfind(open),
-                };
-                match target {
-                    Some((_, s)) => answer_of.entry(s.n).or_default().push(a),
-                    None => unmatched_null.push(a),
-                }
-            }
+            None => null_answers.push(a),
         }
     }
-    for a in unmatched_null {
-        report.violations.push(Violation {
-            at: a.at,
-            rule: Rule::OneAnswer,
-            message: format!(
-                "an answer without request_id that no command left unanswered can own (a second answer?): {}",
-                a.raw
-            ),
-        });
+    // Which answers each command could own (indices into `null_answers`), in time order.
+    let can_own: Vec<Vec<usize>> = sent
+        .iter()
+        .map(|(at, s)| {
+            let what = cmd_and_node(s);
+            null_answers
+                .iter()
+                .enumerate()
+                .filter(|(_, a)| {
+                    answerable(*at, s, a.at)
+                        && a.what.as_ref().is_none_or(|w| Some(w) == what.as_ref())
+                })
+                .map(|(i, _)| i)
+                .collect()
+        })
+        .collect();
+    // owner[answer] = index into `sent`.
+    let mut owner: Vec<Option<usize>> = vec![None; null_answers.len()];
+    let mut owned = vec![false; sent.len()];
+    for (i, a) in null_answers.iter().enumerate() {
+        let open = |c: &usize| !owned[*c] && can_own[*c].contains(&i);
+        let mut candidates = 0..sent.len();
+        let target = match a.what {
+            Some(_) => candidates.find(open),
+            None => candidates.rfind(open),
+        };
+        if let Some(c) = target {
+            owner[i] = Some(c);
+            owned[c] = true;
+        }
+    }
+    let must_answer: Vec<bool> = sent
+        .iter()
+        .map(|(at, s)| {
+            let deadline = deadline_of(*at);
+            !s.retained && !in_fault(*at, at + deadline) && at + deadline <= end_of_run
+        })
+        .collect();
+    // A command that needs its answer takes one another command could do without: by moving
+    // answers along, or else from a command that may go unanswered (lost in a fault).
+    for c in 0..sent.len() {
+        if !must_answer[c] || owned[c] {
+            continue;
+        }
+        let mut seen = vec![false; null_answers.len()];
+        if augment(c, &can_own, &mut owner, &mut seen) {
+            owned[c] = true;
+        } else if let Some(a) = can_own[c]
+            .iter()
+            .copied()
+            .find(|&a| owner[a].is_some_and(|o| !must_answer[o]))
+        {
+            if let Some(o) = owner[a].replace(c) {
+                owned[o] = false;
+            }
+            owned[c] = true;
+        }
+    }
+    // Answers still without an owner go to commands that may take them.
+    for (c, owns) in owned.iter_mut().enumerate() {
+        if !*owns {
+            let mut seen = vec![false; null_answers.len()];
+            *owns = augment(c, &can_own, &mut owner, &mut seen);
+        }
+    }
+    for (i, a) in null_answers.iter().enumerate() {
+        match owner[i] {
+            Some(c) => answer_of.entry(sent[c].1.n).or_default().push(a),
+            None => report.violations.push(Violation {
+                at: a.at,
+                rule: Rule::OneAnswer,
+                message: format!(
+                    "an answer without request_id that no command left unanswered can own (a second answer?): {}",
+                    a.raw
+                ),
+            }),
+        }
     }
     for (at, s) in &sent {
         // A delayed link delays the command and its answer.
-        let deadline = p.command_timeout_ms + p.slack_ms + 2 * windows.delay_at(*at);
+        let deadline = deadline_of(*at);
         let got = answer_of.get(&s.n).map(Vec::as_slice).unwrap_or_default();
         if s.retained {
             // Every replay may be answered (a rejection each time); none may say `ok`.
@@ -436,8 +495,10 @@ pub fn check(trace: &Trace) -> Report {
                 if in_fault(*at, at + deadline) {
                     report.lost_in_faults += 1;
                 } else if at + deadline <= end_of_run {
+                    // Dated when it was sent: the excerpt then shows the command, its way to the
+                    // gateway and what the gateway answered around it.
                     report.violations.push(Violation {
-                        at: at + deadline,
+                        at: *at,
                         rule: Rule::OneAnswer,
                         message: format!(
                             "command #{} {} got no answer within {deadline} ms (no fault in the way)",
@@ -484,6 +545,31 @@ pub fn check(trace: &Trace) -> Report {
     check_checkpoints(trace, &mut report);
     report.violations.sort_by_key(|v| (v.at, v.rule));
     report
+}
+
+/// Kuhn's augmenting path from command `c`: gives it one of the answers it can own, moving the
+/// answer's present owner to another of its own if need be. True when it found one.
+fn augment(
+    c: usize,
+    can_own: &[Vec<usize>],
+    owner: &mut [Option<usize>],
+    seen: &mut [bool],
+) -> bool {
+    for &a in &can_own[c] {
+        if seen[a] {
+            continue;
+        }
+        seen[a] = true;
+        let free = match owner[a] {
+            None => true,
+            Some(o) => augment(o, can_own, owner, seen),
+        };
+        if free {
+            owner[a] = Some(c);
+            return true;
+        }
+    }
+    false
 }
 
 /// `(cmd, node)` of a command as its `command_result` names them.
@@ -739,10 +825,43 @@ struct Presence {
 }
 
 impl Presence {
-    fn at(trace: &Trace, until: Ms) -> Presence {
+    /// Presence as of `until`. A change the gateway could not see when it happened — while its
+    /// CAN interface was down or it was not running (a CAN outage or a gateway kill, from its
+    /// begin to its recovery), or shortly before, while the lost detection of `lost_grace` was
+    /// still counting — counts from that recovery: the gateway pauses lost detection while its
+    /// own bus is down (else every node would be declared lost) and a restarted one starts it
+    /// afresh, so `lost_after` health periods only start then.
+    fn at(trace: &Trace, until: Ms, lost_grace: Ms) -> Presence {
         let mut p = Presence {
             since: BTreeMap::new(),
             gone: BTreeMap::new(),
+        };
+        let mut blind: Vec<(Ms, Ms)> = Vec::new();
+        let mut begun: BTreeMap<u32, Ms> = BTreeMap::new();
+        for r in trace.records.iter().take_while(|r| r.at <= until) {
+            match &r.entry {
+                Entry::FaultBegin {
+                    fault,
+                    what: Fault::CanDown { .. } | Fault::GatewayKill { .. },
+                } => {
+                    begun.insert(*fault, r.at);
+                }
+                Entry::Recovered { fault, .. } => {
+                    if let Some(b) = begun.remove(fault) {
+                        blind.push((b, r.at));
+                    }
+                }
+                _ => {}
+            }
+        }
+        // Still blind at `until`: nothing counts yet.
+        blind.extend(begun.values().map(|&b| (b, until)));
+        let seen_at = |t: Ms, grace: Ms| {
+            blind
+                .iter()
+                .filter(|&&(b, e)| b <= t + grace && t < e)
+                .map(|&(_, e)| e)
+                .fold(t, Ms::max)
         };
         for r in trace.records.iter().take_while(|r| r.at <= until) {
             let truth = match &r.entry {
@@ -753,9 +872,9 @@ impl Presence {
             for e in truth {
                 if e.powered && e.on_bus {
                     p.gone.remove(&e.id);
-                    p.since.entry(e.id.clone()).or_insert(r.at);
+                    p.since.entry(e.id.clone()).or_insert(seen_at(r.at, 0));
                 } else if p.since.remove(&e.id).is_some() {
-                    p.gone.insert(e.id.clone(), r.at);
+                    p.gone.insert(e.id.clone(), seen_at(r.at, lost_grace));
                 } else {
                     p.gone.entry(e.id.clone()).or_insert(0);
                 }
@@ -821,7 +940,7 @@ fn check_checkpoints(trace: &Trace, report: &mut Report) {
                 message: format!("{after}: availability is {availability:?}, not online"),
             });
         }
-        let presence = Presence::at(trace, r.at);
+        let presence = Presence::at(trace, r.at, lost_grace);
         let by_id: BTreeMap<&str, &Element> = truth.iter().map(|e| (e.id.as_str(), e)).collect();
         for e in truth {
             let doc = docs.get(&e.id);

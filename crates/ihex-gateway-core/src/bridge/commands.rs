@@ -890,12 +890,20 @@ fn apply_action_state(
 ) {
     if let Some(e) = registry.get_mut(node) {
         match action {
-            NodeAction::Led(cmd) => e.led = Some(cmd),
-            NodeAction::Buzzer(cmd) => e.buzzer = Some(cmd),
-            NodeAction::Power(on) => e.relay = Some(on),
+            NodeAction::Led(cmd) => {
+                e.led = Some(cmd);
+                e.acked_at.led = Some(now);
+            }
+            NodeAction::Buzzer(cmd) => {
+                e.buzzer = Some(cmd);
+                e.acked_at.buzzer = Some(now);
+            }
+            NodeAction::Power(on) => {
+                e.relay = Some(on);
+                e.acked_at.relay = Some(now);
+            }
             NodeAction::Identify(_) => return,
         }
-        e.acked_at = Some(now);
         out.touch(node);
     }
 }

@@ -44,8 +44,12 @@ pub(super) fn apply(steps: Vec<Step>, parts: DockParts<'_>, now: Instant, out: &
                 // Without a free sequence number the confirm is not sent; the docking then ends
                 // with its handshake timeout.
                 if let Some(seq) = commands.send_internal(node, Kind::DockConfirm, msg, now, out) {
-                    docking.confirm_sent(seq);
+                    docking.confirm_sent(node, port, seq);
                 }
+            }
+            Step::Adopt { node, port } => {
+                let msg = |seq| Message::DockConfirm { seq, port };
+                commands.send_internal(node, Kind::DockConfirm, msg, now, out);
             }
             Step::RefuseBusy { node, port } => {
                 send_dock_refuse(commands, out, node, port, DockRefuseReason::Busy, now)
@@ -136,7 +140,9 @@ fn send_dock_refuse(
 mod tests {
     use super::super::test_support::*;
     use super::super::*;
-    use ihex_proto::{AckResult, BootRole, DockRefuseReason, Kind, Message, Packet, ResetReason};
+    use ihex_proto::{
+        AckResult, BootRole, DockRefuseReason, HealthFlags, Kind, Message, Packet, ResetReason,
+    };
     use serde_json::json;
 
     #[test]
@@ -398,5 +404,120 @@ mod tests {
             .iter()
             .any(|p| matches!(p.msg, Message::PowerSet { .. })));
         assert_eq!(out.one("dock_failed")["port"], 4);
+    }
+
+    #[test]
+    fn an_element_powered_while_docked_is_adopted_by_the_free_closed_loop() {
+        // The demo island's start: 2 sits on 0x111 port 3 with the relay off; the gateway only
+        // knows the closed loop from 0x111's health replies. A `power` command switches the relay
+        // on, 2 boots and handshakes with no docking pending. (0x112's loop 1 is closed too, but
+        // its relay is off: nobody there has power.)
+        let (mut b, t0) = with_nodes(&[0x111, 0x112]);
+        let mut health = reply(1, HealthFlags::RELAY);
+        if let Message::HealthReply(h) = &mut health {
+            h.loops = 1 << 3;
+        }
+        let mut unpowered = reply(1, 0);
+        if let Message::HealthReply(h) = &mut unpowered {
+            h.loops = 1 << 1;
+        }
+        b.handle_timeout(t0 + S);
+        b.handle_packet(Packet::report(id(0x111), health), t0 + S);
+        b.handle_packet(Packet::report(id(0x112), unpowered), t0 + S);
+        drain(&mut b);
+        let boot = Message::BootUp {
+            version: (1, 2),
+            role: BootRole::Mobile,
+            ports: 6,
+            reset: ResetReason::PowerOn,
+        };
+        b.handle_packet(Packet::report(id(2), boot), t0 + S + MS);
+        b.handle_packet(
+            Packet::report(id(2), Message::Handshake { port: port(0) }),
+            t0 + S + MS,
+        );
+        let out = drain(&mut b);
+        assert!(out.named("fault").is_empty(), "{:?}", out.events);
+        assert_eq!(
+            out.raw_events
+                .iter()
+                .filter(|e| e.contains("new_connection"))
+                .collect::<Vec<_>>(),
+            [
+                r#"{"event":"new_connection","payload":{"n":{"id":"2","port":0},"n-1":{"id":"111","port":3}}}"#
+            ]
+        );
+        // The port is confirmed (it holds the relay like any docking), then linked.
+        let to_111: Vec<_> = out
+            .sent
+            .iter()
+            .filter(|p| p.dest == id(0x111))
+            .map(|p| p.msg)
+            .collect();
+        assert!(
+            matches!(
+                to_111[..],
+                [
+                    Message::DockConfirm { port: p3, .. },
+                    Message::DockLink { port: l3, partner: Some(m), .. }
+                ] if p3 == port(3) && l3 == port(3) && m.node == id(2)
+            ),
+            "{to_111:?}"
+        );
+        let st = out
+            .states
+            .iter()
+            .rev()
+            .find(|(i, _)| *i == id(0x111))
+            .unwrap();
+        assert_eq!(
+            st.1["connections"],
+            json!([{"port": 3, "peer": "2", "peer_port": 0}])
+        );
+        // 0x111's own report of that closed loop, if it comes now, starts no docking.
+        b.handle_packet(
+            Packet::report(id(0x111), Message::DockDetected { port: port(3) }),
+            t0 + S + 2 * MS,
+        );
+        let out = drain(&mut b);
+        assert!(out.sent.is_empty() && out.events.is_empty(), "{out:?}");
+    }
+
+    #[test]
+    fn a_docked_element_whose_handshake_was_lost_is_found_by_its_health_replies() {
+        // 3 got power on 0x111 port 3 while the bus was down: its handshake is gone, but its
+        // health replies show a closed loop, as do 0x111's (relay on).
+        let (mut b, t0) = with_nodes(&[0x111]);
+        let with_loops = |flags: u8, loops: u8| {
+            let mut r = reply(1, flags);
+            if let Message::HealthReply(h) = &mut r {
+                h.loops = loops;
+            }
+            r
+        };
+        b.handle_timeout(t0 + S);
+        b.handle_packet(
+            Packet::report(id(0x111), with_loops(HealthFlags::RELAY, 1 << 3)),
+            t0 + S,
+        );
+        b.handle_packet(
+            Packet::report(id(3), with_loops(HealthFlags::MOBILE, 1 << 1)),
+            t0 + S,
+        );
+        b.handle_timeout(t0 + S + MS);
+        let out = drain(&mut b);
+        assert_eq!(
+            out.raw_events
+                .iter()
+                .filter(|e| e.contains("new_connection"))
+                .collect::<Vec<_>>(),
+            [
+                r#"{"event":"new_connection","payload":{"n":{"id":"3","port":1},"n-1":{"id":"111","port":3}}}"#
+            ]
+        );
+        assert!(out.sent.iter().any(|p| p.dest == id(0x111)
+            && matches!(p.msg, Message::DockLink { partner: Some(m), .. } if m.node == id(3))));
+        b.handle_timeout(t0 + 2 * S);
+        assert!(drain(&mut b).named("new_connection").is_empty());
     }
 }

@@ -10,8 +10,9 @@
 //! detection), `diagnostics` (error frames, drops, undecodable frames, faults, rate limits), `dock`
 //! (the docking sequence's frames and events), `forget` (the `forget` command and renumbered
 //! boards), `home_assistant` (discovery and commands from Home Assistant, [`crate::ha`]),
-//! `readback` (asking nodes for their state and applying their answers), `output` (the queues the
-//! adapters drain, and what gives when they cannot keep up).
+//! `readback` (asking nodes for their state and applying their answers), `inherited` (state
+//! documents an earlier run left retained for nodes this run does not hear), `output` (the queues
+//! the adapters drain, and what gives when they cannot keep up).
 
 mod commands;
 mod diagnostics;
@@ -20,6 +21,7 @@ mod forget;
 mod fw;
 mod health;
 mod home_assistant;
+mod inherited;
 mod output;
 mod readback;
 #[cfg(test)]
@@ -28,7 +30,7 @@ mod test_support;
 use std::time::{Duration, Instant};
 
 use ihex_proto::{
-    AckResult, BootRole, DecodeError, FaultCode, Kind, Message, NodeId, Packet, StateParts,
+    AckResult, BootRole, DecodeError, FaultCode, Kind, Message, NodeId, Packet, Port, StateParts,
     StateReport, Uid,
 };
 
@@ -53,6 +55,7 @@ use diagnostics::Diagnostics;
 use dock::DockParts;
 use fw::FwUpdates;
 use health::Health;
+use inherited::Inherited;
 use output::{Next, Outputs};
 use readback::{ReadBack, Reply};
 
@@ -155,6 +158,7 @@ pub struct Bridge {
     /// Home Assistant discovery, when enabled ([`Bridge::with_home_assistant`]).
     ha: Option<Ha>,
     readback: ReadBack,
+    inherited: Inherited,
     /// The time of the last input (state documents taken later are built as of it).
     now: Instant,
     /// When the next `publications_dropped` may go out.
@@ -175,6 +179,7 @@ impl Bridge {
             diagnostics: Diagnostics::new(),
             ha: None,
             readback: ReadBack::new(config.command_timeout),
+            inherited: Inherited::new(config.health_period, config.lost_after_misses, now),
             fw: FwUpdates::new(config.fw.clone()),
             config,
             now,
@@ -456,7 +461,8 @@ impl Bridge {
                 if let Some(e) = self.registry.get_mut(src) {
                     e.loops |= port.mask();
                 }
-                let steps = self.docking.on_detected(src, port, now);
+                let relay_on = self.registry.get(src).is_some_and(relay_on);
+                let steps = self.docking.on_detected(src, port, relay_on, now);
                 self.apply(steps, now);
             }
             Message::DockRemoved { port } => {
@@ -467,7 +473,8 @@ impl Bridge {
                 self.apply(steps, now);
             }
             Message::Handshake { port } => {
-                let steps = self.docking.on_handshake(src, port, now);
+                let closed = self.closed_static_loops();
+                let steps = self.docking.on_handshake(src, port, &closed, now);
                 self.apply(steps, now);
             }
             Message::AssignReply {
@@ -594,6 +601,29 @@ impl Bridge {
         self.out.dirty.clear();
     }
 
+    /// A retained state document of `id` the broker delivered when the adapter subscribed to the
+    /// state topics (an earlier run's, or this run's own). One that says `online` for a node this
+    /// run does not hear within the lost period is republished offline (see [`Bridge::poll_timeout`]).
+    pub fn handle_retained_state(&mut self, id: NodeId, payload: &[u8], now: Instant) {
+        self.advance(now);
+        let known = self.registry.get(id).is_some();
+        self.inherited.on_retained(id, payload, known);
+        self.republish_inherited(now);
+        self.settle(now);
+    }
+
+    /// Republishes, offline, the inherited documents of nodes not heard in time.
+    fn republish_inherited(&mut self, now: Instant) {
+        let registry = &self.registry;
+        let lost = self
+            .inherited
+            .take_lost(now, self.health.bus_down(), |id| registry.get(id).is_some());
+        for doc in lost {
+            tracing::info!(node = %doc.id, "state document of an earlier run says online, node not heard since start: republished offline");
+            self.out.publish.push_kept(Publication::State(doc));
+        }
+    }
+
     /// The image file of an `fw_update` ([`Bridge::poll_fw_load`]) was read (`Ok`), or could not
     /// be (`Err`: why, for the `command_result`). A good image starts the update.
     pub fn handle_fw_image(&mut self, load: FwLoad, bytes: Result<Vec<u8>, String>, now: Instant) {
@@ -648,8 +678,10 @@ impl Bridge {
         }
         self.commands.expire(now, &mut self.out);
         self.readback.expire(now);
+        self.republish_inherited(now);
         let steps = self.docking.tick(now);
         self.apply(steps, now);
+        self.adopt_unrecorded(now);
         let Bridge {
             registry,
             docking,
@@ -696,6 +728,7 @@ impl Bridge {
         at(self.commands.next_deadline());
         at(self.readback.next_deadline());
         at(self.docking.deadline());
+        at(self.inherited.next_deadline());
         at(self
             .out
             .transmit
@@ -874,6 +907,60 @@ impl Bridge {
         }
     }
 
+    /// The closed signal loops of the online static elements whose relay is on (static element,
+    /// its port): where a mobile element whose handshake no docking awaited can have got power.
+    fn closed_static_loops(&self) -> Vec<(NodeId, Port)> {
+        self.registry
+            .iter()
+            .filter(|e| e.online && e.role == Some(BootRole::Static) && relay_on(e))
+            .flat_map(|e| {
+                (0..8u8)
+                    .filter(move |p| e.loops & (1 << p) != 0)
+                    .filter_map(Port::new)
+                    .map(move |p| (e.id, p))
+            })
+            .collect()
+    }
+
+    /// Pairs a docked mobile element recorded nowhere (its handshake was lost) with the one free
+    /// closed loop of a powered static element — once the mobile element has answered a health
+    /// check (its handshake, sent at boot, came before) and no read-back of a static element is
+    /// outstanding (its own record of the docking comes first,
+    /// silently, after a gateway restart). Static elements of protocol 1.0 keep no record and are
+    /// left out: a docking they had before a restart stays unknown, as documented.
+    fn adopt_unrecorded(&mut self, now: Instant) {
+        if self.health.bus_down() {
+            return;
+        }
+        let statics_settled = self
+            .registry
+            .iter()
+            .filter(|e| e.role == Some(BootRole::Static))
+            .all(|e| !self.readback.pending(e.id));
+        if !statics_settled {
+            return;
+        }
+        let mobiles: Vec<(NodeId, Port)> = self
+            .registry
+            .iter()
+            .filter(|e| e.online && e.role == Some(BootRole::Mobile) && e.health.is_some())
+            .filter_map(|e| {
+                let low = (0..8u8).find(|p| e.loops & (1 << p) != 0)?;
+                Some((e.id, Port::new(low)?))
+            })
+            .collect();
+        if mobiles.is_empty() {
+            return;
+        }
+        let closed: Vec<(NodeId, Port)> = self
+            .closed_static_loops()
+            .into_iter()
+            .filter(|(s, _)| self.readback.supports(*s))
+            .collect();
+        let steps = self.docking.adopt_unrecorded(&mobiles, &closed, now);
+        self.apply(steps, now);
+    }
+
     /// A node's complete answer to a state query: what it reports replaces what the bridge
     /// assumed, except what a node acknowledged after the question (that is newer); a static
     /// element's ports reconcile the docking record.
@@ -887,15 +974,18 @@ impl Bridge {
         let Some(e) = self.registry.get_mut(node) else {
             return;
         };
-        let fresher_acks = e.acked_at.is_some_and(|t| t >= asked);
+        // Each actuator on its own: an LED acknowledged after the question does not make the
+        // reported buzzer any older.
+        let older = |acked: Option<Instant>| acked.is_none_or(|t| t < asked);
+        let acked = e.acked_at;
         let mut docks = Vec::new();
         let (mut low, mut high) = (None, None);
         for r in reports {
             match r {
-                StateReport::Led(cmd) if !fresher_acks => e.led = Some(cmd),
-                StateReport::Buzzer(cmd) if !fresher_acks => e.buzzer = Some(cmd),
+                StateReport::Led(cmd) if older(acked.led) => e.led = Some(cmd),
+                StateReport::Buzzer(cmd) if older(acked.buzzer) => e.buzzer = Some(cmd),
                 StateReport::Power(p) => {
-                    if !fresher_acks {
+                    if older(acked.relay) {
                         e.relay = Some(p.relay);
                     }
                     e.loops = p.loops;
@@ -954,6 +1044,14 @@ impl Bridge {
         // Kept, with its capacity, for the next input.
         self.out.dirty = dirty;
     }
+}
+
+/// The node's relay is on as far as the bridge knows: acknowledged or read back, or in its last
+/// health reply (either may be the newer).
+fn relay_on(e: &crate::registry::NodeEntry) -> bool {
+    e.relay == Some(true)
+        || e.health
+            .is_some_and(|h| h.flags.contains(ihex_proto::HealthFlags::RELAY))
 }
 
 /// `BadFrame` detail class of a frame whose kind the node does not know.

@@ -508,7 +508,11 @@ mod tests {
         answer(
             &mut b,
             &q,
-            &[StateReport::Led(RED), power(BootRole::Static, true, 0)],
+            &[
+                StateReport::Led(RED),
+                StateReport::Buzzer(ihex_proto::BuzzerCommand::Off),
+                power(BootRole::Static, true, 0),
+            ],
             t0 + S + MS,
         );
         drain(&mut b);
@@ -517,6 +521,10 @@ mod tests {
             s["led"],
             serde_json::to_value(crate::event::LedState::from(blue)).unwrap()
         );
+        // Only the LED was acknowledged since: the buzzer and relay the node reports are the truth
+        // (the reboot had made them unknown).
+        assert_eq!(s["buzzer"]["mode"], "off", "{s}");
+        assert_eq!(s["relay"], true);
         // A command that timed out leaves the bridge unsure: the node is asked, its answer wins.
         let out = command(
             &mut b,

@@ -312,6 +312,45 @@ fn a_rejection_without_request_id_goes_to_the_newest_open_command() {
 }
 
 #[test]
+fn an_answer_without_request_id_goes_to_the_command_that_needs_it() {
+    // #1 is published during a cut (it never reached the gateway: no answer needed), #2 after the
+    // recovery; the one answer fits both windows and is #2's. (The first guess, the oldest open
+    // command, gave it to #1 and found #2 unanswered: a soak run's false violation.)
+    let mut t = T::new();
+    t.fault(100, 1, Fault::ProxyCut { ms: 100 }, 400)
+        .received(150, AVAIL, "offline")
+        .received(390, AVAIL, "online")
+        .led(200, 1, [1, 0, 0], None)
+        .led(500, 2, [2, 0, 0], None)
+        .result(600, None, "ok")
+        .at(5000, Entry::Note("end".into()));
+    t.trace.records.sort_by_key(|r| r.at);
+    let r = t.check();
+    assert!(r.ok(), "{r}");
+    assert_eq!((r.answered, r.lost_in_faults), (1, 1), "{r}");
+    // Answers are moved along when that answers everyone: #1's rejection (guessed for #2, the
+    // newest) and #2's result, which only #2 can own... here any result can be either's.
+    let reject =
+        r#"{"event":"command_rejected","payload":{"request_id":null,"reason":"unknown node 2"}}"#;
+    let mut t = T::new();
+    t.led(100, 1, [1, 0, 0], None)
+        .led(200, 2, [2, 0, 0], None)
+        .received(300, EVENTS, reject)
+        .result(400, None, "ok")
+        .at(5000, Entry::Note("end".into()));
+    let r = t.check();
+    assert!(r.ok(), "{r}");
+    assert_eq!(r.answered, 2);
+    // Still one answer too few for two commands that both need one.
+    let mut t = T::new();
+    t.led(100, 1, [1, 0, 0], None)
+        .led(200, 2, [2, 0, 0], None)
+        .result(400, None, "ok")
+        .at(5000, Entry::Note("end".into()));
+    assert_eq!(rules(&t.check()), [Rule::OneAnswer]);
+}
+
+#[test]
 fn a_late_answer_is_not_given_to_a_command_long_past_its_deadline() {
     // #1 (lost: sent at 100, deadline 100 + 1000 + 2 × 500) cannot own an answer at 5000; #2 does.
     let mut t = T::new();
@@ -640,6 +679,52 @@ fn a_node_that_just_vanished_may_still_be_online() {
         r.ok(),
         "lost detection takes lost_after health periods: {r}"
     );
+}
+
+#[test]
+fn a_node_that_vanished_while_the_gateway_was_blind_is_given_the_lost_time_after() {
+    // 2 loses power during a CAN outage (1000..8000): the gateway cannot count its misses until
+    // 8000, so at 9000 it may still show it online; at 8000 + the lost time it may not.
+    let truth = vec![element("111", [255, 0, 0]), mobile("2", Some(("111", 3)))];
+    let mut gone = truth.clone();
+    gone[1].powered = false;
+    let checkpoint = |t: &mut T, at: Ms| {
+        t.at(
+            at,
+            Entry::Checkpoint {
+                fault: Some(1),
+                truth: gone.clone(),
+                retained: vec![
+                    online(),
+                    doc(
+                        "111",
+                        true,
+                        [255, 0, 0],
+                        true,
+                        r#"{"port":3,"peer":"2","peer_port":0}"#,
+                    ),
+                    doc(
+                        "2",
+                        true,
+                        [0, 0, 0],
+                        false,
+                        r#"{"port":0,"peer":"111","peer_port":3}"#,
+                    ),
+                ],
+            },
+        );
+    };
+    let mut t = T::new();
+    t.at(0, Entry::Truth(truth))
+        .fault(1000, 1, Fault::CanDown { ms: 6000 }, 8000)
+        .at(2000, Entry::Truth(gone.clone()));
+    t.trace.records.sort_by_key(|r| r.at);
+    checkpoint(&mut t, 9000);
+    let r = t.check();
+    assert!(r.ok(), "{r}");
+    checkpoint(&mut t, 8000 + 4 * 500 + 500 + 1);
+    let r = t.check();
+    assert_eq!(rules(&r), [Rule::Convergence, Rule::Convergence], "{r}");
 }
 
 #[test]
