@@ -223,6 +223,12 @@ const FAULT_MINUTES_ENV: &str = "IHEX_FAULT_MINUTES";
 /// The fault suite's seed.
 const FAULT_SEED_ENV: &str = "IHEX_FAULT_SEED";
 
+/// The fault suite's plan in the vcan stage unless `IHEX_FAULT_SEED` names another: a plan that
+/// puts every kind of fault once, found green in the runs listed in docs/testing.md. A fresh seed
+/// per test run would make the test command a lottery over plans nobody has looked at; the soak
+/// (`cargo xtask soak`) is where new plans are drawn.
+const CI_FAULT_SEED: &str = "7100433354494382628";
+
 /// How long the host stage cuts the bridge in `tests/tests/bridge.rs` unless `IHEX_BRIDGE_CUT_S`
 /// says otherwise: long enough for the bridge's keep-alive to notice, short enough for CI; the
 /// 60 s of the reference scenario is the test's own default (docs/testing.md).
@@ -385,6 +391,10 @@ fn run_stage(stage: Stage, args: &TestArgs) -> Result<Done> {
             Ok(Done::Ran)
         }
         Stage::Vcan => {
+            // The test command repeats one plan of the fault suite; the soak explores fresh ones.
+            if std::env::var_os(FAULT_SEED_ENV).is_none() {
+                std::env::set_var(FAULT_SEED_ENV, CI_FAULT_SEED);
+            }
             vcan::stage(
                 vcan::Mode::from_env(args.vm)?,
                 args.vm_args.settings(),
