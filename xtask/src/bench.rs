@@ -55,6 +55,9 @@ pub struct BenchArgs {
     /// Skip the island view's latency (the demo gateway on the host).
     #[arg(long)]
     no_web: bool,
+    /// Skip the firmware update of a simulated island (the demo gateway on the host).
+    #[arg(long)]
+    no_fw: bool,
     /// Measure the gateway of this commit beside this one, in the same run with the same harness
     /// (its tree exported with `git archive` and built offline under target/bench/). The default
     /// is the state issue 15 measured.
@@ -319,21 +322,26 @@ fn live(
     ))
 }
 
-/// The island view's latency: the gateway as the README's first command runs it (default
-/// features: embedded broker, simulated island, web view), optimised, on this machine — the page's
-/// event stream has nothing to do with CAN, so no VM is needed.
-fn web(bench: &Path, out: &Path) -> Result<()> {
+/// The gateway as the README's first command runs it (default features: embedded broker,
+/// simulated island, web view), optimised, for the parts that run on this machine: the island
+/// view's event stream and a firmware update of the simulated island have nothing to do with CAN,
+/// so no VM is needed.
+fn demo_gateway() -> Result<PathBuf> {
     cmd::run(cmd::cargo().current_dir(cmd::root()).args([
         "build",
         "--release",
         "-p",
         "mc-gateway",
     ]))?;
-    let gateway = cmd::target_dir().join("release").join("mc-gateway");
+    Ok(cmd::target_dir().join("release").join("mc-gateway"))
+}
+
+/// `ihex-bench VERB --gateway GATEWAY --out OUT` (the island view: `web`; the firmware update: `fw`).
+fn on_demo(bench: &Path, verb: &str, gateway: &Path, out: &Path) -> Result<()> {
     cmd::run(
         Command::new(bench)
-            .args(["web", "--gateway"])
-            .arg(&gateway)
+            .args([verb, "--gateway"])
+            .arg(gateway)
             .arg("--out")
             .arg(out),
     )
@@ -352,6 +360,7 @@ pub fn run(args: BenchArgs, firmware_dir: &Path) -> Result<()> {
         "baseline-live.json",
         "baseline-callgrind.json",
         "web.json",
+        "fw.json",
     ] {
         let _ = fs::remove_file(dir.join(f));
     }
@@ -421,13 +430,34 @@ pub fn run(args: BenchArgs, firmware_dir: &Path) -> Result<()> {
             Err(e) => missing.push(format!("live benchmark: {e:#}")),
         }
     }
-    if args.no_web {
-        missing.push("island view latency: --no-web".into());
-    } else {
-        println!("\n==> xtask bench: island view latency (the demo gateway on this machine)");
-        if let Err(e) = web(&bench, &dir.join("web.json")) {
-            missing.push(format!("island view latency: {e:#}"));
+    let parts = [
+        (
+            args.no_web,
+            "web",
+            "island view latency",
+            "web.json",
+            "--no-web",
+        ),
+        (args.no_fw, "fw", "firmware update", "fw.json", "--no-fw"),
+    ];
+    if parts.iter().any(|(skip, ..)| !skip) {
+        match demo_gateway() {
+            Ok(gateway) => {
+                for (skip, verb, what, file, flag) in parts {
+                    if skip {
+                        missing.push(format!("{what}: {flag}"));
+                        continue;
+                    }
+                    println!("\n==> xtask bench: {what} (the demo gateway on this machine)");
+                    if let Err(e) = on_demo(&bench, verb, &gateway, &dir.join(file)) {
+                        missing.push(format!("{what}: {e:#}"));
+                    }
+                }
+            }
+            Err(e) => missing.push(format!("island view and firmware update: {e:#}")),
         }
+    } else {
+        missing.push("island view latency and firmware update: --no-web --no-fw".into());
     }
     fs::write(dir.join("missing.json"), serde_json::to_vec(&missing)?)?;
 

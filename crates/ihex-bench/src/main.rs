@@ -8,6 +8,7 @@ use clap::{Parser, Subcommand, ValueEnum};
 use ihex_bench::{report, workload};
 
 mod callgrind;
+mod fw;
 mod live;
 mod web;
 
@@ -81,6 +82,20 @@ enum Cmd {
         #[arg(long)]
         out: Option<PathBuf>,
     },
+    /// Firmware update of a simulated island: the demo gateway with N static elements, a
+    /// test-signed image uploaded over MQTT, `fw_update` to all and to one; LED commands and a
+    /// docking during the update.
+    Fw {
+        /// The mc-gateway binary, built with its default features (demo).
+        #[arg(long)]
+        gateway: PathBuf,
+        /// Static elements in the island.
+        #[arg(long, default_value_t = 20)]
+        nodes: u16,
+        /// Write the figures (JSON) here.
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
     /// Drive the sans-IO bridge over a fixed workload (run under callgrind).
     Workload {
         /// Which path.
@@ -99,7 +114,7 @@ enum Cmd {
         #[arg(long)]
         out: PathBuf,
     },
-    /// Combine live.json, callgrind.json, firmware.json and web.json of DIR (and the baseline's
+    /// Combine live.json, callgrind.json, firmware.json, web.json and fw.json of DIR (and the baseline's
     /// baseline-commit.txt, baseline-live.json, baseline-callgrind.json when present) into
     /// results.json, the plots and the table.
     Report {
@@ -174,6 +189,24 @@ fn main() -> Result<()> {
                 })
             );
         }
+        Cmd::Fw {
+            gateway,
+            nodes,
+            out,
+        } => {
+            let f = fw::run(&gateway, nodes)?;
+            if let Some(out) = out {
+                std::fs::write(&out, serde_json::to_vec_pretty(&f)?)?;
+            }
+            println!(
+                "{}",
+                report::table(&report::Results {
+                    machine: "this machine".into(),
+                    fw: Some(f),
+                    ..Default::default()
+                })
+            );
+        }
         Cmd::Workload { path, n } => {
             let p = match path {
                 WorkPath::Can => workload::Path::CanToEvent,
@@ -223,6 +256,10 @@ fn main() -> Result<()> {
                     live,
                     callgrind,
                 });
+            }
+            match read("fw.json") {
+                Some(b) => r.fw = Some(serde_json::from_slice(&b).context("fw.json")?),
+                None => r.missing.push("firmware update (no fw.json)".into()),
             }
             match read("web.json") {
                 Some(b) => r.web = Some(serde_json::from_slice(&b).context("web.json")?),

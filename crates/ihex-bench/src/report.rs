@@ -5,7 +5,7 @@ use std::fmt::Write as _;
 
 use serde::{Deserialize, Serialize};
 
-use crate::results::{LiveResults, Trial, WebResults};
+use crate::results::{FwResults, LiveResults, Trial, WebResults};
 use crate::stats::Summary;
 
 /// Instructions per bridged frame on one path.
@@ -63,6 +63,9 @@ pub struct Results {
     /// The island view's latency, if it was measured.
     #[serde(default)]
     pub web: Option<WebResults>,
+    /// The firmware update of a simulated island, if it was measured.
+    #[serde(default)]
+    pub fw: Option<FwResults>,
     /// Why a part is missing.
     pub missing: Vec<String>,
     /// The same measurements of an earlier gateway, taken in the same run with the same harness.
@@ -485,10 +488,77 @@ pub fn table(r: &Results) -> String {
     if let Some(w) = &r.web {
         web_table(&mut o, w);
     }
+    if let Some(f) = &r.fw {
+        fw_table(&mut o, f);
+    }
     for m in &r.missing {
         let _ = writeln!(o, "missing: {m}");
     }
     o
+}
+
+/// The firmware update's section of the table.
+fn fw_table(o: &mut String, f: &FwResults) {
+    let counts = |v: &[(String, usize)]| -> String {
+        v.iter()
+            .map(|(k, n)| format!("{n} {k}"))
+            .collect::<Vec<_>>()
+            .join(", ")
+    };
+    // FwData frames carry 8 bytes: 160 bits on the wire with worst-case stuffing.
+    let share = |frames: u64, secs: f64| frames as f64 * 160.0 / secs.max(1e-9) / 500_000.0 * 100.0;
+    let _ = writeln!(
+        o,
+        "\nfirmware update (demo gateway on the host, simulated island; {} B image, cap {} % of the bus)",
+        f.image_bytes, f.bus_share_cap
+    );
+    let _ = writeln!(
+        o,
+        "  all {} elements at once (broadcast)  {:>7.1} s   {} frames, <= {:.0} % of the bus   {}",
+        f.nodes,
+        f.broadcast_s,
+        f.broadcast_frames,
+        share(f.broadcast_frames, f.broadcast_report_ms as f64 / 1000.0),
+        counts(&f.broadcast_outcomes)
+    );
+    let _ = writeln!(
+        o,
+        "  one element                     {:>7.1} s   {} frames   {}",
+        f.one_node_s,
+        f.one_node_frames,
+        counts(&f.one_node_outcomes)
+    );
+    let _ = writeln!(
+        o,
+        "  sequential, one at a time       {:>7.1} s   ({} x one element; estimate)   broadcast {:.1}x faster",
+        f.one_node_s * f64::from(f.nodes),
+        f.nodes,
+        f.one_node_s * f64::from(f.nodes) / f.broadcast_s.max(1e-9)
+    );
+    let ms = |v: f64| v / 1000.0;
+    let _ = writeln!(
+        o,
+        "  LED command -> result, idle       p50 {:>7.2}  p99 {:>7.2}  max {:>7.2} ms ({} probes)",
+        ms(f.command_idle.p50_us),
+        ms(f.command_idle.p99_us),
+        ms(f.command_idle.max_us),
+        f.command_idle.n
+    );
+    let _ = writeln!(
+        o,
+        "  LED command -> result, updating   p50 {:>7.2}  p99 {:>7.2}  max {:>7.2} ms ({} probes)",
+        ms(f.command_during.p50_us),
+        ms(f.command_during.p99_us),
+        ms(f.command_during.max_us),
+        f.command_during.n
+    );
+    let _ = writeln!(
+        o,
+        "  docking (dock -> new_connection)  idle {:.1} ms, during the update {}",
+        f.docking_idle_ms,
+        f.docking_during_ms
+            .map_or("none seen".into(), |d| format!("{d:.1} ms"))
+    );
 }
 
 /// The island view's section of the table.

@@ -137,3 +137,37 @@ pub struct WebResults {
     /// Per probe, the stream's arrival minus the MQTT subscriber's (negative: the page was first).
     pub page_minus_mqtt: Summary,
 }
+
+/// A firmware update of a simulated island (`ihex-bench fw`, the demo gateway on the host).
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+pub struct FwResults {
+    /// Static elements updated at once.
+    pub nodes: u16,
+    /// Size of the signed image, bytes.
+    pub image_bytes: usize,
+    /// The gateway's bus-share cap, %.
+    pub bus_share_cap: u8,
+    /// `fw_update` to all: command published → `fw_report` received, s.
+    pub broadcast_s: f64,
+    /// The report's own duration, ms.
+    pub broadcast_report_ms: u64,
+    /// Frames the update sent.
+    pub broadcast_frames: u64,
+    /// The report's outcomes, by name, with their counts.
+    pub broadcast_outcomes: Vec<(String, usize)>,
+    /// `fw_update` to one element: command → report, s (a sequential update is `nodes` of these).
+    pub one_node_s: f64,
+    /// Frames the one-element update sent.
+    pub one_node_frames: u64,
+    /// The one-element report's outcomes.
+    pub one_node_outcomes: Vec<(String, usize)>,
+    /// LED command → `command_result` on the idle island.
+    pub command_idle: Summary,
+    /// The same during the update to all (one every 250 ms, to an element being updated).
+    pub command_during: Summary,
+    /// A docking on the idle island: the simulator's dock → `new_connection`, ms.
+    #[serde(default)]
+    pub docking_idle_ms: f64,
+    /// A docking during the update: the simulator's dock → `new_connection`, ms.
+    pub docking_during_ms: Option<f64>,
+}
