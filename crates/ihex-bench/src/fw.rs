@@ -11,7 +11,7 @@
 use std::collections::HashMap;
 use std::net::{Ipv4Addr, SocketAddr};
 use std::path::Path;
-use std::process::{Command, Stdio};
+use std::process::Command;
 use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context, Result};
@@ -24,6 +24,7 @@ use rumqttc::QoS;
 use sim_node::board::{sim_image, SimFirmware, SIM_PAYLOAD_LEN};
 
 use crate::live::{free_port, Mqtt, Proc};
+use crate::web::DEMO_QUIET;
 
 /// The island's static elements are 101, 102, …; the mobile element 2 docks during the update.
 fn island(n: u16) -> String {
@@ -241,29 +242,17 @@ pub fn run(bin: &Path, nodes: u16) -> Result<FwResults> {
     let island_file = dir.join("island.toml");
     std::fs::write(&island_file, island(nodes))?;
     let broker = SocketAddr::from((Ipv4Addr::LOCALHOST, free_port()?));
-    let log = std::fs::File::create(dir.join("gateway.log"))?;
-    let child = Command::new(bin)
-        .args(["--broker-listen", &broker.to_string()])
+    let mut cmd = Command::new(bin);
+    cmd.args(["--broker-listen", &broker.to_string()])
         .arg("--island-file")
         .arg(&island_file)
-        .args([
-            "--http",
-            "off",
-            "--ha-discovery=false",
-            "--log-dir",
-            "-",
-            "--log",
-            "warn",
-        ])
-        .stdin(Stdio::null())
-        .stdout(log.try_clone()?)
-        .stderr(log)
-        .spawn()
-        .with_context(|| format!("starting {}", bin.display()))?;
-    let mut gateway = Proc {
-        child,
-        name: "mc-gateway (demo, firmware update)",
-    };
+        .args(["--http", "off"])
+        .args(DEMO_QUIET);
+    let mut gateway = Proc::spawn(
+        cmd,
+        &dir.join("gateway.log"),
+        "mc-gateway (demo, firmware update)",
+    )?;
     gateway.wait_listening(broker, Duration::from_secs(30))?;
     let mqtt = Mqtt::connect(broker, &["EventsTopic"])?;
     let mut b = Bench {

@@ -466,6 +466,18 @@ impl Proc {
         Ok(())
     }
 
+    /// Starts `cmd` as `name`, its output going to the file `log`.
+    pub(crate) fn spawn(mut cmd: Command, log: &Path, name: &'static str) -> Result<Proc> {
+        let file = std::fs::File::create(log)?;
+        let child = cmd
+            .stdin(Stdio::null())
+            .stdout(file.try_clone()?)
+            .stderr(file)
+            .spawn()
+            .with_context(|| format!("starting {name} ({:?})", cmd.get_program()))?;
+        Ok(Proc { child, name })
+    }
+
     /// Waits until `addr` accepts TCP connections (or the process ends, or `within` passes).
     pub(crate) fn wait_listening(&mut self, addr: SocketAddr, within: Duration) -> Result<()> {
         let deadline = Instant::now() + within;

@@ -11,7 +11,7 @@ use std::collections::HashMap;
 use std::io::{BufRead, BufReader, Write};
 use std::net::{Ipv4Addr, SocketAddr, TcpStream};
 use std::path::Path;
-use std::process::{Command, Stdio};
+use std::process::Command;
 use std::sync::mpsc::{self, Receiver};
 use std::time::{Duration, Instant};
 
@@ -22,6 +22,11 @@ use ihex_gateway_core::event::{Event, Outcome};
 use serde::Deserialize;
 
 use crate::live::{free_port, Mqtt, Proc};
+
+/// What the benchmarks' demo gateways are told besides their addresses: no Home Assistant
+/// publications, warnings only, on stderr alone.
+pub(crate) const DEMO_QUIET: [&str; 5] =
+    ["--ha-discovery=false", "--log-dir", "-", "--log", "warn"];
 
 /// The static element every probe colours (the built-in demo island has it).
 const NODE: &str = "111";
@@ -167,7 +172,6 @@ pub fn run(
     let http = SocketAddr::from((Ipv4Addr::LOCALHOST, free_port()?));
     let dir = std::env::temp_dir().join(format!("ihex-bench-web-{}", std::process::id()));
     std::fs::create_dir_all(&dir)?;
-    let log = std::fs::File::create(dir.join("gateway.log"))?;
     let mut cmd = Command::new(bin);
     let broker = match broker {
         Some(b) => {
@@ -180,18 +184,8 @@ pub fn run(
             b
         }
     };
-    let child = cmd
-        .args(["--http", &http.to_string()])
-        .args(["--ha-discovery=false", "--log-dir", "-", "--log", "warn"])
-        .stdin(Stdio::null())
-        .stdout(log.try_clone()?)
-        .stderr(log)
-        .spawn()
-        .with_context(|| format!("starting {}", bin.display()))?;
-    let mut gateway = Proc {
-        child,
-        name: "mc-gateway (demo)",
-    };
+    cmd.args(["--http", &http.to_string()]).args(DEMO_QUIET);
+    let mut gateway = Proc::spawn(cmd, &dir.join("gateway.log"), "mc-gateway (demo)")?;
     gateway.wait_listening(broker, Duration::from_secs(30))?;
     gateway.wait_listening(http, Duration::from_secs(30))?;
     let mqtt = Mqtt::connect(broker, &["EventsTopic"])?;
