@@ -407,7 +407,7 @@ fn outbound(topics: &Topics, feed: Option<&Feed>, publication: Publication) -> O
     }
     Outbound {
         topic: topics.resolve(publication.topic()),
-        payload: json.into_bytes(),
+        payload: json.into_bytes().into(),
         retain: publication.retain(),
     }
 }

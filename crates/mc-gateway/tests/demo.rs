@@ -242,7 +242,7 @@ async fn publications_queued_before_the_broker_exists_are_delivered() {
     for n in 0..5 {
         let p = Outbound {
             topic: format!("early/{n}"),
-            payload: format!("{n}").into_bytes(),
+            payload: format!("{n}").into_bytes().into(),
             retain: true,
         };
         pub_tx.send(p).await.unwrap();

@@ -1,14 +1,15 @@
-//! The MQTT side: exactly one task owns rumqttc's `EventLoop::poll()`. It connects with keep-alive,
+//! The MQTT side: exactly one task owns the broker [`Connection`] (see [`conn`]: rumqttc's sans-IO
+//! state, our own I/O, one write per batch of packets). It connects with keep-alive,
 //! clean session and a retained `offline` last will, (re)subscribes the command topic (and with
 //! Home Assistant discovery, Home Assistant's status and command topics) on *every* ConnAck, publishes `online` (retained), forwards commands to the core and carries out its
-//! publications (QoS 1). rumqttc reconnects whenever `poll()` is called again but has no back-off, so
+//! publications (QoS 1). The connection reconnects whenever `poll()` is called again but has no back-off, so
 //! this task sleeps with a capped exponential delay between failed polls, and says why at the
 //! default log level, naming the broker and what to check — at the first failure, then at growing
 //! intervals ([`WARN_FIRST`] doubling to [`WARN_MAX`]), not at every attempt.
 //!
 //! Nothing is dropped here. Publications are taken from the core only while fewer than
 //! [`STAGING`] wait in this task (the core keeps the rest, coalesced, see
-//! `ihex_gateway_core::bridge`), and those rumqttc had accepted but the broker had not acknowledged
+//! `ihex_gateway_core::bridge`), and those the connection had queued but the broker had not acknowledged
 //! when the connection broke are taken back and sent again after reconnecting. Commands are
 //! acknowledged to the broker (manual acks) only once the core took them, so while the core does
 //! not want commands the broker holds QoS 1 commands back (its in-flight window); QoS 0 commands,
@@ -33,14 +34,17 @@ use std::{
 
 use bytes::Bytes;
 use rumqttc::{
-    AsyncClient, ClientError, ConnectReturnCode, ConnectionError, Event, EventLoop, Incoming,
-    LastWill, MqttOptions, NetworkOptions, Outgoing, Publish, QoS, Request, SubscribeReasonCode,
+    ConnectReturnCode, ConnectionError, Event, Incoming, LastWill, MqttOptions, Outgoing, QoS,
+    SubscribeReasonCode,
 };
 use tokio::sync::mpsc;
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, info, warn};
 
 use crate::{config::MqttConfig, error::MqttError, topic::Topics};
+
+pub mod conn;
+pub use conn::Connection;
 
 /// Payload of the availability topic while the gateway runs.
 pub const ONLINE: &str = "online";
@@ -60,12 +64,13 @@ pub const WARN_MAX: Duration = Duration::from_secs(300);
 pub const MAX_INCOMING: usize = 268_435_455 + 5;
 /// Largest outgoing packet (the gateway's own publications are small).
 const MAX_OUTGOING: usize = 1 << 20;
-/// Publications taken from the core and waiting here for rumqttc (the core holds the rest).
+/// Publications taken from the core and waiting here for room in the connection's in-flight
+/// window (the core holds the rest).
 pub const STAGING: usize = 64;
 /// Commands received and not yet taken by the core, beyond which QoS 0 commands are shed.
 pub const HELD_MAX: usize = 1024;
-/// Capacity of rumqttc's own request channel.
-const REQUEST_CHANNEL: usize = 64;
+/// Limit of one connection attempt: TCP connect, TLS handshake, CONNECT and CONNACK.
+const CONNECT_TIMEOUT: Duration = Duration::from_secs(5);
 /// How long shutdown waits for the last publications, `offline` and the DISCONNECT to go out.
 const SHUTDOWN_GRACE: Duration = Duration::from_secs(2);
 
@@ -75,7 +80,7 @@ pub struct Outbound {
     /// Concrete topic name.
     pub topic: String,
     /// Payload bytes (JSON text).
-    pub payload: Vec<u8>,
+    pub payload: Bytes,
     /// Retained or not.
     pub retain: bool,
 }
@@ -210,20 +215,42 @@ pub fn client_options(cfg: &MqttConfig, client_id: String) -> Result<MqttOptions
 
 #[cfg(feature = "tls")]
 fn set_tls(o: &mut MqttOptions, ca: Option<&std::path::Path>) -> Result<(), MqttError> {
-    // rumqttc builds its rustls configuration with the process's default crypto provider; ours
-    // is ring (the `tls` feature). Installing it fails harmlessly when one is installed already.
+    use rustls::pki_types::{pem::PemObject, CertificateDer};
+    // Our crypto provider is ring (the `tls` feature). Installing it fails harmlessly when one is
+    // installed already.
     let _ = rustls::crypto::ring::default_provider().install_default();
-    let transport = match ca {
+    let mut roots = rustls::RootCertStore::empty();
+    match ca {
         Some(path) => {
             let pem = std::fs::read(path).map_err(|source| MqttError::TlsCa {
                 path: path.to_owned(),
                 source,
             })?;
-            rumqttc::Transport::tls(pem, None, None)
+            let certs = CertificateDer::pem_slice_iter(&pem).filter_map(Result::ok);
+            let (added, _) = roots.add_parsable_certificates(certs);
+            if added == 0 {
+                return Err(MqttError::TlsCa {
+                    path: path.to_owned(),
+                    source: std::io::Error::new(
+                        std::io::ErrorKind::InvalidData,
+                        "no PEM certificate in the file",
+                    ),
+                });
+            }
         }
-        None => rumqttc::Transport::tls_with_default_config(),
-    };
-    o.set_transport(transport);
+        None => {
+            // The system's roots; unreadable ones are skipped (the handshake then says which
+            // certificate it could not verify).
+            let native = rustls_native_certs::load_native_certs();
+            roots.add_parsable_certificates(native.certs);
+        }
+    }
+    let config = rustls::ClientConfig::builder()
+        .with_root_certificates(roots)
+        .with_no_client_auth();
+    o.set_transport(rumqttc::Transport::tls_with_config(
+        rumqttc::TlsConfiguration::Rustls(Arc::new(config)),
+    ));
     Ok(())
 }
 
@@ -249,8 +276,8 @@ pub struct MqttTask {
 /// A command the core has not taken yet, and how to acknowledge it.
 struct Held {
     input: MqttInput,
-    /// The ack to send once the core took it (QoS 1), on the connection it came on.
-    ack: Option<(Publish, u64)>,
+    /// The packet id to acknowledge once the core took it (QoS 1), on the connection it came on.
+    ack: Option<(u16, u64)>,
 }
 
 /// When to warn again about an unreachable broker.
@@ -325,17 +352,12 @@ impl MqttTask {
         inputs: mpsc::Sender<MqttInput>,
         cancel: CancellationToken,
     ) {
-        let (client, mut el) = AsyncClient::new(self.options.clone(), REQUEST_CHANNEL);
-        let mut net = NetworkOptions::new();
-        // Without it every QoS 1 round trip waits for Nagle (~40 ms).
-        net.set_tcp_nodelay(true);
-        net.set_connection_timeout(5);
-        el.set_network_options(net);
+        let mut conn = Connection::new(self.options.clone(), MAX_OUTGOING, CONNECT_TIMEOUT);
         let tls = !matches!(self.options.transport(), rumqttc::Transport::Tcp);
 
         let mut backlog: VecDeque<Outbound> = VecDeque::new();
         let mut held: VecDeque<Held> = VecDeque::new();
-        let mut acks: VecDeque<Publish> = VecDeque::new();
+        let mut acks: VecDeque<u16> = VecDeque::new();
         // Connection number: an ack only goes back on the connection its message came on.
         let mut generation = 0u64;
         let mut connected = false;
@@ -345,21 +367,27 @@ impl MqttTask {
         // Subscribed to the state topics for the retained documents (see the module docs).
         let mut reading_states = false;
         'run: loop {
-            // `poll()` is not cancel-safe (dropping it mid-connect or mid-write loses the
-            // connection or part of a packet), so one poll future lives until it completes while
-            // publications and the core's room for commands arrive beside it.
+            // Everything queued between two polls leaves in one write: acks and publications are
+            // queued first, then `poll()` (cancel-safe) writes them while waiting for the broker.
             let ev = {
-                let poll = el.poll();
-                tokio::pin!(poll);
                 loop {
                     if connected {
-                        flush_acks(&client, &mut acks);
-                        self.flush(&client, &mut backlog);
+                        for pkid in acks.drain(..) {
+                            conn.ack(pkid);
+                        }
+                        self.flush(&mut conn, &mut backlog);
                     }
                     tokio::select! {
                         _ = cancel.cancelled() => break 'run,
                         p = publications.recv(), if inputs_open && backlog.len() < STAGING => match p {
-                            Some(p) => backlog.push_back(p),
+                            Some(p) => {
+                                backlog.push_back(p);
+                                // The rest of the core's turn, without another round of the loop.
+                                while backlog.len() < STAGING {
+                                    let Ok(p) = publications.try_recv() else { break };
+                                    backlog.push_back(p);
+                                }
+                            }
                             None => inputs_open = false,
                         },
                         permit = inputs.reserve(), if !held.is_empty() => {
@@ -373,7 +401,7 @@ impl MqttTask {
                                 }
                             }
                         }
-                        ev = &mut poll => break ev,
+                        ev = conn.poll() => break ev,
                     }
                 }
             };
@@ -395,7 +423,7 @@ impl MqttTask {
                         backlog = backlog.len(),
                         "connected to the broker"
                     );
-                    self.on_connack(&client);
+                    self.on_connack(&mut conn);
                     reading_states = true;
                     // After the commands received before it, never shed.
                     if held.is_empty() {
@@ -414,11 +442,7 @@ impl MqttTask {
                     }
                 }
                 Ok(Event::Incoming(Incoming::Publish(p))) => {
-                    let ack = (p.qos != QoS::AtMostOnce).then(|| {
-                        let mut a = Publish::new("", p.qos, Vec::new());
-                        a.pkid = p.pkid;
-                        (a, generation)
-                    });
+                    let ack = (p.qos != QoS::AtMostOnce).then_some((p.pkid, generation));
                     let input = if p.topic == self.topics.commands {
                         self.stats.commands.fetch_add(1, Ordering::Relaxed);
                         MqttInput::Command {
@@ -439,9 +463,7 @@ impl MqttTask {
                             if reading_states {
                                 reading_states = false;
                                 let filter = self.topics.node_state_filter();
-                                if let Err(e) = client.try_unsubscribe(filter) {
-                                    debug!(error = %e, "cannot queue the unsubscription");
-                                }
+                                conn.unsubscribe(filter);
                             }
                             if let Some((ack, _)) = ack {
                                 acks.push_back(ack);
@@ -501,7 +523,7 @@ impl MqttTask {
                     self.stats.connected.store(false, Ordering::Relaxed);
                     self.stats.set_error(Some(why));
                     acks.clear();
-                    self.take_back(&mut el, &mut backlog);
+                    self.take_back(&mut conn, &mut backlog);
                     tokio::select! {
                         _ = cancel.cancelled() => break,
                         _ = tokio::time::sleep(delay) => {}
@@ -512,7 +534,7 @@ impl MqttTask {
         }
         self.stats.connected.store(false, Ordering::Relaxed);
         if connected {
-            self.goodbye(&client, &mut el, &mut publications, &mut backlog)
+            self.goodbye(&mut conn, &mut publications, &mut backlog)
                 .await;
         }
         info!(
@@ -530,7 +552,7 @@ impl MqttTask {
         held: &mut VecDeque<Held>,
         h: Held,
         inputs: &mpsc::Sender<MqttInput>,
-        acks: &mut VecDeque<Publish>,
+        acks: &mut VecDeque<u16>,
     ) -> bool {
         if held.is_empty() {
             match inputs.try_send(h.input) {
@@ -569,66 +591,58 @@ impl MqttTask {
     }
 
     /// Subscribes and announces `online`; runs on every ConnAck (a clean session forgets both).
-    fn on_connack(&self, client: &AsyncClient) {
+    fn on_connack(&self, conn: &mut Connection) {
         let mut filters = vec![self.topics.commands.clone(), self.topics.fw_upload_filter()];
         if self.ha {
             filters.push(self.topics.ha.status.clone());
             filters.push(self.topics.ha.command_filter());
         }
         for t in filters {
-            if let Err(e) = client.try_subscribe(t.clone(), QoS::AtLeastOnce) {
-                warn!(topic = %t, error = %e, "cannot queue the subscription");
-            }
+            conn.subscribe(t, QoS::AtLeastOnce);
         }
         // QoS 0: retained documents need no acknowledgement.
-        let states = self.topics.node_state_filter();
-        if let Err(e) = client.try_subscribe(states.clone(), QoS::AtMostOnce) {
-            warn!(topic = %states, error = %e, "cannot queue the subscription");
-        }
-        if let Err(e) =
-            client.try_publish(&self.topics.availability, QoS::AtLeastOnce, true, ONLINE)
-        {
-            warn!(error = %e, "cannot queue the online announcement");
+        conn.subscribe(self.topics.node_state_filter(), QoS::AtMostOnce);
+        let online = (
+            self.topics.availability.clone(),
+            Bytes::from_static(ONLINE.as_bytes()),
+        );
+        if conn.publish(online.0, online.1, true).is_err() {
+            warn!("cannot queue the online announcement");
         }
     }
 
-    /// Hands queued publications to rumqttc until its channel is full.
-    fn flush(&self, client: &AsyncClient, backlog: &mut VecDeque<Outbound>) {
+    /// Hands queued publications to the connection while its in-flight window has room.
+    fn flush(&self, conn: &mut Connection, backlog: &mut VecDeque<Outbound>) {
         while let Some(p) = backlog.pop_front() {
-            // Moved, not copied: a refused request comes back whole in the error.
-            match client.try_publish(p.topic, QoS::AtLeastOnce, p.retain, p.payload) {
+            // Moved, not copied: a refused publication comes back whole.
+            match conn.publish(p.topic, p.payload, p.retain) {
                 Ok(()) => {
                     self.stats.published.fetch_add(1, Ordering::Relaxed);
                 }
-                Err(ClientError::TryRequest(r)) | Err(ClientError::Request(r)) => {
-                    if let Request::Publish(p) = r {
-                        backlog.push_front(Outbound {
-                            topic: p.topic,
-                            payload: p.payload.into(),
-                            retain: p.retain,
-                        });
-                    }
+                Err((topic, payload)) => {
+                    backlog.push_front(Outbound {
+                        topic,
+                        payload,
+                        retain: p.retain,
+                    });
                     return;
                 }
             }
         }
     }
 
-    /// After a broken connection rumqttc keeps unacknowledged and unsent requests in `pending`, but
-    /// clears them when the next (clean) session starts: move the publications back to the front of
-    /// our queue, in order. Subscriptions, acks and `online` are redone or void on the next
-    /// connection.
-    fn take_back(&self, el: &mut EventLoop, backlog: &mut VecDeque<Outbound>) {
-        let mut back: Vec<Outbound> = el
-            .pending
-            .drain(..)
-            .filter_map(|r| match r {
-                Request::Publish(p) if p.topic != self.topics.availability => Some(Outbound {
-                    topic: p.topic,
-                    payload: p.payload.to_vec(),
-                    retain: p.retain,
-                }),
-                _ => None,
+    /// After a broken connection the publications the broker had not acknowledged would be lost
+    /// with the (clean) session: move them back to the front of our queue, in order.
+    /// Subscriptions, acks and `online` are redone or void on the next connection.
+    fn take_back(&self, conn: &mut Connection, backlog: &mut VecDeque<Outbound>) {
+        let mut back: Vec<Outbound> = conn
+            .take_back()
+            .into_iter()
+            .filter(|p| p.topic != self.topics.availability)
+            .map(|p| Outbound {
+                topic: p.topic,
+                payload: p.payload,
+                retain: p.retain,
             })
             .collect();
         if !back.is_empty() {
@@ -646,12 +660,11 @@ impl MqttTask {
     }
 
     /// Sends what is still queued and what the core still hands over (until it closes the
-    /// channel), then `offline` (retained), then DISCONNECT, polling the event loop until the
+    /// channel), then `offline` (retained), then DISCONNECT, polling the connection until the
     /// DISCONNECT is written or [`SHUTDOWN_GRACE`] passes.
     async fn goodbye(
         &self,
-        client: &AsyncClient,
-        el: &mut EventLoop,
+        conn: &mut Connection,
         publications: &mut mpsc::Receiver<Outbound>,
         backlog: &mut VecDeque<Outbound>,
     ) {
@@ -659,26 +672,25 @@ impl MqttTask {
         let mut said_goodbye = false;
         let mut open = true;
         loop {
-            // One poll future at a time, as in `run`: it is not cancel-safe.
-            let ev = {
-                let poll = el.poll();
-                tokio::pin!(poll);
-                loop {
-                    self.flush(client, backlog);
-                    if backlog.is_empty() && !open && !said_goodbye {
-                        said_goodbye = client
-                            .try_publish(&self.topics.availability, QoS::AtLeastOnce, true, OFFLINE)
-                            .and_then(|()| client.try_disconnect())
-                            .is_ok();
-                    }
-                    tokio::select! {
-                        p = publications.recv(), if open && backlog.len() < STAGING => match p {
-                            Some(p) => backlog.push_back(p),
-                            None => open = false,
-                        },
-                        ev = tokio::time::timeout_at(deadline, &mut poll) => break ev,
-                    }
+            self.flush(conn, backlog);
+            if backlog.is_empty() && !open && !said_goodbye {
+                let offline = Bytes::from_static(OFFLINE.as_bytes());
+                said_goodbye = conn
+                    .publish(self.topics.availability.clone(), offline, true)
+                    .is_ok();
+                if said_goodbye {
+                    conn.disconnect();
                 }
+            }
+            let ev = tokio::select! {
+                p = publications.recv(), if open && backlog.len() < STAGING => {
+                    match p {
+                        Some(p) => backlog.push_back(p),
+                        None => open = false,
+                    }
+                    continue;
+                }
+                ev = tokio::time::timeout_at(deadline, conn.poll()) => ev,
             };
             match ev {
                 Ok(Ok(Event::Outgoing(Outgoing::Disconnect))) => {
@@ -696,16 +708,6 @@ impl MqttTask {
                 }
             }
         }
-    }
-}
-
-/// Hands pending acks to rumqttc until its channel is full.
-fn flush_acks(client: &AsyncClient, acks: &mut VecDeque<Publish>) {
-    while let Some(a) = acks.front() {
-        if client.try_ack(a).is_err() {
-            return;
-        }
-        acks.pop_front();
     }
 }
 
@@ -738,7 +740,7 @@ mod tests {
     fn publication(n: u8) -> Outbound {
         Outbound {
             topic: "EventsTopic".into(),
-            payload: vec![n],
+            payload: vec![n].into(),
             retain: false,
         }
     }
@@ -839,11 +841,7 @@ mod tests {
                 received: Instant::now(),
                 retained: false,
             },
-            ack: qos.map(|pkid| {
-                let mut a = Publish::new("", QoS::AtLeastOnce, Vec::new());
-                a.pkid = pkid;
-                (a, 1)
-            }),
+            ack: qos.map(|pkid| (pkid, 1)),
         };
         // The core takes the first at once: acknowledged at once.
         assert!(t.hold(&mut held, cmd(0, Some(1)), &tx, &mut acks));
@@ -982,31 +980,41 @@ mod tests {
         run.await.unwrap();
     }
 
+    /// A broker that accepts the connection, reads without acknowledging anything and hangs up:
+    /// what the broker had not acknowledged comes back to the queue in order, `online` excepted.
     #[tokio::test]
-    async fn requests_of_a_broken_connection_are_taken_back_in_order() {
+    async fn publications_of_a_broken_connection_are_taken_back_in_order() {
+        use tokio::io::{AsyncReadExt, AsyncWriteExt};
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let port = listener.local_addr().unwrap().port();
+        tokio::spawn(async move {
+            let (mut s, _) = listener.accept().await.unwrap();
+            let mut buf = [0u8; 4096];
+            let _ = s.read(&mut buf).await; // CONNECT
+            s.write_all(&[0x20, 0x02, 0x00, 0x00]).await.unwrap(); // CONNACK accepted
+            let _ = s.read(&mut buf).await; // the first write, then hang up
+        });
         let t = task();
-        let (client, mut el) = AsyncClient::new(t.options.clone(), 8);
-        client
-            .try_publish("EventsTopic", QoS::AtLeastOnce, false, vec![1])
+        let mut options = MqttOptions::new("takeback", "127.0.0.1", port);
+        options.set_manual_acks(true);
+        let mut conn = Connection::new(options, MAX_OUTGOING, CONNECT_TIMEOUT);
+        let ev = conn.poll().await.unwrap();
+        assert!(
+            matches!(ev, Event::Incoming(Incoming::ConnAck(_))),
+            "{ev:?}"
+        );
+        let avail = t.topics.availability.clone();
+        conn.publish("EventsTopic".into(), vec![1].into(), false)
             .unwrap();
-        client
-            .try_subscribe("CommandsTopic", QoS::AtLeastOnce)
+        conn.subscribe("CommandsTopic".into(), QoS::AtLeastOnce);
+        conn.publish("ihex/node/1/state".into(), vec![2].into(), true)
             .unwrap();
-        client
-            .try_publish("ihex/node/1/state", QoS::AtLeastOnce, true, vec![2])
-            .unwrap();
-        client
-            .try_publish(
-                "ihex/gateway/availability",
-                QoS::AtLeastOnce,
-                true,
-                "online",
-            )
-            .unwrap();
-        // What rumqttc does on a connection error: unsent requests move to `pending`.
-        el.clean();
+        conn.publish(avail, ONLINE.into(), true).unwrap();
+        let err = tokio::time::timeout(Duration::from_secs(10), conn.poll()).await;
+        assert!(err.expect("the broker hung up").is_err());
+        assert!(!conn.is_up());
         let mut q = VecDeque::from([publication(9)]);
-        t.take_back(&mut el, &mut q);
+        t.take_back(&mut conn, &mut q);
         let got: Vec<(String, u8, bool)> = q
             .iter()
             .map(|p| (p.topic.clone(), p.payload[0], p.retain))
@@ -1019,6 +1027,6 @@ mod tests {
                 ("EventsTopic".into(), 9, false),
             ]
         );
-        assert!(el.pending.is_empty());
+        assert!(conn.take_back().is_empty(), "taken back once");
     }
 }

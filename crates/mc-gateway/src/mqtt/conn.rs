@@ -1,0 +1,453 @@
+//! The gateway's MQTT connection, driven here instead of by rumqttc's `EventLoop`, so that every
+//! packet queued in one turn of the MQTT task leaves in one write.
+//!
+//! rumqttc 0.25's event loop takes one request per `poll()` and flushes after each
+//! (bytebeamio/rumqtt#810): on a busy island that is a system call, a wake-up of the broker and a
+//! TCP segment per publication, and it was most of what a bridged frame cost. This module keeps
+//! rumqttc's sans-IO parts — [`MqttState`] (packet ids, the in-flight window, acks, keep-alive
+//! pings) and its MQTT 3.1.1 codec — and does the I/O itself: [`Connection::publish`] and friends
+//! only encode into a write buffer, and [`Connection::poll`] writes whatever is buffered, reads
+//! whatever arrived, and returns the next incoming packet. `poll` is cancel-safe (all its state lives
+//! in the [`Connection`], including a connection attempt under way), so the MQTT task can select on
+//! it beside its channels.
+
+use std::{future::Future, io, pin::Pin, task::Poll, time::Duration};
+
+use bytes::{Buf, Bytes, BytesMut};
+use rumqttc::{
+    mqttbytes, ConnAck, Connect, ConnectReturnCode, ConnectionError, Event, MqttOptions, MqttState,
+    Outgoing, Packet, PubAck, Publish, QoS, Request, StateError, Subscribe, Transport, Unsubscribe,
+};
+use tokio::{
+    io::{AsyncRead, AsyncWrite, AsyncWriteExt},
+    net::TcpSocket,
+    time::Instant,
+};
+
+/// Anything a connection can run over (TCP, TLS over TCP).
+trait Stream: AsyncRead + AsyncWrite + Send + Unpin {}
+impl<T: AsyncRead + AsyncWrite + Send + Unpin> Stream for T {}
+
+type Attempt = Pin<Box<dyn Future<Output = Result<Up, ConnectionError>> + Send>>;
+
+/// Bytes read from the socket at a time (a buffer grows to the largest packet it must hold).
+const READ_CHUNK: usize = 16 * 1024;
+
+/// One MQTT 3.1.1 client connection that reconnects when polled after a failure.
+pub struct Connection {
+    options: MqttOptions,
+    /// Largest packet accepted from the broker.
+    max_incoming: usize,
+    /// Largest packet written.
+    max_outgoing: usize,
+    /// Limit of the TCP connect, TLS handshake and CONNECT/CONNACK exchange together.
+    connect_timeout: Duration,
+    state: MqttState,
+    link: Link,
+    /// A DISCONNECT is queued: `poll` says so once it has been written.
+    disconnecting: bool,
+    /// What `poll` returns next, before anything else.
+    notice: Option<Event>,
+    /// A request the state refused or that could not be encoded: the connection is broken.
+    broken: Option<StateError>,
+}
+
+enum Link {
+    Down,
+    Connecting(Attempt),
+    Up(Up),
+}
+
+/// An established connection and its buffers.
+struct Up {
+    stream: Box<dyn Stream>,
+    /// Received bytes not yet parsed (starts with what followed the CONNACK).
+    read: BytesMut,
+    /// Encoded packets not yet written.
+    write: BytesMut,
+    /// Written to the stream but not flushed yet (TLS buffers).
+    unflushed: bool,
+    /// When the next PINGREQ is due (`None`: keep-alive off).
+    ping_at: Option<Instant>,
+    ping: Pin<Box<tokio::time::Sleep>>,
+    connack: Option<ConnAck>,
+}
+
+/// What one round of I/O produced.
+enum Io {
+    /// New bytes in the read buffer.
+    Read,
+    /// The broker closed the connection.
+    Closed,
+    /// The keep-alive timer ran out.
+    Ping,
+    /// Everything queued was written and flushed.
+    Flushed,
+}
+
+impl Connection {
+    /// A connection to the broker of `options` (its keep-alive, clean session, credentials, last
+    /// will, in-flight window, packet size limits, manual acks and transport apply), not yet
+    /// attempted: the first [`poll`](Self::poll) connects.
+    pub fn new(options: MqttOptions, max_outgoing: usize, connect_timeout: Duration) -> Connection {
+        let max_incoming = options.max_packet_size();
+        let state = MqttState::new(options.inflight(), options.manual_acks());
+        Connection {
+            options,
+            max_incoming,
+            max_outgoing,
+            connect_timeout,
+            state,
+            link: Link::Down,
+            disconnecting: false,
+            notice: None,
+            broken: None,
+        }
+    }
+
+    /// Connected (a CONNACK accepted and no error since).
+    pub fn is_up(&self) -> bool {
+        matches!(self.link, Link::Up(_))
+    }
+
+    /// Queues a QoS 1 publication, unless the connection is not up or the in-flight window (the
+    /// options' `inflight`) is full: then it is handed back, to be offered again later.
+    pub fn publish(
+        &mut self,
+        topic: String,
+        payload: Bytes,
+        retain: bool,
+    ) -> Result<(), (String, Bytes)> {
+        if !self.is_up()
+            || self.state.inflight() >= self.options.inflight()
+            || self.state.collision.is_some()
+        {
+            return Err((topic, payload));
+        }
+        let mut p = Publish::from_bytes(topic, QoS::AtLeastOnce, payload);
+        p.retain = retain;
+        self.request(Request::Publish(p));
+        Ok(())
+    }
+
+    /// Queues a subscription.
+    pub fn subscribe(&mut self, filter: String, qos: QoS) {
+        self.request(Request::Subscribe(Subscribe::new(filter, qos)));
+    }
+
+    /// Queues an unsubscription.
+    pub fn unsubscribe(&mut self, filter: String) {
+        self.request(Request::Unsubscribe(Unsubscribe::new(filter)));
+    }
+
+    /// Queues the acknowledgement of a received QoS 1 publication (manual acks).
+    pub fn ack(&mut self, pkid: u16) {
+        self.request(Request::PubAck(PubAck::new(pkid)));
+    }
+
+    /// Queues a DISCONNECT; `poll` returns `Event::Outgoing(Outgoing::Disconnect)` once it (and
+    /// everything queued before it) is written.
+    pub fn disconnect(&mut self) {
+        self.disconnecting = true;
+        self.request(Request::Disconnect(rumqttc::Disconnect));
+    }
+
+    /// After a connection error: the publications the broker had not acknowledged, oldest first.
+    /// The next session is clean, so they are the caller's to send again.
+    pub fn take_back(&mut self) -> Vec<Publish> {
+        self.state
+            .clean()
+            .into_iter()
+            .filter_map(|r| match r {
+                Request::Publish(p) => Some(p),
+                _ => None,
+            })
+            .collect()
+    }
+
+    /// Encodes a request into the write buffer (nothing is written before the next `poll`). A
+    /// request the state refuses or that cannot be encoded breaks the connection: the next `poll`
+    /// reports it.
+    fn request(&mut self, request: Request) {
+        let Link::Up(up) = &mut self.link else {
+            return;
+        };
+        let result = self
+            .state
+            .handle_outgoing_packet(request)
+            .and_then(|p| encode(p, &mut up.write, self.max_outgoing));
+        if let Err(e) = result {
+            self.broken.get_or_insert(e);
+        }
+    }
+
+    /// Writes what is queued, reads what arrived, reconnects after a failure, and returns the next
+    /// event: every incoming packet (the first after a connection is its `ConnAck`), and
+    /// `Outgoing::Disconnect` once a queued DISCONNECT is written. An error ends the connection;
+    /// the next call starts a new attempt. Cancel-safe.
+    pub async fn poll(&mut self) -> Result<Event, ConnectionError> {
+        loop {
+            if let Some(event) = self.next_event() {
+                return Ok(event);
+            }
+            let step = match self.broken.take() {
+                Some(e) => Err(e.into()),
+                None => self.advance().await,
+            };
+            match step {
+                Ok(()) => {}
+                Err(e) => {
+                    self.link = Link::Down;
+                    self.disconnecting = false;
+                    self.state.events.clear();
+                    return Err(e);
+                }
+            }
+        }
+    }
+
+    /// The next incoming packet the state has buffered (outgoing notices are dropped: the caller
+    /// knows what it queued).
+    fn next_event(&mut self) -> Option<Event> {
+        if let Some(event) = self.notice.take() {
+            return Some(event);
+        }
+        if let Link::Up(up) = &mut self.link {
+            if let Some(connack) = up.connack.take() {
+                return Some(Event::Incoming(Packet::ConnAck(connack)));
+            }
+        }
+        while let Some(event) = self.state.events.pop_front() {
+            if let Event::Incoming(_) = event {
+                return Some(event);
+            }
+        }
+        None
+    }
+
+    /// One step: start or continue a connection attempt, or one round of I/O.
+    async fn advance(&mut self) -> Result<(), ConnectionError> {
+        match &mut self.link {
+            Link::Down => {
+                self.link = Link::Connecting(Box::pin(connect(
+                    self.options.clone(),
+                    self.max_incoming,
+                    self.connect_timeout,
+                )));
+                Ok(())
+            }
+            Link::Connecting(attempt) => {
+                let up = attempt.as_mut().await?;
+                self.link = Link::Up(up);
+                // What came right behind the CONNACK.
+                self.parse()
+            }
+            Link::Up(up) => {
+                let io = std::future::poll_fn(|cx| up.poll_io(cx)).await?;
+                match io {
+                    Io::Closed => Err(ConnectionError::MqttState(StateError::ConnectionAborted)),
+                    Io::Ping => {
+                        up.schedule_ping(self.options.keep_alive());
+                        let p = self
+                            .state
+                            .handle_outgoing_packet(Request::PingReq(rumqttc::PingReq))?;
+                        encode(p, &mut up.write, self.max_outgoing)?;
+                        Ok(())
+                    }
+                    Io::Flushed => {
+                        if std::mem::take(&mut self.disconnecting) {
+                            self.notice = Some(Event::Outgoing(Outgoing::Disconnect));
+                        }
+                        Ok(())
+                    }
+                    Io::Read => self.parse(),
+                }
+            }
+        }
+    }
+}
+
+impl Connection {
+    /// Hands every complete packet in the read buffer to the state; its replies are queued.
+    fn parse(&mut self) -> Result<(), ConnectionError> {
+        let Link::Up(up) = &mut self.link else {
+            return Ok(());
+        };
+        loop {
+            let packet = match Packet::read(&mut up.read, self.max_incoming) {
+                Ok(p) => p,
+                Err(mqttbytes::Error::InsufficientBytes(_)) => return Ok(()),
+                Err(e) => return Err(StateError::Deserialization(e).into()),
+            };
+            if let Some(reply) = self.state.handle_incoming_packet(packet)? {
+                encode(Some(reply), &mut up.write, self.max_outgoing)?;
+            }
+        }
+    }
+}
+
+impl Up {
+    fn new(stream: Box<dyn Stream>, read: BytesMut, connack: ConnAck, keep_alive: Duration) -> Up {
+        let mut up = Up {
+            stream,
+            read,
+            write: BytesMut::with_capacity(READ_CHUNK),
+            unflushed: false,
+            ping_at: None,
+            ping: Box::pin(tokio::time::sleep(Duration::ZERO)),
+            connack: Some(connack),
+        };
+        up.schedule_ping(keep_alive);
+        up
+    }
+
+    fn schedule_ping(&mut self, keep_alive: Duration) {
+        self.ping_at = (!keep_alive.is_zero()).then(|| Instant::now() + keep_alive);
+        if let Some(at) = self.ping_at {
+            self.ping.as_mut().reset(at);
+        }
+    }
+
+    /// Writes and flushes everything queued, then waits for input or the keep-alive timer.
+    fn poll_io(&mut self, cx: &mut std::task::Context<'_>) -> Poll<Result<Io, ConnectionError>> {
+        while !self.write.is_empty() {
+            match Pin::new(&mut self.stream).poll_write(cx, &self.write) {
+                Poll::Ready(Ok(0)) => return Poll::Ready(Ok(Io::Closed)),
+                Poll::Ready(Ok(n)) => {
+                    self.write.advance(n);
+                    self.unflushed = true;
+                }
+                Poll::Ready(Err(e)) => return Poll::Ready(Err(e.into())),
+                Poll::Pending => break,
+            }
+        }
+        if self.write.is_empty() && self.unflushed {
+            match Pin::new(&mut self.stream).poll_flush(cx) {
+                Poll::Ready(Ok(())) => {
+                    self.unflushed = false;
+                    return Poll::Ready(Ok(Io::Flushed));
+                }
+                Poll::Ready(Err(e)) => return Poll::Ready(Err(e.into())),
+                Poll::Pending => {}
+            }
+        }
+        if self.read.capacity() - self.read.len() < READ_CHUNK / 4 {
+            self.read.reserve(READ_CHUNK);
+        }
+        match tokio_util::io::poll_read_buf(Pin::new(&mut self.stream), cx, &mut self.read) {
+            Poll::Ready(Ok(0)) => return Poll::Ready(Ok(Io::Closed)),
+            Poll::Ready(Ok(_)) => return Poll::Ready(Ok(Io::Read)),
+            Poll::Ready(Err(e)) => return Poll::Ready(Err(e.into())),
+            Poll::Pending => {}
+        }
+        if self.ping_at.is_some() && self.ping.as_mut().poll(cx).is_ready() {
+            return Poll::Ready(Ok(Io::Ping));
+        }
+        Poll::Pending
+    }
+}
+
+/// Encodes a packet the state wants written.
+fn encode(packet: Option<Packet>, buf: &mut BytesMut, max: usize) -> Result<(), StateError> {
+    if let Some(p) = packet {
+        p.write(buf, max).map_err(StateError::Deserialization)?;
+    }
+    Ok(())
+}
+
+/// TCP (with `TCP_NODELAY`: every QoS 1 round trip would otherwise wait for Nagle), TLS when the
+/// options ask for it, then CONNECT and an accepted CONNACK, all within `timeout`.
+async fn connect(
+    options: MqttOptions,
+    max_incoming: usize,
+    timeout: Duration,
+) -> Result<Up, ConnectionError> {
+    let attempt = async {
+        let (host, port) = options.broker_address();
+        let tcp = tcp_connect(&host, port).await?;
+        let mut stream: Box<dyn Stream> = match options.transport() {
+            Transport::Tcp => Box::new(tcp),
+            #[cfg(feature = "tls")]
+            Transport::Tls(tls) => Box::new(tls_connect(&host, tls, tcp).await?),
+            #[allow(unreachable_patterns)]
+            _ => {
+                return Err(ConnectionError::Io(io::Error::other(
+                    "this transport is not supported by the gateway",
+                )))
+            }
+        };
+        let mut connect = Connect::new(options.client_id());
+        connect.keep_alive = options.keep_alive().as_secs().min(u16::MAX as u64) as u16;
+        connect.clean_session = options.clean_session();
+        connect.last_will = options.last_will();
+        connect.login = options.credentials();
+        let mut buf = BytesMut::new();
+        Packet::Connect(connect)
+            .write(&mut buf, usize::MAX)
+            .map_err(StateError::Deserialization)?;
+        stream.write_all(&buf).await?;
+        stream.flush().await?;
+        let mut read = BytesMut::with_capacity(READ_CHUNK);
+        let connack = loop {
+            match Packet::read(&mut read, max_incoming) {
+                Ok(Packet::ConnAck(c)) if c.code == ConnectReturnCode::Success => break c,
+                Ok(Packet::ConnAck(c)) => return Err(ConnectionError::ConnectionRefused(c.code)),
+                Ok(other) => return Err(ConnectionError::NotConnAck(other)),
+                Err(mqttbytes::Error::InsufficientBytes(_)) => {}
+                Err(e) => return Err(StateError::Deserialization(e).into()),
+            }
+            read.reserve(READ_CHUNK);
+            if tokio::io::AsyncReadExt::read_buf(&mut stream, &mut read).await? == 0 {
+                return Err(StateError::ConnectionAborted.into());
+            }
+        };
+        Ok(Up::new(stream, read, connack, options.keep_alive()))
+    };
+    tokio::time::timeout(timeout, attempt)
+        .await
+        .map_err(|_| ConnectionError::NetworkTimeout)?
+}
+
+async fn tcp_connect(host: &str, port: u16) -> io::Result<tokio::net::TcpStream> {
+    let mut last = None;
+    for addr in tokio::net::lookup_host((host, port)).await? {
+        let socket = if addr.is_ipv4() {
+            TcpSocket::new_v4()?
+        } else {
+            TcpSocket::new_v6()?
+        };
+        socket.set_nodelay(true)?;
+        match socket.connect(addr).await {
+            Ok(s) => return Ok(s),
+            Err(e) => last = Some(e),
+        }
+    }
+    Err(last.unwrap_or_else(|| {
+        io::Error::new(
+            io::ErrorKind::InvalidInput,
+            "the broker's name resolves to no address",
+        )
+    }))
+}
+
+#[cfg(feature = "tls")]
+async fn tls_connect(
+    host: &str,
+    tls: rumqttc::TlsConfiguration,
+    tcp: tokio::net::TcpStream,
+) -> Result<rumqttc::tokio_rustls::client::TlsStream<tokio::net::TcpStream>, ConnectionError> {
+    use rumqttc::tokio_rustls::rustls::pki_types::ServerName;
+    let config = match tls {
+        rumqttc::TlsConfiguration::Rustls(config) => config,
+        #[allow(unreachable_patterns)]
+        _ => {
+            return Err(ConnectionError::Io(io::Error::other(
+                "TLS configuration not built by the gateway",
+            )))
+        }
+    };
+    let name = ServerName::try_from(host.to_owned())
+        .map_err(|e| io::Error::new(io::ErrorKind::InvalidInput, e))?;
+    let connector = rumqttc::tokio_rustls::TlsConnector::from(config);
+    Ok(connector.connect(name, tcp).await?)
+}
