@@ -27,7 +27,7 @@ use rumqttc::{Client, Event as MqttEvent, MqttOptions, Packet as MqttPacket, QoS
 use socketcan::{CanFilter, CanFrame, CanSocket, EmbeddedFrame, Socket, SocketOptions};
 
 use ihex_bench::bus::Limit;
-use ihex_bench::results::{Bare, LiveResults, Trial};
+use ihex_bench::results::{Bare, CpuShare, LiveResults, Trial};
 use ihex_bench::stats::Summary;
 
 /// Bitrate of the island bus.
@@ -548,8 +548,8 @@ fn start_gateway(bin: &Path, iface: &str, broker: SocketAddr, dir: &Path) -> Res
     })
 }
 
-/// utime + stime of `pid`, ms.
-fn cpu_ms(pid: u32) -> Result<f64> {
+/// utime and stime of `pid`, ms.
+fn cpu_times(pid: u32) -> Result<(f64, f64)> {
     let stat = std::fs::read_to_string(format!("/proc/{pid}/stat"))?;
     // Fields after the parenthesised command name; utime and stime are fields 14 and 15.
     let rest = stat
@@ -557,8 +557,53 @@ fn cpu_ms(pid: u32) -> Result<f64> {
         .map(|(_, r)| r)
         .ok_or_else(|| anyhow!("odd /proc/{pid}/stat"))?;
     let f: Vec<&str> = rest.split_whitespace().collect();
-    let ticks: f64 = f[11].parse::<f64>()? + f[12].parse::<f64>()?;
-    Ok(ticks * 1000.0 / USER_HZ)
+    let ms = |i: usize| -> Result<f64> {
+        let ticks: f64 = f
+            .get(i)
+            .ok_or_else(|| anyhow!("odd /proc/{pid}/stat"))?
+            .parse()?;
+        Ok(ticks * 1000.0 / USER_HZ)
+    };
+    Ok((ms(11)?, ms(12)?))
+}
+
+/// utime + stime of `pid`, ms.
+fn cpu_ms(pid: u32) -> Result<f64> {
+    let (user, system) = cpu_times(pid)?;
+    Ok(user + system)
+}
+
+/// CPU times of the three processes of a live trial, to share out its cost.
+#[derive(Clone, Copy)]
+struct CpuSnapshot {
+    gateway: (f64, f64),
+    broker: f64,
+    bench: f64,
+}
+
+impl CpuSnapshot {
+    fn take(gateway: u32, broker: u32) -> Result<CpuSnapshot> {
+        Ok(CpuSnapshot {
+            gateway: cpu_times(gateway)?,
+            broker: cpu_ms(broker)?,
+            bench: cpu_ms(std::process::id())?,
+        })
+    }
+
+    fn gateway_ms(&self) -> f64 {
+        self.gateway.0 + self.gateway.1
+    }
+
+    /// What each process used since `self`, per 1,000 of `delivered`.
+    fn share_since(&self, now: &CpuSnapshot, delivered: usize) -> CpuShare {
+        let per_1k = 1000.0 / delivered.max(1) as f64;
+        CpuShare {
+            gateway_user: (now.gateway.0 - self.gateway.0) * per_1k,
+            gateway_system: (now.gateway.1 - self.gateway.1) * per_1k,
+            broker: (now.broker - self.broker) * per_1k,
+            bench: (now.bench - self.bench) * per_1k,
+        }
+    }
 }
 
 /// `VmHWM` and `VmRSS` of `pid`, KiB.
@@ -582,6 +627,8 @@ struct Bench {
     can: CanSocket,
     mqtt: Mqtt,
     gw: Proc,
+    /// Mosquitto's process id.
+    broker: u32,
     next_index: u32,
     /// Next command index (never reused: every command stays pending at the gateway).
     next_cmd: u32,
@@ -628,13 +675,13 @@ impl Bench {
         let want: HashSet<u32> = (0..count as u32)
             .map(|k| (base + k) % INDEX_SPACE)
             .collect();
-        let cpu0 = cpu_ms(self.gw.pid())?;
+        let cpu0 = CpuSnapshot::take(self.gw.pid(), self.broker)?;
         let (sent, secs) = paced(count, rate, None, |k| {
             write(&self.can, &frame(&report(base + k))?)
         })?;
         let t_end = Instant::now();
         let (received, last) = self.collect(&want, Duration::from_secs(2));
-        let cpu1 = cpu_ms(self.gw.pid())?;
+        let cpu1 = CpuSnapshot::take(self.gw.pid(), self.broker)?;
         self.gw.check_alive()?;
         let t = Trial {
             offered_fps: rate,
@@ -645,9 +692,10 @@ impl Bench {
             lag_ms: last.map_or(f64::NAN, |l| {
                 l.saturating_duration_since(t_end).as_secs_f64() * 1e3
             }),
-            gateway_cpu_ms: cpu1 - cpu0,
+            gateway_cpu_ms: cpu1.gateway_ms() - cpu0.gateway_ms(),
             note: None,
             results: None,
+            share: Some(cpu0.share_since(&cpu1, received)),
         };
         println!(
             "bench: CAN->MQTT {:>8.0} fps offered, {:>8.0} sent, {}/{} events, lag {:.0} ms{}",
@@ -835,7 +883,7 @@ impl Bench {
             (got.len(), last)
         });
         self.mqtt.drain();
-        let cpu0 = cpu_ms(self.gw.pid())?;
+        let cpu0 = CpuSnapshot::take(self.gw.pid(), self.broker)?;
         let client = self.mqtt.client.clone();
         let publish = |k: u32| -> Result<()> {
             client.publish(
@@ -861,7 +909,7 @@ impl Bench {
         // `command_result` ok on EventsTopic. The gateway's CPU is read once they are in, so it
         // includes publishing them.
         let (results, note) = answers(&self.mqtt, sent, Duration::from_secs(2));
-        let cpu1 = cpu_ms(self.gw.pid())?;
+        let cpu1 = CpuSnapshot::take(self.gw.pid(), self.broker)?;
         self.gw.check_alive()?;
         let t = Trial {
             offered_fps: rate,
@@ -872,9 +920,10 @@ impl Bench {
             lag_ms: last.map_or(f64::NAN, |l| {
                 l.saturating_duration_since(t_end).as_secs_f64() * 1e3
             }),
-            gateway_cpu_ms: cpu1 - cpu0,
+            gateway_cpu_ms: cpu1.gateway_ms() - cpu0.gateway_ms(),
             note,
             results: Some(results),
+            share: Some(cpu0.share_since(&cpu1, received)),
         };
         println!(
             "bench: MQTT->CAN {:>8.0} cmd/s offered, {:>8.0} sent, {}/{} frames, {} results ok, lag {:.0} ms{}{}",
@@ -986,7 +1035,7 @@ pub fn run(s: Settings) -> Result<LiveResults> {
         bare.rate_fps, bare.received, bare.sent, bare.rtt.p50_us
     );
 
-    let (_broker, addr) = start_mosquitto(&s.mosquitto, &dir, s.mosquitto_nagle)?;
+    let (broker, addr) = start_mosquitto(&s.mosquitto, &dir, s.mosquitto_nagle)?;
     let mqtt = Mqtt::connect(
         addr,
         &[
@@ -1021,6 +1070,7 @@ pub fn run(s: Settings) -> Result<LiveResults> {
         can,
         mqtt,
         gw,
+        broker: broker.child.id(),
         next_index: 0,
         next_cmd: 0,
         notes,
@@ -1059,12 +1109,14 @@ pub fn run(s: Settings) -> Result<LiveResults> {
     let cost_rate = (best * 0.8).max(100.0);
     let cost = b.trial(cost_rate)?;
     let cpu_ms_per_1k_reports = cost.gateway_cpu_ms * 1000.0 / cost.received.max(1) as f64;
+    let share_reports = cost.share;
     trials.push(cost);
 
     println!("bench: MQTT->CAN rate");
     let (cps, mut command_trials) = b.search(250.0, ceiling, Bench::command_trial)?;
     let cost = b.command_trial((cps * 0.8).max(100.0))?;
     let cpu_ms_per_1k_commands = cost.gateway_cpu_ms * 1000.0 / cost.received.max(1) as f64;
+    let share_commands = cost.share;
     command_trials.push(cost);
     println!("bench: MQTT->CAN burst of {} commands", s.commands);
     let burst = b.command_trial(f64::INFINITY)?;
@@ -1114,6 +1166,8 @@ pub fn run(s: Settings) -> Result<LiveResults> {
         mqtt_loop,
         cpu_ms_per_1k_reports,
         cpu_ms_per_1k_commands,
+        share_reports,
+        share_commands,
         cpu_ms_per_1k_background,
         gateway_vmhwm_kib: hwm,
         gateway_vmrss_kib: rss,

@@ -5,7 +5,7 @@ use std::fmt::Write as _;
 
 use serde::{Deserialize, Serialize};
 
-use crate::results::{FwResults, LiveResults, Trial, WebResults};
+use crate::results::{CpuShare, FwResults, LiveResults, Trial, WebResults};
 use crate::stats::Summary;
 
 /// Instructions per bridged frame on one path.
@@ -273,6 +273,21 @@ fn pass(ok: bool) -> &'static str {
     }
 }
 
+/// One cost trial's CPU, shared out: the gateway (user + system), the broker, the benchmark, and
+/// the rate their sum allows on `cpus` CPUs.
+fn share_line(what: &str, s: &CpuShare, cpus: usize) -> String {
+    format!(
+        "{what:<9} gateway {:>6.0} (user {:.0} + system {:.0})  mosquitto {:>6.0}  bench {:>6.0}  \
+         -> all three allow at most {:.0}/s",
+        s.gateway_user + s.gateway_system,
+        s.gateway_user,
+        s.gateway_system,
+        s.broker,
+        s.bench,
+        s.ceiling(cpus)
+    )
+}
+
 fn lat(s: &Summary) -> String {
     format!("{:>8.0} {:>8.0} {:>8.0}", s.p50_us, s.p99_us, s.max_us)
 }
@@ -398,6 +413,19 @@ pub fn table(r: &Results) -> String {
             l.gateway_vmrss_start_kib as f64 / 1024.0,
             l.gateway_vmrss_kib as f64 / 1024.0
         );
+        let shares = [("reports", l.share_reports), ("commands", l.share_commands)];
+        if shares.iter().any(|(_, s)| s.is_some()) {
+            let _ = writeln!(
+                o,
+                "\nwhere the CPU went (ms per 1,000, every process of the trial; {} CPU(s))",
+                l.cpus
+            );
+            for (what, share) in shares {
+                if let Some(s) = share {
+                    let _ = writeln!(o, "  {}", share_line(what, &s, l.cpus));
+                }
+            }
+        }
     }
     if let Some(c) = &r.callgrind {
         let _ = writeln!(
@@ -790,6 +818,33 @@ mod tests {
             gateway_vmhwm_kib: 5000,
             ..Default::default()
         }
+    }
+
+    #[test]
+    fn the_cpu_of_every_process_bounds_the_rate() {
+        let s = CpuShare {
+            gateway_user: 370.0,
+            gateway_system: 230.0,
+            broker: 700.0,
+            bench: 700.0,
+        };
+        assert_eq!(s.total(), 2000.0);
+        assert_eq!(s.ceiling(1), 500.0);
+        assert_eq!(s.ceiling(2), 1000.0);
+        let line = share_line("reports", &s, 1);
+        assert!(
+            line.contains("gateway    600 (user 370 + system 230)"),
+            "{line}"
+        );
+        assert!(line.ends_with("at most 500/s"), "{line}");
+        let mut l = sample();
+        l.cpus = 1;
+        l.share_reports = Some(s);
+        let r = Results {
+            live: Some(l),
+            ..Default::default()
+        };
+        assert!(table(&r).contains("where the CPU went"), "{}", table(&r));
     }
 
     #[test]

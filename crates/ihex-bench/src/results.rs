@@ -29,6 +29,35 @@ pub struct Trial {
     /// after the bench acked its frame as the node); `None` for report trials.
     #[serde(default)]
     pub results: Option<usize>,
+    /// Where the machine's CPU went during the trial, per 1,000 delivered reports or commands.
+    #[serde(default)]
+    pub share: Option<CpuShare>,
+}
+
+/// CPU time of each process of a live trial, ms per 1,000 delivered reports (or commands): the
+/// gateway, the broker and the benchmark itself share the machine, so their sum bounds the rate.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct CpuShare {
+    /// The gateway in user space.
+    pub gateway_user: f64,
+    /// The gateway in the kernel (system calls, the socket and TCP paths it drives).
+    pub gateway_system: f64,
+    /// Mosquitto, user + system.
+    pub broker: f64,
+    /// The benchmark process (CAN writer, acks, MQTT client), user + system.
+    pub bench: f64,
+}
+
+impl CpuShare {
+    /// All three processes together.
+    pub fn total(&self) -> f64 {
+        self.gateway_user + self.gateway_system + self.broker + self.bench
+    }
+
+    /// The most per second the three processes' CPU allows on `cpus` CPUs, whatever the gateway.
+    pub fn ceiling(&self, cpus: usize) -> f64 {
+        1e6 * cpus.max(1) as f64 / self.total().max(f64::MIN_POSITIVE)
+    }
 }
 
 impl Trial {
@@ -101,6 +130,12 @@ pub struct LiveResults {
     pub cpu_ms_per_1k_reports: f64,
     /// Gateway CPU ms per 1,000 commands → frames.
     pub cpu_ms_per_1k_commands: f64,
+    /// Every process's CPU in the CAN → event cost trial, per 1,000 reports.
+    #[serde(default)]
+    pub share_reports: Option<CpuShare>,
+    /// Every process's CPU in the command cost trial, per 1,000 commands.
+    #[serde(default)]
+    pub share_commands: Option<CpuShare>,
     /// Gateway CPU ms per 1,000 background frames it reads and drops or records (no event).
     pub cpu_ms_per_1k_background: f64,
     /// Gateway peak resident memory, KiB (VmHWM).
