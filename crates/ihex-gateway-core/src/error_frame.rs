@@ -71,14 +71,9 @@ pub fn decode(class: u32, data: [u8; 8]) -> BusError {
         protocol: has(0x0008).then(|| names(data[2], &PROTOCOL)),
         tec: has(0x0200).then_some(data[6]),
         rec: has(0x0200).then_some(data[7]),
-        data: Some(hex(&data)),
+        data: Some(ihex_proto::Hex(&data).to_string()),
         ..BusError::default()
     }
-}
-
-/// Lower-case hex of bytes, no separators.
-pub(crate) fn hex(bytes: &[u8]) -> String {
-    bytes.iter().map(|b| format!("{b:02x}")).collect()
 }
 
 #[cfg(test)]

@@ -445,8 +445,17 @@ impl Event {
 /// Compact JSON of a DTO. Serialising these types cannot fail (plain structs, string keys only);
 /// should it ever, an empty object is published rather than panicking the gateway.
 pub(crate) fn to_json<T: Serialize>(value: &T) -> String {
-    serde_json::to_string(value).unwrap_or_else(|_| String::from("{}"))
+    // Sized for a node's state document, the largest frequent publication: one allocation where
+    // serde_json's own 128 bytes would grow three times.
+    let mut out = Vec::with_capacity(JSON_CAPACITY);
+    match serde_json::to_writer(&mut out, value).map(|()| String::from_utf8(out)) {
+        Ok(Ok(json)) => json,
+        _ => String::from("{}"),
+    }
 }
+
+/// Bytes reserved for a publication's JSON text.
+const JSON_CAPACITY: usize = 768;
 
 /// The LED state a node acknowledged.
 #[derive(Clone, PartialEq, Eq, Debug, Serialize, Deserialize)]
@@ -469,7 +478,7 @@ pub struct LedState {
 
 impl From<LedCommand> for LedState {
     fn from(cmd: LedCommand) -> Self {
-        let hex = |c: ihex_proto::Rgb| format!("#{:02x}{:02x}{:02x}", c.r, c.g, c.b);
+        let hex = |c: ihex_proto::Rgb| format!("#{}", ihex_proto::Hex(&[c.r, c.g, c.b]));
         match cmd {
             LedCommand::Off => LedState {
                 mode: "off".into(),

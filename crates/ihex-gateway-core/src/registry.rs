@@ -128,12 +128,7 @@ impl NodeEntry {
             firmware: self.firmware.map(|(version, trial)| Firmware {
                 version: version.to_string(),
                 trial,
-                image_hash: self
-                    .image_hash
-                    .unwrap_or_default()
-                    .iter()
-                    .map(|b| format!("{b:02x}"))
-                    .collect(),
+                image_hash: ihex_proto::Hex(&self.image_hash.unwrap_or_default()).to_string(),
             }),
             uid: self.uid.map(|u| u.to_string()),
             led: self.led.map(Into::into),

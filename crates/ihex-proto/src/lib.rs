@@ -42,6 +42,7 @@ pub mod field;
 pub mod filter;
 mod fw;
 mod header;
+mod hex;
 mod message;
 pub mod schema;
 mod state;
@@ -55,6 +56,7 @@ pub use fw::{
     FwAction, FwPhase, FwRefusal, FwStatus, FW_BEGIN_MAX_LEN, FW_DATA_LEN, FW_KINDS, FW_MAX_LEN,
 };
 pub use header::{Header, Kind};
+pub use hex::Hex;
 pub use message::{
     AckResult, BootRole, BuzzerCommand, DockRefuseReason, FaultCode, HealthFlags, HealthReply,
     LedCommand, Message, Packet, ResetReason, Rgb, Uid,

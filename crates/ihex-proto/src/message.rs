@@ -239,7 +239,7 @@ impl core::str::FromStr for Uid {
 impl core::fmt::Display for Uid {
     /// 24 lower-case hex digits, byte 0 first: the form the MQTT API and the tools print.
     fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
-        self.0.iter().try_for_each(|b| write!(f, "{b:02x}"))
+        crate::Hex(&self.0).fmt(f)
     }
 }
 

@@ -200,7 +200,7 @@ impl Diagnostics {
         let Some(n) = self.admit(&format!("undecodable:{key}"), now) else {
             return;
         };
-        let hex = error_frame::hex(&data[..data.len().min(64)]);
+        let hex = ihex_proto::Hex(&data[..data.len().min(64)]).to_string();
         out.emit(Event::BusError(BusError {
             error: "undecodable_frame".into(),
             message: format!("frame {raw_id:#010x} [{hex}] is not an iHEX packet: {err}"),

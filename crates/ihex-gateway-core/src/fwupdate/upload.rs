@@ -102,7 +102,8 @@ impl Uploads {
                 answer.version = Some(h.version.to_string());
                 answer.board = Some(h.board.to_string());
                 answer.image_id = Some(format!("{:08x}", image.image_id()));
-                answer.image_hash = Some(hex(&h.payload_hash.prefix::<7>()));
+                answer.image_hash =
+                    Some(ihex_proto::Hex(&h.payload_hash.prefix::<7>()).to_string());
                 answer.signature = Some(
                     if key.is_some() {
                         "verified"
@@ -172,10 +173,6 @@ fn check(
             .map_err(|e| format!("the signature does not verify: {e}"))?;
     }
     Ok(image)
-}
-
-fn hex(bytes: &[u8]) -> String {
-    bytes.iter().map(|b| format!("{b:02x}")).collect()
 }
 
 #[cfg(test)]
