@@ -546,6 +546,9 @@ impl Bridge {
             );
         }
         self.commands.on_transmitted(&packet, now);
+        if let Message::StateQuery { .. } = packet.msg {
+            self.readback.on_transmitted(packet.dest, now);
+        }
         self.settle(now);
     }
 
@@ -554,6 +557,9 @@ impl Bridge {
     pub fn handle_withdrawn(&mut self, packet: Packet, now: Instant) {
         self.advance(now);
         self.out.transmit.settle(&packet);
+        if let Message::StateQuery { .. } = packet.msg {
+            self.readback.on_not_sent(packet.dest);
+        }
         self.commands.on_withdrawn(&packet, now, &mut self.out);
         self.settle(now);
     }

@@ -7,7 +7,9 @@
 //!
 //! A node that does not answer (protocol 1.0: it refuses the unknown kind with a `BadFrame` fault,
 //! or stays silent) is asked [`SILENT_LIMIT`] times at most and then not again until it boots with
-//! a newer protocol: its state documents keep showing what it acknowledged and reported in its
+//! a newer protocol. Only a question the bus confirmed (its echo) counts: the wait for the answer
+//! starts there, and a question still in our own transmit path at its deadline is asked again, not
+//! held against the node: its state documents keep showing what it acknowledged and reported in its
 //! health replies, as before read-back existed. A reply with a part missing is asked again, up to
 //! [`INCOMPLETE_LIMIT`] times in a row.
 
@@ -48,6 +50,8 @@ struct Asking {
     seq: Seq,
     asked: Instant,
     deadline: Instant,
+    /// The bus confirmed the question (until then its silence is not the node's).
+    sent: bool,
     reports: Vec<StateReport>,
 }
 
@@ -134,6 +138,16 @@ impl ReadBack {
         }
     }
 
+    /// The question to `id` is on the bus: the node has the whole timeout from now to answer.
+    pub(super) fn on_transmitted(&mut self, id: NodeId, now: Instant) {
+        if let Some(a) = self.nodes.get_mut(&id).and_then(|q| q.asking.as_mut()) {
+            if !a.sent {
+                a.sent = true;
+                a.deadline = a.deadline.max(now + self.timeout);
+            }
+        }
+    }
+
     /// Our own bus went away: the questions in flight are void, not unanswered (the silence is
     /// ours); they are asked again when it is back.
     pub(super) fn on_bus_down(&mut self) {
@@ -191,11 +205,16 @@ impl ReadBack {
         })
     }
 
-    /// Questions without an answer in time count as silence; asked again, up to the limit.
+    /// Questions without an answer in time count as silence; asked again, up to the limit. One the
+    /// bus never confirmed is only asked again.
     pub(super) fn expire(&mut self, now: Instant) {
         for (id, q) in &mut self.nodes {
-            if q.asking.as_ref().is_some_and(|a| a.deadline <= now) {
-                q.asking = None;
+            if let Some(a) = q.asking.take_if(|a| a.deadline <= now) {
+                if !a.sent {
+                    q.due = !q.unsupported;
+                    self.maybe_due |= q.due;
+                    continue;
+                }
                 q.silent += 1;
                 if q.silent >= SILENT_LIMIT {
                     tracing::info!(node = %id, "node does not answer state queries; not asking again until it boots");
@@ -239,6 +258,7 @@ impl ReadBack {
                 seq,
                 asked: now,
                 deadline: now + self.timeout,
+                sent: false,
                 reports: Vec::new(),
             });
             asking += 1;
@@ -605,6 +625,49 @@ mod tests {
         };
         b.handle_packet(Packet::report(id(8), boot), now);
         query_to(&drain(&mut b), 8);
+    }
+
+    #[test]
+    fn questions_the_bus_never_confirmed_are_not_the_nodes_silence() {
+        let (mut b, t0) = with_nodes(&[]);
+        b.handle_packet(Packet::report(id(8), reply(0, 0)), t0 + MS);
+        let mut now = t0 + MS;
+        let mut asked = 0;
+        // Our own transmit path never confirms the questions (a loaded gateway, a stuck echo):
+        // asked again and again, never given up on.
+        for _ in 0..3 * SILENT_LIMIT {
+            let out = drain_unconfirmed(&mut b);
+            asked += out.queries.iter().filter(|q| q.dest == id(8)).count();
+            for p in out.sent {
+                b.handle_transmitted(p, now);
+            }
+            now += S;
+            b.handle_packet(Packet::report(id(8), reply(0, 0)), now);
+            b.handle_timeout(now);
+        }
+        assert!(asked > SILENT_LIMIT as usize, "asked {asked} times");
+        assert!(b.reading_back(id(8)), "still to be asked");
+        // A question confirmed late has the whole timeout from its confirmation.
+        let out = drain_unconfirmed(&mut b);
+        let q = *out.queries.first().expect("a question");
+        now += S - MS;
+        b.handle_transmitted(q, now);
+        b.handle_timeout(now + MS);
+        let out = drain(&mut b);
+        assert!(
+            out.queries.is_empty(),
+            "answer still awaited: {:?}",
+            out.queries
+        );
+        answer_queries(
+            &mut b,
+            &Out {
+                queries: vec![q],
+                ..Out::default()
+            },
+            now + 2 * MS,
+        );
+        assert!(!b.reading_back(id(8)));
     }
 
     #[test]
