@@ -240,7 +240,7 @@ impl Connection {
                 let up = attempt.as_mut().await?;
                 self.link = Link::Up(up);
                 // What came right behind the CONNACK.
-                self.parse()
+                Ok(self.parse()?)
             }
             Link::Up(up) => {
                 let io = std::future::poll_fn(|cx| up.poll_io(cx)).await?;
@@ -260,7 +260,7 @@ impl Connection {
                         }
                         Ok(())
                     }
-                    Io::Read => self.parse(),
+                    Io::Read => Ok(self.parse()?),
                 }
             }
         }
@@ -269,7 +269,7 @@ impl Connection {
 
 impl Connection {
     /// Hands every complete packet in the read buffer to the state; its replies are queued.
-    fn parse(&mut self) -> Result<(), ConnectionError> {
+    fn parse(&mut self) -> Result<(), StateError> {
         let Link::Up(up) = &mut self.link else {
             return Ok(());
         };
@@ -277,7 +277,7 @@ impl Connection {
             let packet = match Packet::read(&mut up.read, self.max_incoming) {
                 Ok(p) => p,
                 Err(mqttbytes::Error::InsufficientBytes(_)) => return Ok(()),
-                Err(e) => return Err(StateError::Deserialization(e).into()),
+                Err(e) => return Err(StateError::Deserialization(e)),
             };
             if let Some(reply) = self.state.handle_incoming_packet(packet)? {
                 encode(Some(reply), &mut up.write, self.max_outgoing)?;
