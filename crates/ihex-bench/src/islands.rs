@@ -1,0 +1,681 @@
+//! Islands per broker (issue 15): `N` gateways, each on its own SocketCAN interface (`vcan0..`)
+//! with a `sim-node` island of simulated elements, all on one Mosquitto. Under a steady load of
+//! report frames and LED commands on every island, one MQTT client subscribed to `+/EventsTopic`
+//! times each report frame to its event and each command to its `command_result`; the CPU of the
+//! broker, the gateways and the simulators is read from `/proc` over the measurement.
+//!
+//! The report is a `BootUp` written in the name of a simulated element (the one 1:1 report, see
+//! docs/benchmarks.md "The report kind"): the gateway knows the element, so it publishes exactly
+//! one `node_rebooted`, numbered by the element and its reset code. The element itself never sees
+//! the frame (its kernel filters pass commands and broadcasts only) and keeps answering health
+//! checks, so the gateways run with their deployed health period.
+
+use std::collections::{BTreeMap, HashMap, HashSet};
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::mpsc;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use anyhow::{anyhow, bail, Result};
+use ihex_bench::results::IslandsResults;
+use ihex_bench::stats::Summary;
+use ihex_gateway_core::event::{Event, Outcome};
+use ihex_proto::{BootRole, Message, NodeId, Packet, ResetReason, PROTOCOL_VERSION};
+use rumqttc::QoS;
+use socketcan::CanSocket;
+
+use crate::fw::island;
+use crate::live::{
+    cpu_ms, environment, frame, memory_kib, open_can, paced, start_mosquitto, write, Mqtt, Proc,
+};
+
+/// Settings of one run.
+#[derive(Clone, Debug)]
+pub struct Settings {
+    /// The `mc-gateway` binary (one process per island).
+    pub gateway: PathBuf,
+    /// The `sim-node` binary (one process per island).
+    pub sim_node: PathBuf,
+    /// The `mosquitto` binary.
+    pub mosquitto: PathBuf,
+    /// Islands, on `vcan0..vcan{islands-1}`.
+    pub islands: usize,
+    /// Static elements per island.
+    pub nodes: u16,
+    /// Report frames per second per island.
+    pub report_rate: f64,
+    /// LED commands per second per island.
+    pub command_rate: f64,
+    /// Length of the measurement, s.
+    pub secs: f64,
+}
+
+/// The island file's first static element (`fw::island`: 101, 102, …).
+const FIRST: u16 = 0x101;
+/// Reset codes that number the reports (`other_4` .. `other_253`).
+const CODES: u32 = 250;
+/// Mosquitto's counters of PUBLISH packets (published every `sys_interval`, 1 s here).
+const SYS_RECEIVED: &str = "$SYS/broker/publish/messages/received";
+const SYS_SENT: &str = "$SYS/broker/publish/messages/sent";
+/// How long after the load the answers still count.
+const GRACE: Duration = Duration::from_secs(10);
+
+fn name(i: usize) -> String {
+    format!("lab{i:02}")
+}
+
+/// The `k`th report of an island of `nodes` elements: a `BootUp` of element `k % nodes` with the
+/// reset code `other_{4 + k / nodes}` (indices repeat after `nodes × 250`).
+fn report(nodes: u16, k: u32) -> Result<Packet> {
+    let n = u32::from(nodes);
+    let k = k % (n * CODES);
+    let id = NodeId::new(FIRST + (k % n) as u16).ok_or_else(|| anyhow!("node {k} out of range"))?;
+    Ok(Packet::report(
+        id,
+        Message::BootUp {
+            version: PROTOCOL_VERSION,
+            role: BootRole::Static,
+            ports: 6,
+            reset: ResetReason::Other(4 + (k / n) as u8),
+        },
+    ))
+}
+
+/// The report index of a `node_rebooted` event (the inverse of [`report`]).
+fn report_index(nodes: u16, event: &Event) -> Option<u32> {
+    let Event::NodeRebooted(r) = event else {
+        return None;
+    };
+    let n = u32::from(nodes);
+    let element = u32::from(r.id.0.get()).checked_sub(u32::from(FIRST))?;
+    let code: u32 = r.reset.strip_prefix("other_")?.parse().ok()?;
+    (element < n).then_some(())?;
+    Some(code.checked_sub(4)? * n + element)
+}
+
+/// What the load threads did, for the reader to match.
+enum Sent {
+    /// Report `index` written on island `island`'s bus.
+    Report {
+        island: usize,
+        index: u32,
+        at: Instant,
+    },
+    /// A command with this `request_id` published.
+    Command { id: String, at: Instant },
+}
+
+/// Samples of one kind of probe, matched in whichever order sending and receiving are seen.
+#[derive(Default)]
+struct Matcher<K> {
+    /// Sent, not answered yet.
+    sent: HashMap<K, Instant>,
+    /// Answered before the sender's record came (the reader is a thread of its own).
+    arrived: HashMap<K, Instant>,
+    /// Answered and matched.
+    matched: HashSet<K>,
+    latencies: Vec<f64>,
+}
+
+impl<K: std::hash::Hash + Eq + Clone> Matcher<K> {
+    fn sent(&mut self, key: K, at: Instant) {
+        match self.arrived.remove(&key) {
+            Some(got) => {
+                self.latencies.push(micros(at, got));
+                self.matched.insert(key);
+            }
+            None => {
+                self.sent.insert(key, at);
+            }
+        }
+    }
+
+    /// An answer for `key`; true if it is its first (a duplicate is ignored).
+    fn arrived(&mut self, key: K, at: Instant) -> bool {
+        if self.matched.contains(&key) {
+            return false;
+        }
+        match self.sent.remove(&key) {
+            Some(sent) => {
+                self.latencies.push(micros(sent, at));
+                self.matched.insert(key);
+                true
+            }
+            None => self.arrived.insert(key, at).is_none(),
+        }
+    }
+
+    fn done(&self) -> bool {
+        self.sent.is_empty()
+    }
+}
+
+fn micros(from: Instant, to: Instant) -> f64 {
+    to.saturating_duration_since(from).as_secs_f64() * 1e6
+}
+
+/// `/proc/stat`'s busy and total jiffies of all CPUs.
+fn cpu_jiffies() -> (u64, u64) {
+    let stat = std::fs::read_to_string("/proc/stat").unwrap_or_default();
+    let v: Vec<u64> = stat
+        .lines()
+        .next()
+        .unwrap_or_default()
+        .split_whitespace()
+        .skip(1)
+        .filter_map(|f| f.parse().ok())
+        .collect();
+    let total: u64 = v.iter().sum();
+    // idle and iowait
+    let idle = v.get(3).copied().unwrap_or(0) + v.get(4).copied().unwrap_or(0);
+    (total - idle, total)
+}
+
+fn load_avg() -> f64 {
+    std::fs::read_to_string("/proc/loadavg")
+        .ok()
+        .and_then(|l| l.split_whitespace().next()?.parse().ok())
+        .unwrap_or(f64::NAN)
+}
+
+fn cpu_each(procs: &[Proc]) -> Result<Vec<f64>> {
+    procs.iter().map(|p| cpu_ms(p.pid())).collect()
+}
+
+fn check_alive(procs: &mut [Proc], dir: &Path, what: &str) -> Result<()> {
+    for (i, p) in procs.iter_mut().enumerate() {
+        if let Err(e) = p.check_alive() {
+            let log =
+                std::fs::read_to_string(dir.join(format!("{what}-{i:02}.log"))).unwrap_or_default();
+            bail!("{e} (island {}); its log: {log}", name(i));
+        }
+    }
+    Ok(())
+}
+
+/// The latest value of Mosquitto's `$SYS` PUBLISH counters and when it came.
+#[derive(Clone, Copy, Default)]
+struct SysCount {
+    received: Option<(Instant, u64)>,
+    sent: Option<(Instant, u64)>,
+}
+
+/// Rate of a counter between two readings, per second.
+fn rate(a: Option<(Instant, u64)>, b: Option<(Instant, u64)>) -> Option<f64> {
+    let ((t0, v0), (t1, v1)) = (a?, b?);
+    let secs = t1.checked_duration_since(t0)?.as_secs_f64();
+    (secs > 0.5).then(|| v1.saturating_sub(v0) as f64 / secs)
+}
+
+/// CPU times and counters at one moment of the measurement.
+struct Snapshot {
+    at: Instant,
+    gateways: Vec<f64>,
+    sims: Vec<f64>,
+    broker: f64,
+    bench: f64,
+    /// `/proc/stat`: busy and total jiffies.
+    jiffies: (u64, u64),
+    sys: SysCount,
+}
+
+impl Snapshot {
+    fn take(gateways: &[Proc], sims: &[Proc], broker: &Proc, sys: SysCount) -> Result<Snapshot> {
+        Ok(Snapshot {
+            at: Instant::now(),
+            gateways: cpu_each(gateways)?,
+            sims: cpu_each(sims)?,
+            broker: cpu_ms(broker.pid())?,
+            bench: cpu_ms(std::process::id())?,
+            jiffies: cpu_jiffies(),
+            sys,
+        })
+    }
+}
+
+/// Everything the reader learns from the broker.
+struct Reader {
+    nodes: u16,
+    islands: usize,
+    mqtt: Mqtt,
+    sys: SysCount,
+    online: Vec<HashSet<NodeId>>,
+    available: HashSet<usize>,
+    reports: Matcher<(usize, u32)>,
+    commands: Matcher<String>,
+    commands_ok: usize,
+    commands_not_ok: usize,
+    other: BTreeMap<String, usize>,
+    /// Count the events that are neither probes nor answers (only during the measurement).
+    counting: bool,
+}
+
+/// The island of `topic` when it is `labNN/rest` for one of the `islands`.
+fn island_of(topic: &str, rest: &str, islands: usize) -> Option<usize> {
+    let (prefix, tail) = topic.split_once('/')?;
+    let i: usize = prefix.strip_prefix("lab")?.parse().ok()?;
+    (tail == rest && i < islands && topic.starts_with(&name(i))).then_some(i)
+}
+
+impl Reader {
+    /// Handles one message within `timeout`; false when none came.
+    fn pump(&mut self, timeout: Duration) -> bool {
+        let Some((at, topic, payload)) = self.mqtt.recv(timeout) else {
+            return false;
+        };
+        let value = || String::from_utf8_lossy(&payload).trim().parse::<u64>().ok();
+        if topic == SYS_RECEIVED {
+            self.sys.received = value().map(|v| (at, v));
+        } else if topic == SYS_SENT {
+            self.sys.sent = value().map(|v| (at, v));
+        } else if let Some(i) = island_of(&topic, "ihex/gateway/availability", self.islands) {
+            if payload == b"online" {
+                self.available.insert(i);
+            }
+        } else if let Some(i) = island_of(&topic, "EventsTopic", self.islands) {
+            if let Ok(event) = serde_json::from_slice::<Event>(&payload) {
+                self.on_event(i, at, event);
+            }
+        }
+        true
+    }
+
+    fn on_event(&mut self, island: usize, at: Instant, event: Event) {
+        if let Some(index) = report_index(self.nodes, &event) {
+            self.reports.arrived((island, index), at);
+            return;
+        }
+        match &event {
+            Event::NodeOnline(o) => {
+                self.online[island].insert(o.id.0);
+            }
+            Event::NodeLost(l) => {
+                self.online[island].remove(&l.id.0);
+            }
+            Event::CommandResult(r) => {
+                if let Some(id) = &r.request_id {
+                    if self.commands.arrived(id.clone(), at) {
+                        if r.result == Outcome::Ok {
+                            self.commands_ok += 1;
+                        } else {
+                            self.commands_not_ok += 1;
+                        }
+                    }
+                    return;
+                }
+            }
+            Event::CommandRejected(r) if r.request_id.is_some() => {
+                if let Some(id) = &r.request_id {
+                    if self.commands.arrived(id.clone(), at) {
+                        self.commands_not_ok += 1;
+                    }
+                }
+                return;
+            }
+            _ => {}
+        }
+        if self.counting {
+            *self.other.entry(event.name().to_owned()).or_default() += 1;
+        }
+    }
+}
+
+/// Runs the islands-per-broker benchmark.
+pub fn run(s: Settings) -> Result<IslandsResults> {
+    if s.islands == 0 || s.islands > 100 || s.nodes == 0 || s.nodes > 0xff {
+        bail!("1..=100 islands of 1..=255 elements");
+    }
+    let (environment, cpus) = environment();
+    println!("bench: {environment}");
+    let dir = std::env::temp_dir().join(format!("ihex-bench-islands-{}", std::process::id()));
+    std::fs::create_dir_all(&dir)?;
+    let file = dir.join("island.toml");
+    std::fs::write(&file, island(s.nodes))?;
+    let mut notes = Vec::new();
+
+    // `$SYS` every second: the broker's own count of what it handled.
+    let (broker, addr) = start_mosquitto(&s.mosquitto, &dir, false, "sys_interval 1\n")?;
+    let mqtt = Mqtt::connect(
+        addr,
+        &[
+            "+/EventsTopic",
+            "+/ihex/gateway/availability",
+            SYS_RECEIVED,
+            SYS_SENT,
+        ],
+    )?;
+    let mut r = Reader {
+        nodes: s.nodes,
+        islands: s.islands,
+        mqtt,
+        sys: SysCount::default(),
+        online: vec![HashSet::new(); s.islands],
+        available: HashSet::new(),
+        reports: Matcher::default(),
+        commands: Matcher::default(),
+        commands_ok: 0,
+        commands_not_ok: 0,
+        other: BTreeMap::new(),
+        counting: false,
+    };
+
+    println!("bench: {} gateways on one Mosquitto", s.islands);
+    let mut gateways = Vec::new();
+    for i in 0..s.islands {
+        let mut c = Command::new(&s.gateway);
+        c.args(["--can", &format!("vcan{i}"), "--island", &name(i)])
+            .args(["--broker", &addr.to_string()])
+            .args(["--log-dir", "-", "--log", "warn"]);
+        gateways.push(Proc::spawn(
+            c,
+            &dir.join(format!("gateway-{i:02}.log")),
+            "mc-gateway",
+        )?);
+    }
+    let deadline = Instant::now() + Duration::from_secs(120);
+    while r.available.len() < s.islands {
+        if !r.pump(Duration::from_millis(500)) {
+            check_alive(&mut gateways, &dir, "gateway")?;
+        }
+        if Instant::now() > deadline {
+            bail!(
+                "only {} of {} gateways came online within 120 s",
+                r.available.len(),
+                s.islands
+            );
+        }
+    }
+
+    println!(
+        "bench: {} sim-node islands of {} elements",
+        s.islands, s.nodes
+    );
+    let started = Instant::now();
+    let mut sims = Vec::new();
+    for i in 0..s.islands {
+        let mut c = Command::new(&s.sim_node);
+        c.args(["--iface", &format!("vcan{i}"), "--island"])
+            .arg(&file)
+            .env("RUST_LOG", "warn");
+        sims.push(Proc::spawn(
+            c,
+            &dir.join(format!("sim-{i:02}.log")),
+            "sim-node",
+        )?);
+    }
+    let deadline = started + Duration::from_secs(180);
+    let want = usize::from(s.nodes);
+    while r.online.iter().any(|o| o.len() < want) {
+        if !r.pump(Duration::from_millis(500)) {
+            check_alive(&mut gateways, &dir, "gateway")?;
+            check_alive(&mut sims, &dir, "sim")?;
+        }
+        if Instant::now() > deadline {
+            let counts: Vec<String> = r.online.iter().map(|o| o.len().to_string()).collect();
+            bail!(
+                "not every node online within 180 s (online per island: {})",
+                counts.join(", ")
+            );
+        }
+    }
+    let online_s = started.elapsed().as_secs_f64();
+    println!(
+        "bench: all {} nodes online after {online_s:.1} s",
+        s.islands * want
+    );
+    // Let the start-up traffic (state read-backs, discovery configs) pass.
+    let quiet_until = Instant::now() + Duration::from_secs(3);
+    while let Some(left) = quiet_until.checked_duration_since(Instant::now()) {
+        r.pump(left);
+    }
+
+    let sockets: Vec<CanSocket> = (0..s.islands)
+        .map(|i| open_can(&format!("vcan{i}"), &mut notes))
+        .collect::<Result<_>>()?;
+    let (tx, rx) = mpsc::sync_channel::<Sent>(1 << 16);
+    let stop = Arc::new(AtomicBool::new(false));
+    let islands = s.islands;
+    let nodes = s.nodes;
+    let reports = (s.report_rate * s.secs) as usize * islands;
+    let commands = (s.command_rate * s.secs) as usize * islands;
+
+    println!(
+        "bench: {:.0} reports/s and {:.1} LED commands/s per island for {:.0} s",
+        s.report_rate, s.command_rate, s.secs
+    );
+    let start = Snapshot::take(&gateways, &sims, &broker, r.sys)?;
+    let t0 = start.at;
+
+    let report_tx = tx.clone();
+    let report_stop = stop.clone();
+    let report_rate = s.report_rate * islands as f64;
+    let writer = std::thread::spawn(move || -> Result<usize> {
+        let (sent, _) = paced(reports, report_rate, Some(&report_stop), |k| {
+            let island = k as usize % islands;
+            let index = k / islands as u32;
+            let f = frame(&report(nodes, index)?)?;
+            let at = Instant::now();
+            write(&sockets[island], &f)?;
+            let index = index % (u32::from(nodes) * CODES);
+            report_tx
+                .send(Sent::Report { island, index, at })
+                .map_err(|_| anyhow!("reader gone"))
+        })?;
+        Ok(sent)
+    });
+    let client = r.mqtt.client.clone();
+    let command_stop = stop.clone();
+    let command_rate = s.command_rate * islands as f64;
+    let commander = std::thread::spawn(move || -> Result<usize> {
+        if commands == 0 {
+            return Ok(0);
+        }
+        let (sent, _) = paced(commands, command_rate, Some(&command_stop), |k| {
+            let island = k as usize % islands;
+            let n = k / islands as u32;
+            let id = format!("i{island}-{n}");
+            let node = FIRST + (n % u32::from(nodes)) as u16;
+            let command = format!(
+                r#"{{"cmd":"led","node":"{node:x}","color":[{},{},0],"request_id":"{id}"}}"#,
+                n & 0xff,
+                n >> 8 & 0xff
+            );
+            let at = Instant::now();
+            client.publish(
+                format!("{}/CommandsTopic", name(island)),
+                QoS::AtLeastOnce,
+                false,
+                command,
+            )?;
+            tx.send(Sent::Command { id, at })
+                .map_err(|_| anyhow!("reader gone"))
+        })?;
+        Ok(sent)
+    });
+
+    // Read while the load runs, then until every probe is answered, for `GRACE` at most (the
+    // `$SYS` counters arrive every second, so "nothing came for a while" never happens).
+    r.counting = true;
+    let stop_at = t0 + Duration::from_secs_f64(s.secs);
+    let mut ended: Option<Snapshot> = None;
+    loop {
+        let got = r.pump(Duration::from_millis(50));
+        while let Ok(sent) = rx.try_recv() {
+            match sent {
+                Sent::Report { island, index, at } => r.reports.sent((island, index), at),
+                Sent::Command { id, at } => r.commands.sent(id, at),
+            }
+        }
+        let now = Instant::now();
+        if ended.is_none() && (now >= stop_at || (writer.is_finished() && commander.is_finished()))
+        {
+            ended = Some(Snapshot::take(&gateways, &sims, &broker, r.sys)?);
+            stop.store(true, Ordering::Relaxed);
+        }
+        if let Some(e) = &ended {
+            if writer.is_finished() && commander.is_finished() {
+                let all = r.reports.done() && r.commands.done();
+                if all || now.duration_since(e.at) > GRACE {
+                    break;
+                }
+            }
+        }
+        if !got && ended.is_none() {
+            check_alive(&mut gateways, &dir, "gateway")?;
+            check_alive(&mut sims, &dir, "sim")?;
+        }
+    }
+    r.counting = false;
+    let reports_sent = writer
+        .join()
+        .map_err(|_| anyhow!("report writer panicked"))??;
+    let commands_sent = commander
+        .join()
+        .map_err(|_| anyhow!("command writer panicked"))??;
+    while let Ok(sent) = rx.try_recv() {
+        match sent {
+            Sent::Report { island, index, at } => r.reports.sent((island, index), at),
+            Sent::Command { id, at } => r.commands.sent(id, at),
+        }
+    }
+    let Some(end) = ended else {
+        bail!("the measurement did not end");
+    };
+    let secs = (end.at - t0).as_secs_f64();
+    check_alive(&mut gateways, &dir, "gateway")?;
+    check_alive(&mut sims, &dir, "sim")?;
+
+    let delta =
+        |a: &[f64], b: &[f64]| -> Vec<f64> { b.iter().zip(a).map(|(b, a)| b - a).collect() };
+    let gw_cpu = delta(&start.gateways, &end.gateways);
+    let sim_cpu = delta(&start.sims, &end.sims);
+    let mut rss_max = 0;
+    let mut rss_sum = 0;
+    let mut hwm_max = 0;
+    for g in &gateways {
+        let (hwm, rss) = memory_kib(g.pid())?;
+        rss_max = rss_max.max(rss);
+        rss_sum += rss;
+        hwm_max = hwm_max.max(hwm);
+    }
+    let mut sims_rss = 0;
+    for p in &sims {
+        sims_rss += memory_kib(p.pid())?.1;
+    }
+    let broker_msgs_per_s = match (
+        rate(start.sys.received, end.sys.received),
+        rate(start.sys.sent, end.sys.sent),
+    ) {
+        (Some(a), Some(b)) => Some(a + b),
+        _ => {
+            notes.push("Mosquitto's $SYS counters did not come: no broker message rate".into());
+            None
+        }
+    };
+    let overflows = r.mqtt.overflows();
+    if overflows > 0 {
+        notes.push(format!(
+            "bench MQTT receive queue overflowed {overflows} times"
+        ));
+    }
+    let busy =
+        (end.jiffies.0 - start.jiffies.0) as f64 / (end.jiffies.1 - start.jiffies.1).max(1) as f64;
+    let results = IslandsResults {
+        environment,
+        cpus,
+        islands: s.islands,
+        nodes_per_island: s.nodes,
+        online_s,
+        secs,
+        report_rate: s.report_rate,
+        command_rate: s.command_rate,
+        reports_sent,
+        events_received: r.reports.latencies.len(),
+        event_latency: Summary::of(std::mem::take(&mut r.reports.latencies)),
+        commands_sent,
+        commands_ok: r.commands_ok,
+        commands_not_ok: r.commands_not_ok,
+        command_rtt: Summary::of(std::mem::take(&mut r.commands.latencies)),
+        broker_cpu_ms: end.broker - start.broker,
+        broker_msgs_per_s,
+        gateways_cpu_ms: gw_cpu.iter().sum(),
+        gateway_cpu_max_ms: gw_cpu.iter().copied().fold(0.0, f64::max),
+        sims_cpu_ms: sim_cpu.iter().sum(),
+        bench_cpu_ms: end.bench - start.bench,
+        gateway_rss_max_kib: rss_max,
+        gateway_rss_sum_kib: rss_sum,
+        gateway_hwm_max_kib: hwm_max,
+        sims_rss_sum_kib: sims_rss,
+        machine_busy: busy,
+        load_avg_1m: load_avg(),
+        other_events: r.other.into_iter().collect(),
+        notes,
+    };
+    drop(sims);
+    drop(gateways);
+    drop(broker);
+    let _ = std::fs::remove_dir_all(&dir);
+    Ok(results)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_report_index_comes_back_from_its_event() {
+        for nodes in [1u16, 20, 255] {
+            for k in [0, 1, 19, 20, 4999, u32::from(nodes) * CODES - 1] {
+                let p = report(nodes, k).unwrap();
+                let Message::BootUp {
+                    reset: ResetReason::Other(code),
+                    ..
+                } = p.msg
+                else {
+                    panic!("index {k} must be a BootUp with an unknown reset code")
+                };
+                // The event as the gateway publishes it, read back as the bench reads it.
+                let json = serde_json::json!({"event": "node_rebooted", "payload": {
+                    "id": p.src.to_string(), "reset": format!("other_{code}"),
+                    "version": "1.0", "role": "static"}});
+                let ev: Event = serde_json::from_value(json).unwrap();
+                assert_eq!(
+                    report_index(nodes, &ev),
+                    Some(k % (u32::from(nodes) * CODES))
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn matcher_pairs_in_either_order_and_ignores_strays() {
+        let t = Instant::now();
+        let mut m = Matcher::default();
+        m.sent(1, t);
+        assert!(m.arrived(1, t + Duration::from_millis(2)));
+        // The answer is read before the writer's record of the send.
+        assert!(m.arrived(2, t + Duration::from_millis(5)));
+        m.sent(2, t + Duration::from_millis(1));
+        assert!(m.done());
+        assert!(!m.arrived(2, t + Duration::from_millis(9)));
+        // A duplicate answer counts nothing.
+        assert!(!m.arrived(1, t + Duration::from_millis(9)));
+        m.sent(3, t);
+        assert!(!m.done());
+        assert_eq!(m.latencies, vec![2000.0, 4000.0]);
+    }
+
+    #[test]
+    fn topics_name_their_island() {
+        assert_eq!(island_of("lab07/EventsTopic", "EventsTopic", 16), Some(7));
+        assert_eq!(island_of("lab16/EventsTopic", "EventsTopic", 16), None);
+        assert_eq!(island_of("lab7/EventsTopic", "EventsTopic", 16), None);
+        assert_eq!(
+            island_of("lab03/ihex/node/101/state", "EventsTopic", 16),
+            None
+        );
+        assert_eq!(island_of("EventsTopic", "EventsTopic", 16), None);
+    }
+}
