@@ -4,11 +4,15 @@
 //! times each report frame to its event and each command to its `command_result`; the CPU of the
 //! broker, the gateways and the simulators is read from `/proc` over the measurement.
 //!
-//! The report is a `BootUp` written in the name of a simulated element (the one 1:1 report, see
-//! docs/benchmarks.md "The report kind"): the gateway knows the element, so it publishes exactly
-//! one `node_rebooted`, numbered by the element and its reset code. The element itself never sees
-//! the frame (its kernel filters pass commands and broadcasts only) and keeps answering health
-//! checks, so the gateways run with their deployed health period.
+//! The report is a `Fault` with a code this protocol version does not define, written in the name
+//! of a simulated element and numbered in its `detail`: exactly one `fault` event (`other_<n>`),
+//! and nothing else. The gateway rate-limits faults per element and code (one a second), so the
+//! code changes with every report of an element (247 codes, 20 elements: a pair comes back after
+//! 4,940 reports). Not the live benchmark's `BootUp`: from an element the gateway reads back, a
+//! `BootUp` is a reboot and costs a state read-back (a query and up to 16 reply frames, the
+//! simulator's work, state documents) besides its event. The element itself never sees the frame
+//! (its kernel filters pass commands and broadcasts only) and keeps answering health checks, so the
+//! gateways run with their deployed health period.
 
 use std::collections::{BTreeMap, HashMap, HashSet};
 use std::path::{Path, PathBuf};
@@ -19,10 +23,10 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, bail, Result};
-use ihex_bench::results::IslandsResults;
+use ihex_bench::results::{Cost, IslandsResults};
 use ihex_bench::stats::Summary;
 use ihex_gateway_core::event::{Event, Outcome};
-use ihex_proto::{BootRole, Message, NodeId, Packet, ResetReason, PROTOCOL_VERSION};
+use ihex_proto::{FaultCode, Message, NodeId, Packet};
 use rumqttc::QoS;
 use socketcan::CanSocket;
 
@@ -54,11 +58,15 @@ pub struct Settings {
 
 /// The island file's first static element (`fw::island`: 101, 102, …).
 const FIRST: u16 = 0x101;
-/// Reset codes that number the reports (`other_4` .. `other_253`).
-const CODES: u32 = 250;
+/// The first fault code no protocol version defines (1..=8 are named).
+const FIRST_CODE: u8 = 9;
+/// Fault codes the reports cycle through (`other_9` .. `other_255`).
+const CODES: u32 = 256 - FIRST_CODE as u32;
 /// Mosquitto's counters of PUBLISH packets (published every `sys_interval`, 1 s here).
 const SYS_RECEIVED: &str = "$SYS/broker/publish/messages/received";
 const SYS_SENT: &str = "$SYS/broker/publish/messages/sent";
+/// How long the idle islands' cost is measured before the load.
+const IDLE: Duration = Duration::from_secs(5);
 /// How long after the load the answers still count.
 const GRACE: Duration = Duration::from_secs(10);
 
@@ -66,33 +74,31 @@ fn name(i: usize) -> String {
     format!("lab{i:02}")
 }
 
-/// The `k`th report of an island of `nodes` elements: a `BootUp` of element `k % nodes` with the
-/// reset code `other_{4 + k / nodes}` (indices repeat after `nodes × 250`).
+/// The `k`th report of an island of `nodes` elements: a `Fault` of element `k % nodes` with the
+/// code `other_{9 + (k / nodes) % 247}` and `k` as its detail.
 fn report(nodes: u16, k: u32) -> Result<Packet> {
     let n = u32::from(nodes);
-    let k = k % (n * CODES);
     let id = NodeId::new(FIRST + (k % n) as u16).ok_or_else(|| anyhow!("node {k} out of range"))?;
     Ok(Packet::report(
         id,
-        Message::BootUp {
-            version: PROTOCOL_VERSION,
-            role: BootRole::Static,
-            ports: 6,
-            reset: ResetReason::Other(4 + (k / n) as u8),
+        Message::Fault {
+            code: FaultCode::from_raw(FIRST_CODE + ((k / n) % CODES) as u8),
+            arg: 0,
+            detail: k,
         },
     ))
 }
 
-/// The report index of a `node_rebooted` event (the inverse of [`report`]).
+/// The report index of a `fault` event the benchmark caused (the inverse of [`report`]).
 fn report_index(nodes: u16, event: &Event) -> Option<u32> {
-    let Event::NodeRebooted(r) = event else {
+    let Event::Fault(f) = event else {
         return None;
     };
+    let k = f.detail;
     let n = u32::from(nodes);
-    let element = u32::from(r.id.0.get()).checked_sub(u32::from(FIRST))?;
-    let code: u32 = r.reset.strip_prefix("other_")?.parse().ok()?;
-    (element < n).then_some(())?;
-    Some(code.checked_sub(4)? * n + element)
+    let element = u32::from(f.node.0.get()).checked_sub(u32::from(FIRST))?;
+    let code: u32 = f.code.strip_prefix("other_")?.parse().ok()?;
+    (element == k % n && code == u32::from(FIRST_CODE) + (k / n) % CODES).then_some(k)
 }
 
 /// What the load threads did, for the reader to match.
@@ -222,6 +228,19 @@ struct Snapshot {
 }
 
 impl Snapshot {
+    /// CPU used between `start` and this snapshot.
+    fn cost_since(&self, start: &Snapshot) -> Cost {
+        let sum = |a: &[f64], b: &[f64]| -> f64 { b.iter().zip(a).map(|(b, a)| b - a).sum() };
+        Cost {
+            secs: (self.at - start.at).as_secs_f64(),
+            broker_cpu_ms: self.broker - start.broker,
+            gateways_cpu_ms: sum(&start.gateways, &self.gateways),
+            sims_cpu_ms: sum(&start.sims, &self.sims),
+            machine_busy: (self.jiffies.0 - start.jiffies.0) as f64
+                / (self.jiffies.1 - start.jiffies.1).max(1) as f64,
+        }
+    }
+
     fn take(gateways: &[Proc], sims: &[Proc], broker: &Proc, sys: SysCount) -> Result<Snapshot> {
         Ok(Snapshot {
             at: Instant::now(),
@@ -245,6 +264,8 @@ struct Reader {
     available: HashSet<usize>,
     reports: Matcher<(usize, u32)>,
     commands: Matcher<String>,
+    /// The commands as the broker delivers them back to the benchmark (its own subscription).
+    echoes: Matcher<String>,
     commands_ok: usize,
     commands_not_ok: usize,
     other: BTreeMap<String, usize>,
@@ -278,8 +299,24 @@ impl Reader {
             if let Ok(event) = serde_json::from_slice::<Event>(&payload) {
                 self.on_event(i, at, event);
             }
+        } else if island_of(&topic, "CommandsTopic", self.islands).is_some() {
+            let command: serde_json::Value = serde_json::from_slice(&payload).unwrap_or_default();
+            if let Some(id) = command["request_id"].as_str() {
+                self.echoes.arrived(id.to_owned(), at);
+            }
         }
         true
+    }
+
+    /// What a load thread sent, to be matched with its answer.
+    fn sent(&mut self, sent: Sent) {
+        match sent {
+            Sent::Report { island, index, at } => self.reports.sent((island, index), at),
+            Sent::Command { id, at } => {
+                self.echoes.sent(id.clone(), at);
+                self.commands.sent(id, at);
+            }
+        }
     }
 
     fn on_event(&mut self, island: usize, at: Instant, event: Event) {
@@ -342,6 +379,7 @@ pub fn run(s: Settings) -> Result<IslandsResults> {
         &[
             "+/EventsTopic",
             "+/ihex/gateway/availability",
+            "+/CommandsTopic",
             SYS_RECEIVED,
             SYS_SENT,
         ],
@@ -355,6 +393,7 @@ pub fn run(s: Settings) -> Result<IslandsResults> {
         available: HashSet::new(),
         reports: Matcher::default(),
         commands: Matcher::default(),
+        echoes: Matcher::default(),
         commands_ok: 0,
         commands_not_ok: 0,
         other: BTreeMap::new(),
@@ -425,11 +464,19 @@ pub fn run(s: Settings) -> Result<IslandsResults> {
         "bench: all {} nodes online after {online_s:.1} s",
         s.islands * want
     );
-    // Let the start-up traffic (state read-backs, discovery configs) pass.
+    // Let the start-up traffic (state read-backs, discovery configs) pass, then take the cost of
+    // the idle islands (health checks, the broker's housekeeping) as the floor under the load.
     let quiet_until = Instant::now() + Duration::from_secs(3);
     while let Some(left) = quiet_until.checked_duration_since(Instant::now()) {
         r.pump(left);
     }
+    println!("bench: {IDLE:?} idle");
+    let idle_start = Snapshot::take(&gateways, &sims, &broker, r.sys)?;
+    let idle_until = idle_start.at + IDLE;
+    while let Some(left) = idle_until.checked_duration_since(Instant::now()) {
+        r.pump(left);
+    }
+    let idle = Snapshot::take(&gateways, &sims, &broker, r.sys)?.cost_since(&idle_start);
 
     let sockets: Vec<CanSocket> = (0..s.islands)
         .map(|i| open_can(&format!("vcan{i}"), &mut notes))
@@ -458,14 +505,18 @@ pub fn run(s: Settings) -> Result<IslandsResults> {
             let f = frame(&report(nodes, index)?)?;
             let at = Instant::now();
             write(&sockets[island], &f)?;
-            let index = index % (u32::from(nodes) * CODES);
             report_tx
                 .send(Sent::Report { island, index, at })
                 .map_err(|_| anyhow!("reader gone"))
         })?;
         Ok(sent)
     });
-    let client = r.mqtt.client.clone();
+    // Commands go out through a client of their own: the reader's client takes in hundreds of
+    // messages a second, and rumqttc's event loop hands out every incoming packet it has read
+    // before it takes the next request from its queue; sharing it, the commands waited for
+    // seconds in the 1-vCPU VM before they even reached the broker.
+    let publisher = Mqtt::connect_as("ihex-bench-commands", addr, &[])?;
+    let client = publisher.client.clone();
     let command_stop = stop.clone();
     let command_rate = s.command_rate * islands as f64;
     let commander = std::thread::spawn(move || -> Result<usize> {
@@ -503,10 +554,7 @@ pub fn run(s: Settings) -> Result<IslandsResults> {
     loop {
         let got = r.pump(Duration::from_millis(50));
         while let Ok(sent) = rx.try_recv() {
-            match sent {
-                Sent::Report { island, index, at } => r.reports.sent((island, index), at),
-                Sent::Command { id, at } => r.commands.sent(id, at),
-            }
+            r.sent(sent);
         }
         let now = Instant::now();
         if ended.is_none() && (now >= stop_at || (writer.is_finished() && commander.is_finished()))
@@ -516,7 +564,7 @@ pub fn run(s: Settings) -> Result<IslandsResults> {
         }
         if let Some(e) = &ended {
             if writer.is_finished() && commander.is_finished() {
-                let all = r.reports.done() && r.commands.done();
+                let all = r.reports.done() && r.commands.done() && r.echoes.done();
                 if all || now.duration_since(e.at) > GRACE {
                     break;
                 }
@@ -535,10 +583,7 @@ pub fn run(s: Settings) -> Result<IslandsResults> {
         .join()
         .map_err(|_| anyhow!("command writer panicked"))??;
     while let Ok(sent) = rx.try_recv() {
-        match sent {
-            Sent::Report { island, index, at } => r.reports.sent((island, index), at),
-            Sent::Command { id, at } => r.commands.sent(id, at),
-        }
+        r.sent(sent);
     }
     let Some(end) = ended else {
         bail!("the measurement did not end");
@@ -598,6 +643,7 @@ pub fn run(s: Settings) -> Result<IslandsResults> {
         commands_ok: r.commands_ok,
         commands_not_ok: r.commands_not_ok,
         command_rtt: Summary::of(std::mem::take(&mut r.commands.latencies)),
+        command_to_broker: Summary::of(std::mem::take(&mut r.echoes.latencies)),
         broker_cpu_ms: end.broker - start.broker,
         broker_msgs_per_s,
         gateways_cpu_ms: gw_cpu.iter().sum(),
@@ -611,6 +657,7 @@ pub fn run(s: Settings) -> Result<IslandsResults> {
         machine_busy: busy,
         load_avg_1m: load_avg(),
         other_events: r.other.into_iter().collect(),
+        idle,
         notes,
     };
     drop(sims);
@@ -625,28 +672,42 @@ mod tests {
     use super::*;
 
     #[test]
-    fn every_report_index_comes_back_from_its_event() {
+    fn every_report_comes_back_from_its_event_and_is_never_throttled() {
         for nodes in [1u16, 20, 255] {
-            for k in [0, 1, 19, 20, 4999, u32::from(nodes) * CODES - 1] {
+            for k in [0, 1, 19, 20, 4939, 4940, 1_000_000] {
                 let p = report(nodes, k).unwrap();
-                let Message::BootUp {
-                    reset: ResetReason::Other(code),
-                    ..
-                } = p.msg
-                else {
-                    panic!("index {k} must be a BootUp with an unknown reset code")
+                let Message::Fault { code, detail, .. } = p.msg else {
+                    panic!("report {k} must be a Fault")
                 };
+                assert_eq!(code.name(), None, "report {k}: {code} is a defined code");
+                assert_eq!(detail, k);
                 // The event as the gateway publishes it, read back as the bench reads it.
-                let json = serde_json::json!({"event": "node_rebooted", "payload": {
-                    "id": p.src.to_string(), "reset": format!("other_{code}"),
-                    "version": "1.0", "role": "static"}});
+                let json = serde_json::json!({"event": "fault", "payload": {
+                    "node": p.src.to_string(), "code": code.to_string(), "arg": 0,
+                    "detail": detail, "message": "-"}});
                 let ev: Event = serde_json::from_value(json).unwrap();
-                assert_eq!(
-                    report_index(nodes, &ev),
-                    Some(k % (u32::from(nodes) * CODES))
-                );
+                assert_eq!(report_index(nodes, &ev), Some(k));
             }
+            // The gateway publishes one fault per element and code a second: an element's next
+            // report must have another code, the pair coming back only after nodes × 247 reports.
+            let key = |k: u32| {
+                let p = report(nodes, k).unwrap();
+                let Message::Fault { code, .. } = p.msg else {
+                    unreachable!()
+                };
+                (p.src, code)
+            };
+            let n = u32::from(nodes);
+            let period = n * CODES;
+            let keys: HashSet<_> = (0..period).map(key).collect();
+            assert_eq!(keys.len(), period as usize);
+            assert_eq!(key(period), key(0));
         }
+        // A fault nobody made up (a defined code) is not one of the benchmark's.
+        let real: Event = serde_json::from_value(serde_json::json!({"event": "fault", "payload": {
+            "node": "101", "code": "bus_off", "arg": 0, "detail": 0, "message": "-"}}))
+        .unwrap();
+        assert_eq!(report_index(20, &real), None);
     }
 
     #[test]

@@ -365,8 +365,14 @@ pub(crate) struct Mqtt {
 
 impl Mqtt {
     pub(crate) fn connect(addr: SocketAddr, topics: &[&str]) -> Result<Mqtt> {
+        Mqtt::connect_as("ihex-bench", addr, topics)
+    }
+
+    /// [`Mqtt::connect`] with the client id `NAME-PID` (a second client of this process needs
+    /// another name: the broker would close the first connection of an id taken again).
+    pub(crate) fn connect_as(name: &str, addr: SocketAddr, topics: &[&str]) -> Result<Mqtt> {
         let mut o = MqttOptions::new(
-            format!("ihex-bench-{}", std::process::id()),
+            format!("{name}-{}", std::process::id()),
             addr.ip().to_string(),
             addr.port(),
         );

@@ -547,6 +547,13 @@ fn islands_table(o: &mut String, i: &IslandsResults) {
         i.commands_sent
             .saturating_sub(i.commands_ok + i.commands_not_ok)
     );
+    let _ = writeln!(
+        o,
+        "  LED command -> back at the client {:>8.2} {:>8.2} {:>8.2}   (the broker hop alone: the bench subscribes to +/CommandsTopic too)",
+        ms(i.command_to_broker.p50_us),
+        ms(i.command_to_broker.p99_us),
+        ms(i.command_to_broker.max_us)
+    );
     let per_1k = match (i.broker_ms_per_1k(), i.broker_msgs_per_s) {
         (Some(c), Some(m)) => format!("{c:.1} ms per 1,000 PUBLISH in + out ({m:.0}/s)"),
         _ => "no $SYS message counts".into(),
@@ -570,6 +577,16 @@ fn islands_table(o: &mut String, i: &IslandsResults) {
         "  simulators' CPU, summed          {:>6.1} %; RSS {:.1} MiB summed",
         i.pct(i.sims_cpu_ms),
         mib(i.sims_rss_sum_kib)
+    );
+    let idle = &i.idle;
+    let _ = writeln!(
+        o,
+        "  idle islands before ({:.0} s)       broker {:.1} %, gateways {:.1} %, simulators {:.1} % of one CPU; {:.0} % of the machine busy",
+        idle.secs,
+        idle.pct(idle.broker_cpu_ms),
+        idle.pct(idle.gateways_cpu_ms),
+        idle.pct(idle.sims_cpu_ms),
+        idle.machine_busy * 100.0
     );
     let _ = writeln!(
         o,

@@ -206,6 +206,10 @@ pub struct IslandsResults {
     pub commands_not_ok: usize,
     /// Command published → its `command_result` (any result) at the bench's client.
     pub command_rtt: Summary,
+    /// Command published → the same command delivered back to the bench's client (subscribed to
+    /// `+/CommandsTopic` too): the broker hop alone, the part of `command_rtt` no gateway is in.
+    #[serde(default)]
+    pub command_to_broker: Summary,
     /// Mosquitto's CPU (utime + stime) over the measurement, ms.
     pub broker_cpu_ms: f64,
     /// PUBLISH packets Mosquitto received and sent per second over the measurement (its `$SYS`
@@ -231,10 +235,35 @@ pub struct IslandsResults {
     pub machine_busy: f64,
     /// `/proc/loadavg`'s 1-minute figure at the end.
     pub load_avg_1m: f64,
+    /// The idle islands (no load, health checks only) measured the same way just before.
+    #[serde(default)]
+    pub idle: Cost,
     /// Other events seen during the measurement, by name, with their counts (e.g. `node_lost`).
     pub other_events: Vec<(String, usize)>,
     /// Notes about the run (anomalies).
     pub notes: Vec<String>,
+}
+
+/// CPU used over a stretch of time by the processes of the islands-per-broker run.
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+pub struct Cost {
+    /// Length of the stretch, s.
+    pub secs: f64,
+    /// Mosquitto's CPU, ms.
+    pub broker_cpu_ms: f64,
+    /// The gateways' CPU summed, ms.
+    pub gateways_cpu_ms: f64,
+    /// The simulators' CPU summed, ms.
+    pub sims_cpu_ms: f64,
+    /// Share of all CPUs busy (`/proc/stat`), 0–1.
+    pub machine_busy: f64,
+}
+
+impl Cost {
+    /// A CPU time over the stretch as % of one CPU.
+    pub fn pct(&self, cpu_ms: f64) -> f64 {
+        cpu_ms / (self.secs.max(1e-9) * 1000.0) * 100.0
+    }
 }
 
 impl IslandsResults {
