@@ -66,7 +66,7 @@ pub struct BenchArgs {
     /// Run islands per broker alone (no baseline, callgrind, firmware, live, web or fw part).
     #[arg(long)]
     only_islands: bool,
-    /// Islands per broker: gateway + sim-node pairs, on vcan0.. (at most 16 in the VM).
+    /// Islands per broker: gateway + sim-node pairs, on vcan0.. (at most 16).
     #[arg(long, default_value_t = 16)]
     island_count: usize,
     /// Islands per broker: seconds of measurement.
@@ -457,6 +457,12 @@ pub fn run(args: BenchArgs, firmware_dir: &Path) -> Result<()> {
     }
     if args.no_islands {
         missing.push("islands per broker: --no-islands".into());
+    } else if args.island_count > vcan::COUNT {
+        missing.push(format!(
+            "islands per broker: --island-count {} (the VM has vcan0..{})",
+            args.island_count,
+            vcan::COUNT - 1
+        ));
     } else {
         runs.push(CanRun {
             name: "ihex-bench islands",

@@ -415,9 +415,9 @@ pub fn run(s: Settings) -> Result<IslandsResults> {
     }
     let deadline = Instant::now() + Duration::from_secs(120);
     while r.available.len() < s.islands {
-        if !r.pump(Duration::from_millis(500)) {
-            check_alive(&mut gateways, &dir, "gateway")?;
-        }
+        // `$SYS` comes every second: check the processes whether or not a message came.
+        r.pump(Duration::from_millis(500));
+        check_alive(&mut gateways, &dir, "gateway")?;
         if Instant::now() > deadline {
             bail!(
                 "only {} of {} gateways came online within 120 s",
@@ -447,10 +447,9 @@ pub fn run(s: Settings) -> Result<IslandsResults> {
     let deadline = started + Duration::from_secs(180);
     let want = usize::from(s.nodes);
     while r.online.iter().any(|o| o.len() < want) {
-        if !r.pump(Duration::from_millis(500)) {
-            check_alive(&mut gateways, &dir, "gateway")?;
-            check_alive(&mut sims, &dir, "sim")?;
-        }
+        r.pump(Duration::from_millis(500));
+        check_alive(&mut gateways, &dir, "gateway")?;
+        check_alive(&mut sims, &dir, "sim")?;
         if Instant::now() > deadline {
             let counts: Vec<String> = r.online.iter().map(|o| o.len().to_string()).collect();
             bail!(
@@ -551,8 +550,9 @@ pub fn run(s: Settings) -> Result<IslandsResults> {
     r.counting = true;
     let stop_at = t0 + Duration::from_secs_f64(s.secs);
     let mut ended: Option<Snapshot> = None;
+    let mut checked = t0;
     loop {
-        let got = r.pump(Duration::from_millis(50));
+        r.pump(Duration::from_millis(50));
         while let Ok(sent) = rx.try_recv() {
             r.sent(sent);
         }
@@ -570,7 +570,8 @@ pub fn run(s: Settings) -> Result<IslandsResults> {
                 }
             }
         }
-        if !got && ended.is_none() {
+        if ended.is_none() && now.duration_since(checked) >= Duration::from_secs(1) {
+            checked = now;
             check_alive(&mut gateways, &dir, "gateway")?;
             check_alive(&mut sims, &dir, "sim")?;
         }
