@@ -1,7 +1,8 @@
 //! `cargo xtask bench` (issue 8; not part of `cargo xtask test`): builds the gateway and the
 //! benchmark for the static musl target, counts instructions per bridged frame under callgrind,
 //! reads the release firmware's size, runs the live benchmark over real SocketCAN (native vcan, or
-//! the microVM of [`crate::vcan::test_vm`]) with a real Mosquitto, and has `ihex-bench report`
+//! the microVM of [`crate::vcan::test_vm`]) with a real Mosquitto, then islands per broker (16
+//! gateways with `sim-node` islands on one Mosquitto) in the same place, and has `ihex-bench report`
 //! write `target/bench/results.json`, the SVG plots and the table. A baseline commit's gateway
 //! (issue 15: "today's figures next to the new ones") is built from the cargo cache and measured in
 //! the same run by the same harness. See docs/benchmarks.md.
@@ -14,7 +15,7 @@ use std::process::Command;
 use std::sync::mpsc;
 use std::time::Duration;
 
-use anyhow::{anyhow, bail, Context, Result};
+use anyhow::{anyhow, bail, Result};
 use clap::Args;
 
 use crate::cmd;
@@ -31,7 +32,7 @@ pub struct BenchArgs {
     /// Virtual CPUs of the microVM (1 keeps latency figures meaningful under TCG).
     #[arg(long, env = "IHEX_BENCH_SMP", default_value_t = 1)]
     smp: u32,
-    /// Kill the VM after this many seconds (both gateways' runs together).
+    /// Kill the VM after this many seconds (both gateways' live runs and islands per broker together).
     #[arg(long, default_value_t = 2400)]
     vm_timeout: u64,
     /// Latency probes per series.
@@ -58,6 +59,22 @@ pub struct BenchArgs {
     /// Skip the firmware update of a simulated island (the demo gateway on the host).
     #[arg(long)]
     no_fw: bool,
+    /// Skip islands per broker (16 gateways with sim-node islands on one Mosquitto, after the
+    /// live part in the same VM boot).
+    #[arg(long, conflicts_with = "only_islands")]
+    no_islands: bool,
+    /// Run islands per broker alone (no baseline, callgrind, firmware, live, web or fw part).
+    #[arg(long)]
+    only_islands: bool,
+    /// Islands per broker: gateway + sim-node pairs, on vcan0.. (at most 16).
+    #[arg(long, default_value_t = 16)]
+    island_count: usize,
+    /// Islands per broker: seconds of measurement.
+    #[arg(long, default_value_t = 30.0)]
+    islands_secs: f64,
+    /// Islands per broker: report frames per second per island.
+    #[arg(long, default_value_t = 10.0)]
+    islands_rate: f64,
     /// Measure the gateway of this commit beside this one, in the same run with the same harness
     /// (its tree exported with `git archive` and built offline under target/bench/). The default
     /// is the state issue 15 measured.
@@ -133,14 +150,21 @@ fn musl_release(name: &str) -> PathBuf {
     cmd::target_dir().join(MUSL).join("release").join(name)
 }
 
-fn build() -> Result<(PathBuf, PathBuf)> {
+/// This tree's build: [`BUILD`] and the simulator the islands-per-broker part runs (not needed
+/// from the baseline).
+fn build() -> Result<(PathBuf, PathBuf, PathBuf)> {
     cmd::run(
         cmd::cargo()
             .current_dir(cmd::root())
             .arg("build")
-            .args(BUILD),
+            .args(BUILD)
+            .args(["-p", "sim-node"]),
     )?;
-    Ok((musl_release("mc-gateway"), musl_release("ihex-bench")))
+    Ok((
+        musl_release("mc-gateway"),
+        musl_release("ihex-bench"),
+        musl_release("sim-node"),
+    ))
 }
 
 fn firmware(dir: &Path, build: bool, out: &Path) -> Result<()> {
@@ -195,6 +219,30 @@ fn host_cpu() -> String {
     format!("{n}-core {model}, host load average {load} at the start")
 }
 
+/// One `ihex-bench` run of the SocketCAN part: what it is, its arguments (without `--mosquitto`,
+/// `--out` and `--report`, added where it runs) and the file its results go to.
+struct CanRun {
+    name: &'static str,
+    args: Vec<String>,
+    out: PathBuf,
+}
+
+fn islands_args(gateway: &Path, sim_node: &Path, args: &BenchArgs) -> Vec<String> {
+    vec![
+        "islands".into(),
+        "--gateway".into(),
+        gateway.to_string_lossy().into_owned(),
+        "--sim-node".into(),
+        sim_node.to_string_lossy().into_owned(),
+        "--islands".into(),
+        args.island_count.to_string(),
+        "--secs".into(),
+        args.islands_secs.to_string(),
+        "--rate".into(),
+        args.islands_rate.to_string(),
+    ]
+}
+
 fn live_args(gateway: &Path, args: &BenchArgs) -> Vec<String> {
     let mut v = vec![
         "live".into(),
@@ -225,16 +273,11 @@ fn receive(listener: TcpListener) -> mpsc::Receiver<std::io::Result<Vec<u8>>> {
     rx
 }
 
-/// Runs the live part for `gateway` and, when given, the baseline's gateway after it (the same
-/// harness, the same VM boot); writes `out` and `baseline_out`; returns the machine description.
-fn live(
-    gateway: &Path,
-    baseline: Option<&Path>,
-    bench: &Path,
-    args: &BenchArgs,
-    out: &Path,
-    baseline_out: &Path,
-) -> Result<String> {
+/// Runs the SocketCAN part's `runs` one after the other (natively, or all in one microVM boot,
+/// `files` copied in at their host paths) and writes each one's results to its `out`; returns the
+/// machine description. A run that fails does not stop the others: the error names every one
+/// that failed.
+fn live(runs: &[CanRun], files: &[PathBuf], bench: &Path, args: &BenchArgs) -> Result<String> {
     let mosquitto = cmd::find("mosquitto")
         .ok_or_else(|| anyhow!("mosquitto not installed (Debian: apt-get install mosquitto)"))?;
     let mode = Mode::from_env(args.vm)?;
@@ -242,17 +285,22 @@ fn live(
         Mode::Vm => None,
         _ => vcan::native_interfaces(true),
     };
+    let mut failed = Vec::new();
     if native.is_some() {
         let machine = format!("native vcan on the host ({})", host_cpu());
-        for (gw, out) in std::iter::once((gateway, out)).chain(baseline.map(|b| (b, baseline_out)))
-        {
+        for run in runs {
             let mut c = Command::new(bench);
-            c.args(live_args(gw, args))
+            c.args(&run.args)
                 .arg("--mosquitto")
                 .arg(&mosquitto)
                 .arg("--out")
-                .arg(out);
-            cmd::run(&mut c)?;
+                .arg(&run.out);
+            if let Err(e) = cmd::run(&mut c) {
+                failed.push(format!("{}: {e:#}", run.name));
+            }
+        }
+        if !failed.is_empty() {
+            bail!("{}", failed.join("; "));
         }
         return Ok(machine);
     }
@@ -268,13 +316,11 @@ fn live(
     // Each run sends its results back over the user-mode network (10.0.2.2 is our loopback).
     let mut programs = Vec::new();
     let mut results = Vec::new();
-    for (name, gw, out) in std::iter::once(("ihex-bench live", gateway, out))
-        .chain(baseline.map(|b| ("ihex-bench live (baseline)", b, baseline_out)))
-    {
+    for run in runs {
         let listener = TcpListener::bind((Ipv4Addr::LOCALHOST, 0))?;
         let port = listener.local_addr()?.port();
-        results.push((name, receive(listener), out));
-        let mut program_args = live_args(gw, args);
+        results.push((run.name, receive(listener), &run.out));
+        let mut program_args = run.args.clone();
         program_args.extend([
             "--mosquitto".into(),
             mosquitto.to_string_lossy().into_owned(),
@@ -282,7 +328,7 @@ fn live(
             format!("10.0.2.2:{port}"),
         ]);
         programs.push(Program {
-            name: name.into(),
+            name: run.name.into(),
             path: bench.to_path_buf(),
             args: program_args,
         });
@@ -291,24 +337,21 @@ fn live(
         programs,
         env: vec![("RUST_BACKTRACE".into(), "1".into())],
         cwd: None,
-        // The gateways go in at their host paths; the program itself is copied by the VM runner.
-        files: std::iter::once(gateway)
-            .chain(baseline)
-            .map(Path::to_path_buf)
-            .collect(),
+        // The gateways (and the simulator) go in at their host paths; the program itself is
+        // copied by the VM runner.
+        files: files.to_vec(),
     };
     let outcomes = vm.run(&payload)?;
-    let mut failed = Vec::new();
     for ((name, rx, out), o) in results.into_iter().zip(&outcomes) {
         if o.code != 0 {
             failed.push(format!("{name} failed in the VM (exit {})", o.code));
             continue;
         }
-        let bytes = rx
-            .recv_timeout(Duration::from_secs(10))
-            .map_err(|_| anyhow!("{name}: the VM finished without sending results"))?
-            .context("reading the results from the VM")?;
-        fs::write(out, bytes)?;
+        match rx.recv_timeout(Duration::from_secs(10)) {
+            Ok(Ok(bytes)) => fs::write(out, bytes)?,
+            Ok(Err(e)) => failed.push(format!("{name}: reading its results from the VM: {e}")),
+            Err(_) => failed.push(format!("{name}: the VM finished without sending results")),
+        }
     }
     if !failed.is_empty() {
         bail!("{}", failed.join("; "));
@@ -357,14 +400,16 @@ pub fn run(args: BenchArgs, firmware_dir: &Path) -> Result<()> {
         "baseline-commit.txt",
         "baseline-live.json",
         "baseline-callgrind.json",
+        "islands.json",
         "web.json",
         "fw.json",
     ] {
         let _ = fs::remove_file(dir.join(f));
     }
-    let (gateway, bench) = build()?;
+    let (gateway, bench, sim_node) = build()?;
     let mut missing = Vec::new();
-    let baseline = if args.no_baseline {
+    let only = args.only_islands;
+    let baseline = if args.no_baseline || only {
         None
     } else {
         println!("\n==> xtask bench: build the baseline {}", args.baseline);
@@ -380,15 +425,105 @@ pub fn run(args: BenchArgs, firmware_dir: &Path) -> Result<()> {
         }
     };
 
+    if only {
+        missing.push("instruction counts, firmware sizes, live: --only-islands".into());
+    } else {
+        measure_host(
+            &args,
+            &bench,
+            baseline.as_ref(),
+            firmware_dir,
+            &dir,
+            &mut missing,
+        )?;
+    }
+
+    let mut runs = Vec::new();
+    if args.no_live {
+        missing.push("live benchmark: --no-live".into());
+    } else if !only {
+        runs.push(CanRun {
+            name: "ihex-bench live",
+            args: live_args(&gateway, &args),
+            out: dir.join("live.json"),
+        });
+        if let Some(b) = &baseline {
+            runs.push(CanRun {
+                name: "ihex-bench live (baseline)",
+                args: live_args(&b.gateway, &args),
+                out: dir.join("baseline-live.json"),
+            });
+        }
+    }
+    if args.no_islands {
+        missing.push("islands per broker: --no-islands".into());
+    } else if args.island_count > vcan::COUNT {
+        missing.push(format!(
+            "islands per broker: --island-count {} (the VM has vcan0..{})",
+            args.island_count,
+            vcan::COUNT - 1
+        ));
+    } else {
+        runs.push(CanRun {
+            name: "ihex-bench islands",
+            args: islands_args(&gateway, &sim_node, &args),
+            out: dir.join("islands.json"),
+        });
+    }
+    let mut machine = "SocketCAN part not run".to_string();
+    if !runs.is_empty() {
+        println!(
+            "\n==> xtask bench: SocketCAN + Mosquitto + mc-gateway (live, islands per broker)"
+        );
+        let files: Vec<PathBuf> = std::iter::once(gateway.clone())
+            .chain(baseline.as_ref().map(|b| b.gateway.clone()))
+            .chain(std::iter::once(sim_node.clone()))
+            .collect();
+        match live(&runs, &files, &bench, &args) {
+            Ok(m) => machine = m,
+            Err(e) => missing.push(format!("SocketCAN part: {e:#}")),
+        }
+    }
+    if only {
+        missing.push("island view latency and firmware update: --only-islands".into());
+    } else {
+        on_host_demo(&args, &bench, &dir, &mut missing);
+    }
+    fs::write(dir.join("missing.json"), serde_json::to_vec(&missing)?)?;
+
+    println!("\n==> xtask bench: report");
+    cmd::run(
+        Command::new(&bench)
+            .args(["report", "--dir"])
+            .arg(&dir)
+            .args(["--machine", &machine]),
+    )?;
+    println!(
+        "xtask bench: wrote {} (+ latency.svg, rate.svg, table.txt)",
+        dir.join("results.json").display()
+    );
+    Ok(())
+}
+
+/// The parts measured on the host before the SocketCAN part: instructions per bridged frame
+/// (this build's and the baseline's) and the firmware's size.
+fn measure_host(
+    args: &BenchArgs,
+    bench: &Path,
+    baseline: Option<&BaselineBuild>,
+    firmware_dir: &Path,
+    dir: &Path,
+    missing: &mut Vec<String>,
+) -> Result<()> {
     println!("\n==> xtask bench: instructions per bridged frame (callgrind)");
     if cmd::exists("valgrind") {
-        let mut c = Command::new(&bench);
+        let mut c = Command::new(bench);
         c.args(["callgrind", "--n", &args.callgrind_n.to_string(), "--out"])
             .arg(dir.join("callgrind.json"));
         if let Err(e) = cmd::run(&mut c) {
             missing.push(format!("callgrind: {e:#}"));
         }
-        if let Some(b) = &baseline {
+        if let Some(b) = baseline {
             // Its own workload: the same definition of a bridged frame, on its own bridge API.
             let mut c = Command::new(&b.bench);
             c.args(["callgrind", "--n", &args.callgrind_n.to_string(), "--out"])
@@ -409,25 +544,11 @@ pub fn run(args: BenchArgs, firmware_dir: &Path) -> Result<()> {
     ) {
         missing.push(format!("firmware: {e:#}"));
     }
+    Ok(())
+}
 
-    let mut machine = "live part not run".to_string();
-    if args.no_live {
-        missing.push("live benchmark: --no-live".into());
-    } else {
-        println!("\n==> xtask bench: live (SocketCAN + Mosquitto + mc-gateway)");
-        let baseline_gateway = baseline.as_ref().map(|b| b.gateway.as_path());
-        match live(
-            &gateway,
-            baseline_gateway,
-            &bench,
-            &args,
-            &dir.join("live.json"),
-            &dir.join("baseline-live.json"),
-        ) {
-            Ok(m) => machine = m,
-            Err(e) => missing.push(format!("live benchmark: {e:#}")),
-        }
-    }
+/// The parts that run the demo gateway on the host: the island view and the firmware update.
+fn on_host_demo(args: &BenchArgs, bench: &Path, dir: &Path, missing: &mut Vec<String>) {
     let parts = [
         (
             args.no_web,
@@ -447,7 +568,7 @@ pub fn run(args: BenchArgs, firmware_dir: &Path) -> Result<()> {
                         continue;
                     }
                     println!("\n==> xtask bench: {what} (the demo gateway on this machine)");
-                    if let Err(e) = on_demo(&bench, verb, &gateway, &dir.join(file)) {
+                    if let Err(e) = on_demo(bench, verb, &gateway, &dir.join(file)) {
                         missing.push(format!("{what}: {e:#}"));
                     }
                 }
@@ -457,18 +578,4 @@ pub fn run(args: BenchArgs, firmware_dir: &Path) -> Result<()> {
     } else {
         missing.push("island view latency and firmware update: --no-web --no-fw".into());
     }
-    fs::write(dir.join("missing.json"), serde_json::to_vec(&missing)?)?;
-
-    println!("\n==> xtask bench: report");
-    cmd::run(
-        Command::new(&bench)
-            .args(["report", "--dir"])
-            .arg(&dir)
-            .args(["--machine", &machine]),
-    )?;
-    println!(
-        "xtask bench: wrote {} (+ latency.svg, rate.svg, table.txt)",
-        dir.join("results.json").display()
-    );
-    Ok(())
 }

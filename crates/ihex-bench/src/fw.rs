@@ -27,7 +27,7 @@ use crate::live::{free_port, Mqtt, Proc};
 use crate::web::DEMO_QUIET;
 
 /// The island's static elements are 101, 102, …; the mobile element 2 docks during the update.
-fn island(n: u16) -> String {
+pub(crate) fn island(n: u16) -> String {
     let statics: String = (0..n)
         .map(|i| format!("[[static]]\nid = \"{:x}\"\nports = 6\n\n", 0x101 + i))
         .collect();

@@ -7,7 +7,8 @@
 //!   file, the table and the SVG plots.
 //!
 //! The I/O-heavy parts live in the `ihex-bench` binary (`src/main.rs` and its modules `live`: the
-//! real gateway process over SocketCAN and Mosquitto; `callgrind`: the workload under valgrind),
+//! real gateway process over SocketCAN and Mosquitto; `islands`: 16 gateways with simulated
+//! islands on one Mosquitto; `callgrind`: the workload under valgrind),
 //! which use `anyhow` like the other tools; this library has no I/O and no error type.
 #![warn(missing_docs)]
 

@@ -69,7 +69,7 @@ pub struct Settings {
 // ---------------------------------------------------------------------------------------------
 // CAN side
 
-fn open_can(iface: &str, notes: &mut Vec<String>) -> Result<CanSocket> {
+pub(crate) fn open_can(iface: &str, notes: &mut Vec<String>) -> Result<CanSocket> {
     let s =
         CanSocket::open(iface).with_context(|| format!("opening SocketCAN interface {iface}"))?;
     let size: i32 = 8 << 20;
@@ -90,12 +90,12 @@ fn kind_filter(kind_of: &Packet) -> CanFilter {
     CanFilter::new(EFF | (id & KIND_MASK), EFF | KIND_MASK)
 }
 
-fn frame(p: &Packet) -> Result<CanFrame> {
+pub(crate) fn frame(p: &Packet) -> Result<CanFrame> {
     p.to_frame::<CanFrame>()
         .ok_or_else(|| anyhow!("packet {p:?} does not fit a frame"))
 }
 
-fn write(s: &CanSocket, f: &CanFrame) -> Result<()> {
+pub(crate) fn write(s: &CanSocket, f: &CanFrame) -> Result<()> {
     loop {
         match s.write_frame(f) {
             Ok(()) => return Ok(()),
@@ -263,7 +263,7 @@ impl Responder {
 }
 
 /// Sends `count` frames made by `make` at `rate` frames/s; returns (sent, seconds taken).
-fn paced(
+pub(crate) fn paced(
     count: usize,
     rate: f64,
     stop: Option<&AtomicBool>,
@@ -365,8 +365,14 @@ pub(crate) struct Mqtt {
 
 impl Mqtt {
     pub(crate) fn connect(addr: SocketAddr, topics: &[&str]) -> Result<Mqtt> {
+        Mqtt::connect_as("ihex-bench", addr, topics)
+    }
+
+    /// [`Mqtt::connect`] with the client id `NAME-PID` (a second client of this process needs
+    /// another name: the broker would close the first connection of an id taken again).
+    pub(crate) fn connect_as(name: &str, addr: SocketAddr, topics: &[&str]) -> Result<Mqtt> {
         let mut o = MqttOptions::new(
-            format!("ihex-bench-{}", std::process::id()),
+            format!("{name}-{}", std::process::id()),
             addr.ip().to_string(),
             addr.port(),
         );
@@ -408,6 +414,16 @@ impl Mqtt {
 
     fn drain(&self) {
         while self.rx.try_recv().is_ok() {}
+    }
+
+    /// The next message on any subscribed topic within `timeout`: (arrival, topic, payload).
+    pub(crate) fn recv(&self, timeout: Duration) -> Option<(Instant, String, Vec<u8>)> {
+        self.rx.recv_timeout(timeout).ok()
+    }
+
+    /// Times the receive queue was full and a message was dropped.
+    pub(crate) fn overflows(&self) -> u64 {
+        self.overflow.load(Ordering::Relaxed)
     }
 
     /// The next event on `EventsTopic`, read as the gateway core's typed event (others are skipped).
@@ -498,7 +514,14 @@ pub(crate) fn free_port() -> Result<u16> {
         .port())
 }
 
-fn start_mosquitto(bin: &Path, dir: &Path, nagle: bool) -> Result<(Proc, SocketAddr)> {
+/// Starts Mosquitto on a free loopback port with its configuration in `dir` (unlimited queues,
+/// `set_tcp_nodelay` unless `nagle`), `extra` appended to that configuration.
+pub(crate) fn start_mosquitto(
+    bin: &Path,
+    dir: &Path,
+    nagle: bool,
+    extra: &str,
+) -> Result<(Proc, SocketAddr)> {
     let port = free_port()?;
     let addr = SocketAddr::from((Ipv4Addr::LOCALHOST, port));
     let conf = dir.join("mosquitto.conf");
@@ -509,7 +532,7 @@ fn start_mosquitto(bin: &Path, dir: &Path, nagle: bool) -> Result<(Proc, SocketA
         format!(
             "listener {port} 127.0.0.1\nallow_anonymous true\npersistence false\nuser root\n\
              max_queued_messages 0\nmax_inflight_messages 0\nset_tcp_nodelay {}\n\
-             log_dest stderr\nlog_type error\n",
+             log_dest stderr\nlog_type error\n{extra}",
             !nagle
         ),
     )?;
@@ -568,7 +591,7 @@ fn cpu_times(pid: u32) -> Result<(f64, f64)> {
 }
 
 /// utime + stime of `pid`, ms.
-fn cpu_ms(pid: u32) -> Result<f64> {
+pub(crate) fn cpu_ms(pid: u32) -> Result<f64> {
     let (user, system) = cpu_times(pid)?;
     Ok(user + system)
 }
@@ -607,7 +630,7 @@ impl CpuSnapshot {
 }
 
 /// `VmHWM` and `VmRSS` of `pid`, KiB.
-fn memory_kib(pid: u32) -> Result<(u64, u64)> {
+pub(crate) fn memory_kib(pid: u32) -> Result<(u64, u64)> {
     let status = std::fs::read_to_string(format!("/proc/{pid}/status"))?;
     let field = |name: &str| -> u64 {
         status
@@ -1002,7 +1025,8 @@ impl Bench {
     }
 }
 
-fn environment() -> (String, usize) {
+/// Kernel, CPU count and model of this machine, and its CPU count.
+pub(crate) fn environment() -> (String, usize) {
     let kernel = std::fs::read_to_string("/proc/sys/kernel/osrelease").unwrap_or_default();
     let cpuinfo = std::fs::read_to_string("/proc/cpuinfo").unwrap_or_default();
     let model = cpuinfo
@@ -1035,7 +1059,7 @@ pub fn run(s: Settings) -> Result<LiveResults> {
         bare.rate_fps, bare.received, bare.sent, bare.rtt.p50_us
     );
 
-    let (broker, addr) = start_mosquitto(&s.mosquitto, &dir, s.mosquitto_nagle)?;
+    let (broker, addr) = start_mosquitto(&s.mosquitto, &dir, s.mosquitto_nagle, "")?;
     let mqtt = Mqtt::connect(
         addr,
         &[
@@ -1182,7 +1206,7 @@ pub fn run(s: Settings) -> Result<LiveResults> {
 }
 
 /// Sends the results as one JSON line to `addr` (the host's `cargo xtask bench` listening).
-pub fn send(results: &LiveResults, addr: &str) -> Result<()> {
+pub fn send(results: &impl serde::Serialize, addr: &str) -> Result<()> {
     let mut s = TcpStream::connect(addr).with_context(|| format!("connecting to {addr}"))?;
     let mut line = serde_json::to_vec(results)?;
     line.push(b'\n');

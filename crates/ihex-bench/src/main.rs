@@ -1,5 +1,5 @@
 //! `ihex-bench`: the benchmark programs `cargo xtask bench` runs (live over SocketCAN + Mosquitto,
-//! the callgrind workload) and the report it prints. See docs/benchmarks.md.
+//! islands per broker, the callgrind workload) and the report it prints. See docs/benchmarks.md.
 
 use std::path::PathBuf;
 
@@ -9,6 +9,7 @@ use ihex_bench::{report, workload};
 
 mod callgrind;
 mod fw;
+mod islands;
 mod live;
 mod web;
 
@@ -55,6 +56,41 @@ enum Cmd {
         /// Keep Mosquitto's default Nagle algorithm (set_tcp_nodelay false) on its sockets.
         #[arg(long)]
         mosquitto_nagle: bool,
+        /// Send the results as a JSON line to this TCP address (the host's xtask).
+        #[arg(long)]
+        report: Option<String>,
+        /// Write the results to this file.
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
+    /// Islands per broker: N gateways, each on its own SocketCAN interface (vcan0..) with a
+    /// sim-node island, all on one Mosquitto; report frames and LED commands on every island,
+    /// timed to their events at one MQTT client; CPU of the broker, gateways and simulators.
+    Islands {
+        /// The mc-gateway binary.
+        #[arg(long)]
+        gateway: PathBuf,
+        /// The sim-node binary.
+        #[arg(long)]
+        sim_node: PathBuf,
+        /// The mosquitto binary.
+        #[arg(long, default_value = "/usr/sbin/mosquitto")]
+        mosquitto: PathBuf,
+        /// Islands (gateway + sim-node pairs) on vcan0..vcan{N-1}.
+        #[arg(long, default_value_t = 16)]
+        islands: usize,
+        /// Static elements per island.
+        #[arg(long, default_value_t = 20)]
+        nodes: u16,
+        /// Report frames per second per island (each one event).
+        #[arg(long, default_value_t = 10.0)]
+        rate: f64,
+        /// LED commands per second per island (each one command_result).
+        #[arg(long, default_value_t = 1.0)]
+        command_rate: f64,
+        /// Length of the measurement, s.
+        #[arg(long, default_value_t = 30.0)]
+        secs: f64,
         /// Send the results as a JSON line to this TCP address (the host's xtask).
         #[arg(long)]
         report: Option<String>,
@@ -114,7 +150,7 @@ enum Cmd {
         #[arg(long)]
         out: PathBuf,
     },
-    /// Combine live.json, callgrind.json, firmware.json, web.json and fw.json of DIR (and the baseline's
+    /// Combine live.json, callgrind.json, firmware.json, islands.json, web.json and fw.json of DIR (and the baseline's
     /// baseline-commit.txt, baseline-live.json, baseline-callgrind.json when present) into
     /// results.json, the plots and the table.
     Report {
@@ -160,6 +196,43 @@ fn main() -> Result<()> {
                 report::table(&report::Results {
                     machine: "this machine".into(),
                     live: Some(r),
+                    ..Default::default()
+                })
+            );
+        }
+        Cmd::Islands {
+            gateway,
+            sim_node,
+            mosquitto,
+            islands,
+            nodes,
+            rate,
+            command_rate,
+            secs,
+            report,
+            out,
+        } => {
+            let r = islands::run(islands::Settings {
+                gateway,
+                sim_node,
+                mosquitto,
+                islands,
+                nodes,
+                report_rate: rate,
+                command_rate,
+                secs,
+            })?;
+            if let Some(out) = out {
+                std::fs::write(&out, serde_json::to_vec_pretty(&r)?)?;
+            }
+            if let Some(addr) = report {
+                live::send(&r, &addr)?;
+            }
+            println!(
+                "{}",
+                report::table(&report::Results {
+                    machine: "this machine".into(),
+                    islands: Some(r),
                     ..Default::default()
                 })
             );
@@ -260,6 +333,12 @@ fn main() -> Result<()> {
             match read("fw.json") {
                 Some(b) => r.fw = Some(serde_json::from_slice(&b).context("fw.json")?),
                 None => r.missing.push("firmware update (no fw.json)".into()),
+            }
+            match read("islands.json") {
+                Some(b) => r.islands = Some(serde_json::from_slice(&b).context("islands.json")?),
+                None => r
+                    .missing
+                    .push("islands per broker (no islands.json)".into()),
             }
             match read("web.json") {
                 Some(b) => r.web = Some(serde_json::from_slice(&b).context("web.json")?),

@@ -5,7 +5,7 @@ use std::fmt::Write as _;
 
 use serde::{Deserialize, Serialize};
 
-use crate::results::{CpuShare, FwResults, LiveResults, Trial, WebResults};
+use crate::results::{CpuShare, FwResults, IslandsResults, LiveResults, Trial, WebResults};
 use crate::stats::Summary;
 
 /// Instructions per bridged frame on one path.
@@ -60,6 +60,9 @@ pub struct Results {
     pub callgrind: Option<Callgrind>,
     /// Firmware images, if a release build was found.
     pub firmware: Option<Vec<Firmware>>,
+    /// Islands per broker (16 gateways with simulated islands on one Mosquitto), if it ran.
+    #[serde(default)]
+    pub islands: Option<IslandsResults>,
     /// The island view's latency, if it was measured.
     #[serde(default)]
     pub web: Option<WebResults>,
@@ -513,6 +516,9 @@ pub fn table(r: &Results) -> String {
     }
     comparison(&mut o, r);
     throughput_goals(&mut o, r);
+    if let Some(i) = &r.islands {
+        islands_table(&mut o, i);
+    }
     if let Some(w) = &r.web {
         web_table(&mut o, w);
     }
@@ -523,6 +529,116 @@ pub fn table(r: &Results) -> String {
         let _ = writeln!(o, "missing: {m}");
     }
     o
+}
+
+/// The islands-per-broker section of the table.
+fn islands_table(o: &mut String, i: &IslandsResults) {
+    let ms = |v: f64| v / 1000.0;
+    let mib = |kib: u64| kib as f64 / 1024.0;
+    let _ = writeln!(
+        o,
+        "\nislands per broker: {} gateways x {} simulated elements (sim-node), one Mosquitto, {} CPU(s)",
+        i.islands, i.nodes_per_island, i.cpus
+    );
+    let _ = writeln!(
+        o,
+        "  all {} elements online {:.1} s after the simulators started; measured {:.1} s at {} report frames/s and {} LED commands/s per island",
+        usize::from(i.nodes_per_island) * i.islands,
+        i.online_s,
+        i.secs,
+        i.report_rate,
+        i.command_rate
+    );
+    let _ = writeln!(
+        o,
+        "  latency, ms                              p50      p99      max"
+    );
+    let _ = writeln!(
+        o,
+        "  report frame -> event            {:>8.2} {:>8.2} {:>8.2}   {}/{} events, {} lost",
+        ms(i.event_latency.p50_us),
+        ms(i.event_latency.p99_us),
+        ms(i.event_latency.max_us),
+        i.events_received,
+        i.reports_sent,
+        i.events_lost()
+    );
+    let _ = writeln!(
+        o,
+        "  LED command -> command_result    {:>8.2} {:>8.2} {:>8.2}   {} sent: {} ok, {} not ok, {} unanswered",
+        ms(i.command_rtt.p50_us),
+        ms(i.command_rtt.p99_us),
+        ms(i.command_rtt.max_us),
+        i.commands_sent,
+        i.commands_ok,
+        i.commands_not_ok,
+        i.commands_sent
+            .saturating_sub(i.commands_ok + i.commands_not_ok)
+    );
+    let _ = writeln!(
+        o,
+        "  LED command -> back at the client {:>8.2} {:>8.2} {:>8.2}   (the broker hop alone: the bench subscribes to +/CommandsTopic too)",
+        ms(i.command_to_broker.p50_us),
+        ms(i.command_to_broker.p99_us),
+        ms(i.command_to_broker.max_us)
+    );
+    let per_1k = match (i.broker_ms_per_1k(), i.broker_msgs_per_s) {
+        (Some(c), Some(m)) => format!("{c:.1} ms per 1,000 PUBLISH in + out ({m:.0}/s)"),
+        _ => "no $SYS message counts".into(),
+    };
+    let _ = writeln!(
+        o,
+        "  broker CPU                       {:>6.1} % of one CPU, {per_1k}",
+        i.pct(i.broker_cpu_ms)
+    );
+    let _ = writeln!(
+        o,
+        "  gateways' CPU, summed            {:>6.1} % (busiest {:.1} %); RSS {:.1} MiB max, {:.1} MiB summed, peak {:.1} MiB",
+        i.pct(i.gateways_cpu_ms),
+        i.pct(i.gateway_cpu_max_ms),
+        mib(i.gateway_rss_max_kib),
+        mib(i.gateway_rss_sum_kib),
+        mib(i.gateway_hwm_max_kib)
+    );
+    let _ = writeln!(
+        o,
+        "  simulators' CPU, summed          {:>6.1} %; RSS {:.1} MiB summed",
+        i.pct(i.sims_cpu_ms),
+        mib(i.sims_rss_sum_kib)
+    );
+    let idle = &i.idle;
+    let _ = writeln!(
+        o,
+        "  idle islands before ({:.0} s)       broker {:.1} %, gateways {:.1} %, simulators {:.1} % of one CPU; {:.0} % of the machine busy",
+        idle.secs,
+        idle.pct(idle.broker_cpu_ms),
+        idle.pct(idle.gateways_cpu_ms),
+        idle.pct(idle.sims_cpu_ms),
+        idle.machine_busy * 100.0
+    );
+    let _ = writeln!(
+        o,
+        "  benchmark's own CPU              {:>6.1} %",
+        i.pct(i.bench_cpu_ms)
+    );
+    let _ = writeln!(
+        o,
+        "  machine: {:.0} % of its {} CPU(s) busy over the measurement, load average {:.2} at the end",
+        i.machine_busy * 100.0,
+        i.cpus,
+        i.load_avg_1m
+    );
+    if !i.other_events.is_empty() {
+        let other: Vec<String> = i
+            .other_events
+            .iter()
+            .map(|(k, n)| format!("{n} {k}"))
+            .collect();
+        let _ = writeln!(o, "  other events meanwhile: {}", other.join(", "));
+    }
+    for n in &i.notes {
+        let _ = writeln!(o, "  note: {n}");
+    }
 }
 
 /// The firmware update's section of the table.
@@ -935,6 +1051,46 @@ mod tests {
         );
         assert!(
             t.contains("peak RSS <= 4 MiB (no embedded broker, no web view)  FAIL"),
+            "{t}"
+        );
+    }
+
+    #[test]
+    fn islands_table_prints_latency_and_broker_cost() {
+        let i = IslandsResults {
+            islands: 16,
+            nodes_per_island: 20,
+            secs: 10.0,
+            reports_sent: 1600,
+            events_received: 1590,
+            event_latency: Summary::of(vec![1000.0, 2000.0, 40_000.0]),
+            commands_sent: 160,
+            commands_ok: 150,
+            commands_not_ok: 4,
+            broker_cpu_ms: 500.0,
+            broker_msgs_per_s: Some(1000.0),
+            gateways_cpu_ms: 3000.0,
+            ..Default::default()
+        };
+        let t = table(&Results {
+            machine: "test".into(),
+            islands: Some(i),
+            ..Default::default()
+        });
+        assert!(t.contains("16 gateways x 20 simulated elements"), "{t}");
+        assert!(t.contains("all 320 elements online"), "{t}");
+        assert!(t.contains("1590/1600 events, 10 lost"), "{t}");
+        assert!(
+            t.contains("160 sent: 150 ok, 4 not ok, 6 unanswered"),
+            "{t}"
+        );
+        // 500 ms over 10 s; 10,000 messages.
+        assert!(
+            t.contains("5.0 % of one CPU, 50.0 ms per 1,000 PUBLISH"),
+            "{t}"
+        );
+        assert!(
+            t.contains("gateways' CPU, summed              30.0 %"),
             "{t}"
         );
     }

@@ -206,3 +206,115 @@ pub struct FwResults {
     /// A docking during the update: the simulator's dock → `new_connection`, ms.
     pub docking_during_ms: Option<f64>,
 }
+
+/// Islands per broker (`ihex-bench islands`, issue 15): N gateways, each on its own SocketCAN
+/// interface with a `sim-node` island, all on one Mosquitto, under a steady report and command load.
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+pub struct IslandsResults {
+    /// Kernel, CPU count and model as seen where the run happened.
+    pub environment: String,
+    /// CPUs online where the run happened.
+    pub cpus: usize,
+    /// Islands (gateway + sim-node pairs), `vcan0..`.
+    pub islands: usize,
+    /// Simulated elements per island.
+    pub nodes_per_island: u16,
+    /// Seconds from starting the simulators until every gateway had reported all its nodes online.
+    pub online_s: f64,
+    /// Length of the measurement, s.
+    pub secs: f64,
+    /// Report frames per second per island asked for.
+    pub report_rate: f64,
+    /// LED commands per second per island asked for.
+    pub command_rate: f64,
+    /// Report frames written (each should become one `node_rebooted` event).
+    pub reports_sent: usize,
+    /// Their events received.
+    pub events_received: usize,
+    /// Report frame written → its event at the bench's MQTT client (subscribed to `+/EventsTopic`).
+    pub event_latency: Summary,
+    /// LED commands published.
+    pub commands_sent: usize,
+    /// Their `command_result` events with result `ok`.
+    pub commands_ok: usize,
+    /// Their `command_result` events with another result, or `command_rejected`.
+    pub commands_not_ok: usize,
+    /// Command published → its `command_result` (any result) at the bench's client.
+    pub command_rtt: Summary,
+    /// Command published → the same command delivered back to the bench's client (subscribed to
+    /// `+/CommandsTopic` too): the broker hop alone, the part of `command_rtt` no gateway is in.
+    #[serde(default)]
+    pub command_to_broker: Summary,
+    /// Mosquitto's CPU (utime + stime) over the measurement, ms.
+    pub broker_cpu_ms: f64,
+    /// PUBLISH packets Mosquitto received and sent per second over the measurement (its `$SYS`
+    /// counters; `None` when they did not come).
+    pub broker_msgs_per_s: Option<f64>,
+    /// The gateways' CPU over the measurement, summed, ms.
+    pub gateways_cpu_ms: f64,
+    /// The busiest gateway's CPU over the measurement, ms.
+    pub gateway_cpu_max_ms: f64,
+    /// The simulators' CPU over the measurement, summed, ms.
+    pub sims_cpu_ms: f64,
+    /// The benchmark process's own CPU over the measurement, ms.
+    pub bench_cpu_ms: f64,
+    /// The gateways' resident memory at the end (VmRSS), KiB: largest and sum.
+    pub gateway_rss_max_kib: u64,
+    /// Sum of the gateways' VmRSS, KiB.
+    pub gateway_rss_sum_kib: u64,
+    /// The largest gateway peak (VmHWM), KiB.
+    pub gateway_hwm_max_kib: u64,
+    /// The simulators' VmRSS summed, KiB.
+    pub sims_rss_sum_kib: u64,
+    /// Share of all CPUs busy over the measurement (`/proc/stat`), 0–1.
+    pub machine_busy: f64,
+    /// `/proc/loadavg`'s 1-minute figure at the end.
+    pub load_avg_1m: f64,
+    /// The idle islands (no load, health checks only) measured the same way just before.
+    #[serde(default)]
+    pub idle: Cost,
+    /// Other events seen during the measurement, by name, with their counts (e.g. `node_lost`).
+    pub other_events: Vec<(String, usize)>,
+    /// Notes about the run (anomalies).
+    pub notes: Vec<String>,
+}
+
+/// CPU used over a stretch of time by the processes of the islands-per-broker run.
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+pub struct Cost {
+    /// Length of the stretch, s.
+    pub secs: f64,
+    /// Mosquitto's CPU, ms.
+    pub broker_cpu_ms: f64,
+    /// The gateways' CPU summed, ms.
+    pub gateways_cpu_ms: f64,
+    /// The simulators' CPU summed, ms.
+    pub sims_cpu_ms: f64,
+    /// Share of all CPUs busy (`/proc/stat`), 0–1.
+    pub machine_busy: f64,
+}
+
+impl Cost {
+    /// A CPU time over the stretch as % of one CPU.
+    pub fn pct(&self, cpu_ms: f64) -> f64 {
+        cpu_ms / (self.secs.max(1e-9) * 1000.0) * 100.0
+    }
+}
+
+impl IslandsResults {
+    /// A CPU time over the measurement as % of one CPU.
+    pub fn pct(&self, cpu_ms: f64) -> f64 {
+        cpu_ms / (self.secs.max(1e-9) * 1000.0) * 100.0
+    }
+
+    /// Mosquitto's CPU per 1,000 PUBLISH packets it handled (received + sent), ms.
+    pub fn broker_ms_per_1k(&self) -> Option<f64> {
+        let msgs = self.broker_msgs_per_s? * self.secs;
+        (msgs > 0.0).then(|| self.broker_cpu_ms * 1000.0 / msgs)
+    }
+
+    /// Reports whose event never came.
+    pub fn events_lost(&self) -> usize {
+        self.reports_sent.saturating_sub(self.events_received)
+    }
+}
