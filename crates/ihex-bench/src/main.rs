@@ -163,6 +163,28 @@ enum Cmd {
     },
 }
 
+/// Writes a run's results to `out`, sends them to `report` (the host's xtask) when asked, and
+/// prints their table (`table` places them in the report).
+fn finish<T: serde::Serialize>(
+    results: T,
+    out: Option<PathBuf>,
+    report: Option<String>,
+    table: impl FnOnce(T) -> report::Results,
+) -> Result<()> {
+    if let Some(out) = out {
+        std::fs::write(&out, serde_json::to_vec_pretty(&results)?)?;
+    }
+    if let Some(addr) = report {
+        live::send(&results, &addr)?;
+    }
+    let r = report::Results {
+        machine: "this machine".into(),
+        ..table(results)
+    };
+    println!("{}", report::table(&r));
+    Ok(())
+}
+
 fn main() -> Result<()> {
     match Cli::parse().command {
         Cmd::Live {
@@ -185,20 +207,10 @@ fn main() -> Result<()> {
                 commands,
                 mosquitto_nagle,
             })?;
-            if let Some(out) = out {
-                std::fs::write(&out, serde_json::to_vec_pretty(&r)?)?;
-            }
-            if let Some(addr) = report {
-                live::send(&r, &addr)?;
-            }
-            println!(
-                "{}",
-                report::table(&report::Results {
-                    machine: "this machine".into(),
-                    live: Some(r),
-                    ..Default::default()
-                })
-            );
+            finish(r, out, report, |r| report::Results {
+                live: Some(r),
+                ..Default::default()
+            })?;
         }
         Cmd::Islands {
             gateway,
@@ -222,20 +234,10 @@ fn main() -> Result<()> {
                 command_rate,
                 secs,
             })?;
-            if let Some(out) = out {
-                std::fs::write(&out, serde_json::to_vec_pretty(&r)?)?;
-            }
-            if let Some(addr) = report {
-                live::send(&r, &addr)?;
-            }
-            println!(
-                "{}",
-                report::table(&report::Results {
-                    machine: "this machine".into(),
-                    islands: Some(r),
-                    ..Default::default()
-                })
-            );
+            finish(r, out, report, |r| report::Results {
+                islands: Some(r),
+                ..Default::default()
+            })?;
         }
         Cmd::Web {
             gateway,
@@ -250,17 +252,10 @@ fn main() -> Result<()> {
                 probes,
                 std::time::Duration::from_millis(gap_ms),
             )?;
-            if let Some(out) = out {
-                std::fs::write(&out, serde_json::to_vec_pretty(&w)?)?;
-            }
-            println!(
-                "{}",
-                report::table(&report::Results {
-                    machine: "this machine".into(),
-                    web: Some(w),
-                    ..Default::default()
-                })
-            );
+            finish(w, out, None, |w| report::Results {
+                web: Some(w),
+                ..Default::default()
+            })?;
         }
         Cmd::Fw {
             gateway,
@@ -268,17 +263,10 @@ fn main() -> Result<()> {
             out,
         } => {
             let f = fw::run(&gateway, nodes)?;
-            if let Some(out) = out {
-                std::fs::write(&out, serde_json::to_vec_pretty(&f)?)?;
-            }
-            println!(
-                "{}",
-                report::table(&report::Results {
-                    machine: "this machine".into(),
-                    fw: Some(f),
-                    ..Default::default()
-                })
-            );
+            finish(f, out, None, |f| report::Results {
+                fw: Some(f),
+                ..Default::default()
+            })?;
         }
         Cmd::Workload { path, n } => {
             let p = match path {
