@@ -131,14 +131,41 @@ pub fn gateway(cfg: &HaConfig) -> Value {
     })
 }
 
+/// What an element's discovery config is built from besides the gateway's configuration. Kept
+/// per element instead of the config itself (a JSON tree of some kilobytes): the config goes out
+/// again only when this changes, and is rebuilt from it when everything is published again.
+#[derive(Clone, PartialEq, Eq, Debug)]
+pub struct Element {
+    /// The element.
+    pub id: NodeId,
+    /// Static or mobile, when known.
+    pub role: Option<Role>,
+    /// Its protocol version as the state document shows it.
+    pub version: Option<String>,
+    /// Its UID, when read.
+    pub uid: Option<Uid>,
+}
+
+impl Element {
+    /// The parts of `state` (and the UID) the config shows.
+    pub fn of(state: &NodeState, uid: Option<Uid>) -> Element {
+        Element {
+            id: state.id.0,
+            role: state.role,
+            version: state.version.clone(),
+            uid,
+        }
+    }
+}
+
 /// An element's device: LED strip, buzzer, identify, online, docking, firmware, and the relay when
 /// the element is known to be static. Available while the gateway is online **and** the element
 /// answers health checks; the online and firmware entities only need the gateway (so "offline" and
 /// the last known version stay visible).
-pub fn element(cfg: &HaConfig, state: &NodeState, uid: Option<Uid>) -> Value {
+pub fn element(cfg: &HaConfig, state: &Element) -> Value {
     let t = &cfg.topics;
     let ha = &t.ha;
-    let id = state.id.0;
+    let id = state.id;
     let dev_id = ha.device(id);
     let state_topic = t.node_state(id);
     let model = match state.role {
@@ -155,7 +182,7 @@ pub fn element(cfg: &HaConfig, state: &NodeState, uid: Option<Uid>) -> Value {
     if let Some(version) = &state.version {
         dev.insert("sw_version".into(), version.clone().into());
     }
-    if let Some(uid) = uid {
+    if let Some(uid) = state.uid {
         dev.insert("serial_number".into(), uid.to_string().into());
     }
     dev.insert("via_device".into(), ha.gateway_device().into());

@@ -84,7 +84,8 @@ impl HaPublication {
 #[derive(Debug)]
 pub struct Ha {
     config: HaConfig,
-    configs: BTreeMap<NodeId, Value>,
+    /// What each element's published config was built from.
+    configs: BTreeMap<NodeId, discovery::Element>,
     lights: BTreeMap<NodeId, LightState>,
 }
 
@@ -121,13 +122,13 @@ impl Ha {
     ) -> Vec<HaPublication> {
         let id = doc.id.0;
         let mut out = Vec::new();
-        let config = discovery::element(&self.config, doc, entry.uid);
-        if force || self.configs.get(&id) != Some(&config) {
-            self.configs.insert(id, config.clone());
+        let element = discovery::Element::of(doc, entry.uid);
+        if force || self.configs.get(&id) != Some(&element) {
             out.push(HaPublication::Config {
                 topic: HaTopic::DeviceConfig(id),
-                config,
+                config: discovery::element(&self.config, &element),
             });
+            self.configs.insert(id, element);
         }
         let light = LightState::from_led(entry.led);
         if force || self.lights.get(&id) != Some(&light) {
@@ -146,9 +147,9 @@ impl Ha {
         out.extend(
             self.configs
                 .iter()
-                .map(|(&id, config)| HaPublication::Config {
+                .map(|(&id, element)| HaPublication::Config {
                     topic: HaTopic::DeviceConfig(id),
-                    config: config.clone(),
+                    config: discovery::element(&self.config, element),
                 }),
         );
         out
