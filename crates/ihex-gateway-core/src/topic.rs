@@ -71,7 +71,12 @@ impl Topics {
 
     /// The seed's names without an island prefix.
     pub fn seed() -> Topics {
-        Topics::new(None, COMMANDS, EVENTS, AVAILABILITY, NODE_STATE_ROOT)
+        Topics::seed_on(None)
+    }
+
+    /// The seed's names under `island`'s prefix.
+    pub fn seed_on(island: Option<&str>) -> Topics {
+        Topics::new(island, COMMANDS, EVENTS, AVAILABILITY, NODE_STATE_ROOT)
     }
 
     /// The retained state topic of one node (`<root>/<id>/state`, id in lower-case hex like events).
@@ -188,13 +193,7 @@ mod tests {
 
     #[test]
     fn node_state_topics_parse_back() {
-        let t = Topics::new(
-            Some("lab-a"),
-            COMMANDS,
-            EVENTS,
-            AVAILABILITY,
-            NODE_STATE_ROOT,
-        );
+        let t = Topics::seed_on(Some("lab-a"));
         let id = NodeId::new(0x111).unwrap();
         assert_eq!(t.node_state_filter(), "lab-a/ihex/node/+/state");
         assert_eq!(t.parse_node_state(&t.node_state(id)), Some(id));
@@ -212,13 +211,7 @@ mod tests {
 
     #[test]
     fn island_prefixes_every_topic() {
-        let t = Topics::new(
-            Some("lab-a"),
-            COMMANDS,
-            EVENTS,
-            AVAILABILITY,
-            NODE_STATE_ROOT,
-        );
+        let t = Topics::seed_on(Some("lab-a"));
         assert_eq!(t.commands, "lab-a/CommandsTopic");
         assert_eq!(t.events, "lab-a/EventsTopic");
         assert_eq!(t.availability, "lab-a/ihex/gateway/availability");
@@ -237,13 +230,7 @@ mod tests {
         }
         let id = NodeId::new(0xabc).unwrap();
         assert_eq!(t.resolve(Topic::NodeState(id)), "lab-a/ihex/node/abc/state");
-        let b = Topics::new(
-            Some("lab-b"),
-            COMMANDS,
-            EVENTS,
-            AVAILABILITY,
-            NODE_STATE_ROOT,
-        );
+        let b = Topics::seed_on(Some("lab-b"));
         // Two islands never share a topic.
         for (x, y) in [
             (&t.commands, &b.commands),

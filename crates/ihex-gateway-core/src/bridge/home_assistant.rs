@@ -88,13 +88,7 @@ mod tests {
     use serde_json::{json, Value};
 
     fn config(island: Option<&str>) -> HaConfig {
-        let topics = Topics::new(
-            island,
-            crate::topic::COMMANDS,
-            crate::topic::EVENTS,
-            crate::topic::AVAILABILITY,
-            crate::topic::NODE_STATE_ROOT,
-        );
+        let topics = Topics::seed_on(island);
         HaConfig {
             topics,
             island: island.map(Into::into),
