@@ -28,7 +28,7 @@ use tokio::{
 trait Stream: AsyncRead + AsyncWrite + Send + Unpin {}
 impl<T: AsyncRead + AsyncWrite + Send + Unpin> Stream for T {}
 
-type Attempt = Pin<Box<dyn Future<Output = Result<Up, ConnectionError>> + Send>>;
+type Attempt = Pin<Box<dyn Future<Output = Result<(Up, ConnAck), ConnectionError>> + Send>>;
 
 /// Bytes read from the socket at a time (a buffer grows to the largest packet it must hold).
 const READ_CHUNK: usize = 16 * 1024;
@@ -70,7 +70,6 @@ struct Up {
     /// When the next PINGREQ is due (`None`: keep-alive off).
     ping_at: Option<Instant>,
     ping: Pin<Box<tokio::time::Sleep>>,
-    connack: Option<ConnAck>,
 }
 
 /// What one round of I/O produced.
@@ -206,16 +205,12 @@ impl Connection {
         }
     }
 
-    /// The next incoming packet the state has buffered (outgoing notices are dropped: the caller
+    /// The next event: a notice (the ConnAck of a new connection, a DISCONNECT written), else the
+    /// next incoming packet the state has buffered (its outgoing notices are dropped: the caller
     /// knows what it queued).
     fn next_event(&mut self) -> Option<Event> {
         if let Some(event) = self.notice.take() {
             return Some(event);
-        }
-        if let Link::Up(up) = &mut self.link {
-            if let Some(connack) = up.connack.take() {
-                return Some(Event::Incoming(Packet::ConnAck(connack)));
-            }
         }
         while let Some(event) = self.state.events.pop_front() {
             if let Event::Incoming(_) = event {
@@ -237,8 +232,9 @@ impl Connection {
                 Ok(())
             }
             Link::Connecting(attempt) => {
-                let up = attempt.as_mut().await?;
+                let (up, connack) = attempt.as_mut().await?;
                 self.link = Link::Up(up);
+                self.notice = Some(Event::Incoming(Packet::ConnAck(connack)));
                 // What came right behind the CONNACK.
                 Ok(self.parse()?)
             }
@@ -287,7 +283,7 @@ impl Connection {
 }
 
 impl Up {
-    fn new(stream: Box<dyn Stream>, read: BytesMut, connack: ConnAck, keep_alive: Duration) -> Up {
+    fn new(stream: Box<dyn Stream>, read: BytesMut, keep_alive: Duration) -> Up {
         let mut up = Up {
             stream,
             read,
@@ -295,7 +291,6 @@ impl Up {
             unflushed: false,
             ping_at: None,
             ping: Box::pin(tokio::time::sleep(Duration::ZERO)),
-            connack: Some(connack),
         };
         up.schedule_ping(keep_alive);
         up
@@ -361,7 +356,7 @@ async fn connect(
     options: MqttOptions,
     max_incoming: usize,
     timeout: Duration,
-) -> Result<Up, ConnectionError> {
+) -> Result<(Up, ConnAck), ConnectionError> {
     let attempt = async {
         let (host, port) = options.broker_address();
         let tcp = tcp_connect(&host, port).await?;
@@ -401,7 +396,7 @@ async fn connect(
                 return Err(StateError::ConnectionAborted.into());
             }
         };
-        Ok(Up::new(stream, read, connack, options.keep_alive()))
+        Ok((Up::new(stream, read, options.keep_alive()), connack))
     };
     tokio::time::timeout(timeout, attempt)
         .await

@@ -602,11 +602,9 @@ impl MqttTask {
         }
         // QoS 0: retained documents need no acknowledgement.
         conn.subscribe(self.topics.node_state_filter(), QoS::AtMostOnce);
-        let online = (
-            self.topics.availability.clone(),
-            Bytes::from_static(ONLINE.as_bytes()),
-        );
-        if conn.publish(online.0, online.1, true).is_err() {
+        let online = Bytes::from_static(ONLINE.as_bytes());
+        let topic = self.topics.availability.clone();
+        if conn.publish(topic, online, true).is_err() {
             warn!("cannot queue the online announcement");
         }
     }
