@@ -439,10 +439,7 @@ mod tests {
         let out = drain(&mut b);
         assert!(out.named("fault").is_empty(), "{:?}", out.events);
         assert_eq!(
-            out.raw_events
-                .iter()
-                .filter(|e| e.contains("new_connection"))
-                .collect::<Vec<_>>(),
+            out.raw_named("new_connection"),
             [
                 r#"{"event":"new_connection","payload":{"n":{"id":"2","port":0},"n-1":{"id":"111","port":3}}}"#
             ]
@@ -507,10 +504,7 @@ mod tests {
         b.handle_timeout(t0 + S + MS);
         let out = drain(&mut b);
         assert_eq!(
-            out.raw_events
-                .iter()
-                .filter(|e| e.contains("new_connection"))
-                .collect::<Vec<_>>(),
+            out.raw_named("new_connection"),
             [
                 r#"{"event":"new_connection","payload":{"n":{"id":"3","port":1},"n-1":{"id":"111","port":3}}}"#
             ]

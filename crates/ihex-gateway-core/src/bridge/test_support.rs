@@ -38,6 +38,15 @@ impl Out {
     pub(super) fn named(&self, name: &str) -> Vec<&Value> {
         self.events.iter().filter(|e| e["event"] == name).collect()
     }
+    /// The events named `name` as published, byte for byte.
+    pub(super) fn raw_named(&self, name: &str) -> Vec<&str> {
+        self.events
+            .iter()
+            .zip(&self.raw_events)
+            .filter(|(e, _)| e["event"] == name)
+            .map(|(_, raw)| raw.as_str())
+            .collect()
+    }
     pub(super) fn one(&self, name: &str) -> &Value {
         let v = self.named(name);
         assert_eq!(v.len(), 1, "expected one {name} in {:#?}", self.events);
