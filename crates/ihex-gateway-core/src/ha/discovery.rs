@@ -156,6 +156,14 @@ impl Element {
             uid,
         }
     }
+
+    /// True when `state` (and the UID) would give this same element: no config to publish.
+    pub fn shows(&self, state: &NodeState, uid: Option<Uid>) -> bool {
+        self.id == state.id.0
+            && self.role == state.role
+            && self.version == state.version
+            && self.uid == uid
+    }
 }
 
 /// An element's device: LED strip, buzzer, identify, online, docking, firmware, and the relay when

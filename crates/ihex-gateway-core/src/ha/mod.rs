@@ -122,8 +122,9 @@ impl Ha {
     ) -> Vec<HaPublication> {
         let id = doc.id.0;
         let mut out = Vec::new();
-        let element = discovery::Element::of(doc, entry.uid);
-        if force || self.configs.get(&id) != Some(&element) {
+        let shown = self.configs.get(&id);
+        if force || !shown.is_some_and(|e| e.shows(doc, entry.uid)) {
+            let element = discovery::Element::of(doc, entry.uid);
             out.push(HaPublication::Config {
                 topic: HaTopic::DeviceConfig(id),
                 config: discovery::element(&self.config, &element),
