@@ -133,7 +133,10 @@ fn report_index(event: &Event) -> Option<u32> {
         return None;
     };
     let id = u32::from(r.id.0.get());
-    let code: u32 = r.reset.strip_prefix("other_")?.parse().ok()?;
+    let ResetReason::Other(code) = r.reset else {
+        return None;
+    };
+    let code = u32::from(code);
     (1..=u32::from(NODES)).contains(&id).then_some(())?;
     Some((code.checked_sub(4)?) * u32::from(NODES) + (id - 1))
 }

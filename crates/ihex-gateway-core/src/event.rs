@@ -6,7 +6,7 @@
 
 use std::fmt;
 
-use ihex_proto::{BuzzerCommand, LedCommand, NodeId};
+use ihex_proto::{BuzzerCommand, LedCommand, NodeId, ResetReason};
 use serde::{Deserialize, Deserializer, Serialize, Serializer};
 
 /// A node ID in its MQTT form: lower-case hex without leading zeros or prefix (`"111"`, `"2"`).
@@ -26,24 +26,71 @@ impl Serialize for HexId {
     }
 }
 
-/// A protocol version as events and state documents show it, `"major.minor"` (what
-/// `format!("{major}.{minor}")` writes, without the formatting machinery: every `BootUp` and
-/// every state document carries one).
-pub fn version_text((major, minor): (u8, u8)) -> String {
-    let mut s = String::with_capacity(7);
-    for (i, n) in [major, minor].into_iter().enumerate() {
-        if i > 0 {
-            s.push('.');
+/// A node's protocol version, shown as `"major.minor"` in events and state documents (what
+/// `format!("{major}.{minor}")` writes, without the formatting machinery or an allocation: every
+/// `BootUp` event and every state document carries one).
+#[derive(Clone, Copy, PartialEq, Eq, Debug)]
+pub struct Version(pub u8, pub u8);
+
+impl Version {
+    /// `"major.minor"` in `buf`.
+    fn text(self, buf: &mut [u8; 7]) -> &str {
+        let mut len = 0;
+        for (i, n) in [self.0, self.1].into_iter().enumerate() {
+            if i > 0 {
+                buf[len] = b'.';
+                len += 1;
+            }
+            for (div, always) in [(100, false), (10, false), (1, true)] {
+                if always || n >= div {
+                    buf[len] = b'0' + n / div % 10;
+                    len += 1;
+                }
+            }
         }
-        if n >= 100 {
-            s.push(char::from(b'0' + n / 100));
-        }
-        if n >= 10 {
-            s.push(char::from(b'0' + n / 10 % 10));
-        }
-        s.push(char::from(b'0' + n % 10));
+        std::str::from_utf8(&buf[..len]).unwrap_or_default()
     }
-    s
+}
+
+impl From<(u8, u8)> for Version {
+    fn from((major, minor): (u8, u8)) -> Self {
+        Version(major, minor)
+    }
+}
+
+impl fmt::Display for Version {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.text(&mut [0; 7]))
+    }
+}
+
+impl std::str::FromStr for Version {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, String> {
+        let (major, minor) = s
+            .split_once('.')
+            .ok_or_else(|| format!("{s:?} is not a major.minor version"))?;
+        let part = |p: &str| {
+            p.parse::<u8>()
+                .map_err(|e| format!("{s:?} is not a major.minor version: {e}"))
+        };
+        Ok(Version(part(major)?, part(minor)?))
+    }
+}
+
+impl Serialize for Version {
+    fn serialize<S: Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        s.serialize_str(self.text(&mut [0; 7]))
+    }
+}
+
+impl<'de> Deserialize<'de> for Version {
+    fn deserialize<D: Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        String::deserialize(d)?
+            .parse()
+            .map_err(serde::de::Error::custom)
+    }
 }
 
 /// `id` as its [`fmt::Display`] writes it (lower-case hex, no leading zeros), without the
@@ -189,9 +236,9 @@ pub struct NodeRebooted {
     /// The node.
     pub id: HexId,
     /// Why it restarted: `power_on`, `watchdog`, `software`, `pin` or `other_<n>`.
-    pub reset: String,
+    pub reset: ResetReason,
     /// Firmware/protocol version `"major.minor"`.
-    pub version: String,
+    pub version: Version,
     /// Its role.
     pub role: Role,
 }
@@ -445,12 +492,18 @@ impl Event {
 /// Compact JSON of a DTO. Serialising these types cannot fail (plain structs, string keys only);
 /// should it ever, an empty object is published rather than panicking the gateway.
 pub(crate) fn to_json<T: Serialize>(value: &T) -> String {
+    String::from_utf8(json_bytes(value)).unwrap_or_else(|_| String::from("{}"))
+}
+
+/// [`to_json`]'s text as the bytes that are published, not checked again as UTF-8 (serde_json
+/// writes nothing else).
+pub(crate) fn json_bytes<T: Serialize>(value: &T) -> Vec<u8> {
     // Sized for a node's state document, the largest frequent publication: one allocation where
     // serde_json's own 128 bytes would grow three times.
     let mut out = Vec::with_capacity(JSON_CAPACITY);
-    match serde_json::to_writer(&mut out, value).map(|()| String::from_utf8(out)) {
-        Ok(Ok(json)) => json,
-        _ => String::from("{}"),
+    match serde_json::to_writer(&mut out, value) {
+        Ok(()) => out,
+        Err(_) => b"{}".to_vec(),
     }
 }
 
@@ -621,7 +674,7 @@ pub struct NodeState {
     /// Number of dock ports, from its `BootUp`.
     pub ports: Option<u8>,
     /// Protocol version `"major.minor"`, from its `BootUp`.
-    pub version: Option<String>,
+    pub version: Option<Version>,
     /// The firmware it runs, read back from the node (`null` until read, or from a node that
     /// cannot be asked).
     pub firmware: Option<Firmware>,
@@ -666,7 +719,9 @@ mod tests {
             (100, 255),
             (255, 9),
         ] {
-            assert_eq!(version_text(v), format!("{}.{}", v.0, v.1));
+            let text = Version::from(v).to_string();
+            assert_eq!(text, format!("{}.{}", v.0, v.1));
+            assert_eq!(text.parse(), Ok(Version::from(v)));
         }
     }
 

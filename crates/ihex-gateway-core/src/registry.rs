@@ -124,7 +124,7 @@ impl NodeEntry {
             online: self.online,
             role: self.role(),
             ports: self.ports,
-            version: self.version.map(crate::event::version_text),
+            version: self.version.map(Into::into),
             firmware: self.firmware.map(|(version, trial)| Firmware {
                 version: version.to_string(),
                 trial,

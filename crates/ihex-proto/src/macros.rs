@@ -55,14 +55,84 @@ macro_rules! enum_with_unknown {
             }
         }
 
-        impl core::fmt::Display for $name {
-            /// The snake_case name, or `other_<n>` for a value this version does not know.
-            fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        impl $name {
+            /// The snake_case name, or `other_<n>` written into `buf`: what [`Display`] and the
+            /// events show, without the formatting machinery (every `BootUp` event carries one).
+            ///
+            /// [`Display`]: core::fmt::Display
+            pub fn text(self, buf: &mut [u8; crate::macros::OTHER_TEXT_LEN]) -> &str {
                 match self.name() {
-                    Some(n) => f.write_str(n),
-                    None => write!(f, "other_{}", self.to_raw()),
+                    Some(n) => n,
+                    None => crate::macros::other_text(self.to_raw(), buf),
+                }
+            }
+
+            /// The value [`text`](Self::text) wrote `s` for.
+            pub fn from_text(s: &str) -> Option<Self> {
+                match s.strip_prefix("other_") {
+                    Some(n) => n.parse().ok().map(Self::from_raw),
+                    None => Self::TABLE
+                        .iter()
+                        .find(|(_, t)| *t == s)
+                        .map(|&(raw, _)| Self::from_raw(raw)),
                 }
             }
         }
+
+        impl core::fmt::Display for $name {
+            /// The snake_case name, or `other_<n>` for a value this version does not know.
+            fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+                f.write_str(self.text(&mut [0; crate::macros::OTHER_TEXT_LEN]))
+            }
+        }
+
+        /// As its [`text`](Self::text).
+        #[cfg(feature = "serde")]
+        impl serde::Serialize for $name {
+            fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+                s.serialize_str(self.text(&mut [0; crate::macros::OTHER_TEXT_LEN]))
+            }
+        }
+
+        /// From its [`text`](Self::text).
+        #[cfg(feature = "serde")]
+        impl<'de> serde::Deserialize<'de> for $name {
+            fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+                d.deserialize_str(crate::macros::TextVisitor(Self::from_text, stringify!($name)))
+            }
+        }
     };
+}
+
+/// Bytes of the longest `other_<n>` text (`other_255`).
+pub(crate) const OTHER_TEXT_LEN: usize = 9;
+
+/// `other_<raw>` in `buf`.
+pub(crate) fn other_text(raw: u8, buf: &mut [u8; OTHER_TEXT_LEN]) -> &str {
+    buf[..6].copy_from_slice(b"other_");
+    let mut len = 6;
+    for (div, always) in [(100, false), (10, false), (1, true)] {
+        if always || raw >= div {
+            buf[len] = b'0' + raw / div % 10;
+            len += 1;
+        }
+    }
+    core::str::from_utf8(&buf[..len]).unwrap_or("other")
+}
+
+/// Reads a wire enumeration from its text with its `from_text`.
+#[cfg(feature = "serde")]
+pub(crate) struct TextVisitor<T>(pub fn(&str) -> Option<T>, pub &'static str);
+
+#[cfg(feature = "serde")]
+impl<T> serde::de::Visitor<'_> for TextVisitor<T> {
+    type Value = T;
+
+    fn expecting(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        write!(f, "a {} name or other_<0-255>", self.1)
+    }
+
+    fn visit_str<E: serde::de::Error>(self, s: &str) -> Result<T, E> {
+        (self.0)(s).ok_or_else(|| E::invalid_value(serde::de::Unexpected::Str(s), &self))
+    }
 }

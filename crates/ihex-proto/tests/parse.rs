@@ -82,6 +82,33 @@ fn enumerations_name_their_values_and_keep_unknown_ones() {
     }
 }
 
+/// `text` (what events publish) is `Display`'s text, and `from_text` reads back every value.
+#[test]
+fn enumeration_texts_read_back_every_value() {
+    let mut buf = [0; 9];
+    for raw in 0..=u8::MAX {
+        let r = ResetReason::from_raw(raw);
+        let text = r.text(&mut buf).to_string();
+        assert_eq!(text, r.to_string());
+        assert_eq!(ResetReason::from_text(&text), Some(r), "{text}");
+        let a = AckResult::from_raw(raw);
+        assert_eq!(AckResult::from_text(&a.to_string()), Some(a));
+    }
+    assert_eq!(ResetReason::Other(7).to_string(), "other_7");
+    assert_eq!(ResetReason::Other(42).to_string(), "other_42");
+    assert_eq!(ResetReason::Other(250).to_string(), "other_250");
+    for bad in [
+        "",
+        "other_",
+        "other_256",
+        "other_x",
+        "Watchdog",
+        "watchdog ",
+    ] {
+        assert_eq!(ResetReason::from_text(bad), None, "{bad:?}");
+    }
+}
+
 #[test]
 fn firmware_versions_parse_as_three_numbers() {
     let v = FirmwareVersion::new;

@@ -3,7 +3,7 @@
 //! gateway and the tools enable it).
 #![cfg(feature = "serde")]
 
-use ihex_proto::{NodeId, Port};
+use ihex_proto::{NodeId, Port, ResetReason};
 
 #[test]
 fn node_id_and_port_serialise_as_plain_numbers() {
@@ -38,4 +38,30 @@ fn out_of_range_values_are_refused() {
     assert!(e.contains("dock port"), "{e}");
     assert!(serde_json::from_str::<NodeId>("-1").is_err());
     assert!(serde_json::from_str::<NodeId>("\"111\"").is_err());
+}
+
+/// Wire enumerations travel as their event text, unknown values included.
+#[test]
+fn enumerations_serialise_as_their_text() {
+    assert_eq!(
+        serde_json::to_string(&ResetReason::Watchdog).unwrap(),
+        "\"watchdog\""
+    );
+    assert_eq!(
+        serde_json::to_string(&ResetReason::Other(42)).unwrap(),
+        "\"other_42\""
+    );
+    assert_eq!(
+        serde_json::from_str::<ResetReason>("\"other_42\"").unwrap(),
+        ResetReason::Other(42)
+    );
+    assert_eq!(
+        serde_json::from_str::<ResetReason>("\"pin\"").unwrap(),
+        ResetReason::Pin
+    );
+    let e = serde_json::from_str::<ResetReason>("\"reboot\"")
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("ResetReason name or other_<0-255>"), "{e}");
+    assert!(serde_json::from_str::<ResetReason>("3").is_err());
 }

@@ -393,21 +393,24 @@ fn on_mqtt(bridge: &mut Bridge, input: MqttInput) {
 /// The one place publications leave the core: serialised once, logged (every event at info, so
 /// the log alone tells the island's story), copied to the island view, addressed for the MQTT task.
 fn outbound(topics: &Topics, feed: Option<&Feed>, publication: Publication) -> Outbound {
-    let json = publication.to_json();
+    let payload = publication.payload();
+    // serde_json writes UTF-8 only; the text is checked only where it is read as text (a log line
+    // that is enabled, the island view).
+    let json = || String::from_utf8_lossy(&payload);
     match &publication {
-        Publication::Event(e) => info!(event = e.name(), payload = %json, "event published"),
-        Publication::State(s) => debug!(node = %s.id, payload = %json, "state published"),
+        Publication::Event(e) => info!(event = e.name(), payload = %json(), "event published"),
+        Publication::State(s) => debug!(node = %s.id, payload = %json(), "state published"),
         Publication::Ha(h) => {
-            debug!(topic = ?h.topic(), payload = %json, "Home Assistant published")
+            debug!(topic = ?h.topic(), payload = %json(), "Home Assistant published")
         }
         Publication::Cleared(t) => info!(topic = ?t, "retained topic cleared"),
     }
     if let Some(feed) = feed {
-        feed.publish(&publication, &json);
+        feed.publish(&publication, &json());
     }
     Outbound {
         topic: topics.resolve(publication.topic()),
-        payload: json.into_bytes().into(),
+        payload: payload.into(),
         retain: publication.retain(),
     }
 }

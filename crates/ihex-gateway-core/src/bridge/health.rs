@@ -115,8 +115,8 @@ impl Health {
                 if seen == Seen::Known && !announced {
                     out.emit(Event::NodeRebooted(NodeRebooted {
                         id: HexId(src),
-                        reset: reset.to_string(),
-                        version: crate::event::version_text(version),
+                        reset,
+                        version: version.into(),
                         role: role.unwrap_or(Role::Static),
                     }));
                 }

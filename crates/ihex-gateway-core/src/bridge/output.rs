@@ -73,15 +73,20 @@ impl Publication {
         !matches!(self, Publication::Event(_))
     }
 
-    /// The text that is published: compact JSON (`{"event":…,"payload":…}`, the state document, a
-    /// Home Assistant config or light state), or nothing for [`Publication::Cleared`].
-    pub fn to_json(&self) -> String {
+    /// What is published: compact JSON (`{"event":…,"payload":…}`, the state document, a Home
+    /// Assistant config or light state), or nothing for [`Publication::Cleared`].
+    pub fn payload(&self) -> Vec<u8> {
         match self {
-            Publication::Event(e) => e.to_json(),
-            Publication::State(s) => event::to_json(s),
-            Publication::Ha(h) => h.to_json(),
-            Publication::Cleared(_) => String::new(),
+            Publication::Event(e) => event::json_bytes(e),
+            Publication::State(s) => event::json_bytes(s),
+            Publication::Ha(h) => h.payload(),
+            Publication::Cleared(_) => Vec::new(),
         }
+    }
+
+    /// [`payload`](Self::payload) as text.
+    pub fn to_json(&self) -> String {
+        String::from_utf8(self.payload()).unwrap_or_default()
     }
 }
 
@@ -134,13 +139,20 @@ pub(super) struct PublishQueue {
     kept: VecDeque<(u64, Publication)>,
     events: VecDeque<(u64, Event)>,
     states: VecDeque<(u64, NodeId)>,
-    /// Nodes with an entry in `states`, and whether it must be published even if unchanged.
-    queued: BTreeMap<NodeId, bool>,
+    /// Per node ID, whether it has an entry in `states` ([`QUEUED`]) and whether that must be
+    /// published even if unchanged ([`FORCED`]): a flat table, because every frame from a node
+    /// queues its document (4 KiB, where a map cost a search and a rebalance per frame).
+    queued: Vec<u8>,
     event_cap: usize,
     counters: PublicationCounters,
     /// Drops not reported by a `publications_dropped` event yet, by event name.
     unreported: BTreeMap<&'static str, u64>,
 }
+
+/// [`PublishQueue::queued`]: the node's document is queued.
+const QUEUED: u8 = 1;
+/// [`PublishQueue::queued`]: the queued document goes out even if unchanged.
+const FORCED: u8 = 2;
 
 /// Events that answer a command (or an upload, or end an update a client waits for): never
 /// dropped.
@@ -164,7 +176,7 @@ impl PublishQueue {
             kept: VecDeque::new(),
             events: VecDeque::new(),
             states: VecDeque::new(),
-            queued: BTreeMap::new(),
+            queued: vec![0; usize::from(NodeId::MAX_RAW) + 1],
             event_cap: event_cap.max(1),
             counters: PublicationCounters::default(),
             unreported: BTreeMap::new(),
@@ -220,13 +232,14 @@ impl PublishQueue {
 
     /// Queues `id`'s state document (built when taken); `forced` publishes it even if unchanged.
     pub(super) fn push_state(&mut self, id: NodeId, forced: bool) {
-        match self.queued.get_mut(&id) {
-            Some(f) => *f |= forced,
-            None => {
-                let stamp = self.next_stamp();
-                self.queued.insert(id, forced);
-                self.states.push_back((stamp, id));
-            }
+        let flags = &mut self.queued[usize::from(id.get())];
+        if *flags & QUEUED == 0 {
+            *flags = QUEUED;
+            let stamp = self.next_stamp();
+            self.states.push_back((stamp, id));
+        }
+        if forced {
+            self.queued[usize::from(id.get())] |= FORCED;
         }
     }
 
@@ -245,7 +258,7 @@ impl PublishQueue {
         }
         if s < a && s < e {
             let (_, id) = self.states.pop_front()?;
-            let forced = self.queued.remove(&id).unwrap_or(false);
+            let forced = std::mem::take(&mut self.queued[usize::from(id.get())]) & FORCED != 0;
             return Some(Next::State { id, forced });
         }
         let (_, event) = if a < e {

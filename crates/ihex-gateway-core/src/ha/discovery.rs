@@ -14,7 +14,7 @@ use super::command::TONES;
 use super::light::EFFECTS;
 use super::topic::{Entity, HaTopic};
 use super::HaConfig;
-use crate::event::{NodeState, Role};
+use crate::event::{NodeState, Role, Version};
 
 /// Manufacturer of every device.
 pub const MANUFACTURER: &str = "iHEX";
@@ -141,7 +141,7 @@ pub struct Element {
     /// Static or mobile, when known.
     pub role: Option<Role>,
     /// Its protocol version as the state document shows it.
-    pub version: Option<String>,
+    pub version: Option<Version>,
     /// Its UID, when read.
     pub uid: Option<Uid>,
 }
@@ -152,7 +152,7 @@ impl Element {
         Element {
             id: state.id.0,
             role: state.role,
-            version: state.version.clone(),
+            version: state.version,
             uid,
         }
     }
@@ -188,7 +188,7 @@ pub fn element(cfg: &HaConfig, state: &Element) -> Value {
         model,
     );
     if let Some(version) = &state.version {
-        dev.insert("sw_version".into(), version.clone().into());
+        dev.insert("sw_version".into(), version.to_string().into());
     }
     if let Some(uid) = state.uid {
         dev.insert("serial_number".into(), uid.to_string().into());

@@ -70,11 +70,11 @@ impl HaPublication {
         }
     }
 
-    /// The compact JSON text that is published.
-    pub fn to_json(&self) -> String {
+    /// The compact JSON that is published.
+    pub fn payload(&self) -> Vec<u8> {
         match self {
-            HaPublication::Config { config, .. } => crate::event::to_json(config),
-            HaPublication::Light { state, .. } => crate::event::to_json(state),
+            HaPublication::Config { config, .. } => crate::event::json_bytes(config),
+            HaPublication::Light { state, .. } => crate::event::json_bytes(state),
         }
     }
 }
