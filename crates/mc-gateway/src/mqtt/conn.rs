@@ -178,6 +178,11 @@ impl Connection {
         if let Err(e) = result {
             self.broken.get_or_insert(e);
         }
+        // The state notes every outgoing packet as an event; nobody reads those (the caller knows
+        // what it queued), and a burst of publications between two polls would pile them up.
+        if let Some(Event::Outgoing(_)) = self.state.events.back() {
+            self.state.events.pop_back();
+        }
     }
 
     /// Writes what is queued, reads what arrived, reconnects after a failure, and returns the next
