@@ -489,27 +489,25 @@ impl Event {
     }
 }
 
-/// Compact JSON of a DTO (see [`write_json`]).
+/// Compact JSON of a DTO. Serialising these types cannot fail (plain structs, string keys only);
+/// should it ever, an empty object is published rather than panicking the gateway.
 pub(crate) fn to_json<T: Serialize>(value: &T) -> String {
-    let mut buf = Vec::with_capacity(JSON_CAPACITY);
-    write_json(value, &mut buf);
-    String::from_utf8(buf).unwrap_or_else(|_| String::from("{}"))
+    String::from_utf8(json_bytes(value)).unwrap_or_else(|_| String::from("{}"))
 }
 
-/// Appends the compact JSON of a DTO to `buf`, as the bytes that are published (serde_json writes
-/// UTF-8 only, so they are not checked again). Serialising these types cannot fail (plain structs,
-/// string keys only); should it ever, an empty object is published rather than panicking the
-/// gateway.
-pub(crate) fn write_json<T: Serialize>(value: &T, buf: &mut Vec<u8>) {
-    let start = buf.len();
-    if serde_json::to_writer(&mut *buf, value).is_err() {
-        buf.truncate(start);
-        buf.extend_from_slice(b"{}");
+/// [`to_json`]'s text as the bytes that are published, not checked again as UTF-8 (serde_json
+/// writes nothing else).
+pub(crate) fn json_bytes<T: Serialize>(value: &T) -> Vec<u8> {
+    // Sized for a node's state document, the largest frequent publication: one allocation where
+    // serde_json's own 128 bytes would grow three times.
+    let mut out = Vec::with_capacity(JSON_CAPACITY);
+    match serde_json::to_writer(&mut out, value) {
+        Ok(()) => out,
+        Err(_) => b"{}".to_vec(),
     }
 }
 
-/// Bytes reserved for a JSON text built on its own: a node's state document, the largest frequent
-/// publication, in one allocation where serde_json's own 128 bytes would grow three times.
+/// Bytes reserved for a publication's JSON text.
 const JSON_CAPACITY: usize = 768;
 
 /// The LED state a node acknowledged.

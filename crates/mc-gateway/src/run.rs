@@ -16,7 +16,6 @@ use std::{
     time::{Duration, Instant},
 };
 
-use bytes::Bytes;
 use ihex_gateway_core::{bridge::TRANSMIT_WINDOW, Bridge, Delivery, Publication, Transmit};
 use tokio::{sync::mpsc, task::JoinSet};
 use tokio_util::sync::CancellationToken;
@@ -204,7 +203,6 @@ impl Gateway {
             views,
             stats: mqtt_stats,
             fw_dir: config.settings.fw_dir.clone(),
-            scratch: Vec::new(),
         };
         let result = core.run(can_in, mqtt_in, &mut tasks, &cancel).await;
 
@@ -236,8 +234,6 @@ struct Core {
     stats: Arc<MqttStats>,
     /// `--fw-dir`: where `fw_update` images are read from.
     fw_dir: Option<std::path::PathBuf>,
-    /// Every publication is serialised here first (see [`outbound`]).
-    scratch: Vec<u8>,
 }
 
 impl Core {
@@ -331,12 +327,7 @@ impl Core {
             let Some(publication) = self.bridge.poll_publication() else {
                 break;
             };
-            permit.send(outbound(
-                &self.topics,
-                self.feed.as_deref(),
-                publication,
-                &mut self.scratch,
-            ));
+            permit.send(outbound(&self.topics, self.feed.as_deref(), publication));
         }
         self.stats
             .publications_dropped
@@ -348,12 +339,7 @@ impl Core {
     async fn flush_at_shutdown(&mut self) {
         let deadline = tokio::time::Instant::now() + SHUTDOWN_FLUSH;
         while let Some(publication) = self.bridge.poll_publication() {
-            let p = outbound(
-                &self.topics,
-                self.feed.as_deref(),
-                publication,
-                &mut self.scratch,
-            );
+            let p = outbound(&self.topics, self.feed.as_deref(), publication);
             match tokio::time::timeout_at(deadline, self.pub_tx.send(p)).await {
                 Ok(Ok(())) => {}
                 _ => {
@@ -406,20 +392,11 @@ fn on_mqtt(bridge: &mut Bridge, input: MqttInput) {
 
 /// The one place publications leave the core: serialised once, logged (every event at info, so
 /// the log alone tells the island's story), copied to the island view, addressed for the MQTT task.
-///
-/// `scratch` is serialised into and reused, so that the payload is allocated once at its exact
-/// size (a burst of answers waiting for the broker holds no spare capacity).
-fn outbound(
-    topics: &Topics,
-    feed: Option<&Feed>,
-    publication: Publication,
-    scratch: &mut Vec<u8>,
-) -> Outbound {
-    scratch.clear();
-    publication.write_payload(scratch);
+fn outbound(topics: &Topics, feed: Option<&Feed>, publication: Publication) -> Outbound {
+    let payload = publication.payload();
     // serde_json writes UTF-8 only; the text is checked only where it is read as text (a log line
     // that is enabled, the island view).
-    let json = || String::from_utf8_lossy(scratch);
+    let json = || String::from_utf8_lossy(&payload);
     match &publication {
         Publication::Event(e) => info!(event = e.name(), payload = %json(), "event published"),
         Publication::State(s) => debug!(node = %s.id, payload = %json(), "state published"),
@@ -433,7 +410,7 @@ fn outbound(
     }
     Outbound {
         topic: topics.resolve(publication.topic()),
-        payload: Bytes::copy_from_slice(scratch),
+        payload: payload.into(),
         retain: publication.retain(),
     }
 }

@@ -73,24 +73,20 @@ impl Publication {
         !matches!(self, Publication::Event(_))
     }
 
-    /// Appends what is published to `buf`: compact JSON (`{"event":…,"payload":…}`, the state
-    /// document, a Home Assistant config or light state), or nothing for
-    /// [`Publication::Cleared`]. The MQTT adapter serialises every publication into one reused
-    /// buffer and copies out exactly its length.
-    pub fn write_payload(&self, buf: &mut Vec<u8>) {
+    /// What is published: compact JSON (`{"event":…,"payload":…}`, the state document, a Home
+    /// Assistant config or light state), or nothing for [`Publication::Cleared`].
+    pub fn payload(&self) -> Vec<u8> {
         match self {
-            Publication::Event(e) => event::write_json(e, buf),
-            Publication::State(s) => event::write_json(s, buf),
-            Publication::Ha(h) => h.write_payload(buf),
-            Publication::Cleared(_) => {}
+            Publication::Event(e) => event::json_bytes(e),
+            Publication::State(s) => event::json_bytes(s),
+            Publication::Ha(h) => h.payload(),
+            Publication::Cleared(_) => Vec::new(),
         }
     }
 
-    /// What is published, as text.
+    /// [`payload`](Self::payload) as text.
     pub fn to_json(&self) -> String {
-        let mut buf = Vec::new();
-        self.write_payload(&mut buf);
-        String::from_utf8(buf).unwrap_or_default()
+        String::from_utf8(self.payload()).unwrap_or_default()
     }
 }
 
