@@ -56,14 +56,14 @@ macro_rules! enum_with_unknown {
         }
 
         impl $name {
-            /// The snake_case name, or `other_<n>` written into `buf`: what [`Display`] and the
-            /// events show, without the formatting machinery (every `BootUp` event carries one).
+            /// The snake_case name, or `other_<n>`: what [`Display`] and the events show, without
+            /// the formatting machinery (every `BootUp` event carries one).
             ///
             /// [`Display`]: core::fmt::Display
-            pub fn text(self, buf: &mut [u8; crate::macros::OTHER_TEXT_LEN]) -> &str {
+            pub fn text(self) -> &'static str {
                 match self.name() {
                     Some(n) => n,
-                    None => crate::macros::other_text(self.to_raw(), buf),
+                    None => crate::macros::OTHER_TEXT[usize::from(self.to_raw())],
                 }
             }
 
@@ -82,7 +82,7 @@ macro_rules! enum_with_unknown {
         impl core::fmt::Display for $name {
             /// The snake_case name, or `other_<n>` for a value this version does not know.
             fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
-                f.write_str(self.text(&mut [0; crate::macros::OTHER_TEXT_LEN]))
+                f.write_str(self.text())
             }
         }
 
@@ -90,7 +90,7 @@ macro_rules! enum_with_unknown {
         #[cfg(feature = "serde")]
         impl serde::Serialize for $name {
             fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
-                s.serialize_str(self.text(&mut [0; crate::macros::OTHER_TEXT_LEN]))
+                s.serialize_str(self.text())
             }
         }
 
@@ -104,21 +104,50 @@ macro_rules! enum_with_unknown {
     };
 }
 
-/// Bytes of the longest `other_<n>` text (`other_255`).
-pub(crate) const OTHER_TEXT_LEN: usize = 9;
-
-/// `other_<raw>` in `buf`.
-pub(crate) fn other_text(raw: u8, buf: &mut [u8; OTHER_TEXT_LEN]) -> &str {
-    buf[..6].copy_from_slice(b"other_");
-    let mut len = 6;
-    for (div, always) in [(100, false), (10, false), (1, true)] {
-        if always || raw >= div {
-            buf[len] = b'0' + raw / div % 10;
-            len += 1;
-        }
+/// `other_<n>` for every `n`, built at compile time: the text of a value an enumeration does not
+/// know costs a table lookup.
+pub(crate) static OTHER_TEXT: [&str; 256] = {
+    let mut out = [""; 256];
+    let mut n = 0;
+    while n < 256 {
+        let (bytes, len) = &OTHER_BYTES[n];
+        let (text, _) = bytes.split_at(*len);
+        out[n] = match core::str::from_utf8(text) {
+            Ok(t) => t,
+            Err(_) => panic!("other_<n> is ASCII"),
+        };
+        n += 1;
     }
-    core::str::from_utf8(&buf[..len]).unwrap_or("other")
-}
+    out
+};
+
+/// The bytes of [`OTHER_TEXT`] and their lengths (`other_255` is the longest).
+static OTHER_BYTES: [([u8; 9], usize); 256] = {
+    let mut out = [([0; 9], 0); 256];
+    let mut n = 0;
+    while n < 256 {
+        let (buf, len) = &mut out[n];
+        let prefix = b"other_";
+        let mut i = 0;
+        while i < prefix.len() {
+            buf[i] = prefix[i];
+            i += 1;
+        }
+        let v = n as u8;
+        if v >= 100 {
+            buf[i] = b'0' + v / 100;
+            i += 1;
+        }
+        if v >= 10 {
+            buf[i] = b'0' + v / 10 % 10;
+            i += 1;
+        }
+        buf[i] = b'0' + v % 10;
+        *len = i + 1;
+        n += 1;
+    }
+    out
+};
 
 /// Reads a wire enumeration from its text with its `from_text`.
 #[cfg(feature = "serde")]
