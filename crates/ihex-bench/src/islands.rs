@@ -97,7 +97,10 @@ fn report_index(nodes: u16, event: &Event) -> Option<u32> {
     let k = f.detail;
     let n = u32::from(nodes);
     let element = u32::from(f.node.0.get()).checked_sub(u32::from(FIRST))?;
-    let code: u32 = f.code.strip_prefix("other_")?.parse().ok()?;
+    let FaultCode::Other(code) = FaultCode::from_text(&f.code)? else {
+        return None;
+    };
+    let code = u32::from(code);
     (element == k % n && code == u32::from(FIRST_CODE) + (k / n) % CODES).then_some(k)
 }
 

@@ -35,19 +35,9 @@ pub struct Version(pub u8, pub u8);
 impl Version {
     /// `"major.minor"` in `buf`.
     fn text(self, buf: &mut [u8; 7]) -> &str {
-        let mut len = 0;
-        for (i, n) in [self.0, self.1].into_iter().enumerate() {
-            if i > 0 {
-                buf[len] = b'.';
-                len += 1;
-            }
-            for (div, always) in [(100, false), (10, false), (1, true)] {
-                if always || n >= div {
-                    buf[len] = b'0' + n / div % 10;
-                    len += 1;
-                }
-            }
-        }
+        let dot = ihex_proto::write_decimal(self.0, buf, 0);
+        buf[dot] = b'.';
+        let len = ihex_proto::write_decimal(self.1, buf, dot + 1);
         std::str::from_utf8(&buf[..len]).unwrap_or_default()
     }
 }

@@ -37,6 +37,7 @@ mod macros;
 mod addr;
 pub mod bus;
 pub mod dbc;
+mod decimal;
 mod error;
 pub mod field;
 pub mod filter;
@@ -51,6 +52,7 @@ pub mod uart;
 pub mod unit;
 
 pub use addr::{NodeId, Port, Seq};
+pub use decimal::write_decimal;
 pub use error::{DecodeError, ParseError};
 pub use fw::{
     FwAction, FwPhase, FwRefusal, FwStatus, FW_BEGIN_MAX_LEN, FW_DATA_LEN, FW_KINDS, FW_MAX_LEN,

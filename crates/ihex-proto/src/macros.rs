@@ -133,17 +133,7 @@ static OTHER_BYTES: [([u8; 9], usize); 256] = {
             buf[i] = prefix[i];
             i += 1;
         }
-        let v = n as u8;
-        if v >= 100 {
-            buf[i] = b'0' + v / 100;
-            i += 1;
-        }
-        if v >= 10 {
-            buf[i] = b'0' + v / 10 % 10;
-            i += 1;
-        }
-        buf[i] = b'0' + v % 10;
-        *len = i + 1;
+        *len = crate::write_decimal(n as u8, buf, i);
         n += 1;
     }
     out

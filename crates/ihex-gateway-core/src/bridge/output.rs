@@ -233,13 +233,11 @@ impl PublishQueue {
     /// Queues `id`'s state document (built when taken); `forced` publishes it even if unchanged.
     pub(super) fn push_state(&mut self, id: NodeId, forced: bool) {
         let flags = &mut self.queued[usize::from(id.get())];
-        if *flags & QUEUED == 0 {
-            *flags = QUEUED;
+        let was = *flags;
+        *flags |= QUEUED | if forced { FORCED } else { 0 };
+        if was & QUEUED == 0 {
             let stamp = self.next_stamp();
             self.states.push_back((stamp, id));
-        }
-        if forced {
-            self.queued[usize::from(id.get())] |= FORCED;
         }
     }
 
