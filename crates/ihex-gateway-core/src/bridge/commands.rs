@@ -16,7 +16,10 @@
 //! off, dock links) are tracked here too, without a result, so that no sequence number is ever in
 //! use twice: the allocator refuses rather than reuse a live one.
 
-use std::collections::{BTreeMap, BTreeSet};
+use std::cmp::Reverse;
+use std::collections::{BTreeMap, BTreeSet, BinaryHeap};
+
+use rustc_hash::FxHashMap;
 use std::time::{Duration, Instant};
 
 use ihex_proto::{AckResult, Kind, Message, NodeId, Packet, Seq, Uid};
@@ -118,10 +121,9 @@ fn key_of(p: &Packet) -> Option<PendingKey> {
     }
 }
 
-/// A [`PendingKey`] packed into one integer with the same order (destination, then kind, then
-/// seq): the tables are searched on every command, ack and echo, and comparing one `u32` costs a
-/// fraction of comparing the tuple (callgrind: a third of the instructions of a command).
-#[derive(Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Debug)]
+/// A [`PendingKey`] packed into one integer (destination, then kind, then seq), ordered as the
+/// tuple: the tables are searched on every command, ack and echo.
+#[derive(Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Debug)]
 struct Packed(u32);
 
 impl Packed {
@@ -135,83 +137,153 @@ impl Packed {
         let kind = Kind::from_raw((self.0 >> 8) as u8)?;
         Some((dest, kind, self.0 as u8))
     }
+
+    /// Its destination and kind, without the seq.
+    fn stream(self) -> u32 {
+        self.0 >> 8
+    }
 }
 
-/// The pending commands, also indexed by deadline: the core loop asks for the next deadline on every
-/// turn, and a scan of thousands of unanswered commands (a node that never acks, a flood of commands)
-/// made that turn quadratic.
+/// A pending command and the stamp of its one live entry in the deadline heap.
+#[derive(Debug)]
+struct Slot {
+    stamp: u64,
+    command: PendingCommand,
+}
+
+/// The pending commands: a hash table by key, a heap of deadlines and, per destination and kind,
+/// the set of seqs in use. B-trees of commands by key and by (deadline, key) cost a third of a
+/// command's instructions (callgrind; two inserts, a removal and two rebalancing moves of the
+/// whole entry per command); these cost a hash and a heap push each.
+///
+/// A deadline that changes is pushed again rather than moved: the heap entry whose stamp is no
+/// longer the command's is stale, skipped when it reaches the top and purged when stale entries
+/// outnumber live ones, so the heap's top is always the earliest live deadline.
 #[derive(Debug, Default)]
 struct Pending {
-    by_key: BTreeMap<Packed, PendingCommand>,
-    by_deadline: BTreeSet<(Instant, Packed)>,
+    by_key: FxHashMap<Packed, Slot>,
+    deadlines: BinaryHeap<Reverse<(Instant, Packed, u64)>>,
+    /// Seqs in use per (destination, kind), as 256-bit sets (bit `seq % 64` of word `seq / 64`).
+    taken: FxHashMap<u32, [u64; 4]>,
+    next_stamp: u64,
 }
 
 impl Pending {
     fn insert(&mut self, key: PendingKey, p: PendingCommand) {
         let key = Packed::new(key);
-        self.by_deadline.insert((p.deadline, key));
-        if let Some(old) = self.by_key.insert(key, p) {
-            self.by_deadline.remove(&(old.deadline, key));
+        let stamp = self.push_deadline(p.deadline, key);
+        let old = self.by_key.insert(key, Slot { stamp, command: p });
+        if old.is_none() {
+            let (word, bit) = seq_bit(key);
+            self.taken.entry(key.stream()).or_default()[word] |= bit;
         }
+        self.settle();
     }
 
     fn remove(&mut self, key: &PendingKey) -> Option<PendingCommand> {
         let key = Packed::new(*key);
-        let p = self.by_key.remove(&key)?;
-        self.by_deadline.remove(&(p.deadline, key));
-        Some(p)
+        let slot = self.by_key.remove(&key)?;
+        if let Some(set) = self.taken.get_mut(&key.stream()) {
+            let (word, bit) = seq_bit(key);
+            set[word] &= !bit;
+            if *set == [0; 4] {
+                self.taken.remove(&key.stream());
+            }
+        }
+        self.settle();
+        Some(slot.command)
     }
 
     fn get(&self, key: &PendingKey) -> Option<&PendingCommand> {
-        self.by_key.get(&Packed::new(*key))
+        self.by_key.get(&Packed::new(*key)).map(|s| &s.command)
     }
 
     /// Mutable access for progress (acks of a broadcast, the frame's fate); the deadline changes
     /// only through [`Pending::set_deadline`].
     fn get_mut(&mut self, key: &PendingKey) -> Option<&mut PendingCommand> {
-        self.by_key.get_mut(&Packed::new(*key))
+        self.by_key
+            .get_mut(&Packed::new(*key))
+            .map(|s| &mut s.command)
     }
 
     fn set_deadline(&mut self, key: &PendingKey, deadline: Instant) {
         let key = Packed::new(*key);
-        if let Some(p) = self.by_key.get_mut(&key) {
-            self.by_deadline.remove(&(p.deadline, key));
-            p.deadline = deadline;
-            self.by_deadline.insert((deadline, key));
+        if !self.by_key.contains_key(&key) {
+            return;
         }
+        let stamp = self.push_deadline(deadline, key);
+        if let Some(slot) = self.by_key.get_mut(&key) {
+            slot.stamp = stamp;
+            slot.command.deadline = deadline;
+        }
+        self.settle();
     }
 
-    fn contains_key(&self, key: &PendingKey) -> bool {
-        self.by_key.contains_key(&Packed::new(*key))
+    /// Pushes `key`'s new deadline; the returned stamp makes it the live one.
+    fn push_deadline(&mut self, deadline: Instant, key: Packed) -> u64 {
+        self.next_stamp += 1;
+        self.deadlines
+            .push(Reverse((deadline, key, self.next_stamp)));
+        self.next_stamp
+    }
+
+    /// Drops stale entries from the heap's top, and all of them once they outnumber the live ones.
+    fn settle(&mut self) {
+        let live =
+            |by_key: &FxHashMap<Packed, Slot>,
+             &Reverse((_, key, stamp)): &Reverse<(Instant, Packed, u64)>| {
+                by_key.get(&key).is_some_and(|s| s.stamp == stamp)
+            };
+        if self.deadlines.len() > 2 * self.by_key.len() + 64 {
+            let by_key = &self.by_key;
+            self.deadlines.retain(|e| live(by_key, e));
+        }
+        while let Some(top) = self.deadlines.peek() {
+            if live(&self.by_key, top) {
+                break;
+            }
+            self.deadlines.pop();
+        }
     }
 
     /// The seqs pending for `dest` and `kind`, as a 256-bit set (bit `seq` of word `seq / 64`).
     fn taken_seqs(&self, dest: NodeId, kind: Kind) -> [u64; 4] {
-        let mut taken = [0u64; 4];
-        let first = Packed::new((dest, kind, 0));
-        let last = Packed::new((dest, kind, u8::MAX));
-        for k in self.by_key.range(first..=last).map(|(k, _)| k.0 as u8) {
-            taken[usize::from(k >> 6)] |= 1 << (k & 63);
-        }
-        taken
+        let stream = Packed::new((dest, kind, 0)).stream();
+        self.taken.get(&stream).copied().unwrap_or_default()
     }
 
     fn iter(&self) -> impl Iterator<Item = (PendingKey, &PendingCommand)> {
-        self.by_key.iter().filter_map(|(k, p)| Some((k.key()?, p)))
+        self.by_key
+            .iter()
+            .filter_map(|(k, s)| Some((k.key()?, &s.command)))
     }
 
     fn next_deadline(&self) -> Option<Instant> {
-        self.by_deadline.first().map(|(d, _)| *d)
+        self.deadlines.peek().map(|Reverse((d, _, _))| *d)
     }
 
-    /// Keys whose deadline is at or before `now`, earliest first.
-    fn overdue(&self, now: Instant) -> Vec<PendingKey> {
-        self.by_deadline
-            .iter()
-            .take_while(|(d, _)| *d <= now)
-            .filter_map(|(_, k)| k.key())
-            .collect()
+    /// Keys whose deadline is at or before `now`, earliest first, taken off the heap: the caller
+    /// ends each of them or gives it a new deadline.
+    fn overdue(&mut self, now: Instant) -> Vec<PendingKey> {
+        let mut keys = Vec::new();
+        while let Some(&Reverse((deadline, key, stamp))) = self.deadlines.peek() {
+            if deadline > now {
+                break;
+            }
+            self.deadlines.pop();
+            if self.by_key.get(&key).is_some_and(|s| s.stamp == stamp) {
+                keys.extend(key.key());
+            }
+        }
+        self.settle();
+        keys
     }
+}
+
+/// Where `key`'s seq is in a 256-bit set: the word and the bit.
+fn seq_bit(key: Packed) -> (usize, u64) {
+    let seq = key.0 as u8;
+    (usize::from(seq >> 6), 1 << (seq & 63))
 }
 
 /// When and how a command reached the bridge.
@@ -272,14 +344,6 @@ impl Commands {
     /// A sequence number not in use by a pending frame of this kind to this destination; `None`
     /// when all 256 are in use.
     fn alloc_seq(&mut self, dest: NodeId, kind: Kind) -> Option<Seq> {
-        let seq = self.next_seq;
-        if !self.pending.contains_key(&(dest, kind, seq)) {
-            self.next_seq = seq.wrapping_add(1);
-            return Some(seq);
-        }
-        // Taken: read the seqs taken for this destination and kind in one walk of the table
-        // (probing seq after seq cost a table search each, dozens per command once a node stops
-        // acking).
         let taken = self.pending.taken_seqs(dest, kind);
         for _ in 0..=u8::MAX {
             let seq = self.next_seq;
@@ -1481,5 +1545,97 @@ mod tests {
             t0 + 6 * S,
         );
         assert_eq!(out.sent[0].msg.ack_seq(), Some(off));
+    }
+}
+
+#[cfg(test)]
+mod pending_tests {
+    use super::*;
+
+    fn entry(id: u16, seq: Seq, deadline: Instant) -> (PendingKey, PendingCommand) {
+        let dest = NodeId::new(id).unwrap();
+        let frame = Packet::command(dest, Message::PowerSet { seq, on: true });
+        let key = (dest, Kind::PowerSet, seq);
+        let command = PendingCommand {
+            request_id: None,
+            target: Target::Node(dest),
+            deadline,
+            what: What::Internal,
+            frame,
+            select: None,
+            accepted: deadline,
+            expires: None,
+            fate: Fate::Queued,
+        };
+        (key, command)
+    }
+
+    #[test]
+    fn deadlines_come_out_earliest_first_and_moved_ones_only_once() {
+        let t0 = Instant::now();
+        let ms = Duration::from_millis;
+        let mut p = Pending::default();
+        for (i, at) in [30u64, 10, 20, 40].into_iter().enumerate() {
+            let (k, c) = entry(2, i as u8, t0 + ms(at));
+            p.insert(k, c);
+        }
+        let key = |seq| (NodeId::new(2).unwrap(), Kind::PowerSet, seq);
+        // seq 1 (10 ms) moves past seq 0 (30 ms), then back before it: only its last deadline counts.
+        p.set_deadline(&key(1), t0 + ms(35));
+        p.set_deadline(&key(1), t0 + ms(25));
+        assert_eq!(p.next_deadline(), Some(t0 + ms(20)));
+        p.remove(&key(2));
+        assert_eq!(
+            p.next_deadline(),
+            Some(t0 + ms(25)),
+            "a removed command's deadline is gone"
+        );
+        assert_eq!(p.overdue(t0 + ms(30)), vec![key(1), key(0)]);
+        // Taken off the heap: not overdue twice, though still pending until the caller acts.
+        assert_eq!(p.overdue(t0 + ms(30)), vec![]);
+        assert_eq!(p.next_deadline(), Some(t0 + ms(40)));
+        assert!(p.get(&key(0)).is_some());
+    }
+
+    #[test]
+    fn moving_deadlines_does_not_grow_the_heap_without_bound() {
+        let t0 = Instant::now();
+        let mut p = Pending::default();
+        for seq in 0..4 {
+            let (k, c) = entry(3, seq, t0);
+            p.insert(k, c);
+        }
+        for i in 0..10_000u64 {
+            let k = (NodeId::new(3).unwrap(), Kind::PowerSet, (i % 4) as u8);
+            p.set_deadline(&k, t0 + Duration::from_millis(10_000 - i));
+        }
+        assert!(
+            p.deadlines.len() <= 2 * 4 + 64 + 1,
+            "{} heap entries",
+            p.deadlines.len()
+        );
+        assert_eq!(
+            p.next_deadline(),
+            Some(t0 + Duration::from_millis(10_000 - 9_999))
+        );
+    }
+
+    #[test]
+    fn taken_seqs_follow_inserts_and_removals() {
+        let t0 = Instant::now();
+        let mut p = Pending::default();
+        let id = NodeId::new(4).unwrap();
+        for seq in [0u8, 63, 64, 255] {
+            let (k, c) = entry(4, seq, t0);
+            p.insert(k, c);
+        }
+        let want = [1 | 1 << 63, 1, 0, 1 << 63];
+        assert_eq!(p.taken_seqs(id, Kind::PowerSet), want);
+        assert_eq!(p.taken_seqs(id, Kind::LedSet), [0; 4], "per kind");
+        for seq in [0u8, 63, 64, 255] {
+            p.remove(&(id, Kind::PowerSet, seq));
+        }
+        assert_eq!(p.taken_seqs(id, Kind::PowerSet), [0; 4]);
+        assert!(p.taken.is_empty(), "empty sets are dropped");
     }
 }
