@@ -42,6 +42,7 @@ pub use output::{
 };
 pub use readback::{INCOMPLETE_LIMIT, MAX_QUERIES, READ_BACK_VERSION, SILENT_LIMIT};
 
+use crate::command::json::Arena;
 use crate::command::{self, Command, CommandError, FwNodes, Request};
 use crate::docking::Docking;
 use crate::event::{
@@ -164,6 +165,8 @@ pub struct Bridge {
     /// When the next `publications_dropped` may go out.
     next_drop_report: Instant,
     fw: FwUpdates,
+    /// Where each JSON command's tree is parsed (reused from one command to the next).
+    arena: Arena,
 }
 
 impl Bridge {
@@ -184,6 +187,7 @@ impl Bridge {
             config,
             now,
             next_drop_report: now,
+            arena: Arena::default(),
         }
     }
 
@@ -293,7 +297,7 @@ impl Bridge {
             let request_id = command::request_id(payload);
             return self.reject(request_id, CommandError::Retained);
         }
-        match command::parse(payload, self.config.max_command_bytes) {
+        match command::parse_in(payload, self.config.max_command_bytes, &mut self.arena) {
             Ok(req) => self.execute(req, delivery, now),
             Err(rej) => self.reject(rej.request_id, rej.error),
         }

@@ -2,7 +2,6 @@
 //! it is read, every mistake a [`CommandError`] worded for the person who sent the command (the
 //! field, what it accepts, what it got) — never a parser's internals.
 
-use std::borrow::Cow;
 use std::time::Duration;
 
 use ihex_proto::unit;
@@ -15,7 +14,7 @@ pub(crate) struct Fields<'a> {
     cmd: &'static str,
     /// `"blink."` for the members of `blink`, `""` at the top.
     prefix: &'static str,
-    members: &'a [(Cow<'a, str>, Json<'a>)],
+    members: &'a [(&'a str, Json<'a>)],
 }
 
 /// Fields every command may have: `cmd`, then those listed as accepted besides its own.
@@ -24,7 +23,7 @@ pub(super) const COMMON: [&str; 3] = ["cmd", "request_id", "ttl_ms"];
 /// `ttl_ms` of `cmd`'s object (already checked for repeats by [`Fields::new`]).
 pub(super) fn ttl(
     cmd: &'static str,
-    members: &[(Cow<'_, str>, Json<'_>)],
+    members: &[(&str, Json<'_>)],
 ) -> Result<Option<Duration>, CommandError> {
     let f = Fields {
         cmd,
@@ -57,7 +56,7 @@ impl<'a> Fields<'a> {
     pub(crate) fn new(
         cmd: &'static str,
         prefix: &'static str,
-        members: &'a [(Cow<'a, str>, Json<'a>)],
+        members: &'a [(&'a str, Json<'a>)],
         allowed: &[&str],
         hint: &str,
     ) -> Result<Fields<'a>, CommandError> {
@@ -68,7 +67,7 @@ impl<'a> Fields<'a> {
     /// [`Fields::new`] at the top, but `cmd` and `request_id` are as unknown as any other name.
     pub(crate) fn object(
         cmd: &'static str,
-        members: &'a [(Cow<'a, str>, Json<'a>)],
+        members: &'a [(&'a str, Json<'a>)],
         allowed: &[&str],
     ) -> Result<Fields<'a>, CommandError> {
         Fields::check(cmd, "", members, allowed, "", false)
@@ -78,7 +77,7 @@ impl<'a> Fields<'a> {
     fn check(
         cmd: &'static str,
         prefix: &'static str,
-        members: &'a [(Cow<'a, str>, Json<'a>)],
+        members: &'a [(&'a str, Json<'a>)],
         allowed: &[&str],
         hint: &str,
         top: bool,
@@ -92,8 +91,8 @@ impl<'a> Fields<'a> {
                     ),
                 });
             }
-            let common = top && COMMON.contains(&name.as_ref());
-            if !common && !allowed.contains(&name.as_ref()) {
+            let common = top && COMMON.contains(name);
+            if !common && !allowed.contains(name) {
                 let mut accepted = allowed.to_vec();
                 if top {
                     accepted.extend(&COMMON[1..]);
@@ -116,7 +115,7 @@ impl<'a> Fields<'a> {
 
     /// The value of `name`; `None` when it is absent or `null` ("not given").
     pub(crate) fn get(&self, name: &str) -> Option<&'a Json<'a>> {
-        match self.members.iter().find(|(n, _)| n == name) {
+        match self.members.iter().find(|(n, _)| *n == name) {
             None | Some((_, Json::Null)) => None,
             Some((_, v)) => Some(v),
         }

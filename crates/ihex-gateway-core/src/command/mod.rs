@@ -8,14 +8,13 @@
 pub(crate) mod field;
 pub mod json;
 
-use std::borrow::Cow;
 use std::time::Duration;
 
 use ihex_proto::{BuzzerCommand, LedCommand, Message, NodeId, Rgb, Seq, Uid};
 
 use crate::event::{HexId, Target};
 use field::{ms_expected, Fields};
-use json::{Json, Quote};
+use json::{Arena, Json, Quote};
 
 /// Every command name, for error messages.
 pub const COMMAND_NAMES: &str = "led, buzzer, power, identify, assign, forget, list, fw_update";
@@ -274,6 +273,11 @@ const FW_NODES: &str = "\"all\" or node ids in hex separated by commas, like \"1
 /// Parses and validates one command payload. Node existence is not checked here (the registry is the
 /// bridge's); everything else is.
 pub fn parse(payload: &[u8], max_bytes: usize) -> Result<Request, Rejection> {
+    parse_in(payload, max_bytes, &mut Arena::default())
+}
+
+/// [`parse`], the JSON tree built in `arena` (a caller that parses many commands keeps one).
+pub fn parse_in(payload: &[u8], max_bytes: usize, arena: &mut Arena) -> Result<Request, Rejection> {
     let reject = |request_id: Option<String>, error| Rejection { request_id, error };
     if payload.len() > max_bytes {
         return Err(reject(
@@ -286,13 +290,14 @@ pub fn parse(payload: &[u8], max_bytes: usize) -> Result<Request, Rejection> {
     }
     let text = std::str::from_utf8(payload)
         .map_err(|e| reject(request_id(payload), CommandError::NotUtf8(e.valid_up_to())))?;
-    let value = Json::parse(text)
+    let value = arena
+        .parse(text)
         .map_err(|e| reject(request_id(payload), CommandError::Json(e.to_string())))?;
     let Json::Object(members) = value else {
         return Err(reject(None, CommandError::NotObject(value.kind())));
     };
     let one = |name: &'static str| {
-        let mut it = members.iter().filter(|(n, _)| n == name).map(|(_, v)| v);
+        let mut it = members.iter().filter(|(n, _)| *n == name).map(|(_, v)| v);
         match (it.next(), it.next()) {
             (_, Some(_)) => Err(CommandError::Duplicate(name)),
             (v, None) => Ok(v),
@@ -310,11 +315,11 @@ pub fn parse(payload: &[u8], max_bytes: usize) -> Result<Request, Rejection> {
     let command = match one("cmd") {
         Err(e) => Err(e),
         Ok(None) => Err(CommandError::MissingCmd),
-        Ok(Some(Json::String(cmd))) => command(cmd, &members),
+        Ok(Some(Json::String(cmd))) => command(cmd, members),
         Ok(Some(other)) => Err(CommandError::UnknownCmd(Quote(other).to_string())),
     };
     let ttl = command.and_then(|c| {
-        let ttl = field::ttl(c.name(), &members)?;
+        let ttl = field::ttl(c.name(), members)?;
         Ok((c, ttl))
     });
     match ttl {
@@ -327,7 +332,7 @@ pub fn parse(payload: &[u8], max_bytes: usize) -> Result<Request, Rejection> {
     }
 }
 
-fn command(cmd: &str, members: &[(Cow<'_, str>, Json<'_>)]) -> Result<Command, CommandError> {
+fn command(cmd: &str, members: &[(&str, Json<'_>)]) -> Result<Command, CommandError> {
     match cmd {
         "led" => led(&Fields::new("led", "", members, LED_FIELDS, "")?),
         "buzzer" => buzzer(&Fields::new("buzzer", "", members, BUZZER_FIELDS, "")?),
@@ -374,7 +379,7 @@ fn command(cmd: &str, members: &[(Cow<'_, str>, Json<'_>)]) -> Result<Command, C
             "",
         )?),
         _ => Err(CommandError::UnknownCmd(
-            Quote(&Json::String(cmd.into())).to_string(),
+            Quote(&Json::String(cmd)).to_string(),
         )),
     }
 }
@@ -385,7 +390,7 @@ fn target(f: &Fields<'_>) -> Result<Target, CommandError> {
         .get("node")
         .ok_or_else(|| f.missing("node", NODE_OR_ALL))?;
     match v {
-        Json::String(s) if s == "all" => Ok(Target::All),
+        Json::String(s) if *s == "all" => Ok(Target::All),
         Json::String(s) => match s.parse::<NodeId>() {
             Ok(id) if id.is_sc() => Ok(Target::Node(id)),
             _ => Err(f.bad("node", NODE_OR_ALL, v)),
@@ -445,7 +450,7 @@ fn color(f: &Fields<'_>, v: &Json) -> Result<Option<Rgb>, CommandError> {
         }
         Json::Array(items) if items.len() == 3 => {
             let mut ch = [0u8; 3];
-            for (slot, item) in ch.iter_mut().zip(items) {
+            for (slot, item) in ch.iter_mut().zip(items.iter()) {
                 match item {
                     Json::Number(n) => match n.as_u64().and_then(|c| u8::try_from(c).ok()) {
                         Some(c) => *slot = c,
@@ -533,7 +538,7 @@ fn buzzer(f: &Fields<'_>) -> Result<Command, CommandError> {
                 count: f.u8_in("count", 0, 255)?.unwrap_or(0),
             }
         }
-        _ => return Err(f.bad("mode", MODE, &Json::String(mode.into()))),
+        _ => return Err(f.bad("mode", MODE, &Json::String(mode))),
     };
     Ok(Command::Node {
         target,
@@ -545,11 +550,11 @@ fn assign(f: &Fields<'_>) -> Result<Command, CommandError> {
     let uid_text = f.required("uid", f.str("uid", UID)?, UID)?;
     let uid: Uid = uid_text
         .parse()
-        .map_err(|_| f.bad("uid", UID, &Json::String(uid_text.into())))?;
+        .map_err(|_| f.bad("uid", UID, &Json::String(uid_text)))?;
     let new_id_text = f.required("new_id", f.str("new_id", NODE_ID)?, NODE_ID)?;
     let new_id = match new_id_text.parse::<NodeId>() {
         Ok(id) if id.is_sc() => id,
-        _ => return Err(f.bad("new_id", NODE_ID, &Json::String(new_id_text.into()))),
+        _ => return Err(f.bad("new_id", NODE_ID, &Json::String(new_id_text))),
     };
     Ok(Command::Assign {
         uid,
@@ -572,10 +577,10 @@ pub fn is_image_name(name: &str) -> bool {
 fn fw_update(f: &Fields<'_>) -> Result<Command, CommandError> {
     let image = f.required("image", f.str("image", FW_IMAGE)?, FW_IMAGE)?;
     if !is_image_name(image) {
-        return Err(f.bad("image", FW_IMAGE, &Json::String(image.into())));
+        return Err(f.bad("image", FW_IMAGE, &Json::String(image)));
     }
     let text = f.required("nodes", f.str("nodes", FW_NODES)?, FW_NODES)?;
-    let bad = || f.bad("nodes", FW_NODES, &Json::String(text.into()));
+    let bad = || f.bad("nodes", FW_NODES, &Json::String(text));
     let nodes = if text == "all" {
         FwNodes::All
     } else {

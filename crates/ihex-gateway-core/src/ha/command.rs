@@ -15,12 +15,11 @@
 //! - `identify` (button): `PRESS`, an identify of [`DEFAULT_IDENTIFY_S`] seconds.
 
 use ihex_proto::{unit, BuzzerCommand, LedCommand, NodeId, Rgb};
-use std::borrow::Cow;
 
 use super::light::{EFFECTS, EFFECT_BLINK, EFFECT_OFF};
 use super::topic::{Entity, HaTopics};
 use crate::command::field::Fields;
-use crate::command::json::{Json, Quote};
+use crate::command::json::{Arena, Json, Quote};
 use crate::command::{
     Command, CommandError, NodeAction, Rejection, Request, DEFAULT_DUTY_PCT, DEFAULT_FREQ_HZ,
     DEFAULT_IDENTIFY_S,
@@ -144,7 +143,7 @@ fn word<'a>(cmd: &'static str, text: &str, words: &[&'a str]) -> Result<&'a str,
             message: format!(
                 "the payload must be {}; got {}",
                 words.join(" or "),
-                Quote(&Json::String(text.into()))
+                Quote(&Json::String(text))
             ),
         })
 }
@@ -154,8 +153,13 @@ fn object<'a>(
     cmd: &'static str,
     text: &'a str,
     example: &str,
-) -> Result<Vec<(Cow<'a, str>, Json<'a>)>, CommandError> {
-    match Json::parse(text).map_err(|e| CommandError::Json(e.to_string()))? {
+    arena: &'a mut Arena,
+) -> Result<&'a [(&'a str, Json<'a>)], CommandError> {
+    // Home Assistant's commands are a person's clicks: an arena of their own each.
+    match arena
+        .parse(text)
+        .map_err(|e| CommandError::Json(e.to_string()))?
+    {
         Json::Object(members) => Ok(members),
         other => Err(CommandError::Invalid {
             cmd,
@@ -168,8 +172,9 @@ fn object<'a>(
 }
 
 fn light(text: &str, current: Option<LedCommand>) -> Result<LedCommand, CommandError> {
-    let members = object("light", text, r#"{"state":"ON"}"#)?;
-    let f = Fields::object("light", &members, LIGHT_FIELDS)?;
+    let mut arena = Arena::default();
+    let members = object("light", text, r#"{"state":"ON"}"#, &mut arena)?;
+    let f = Fields::object("light", members, LIGHT_FIELDS)?;
     let state = f.required("state", f.str("state", STATE)?, STATE)?;
     let color = match f.get("color") {
         None => None,
@@ -185,12 +190,12 @@ fn light(text: &str, current: Option<LedCommand>) -> Result<LedCommand, CommandE
     let effect = match f.str("effect", &effects)? {
         None => None,
         Some(e) if EFFECTS.contains(&e) => Some(e),
-        Some(e) => return Err(f.bad("effect", &effects, &Json::String(e.into()))),
+        Some(e) => return Err(f.bad("effect", &effects, &Json::String(e))),
     };
     match state {
         "OFF" => return Ok(LedCommand::Off),
         "ON" => {}
-        other => return Err(f.bad("state", STATE, &Json::String(other.into()))),
+        other => return Err(f.bad("state", STATE, &Json::String(other))),
     }
     let (was_color, was_brightness, was_blink) = match current {
         Some(LedCommand::Steady { color, brightness }) => (Some(color), Some(brightness), None),
@@ -227,12 +232,10 @@ fn default_blink() -> (u8, u8) {
 }
 
 fn siren(text: &str) -> Result<BuzzerCommand, CommandError> {
-    let members = object(
-        "siren",
-        text,
-        r#"{"state":"ON","tone":"beep","duration":5}"#,
-    )?;
-    let f = Fields::object("siren", &members, SIREN_FIELDS)?;
+    let mut arena = Arena::default();
+    let example = r#"{"state":"ON","tone":"beep","duration":5}"#;
+    let members = object("siren", text, example, &mut arena)?;
+    let f = Fields::object("siren", members, SIREN_FIELDS)?;
     let state = f.required("state", f.str("state", STATE)?, STATE)?;
     let names: Vec<&str> = TONES.iter().map(|(n, _)| *n).collect();
     let tones = format!("one of: {}", names.join(", "));
@@ -241,7 +244,7 @@ fn siren(text: &str) -> Result<BuzzerCommand, CommandError> {
         Some(t) => *TONES
             .iter()
             .find(|(n, _)| *n == t)
-            .ok_or_else(|| f.bad("tone", &tones, &Json::String(t.into())))?,
+            .ok_or_else(|| f.bad("tone", &tones, &Json::String(t)))?,
     };
     let cmd = match (tone, f.get("duration")) {
         ((_, None), Some(_)) => {
@@ -286,7 +289,7 @@ fn siren(text: &str) -> Result<BuzzerCommand, CommandError> {
     match state {
         "OFF" => Ok(BuzzerCommand::Off),
         "ON" => Ok(cmd),
-        other => Err(f.bad("state", STATE, &Json::String(other.into()))),
+        other => Err(f.bad("state", STATE, &Json::String(other))),
     }
 }
 
