@@ -89,9 +89,8 @@ enum What {
     /// To all: one result once every node online at send time answered, or at the timeout.
     Broadcast {
         action: NodeAction,
-        expected: BTreeSet<NodeId>,
-        acked: BTreeSet<NodeId>,
-        refused: BTreeMap<NodeId, String>,
+        /// Boxed: a broadcast is rare, and its sets would make every pending command larger.
+        answers: Box<Answers>,
     },
     /// `assign`: answered by an `AssignReply` carrying the UID's tail.
     Assign { uid: Uid, new_id: NodeId },
@@ -108,6 +107,14 @@ impl What {
             What::Internal => "internal",
         }
     }
+}
+
+/// Who a broadcast waits for, and who answered.
+#[derive(Debug, Default)]
+struct Answers {
+    expected: BTreeSet<NodeId>,
+    acked: BTreeSet<NodeId>,
+    refused: BTreeMap<NodeId, String>,
 }
 
 /// Key of a pending command: (destination, command kind, seq).
@@ -144,24 +151,28 @@ impl Packed {
     }
 }
 
-/// A pending command and the stamp of its one live entry in the deadline heap.
+/// A pending command, its key and the stamp of its one live entry in the deadline heap.
 #[derive(Debug)]
 struct Slot {
+    key: Packed,
     stamp: u64,
     command: PendingCommand,
 }
 
-/// The pending commands: a hash table by key, a heap of deadlines and, per destination and kind,
-/// the set of seqs in use. B-trees of commands by key and by (deadline, key) cost a third of a
-/// command's instructions (callgrind; two inserts, a removal and two rebalancing moves of the
-/// whole entry per command); these cost a hash and a heap push each.
+/// The pending commands: dense in a vector, found by key through a hash table, ordered by a heap of
+/// deadlines, with one set of the seqs in use per destination and kind. B-trees of commands by key
+/// and by (deadline, key) cost a third of a command's instructions (callgrind; two inserts, a
+/// removal and rebalancing moves of whole entries per command); these cost a hash and a heap push
+/// each. The hash table holds indices, not commands, so that growing it in a burst of commands
+/// copies 8-byte entries while the commands' vector grows in place (a large `realloc` remaps).
 ///
 /// A deadline that changes is pushed again rather than moved: the heap entry whose stamp is no
 /// longer the command's is stale, skipped when it reaches the top and purged when stale entries
 /// outnumber live ones, so the heap's top is always the earliest live deadline.
 #[derive(Debug, Default)]
 struct Pending {
-    by_key: FxHashMap<Packed, Slot>,
+    index: FxHashMap<Packed, u32>,
+    slots: Vec<Slot>,
     deadlines: BinaryHeap<Reverse<(Instant, Packed, u64)>>,
     /// Seqs in use per (destination, kind), as 256-bit sets (bit `seq % 64` of word `seq / 64`).
     taken: FxHashMap<u32, [u64; 4]>,
@@ -172,17 +183,30 @@ impl Pending {
     fn insert(&mut self, key: PendingKey, p: PendingCommand) {
         let key = Packed::new(key);
         let stamp = self.push_deadline(p.deadline, key);
-        let old = self.by_key.insert(key, Slot { stamp, command: p });
-        if old.is_none() {
-            let (word, bit) = seq_bit(key);
-            self.taken.entry(key.stream()).or_default()[word] |= bit;
+        let slot = Slot {
+            key,
+            stamp,
+            command: p,
+        };
+        match self.index.get(&key) {
+            Some(&i) => self.slots[i as usize] = slot,
+            None => {
+                self.index.insert(key, self.slots.len() as u32);
+                self.slots.push(slot);
+                let (word, bit) = seq_bit(key);
+                self.taken.entry(key.stream()).or_default()[word] |= bit;
+            }
         }
         self.settle();
     }
 
     fn remove(&mut self, key: &PendingKey) -> Option<PendingCommand> {
         let key = Packed::new(*key);
-        let slot = self.by_key.remove(&key)?;
+        let i = self.index.remove(&key)? as usize;
+        let slot = self.slots.swap_remove(i);
+        if let Some(moved) = self.slots.get(i) {
+            self.index.insert(moved.key, i as u32);
+        }
         if let Some(set) = self.taken.get_mut(&key.stream()) {
             let (word, bit) = seq_bit(key);
             set[word] &= !bit;
@@ -190,29 +214,38 @@ impl Pending {
                 self.taken.remove(&key.stream());
             }
         }
+        // After a burst, give most of the room back.
+        if self.slots.capacity() > 256 && self.slots.len() < self.slots.capacity() / 4 {
+            self.slots.shrink_to(self.slots.len() * 2);
+            self.index.shrink_to(self.slots.len() * 2);
+        }
         self.settle();
         Some(slot.command)
     }
 
+    fn slot(&self, key: Packed) -> Option<&Slot> {
+        let i = *self.index.get(&key)?;
+        self.slots.get(i as usize)
+    }
+
     fn get(&self, key: &PendingKey) -> Option<&PendingCommand> {
-        self.by_key.get(&Packed::new(*key)).map(|s| &s.command)
+        self.slot(Packed::new(*key)).map(|s| &s.command)
     }
 
     /// Mutable access for progress (acks of a broadcast, the frame's fate); the deadline changes
     /// only through [`Pending::set_deadline`].
     fn get_mut(&mut self, key: &PendingKey) -> Option<&mut PendingCommand> {
-        self.by_key
-            .get_mut(&Packed::new(*key))
-            .map(|s| &mut s.command)
+        let i = *self.index.get(&Packed::new(*key))?;
+        self.slots.get_mut(i as usize).map(|s| &mut s.command)
     }
 
     fn set_deadline(&mut self, key: &PendingKey, deadline: Instant) {
         let key = Packed::new(*key);
-        if !self.by_key.contains_key(&key) {
+        let Some(&i) = self.index.get(&key) else {
             return;
-        }
+        };
         let stamp = self.push_deadline(deadline, key);
-        if let Some(slot) = self.by_key.get_mut(&key) {
+        if let Some(slot) = self.slots.get_mut(i as usize) {
             slot.stamp = stamp;
             slot.command.deadline = deadline;
         }
@@ -227,19 +260,20 @@ impl Pending {
         self.next_stamp
     }
 
+    /// Whether a heap entry is its command's live deadline.
+    fn live(&self, &Reverse((_, key, stamp)): &Reverse<(Instant, Packed, u64)>) -> bool {
+        self.slot(key).is_some_and(|s| s.stamp == stamp)
+    }
+
     /// Drops stale entries from the heap's top, and all of them once they outnumber the live ones.
     fn settle(&mut self) {
-        let live =
-            |by_key: &FxHashMap<Packed, Slot>,
-             &Reverse((_, key, stamp)): &Reverse<(Instant, Packed, u64)>| {
-                by_key.get(&key).is_some_and(|s| s.stamp == stamp)
-            };
-        if self.deadlines.len() > 2 * self.by_key.len() + 64 {
-            let by_key = &self.by_key;
-            self.deadlines.retain(|e| live(by_key, e));
+        if self.deadlines.len() > 2 * self.slots.len() + 64 {
+            let mut heap = std::mem::take(&mut self.deadlines);
+            heap.retain(|e| self.live(e));
+            self.deadlines = heap;
         }
         while let Some(top) = self.deadlines.peek() {
-            if live(&self.by_key, top) {
+            if self.live(top) {
                 break;
             }
             self.deadlines.pop();
@@ -253,9 +287,9 @@ impl Pending {
     }
 
     fn iter(&self) -> impl Iterator<Item = (PendingKey, &PendingCommand)> {
-        self.by_key
+        self.slots
             .iter()
-            .filter_map(|(k, s)| Some((k.key()?, &s.command)))
+            .filter_map(|s| Some((s.key.key()?, &s.command)))
     }
 
     fn next_deadline(&self) -> Option<Instant> {
@@ -266,12 +300,14 @@ impl Pending {
     /// ends each of them or gives it a new deadline.
     fn overdue(&mut self, now: Instant) -> Vec<PendingKey> {
         let mut keys = Vec::new();
-        while let Some(&Reverse((deadline, key, stamp))) = self.deadlines.peek() {
+        while let Some(top) = self.deadlines.peek() {
+            let &Reverse((deadline, key, _)) = top;
             if deadline > now {
                 break;
             }
+            let live = self.live(top);
             self.deadlines.pop();
-            if self.by_key.get(&key).is_some_and(|s| s.stamp == stamp) {
+            if live {
                 keys.extend(key.key());
             }
         }
@@ -401,9 +437,10 @@ impl Commands {
             Target::Node(_) => What::Node(action),
             Target::All => What::Broadcast {
                 action,
-                expected: expected().into_iter().collect(),
-                acked: BTreeSet::new(),
-                refused: BTreeMap::new(),
+                answers: Box::new(Answers {
+                    expected: expected().into_iter().collect(),
+                    ..Answers::default()
+                }),
             },
         };
         let not_after = self.not_after(acc);
@@ -553,16 +590,15 @@ impl Commands {
             tracing::debug!(%src, ?kind, seq, "ack for no pending command (late or not ours)");
             return false;
         };
-        let What::Broadcast {
-            action,
-            expected,
-            acked,
-            refused,
-        } = &mut p.what
-        else {
+        let What::Broadcast { action, answers } = &mut p.what else {
             return false;
         };
         let action = *action;
+        let Answers {
+            expected,
+            acked,
+            refused,
+        } = &mut **answers;
         if result == AckResult::Ok {
             acked.insert(src);
         } else {
@@ -806,15 +842,11 @@ impl Commands {
                     out.unsure.insert(id);
                 }
             }
-            What::Broadcast {
-                expected,
-                acked,
-                refused,
-                ..
-            } => out.unsure.extend(
-                expected
+            What::Broadcast { answers, .. } => out.unsure.extend(
+                answers
+                    .expected
                     .iter()
-                    .filter(|id| !acked.contains(id) && !refused.contains_key(id)),
+                    .filter(|id| !answers.acked.contains(id) && !answers.refused.contains_key(id)),
             ),
             What::Assign { .. } | What::Internal => {}
         }
@@ -839,15 +871,14 @@ impl Commands {
     }
 
     fn finish_broadcast(&mut self, p: PendingCommand, tail: Option<String>, out: &mut Outputs) {
-        let What::Broadcast {
+        let What::Broadcast { answers, .. } = &p.what else {
+            return;
+        };
+        let Answers {
             expected,
             acked,
             refused,
-            ..
-        } = &p.what
-        else {
-            return;
-        };
+        } = &**answers;
         let missing: Vec<HexId> = expected
             .iter()
             .filter(|id| !acked.contains(id) && !refused.contains_key(id))
@@ -1618,6 +1649,43 @@ mod pending_tests {
             p.next_deadline(),
             Some(t0 + Duration::from_millis(10_000 - 9_999))
         );
+    }
+
+    #[test]
+    fn removing_from_the_middle_keeps_every_other_command_found() {
+        let t0 = Instant::now();
+        let mut p = Pending::default();
+        let id = NodeId::new(5).unwrap();
+        let key = |seq| (id, Kind::PowerSet, seq);
+        for seq in 0..=255u8 {
+            let (k, c) = entry(5, seq, t0 + Duration::from_millis(u64::from(seq)));
+            p.insert(k, c);
+        }
+        for seq in (0..=255u8).filter(|s| s % 3 == 1) {
+            assert_eq!(p.remove(&key(seq)).map(|c| c.frame), Some(entry(5, seq, t0).1.frame));
+        }
+        for seq in 0..=255u8 {
+            let found = p.get(&key(seq)).map(|c| c.frame);
+            let want = (seq % 3 != 1).then(|| entry(5, seq, t0).1.frame);
+            assert_eq!(found, want, "seq {seq}");
+        }
+        assert_eq!(p.iter().count(), 256 - 85);
+        // A burst to a second node, then most commands gone: the room it took is given back.
+        for seq in 0..=255u8 {
+            let (k, c) = entry(6, seq, t0);
+            p.insert(k, c);
+        }
+        assert!(p.slots.capacity() >= 256 + 171);
+        for seq in 0..=255u8 {
+            p.remove(&(NodeId::new(6).unwrap(), Kind::PowerSet, seq));
+        }
+        for seq in (0..=255u8).filter(|s| s % 3 != 1 && *s > 9) {
+            p.remove(&key(seq));
+        }
+        assert_eq!(p.slots.len(), 7);
+        assert!(p.slots.capacity() <= 256, "capacity {}", p.slots.capacity());
+        assert_eq!(p.get(&key(9)).map(|c| c.deadline), Some(t0 + Duration::from_millis(9)));
+        assert_eq!(p.next_deadline(), Some(t0));
     }
 
     #[test]
