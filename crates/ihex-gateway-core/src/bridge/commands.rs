@@ -1662,7 +1662,10 @@ mod pending_tests {
             p.insert(k, c);
         }
         for seq in (0..=255u8).filter(|s| s % 3 == 1) {
-            assert_eq!(p.remove(&key(seq)).map(|c| c.frame), Some(entry(5, seq, t0).1.frame));
+            assert_eq!(
+                p.remove(&key(seq)).map(|c| c.frame),
+                Some(entry(5, seq, t0).1.frame)
+            );
         }
         for seq in 0..=255u8 {
             let found = p.get(&key(seq)).map(|c| c.frame);
@@ -1684,7 +1687,10 @@ mod pending_tests {
         }
         assert_eq!(p.slots.len(), 7);
         assert!(p.slots.capacity() <= 256, "capacity {}", p.slots.capacity());
-        assert_eq!(p.get(&key(9)).map(|c| c.deadline), Some(t0 + Duration::from_millis(9)));
+        assert_eq!(
+            p.get(&key(9)).map(|c| c.deadline),
+            Some(t0 + Duration::from_millis(9))
+        );
         assert_eq!(p.next_deadline(), Some(t0));
     }
 
