@@ -193,7 +193,7 @@ impl Pending {
             None => {
                 self.index.insert(key, self.slots.len() as u32);
                 self.slots.push(slot);
-                let (word, bit) = seq_bit(key);
+                let (word, bit) = seq_bit(key.0 as u8);
                 self.taken.entry(key.stream()).or_default()[word] |= bit;
             }
         }
@@ -208,7 +208,7 @@ impl Pending {
             self.index.insert(moved.key, i as u32);
         }
         if let Some(set) = self.taken.get_mut(&key.stream()) {
-            let (word, bit) = seq_bit(key);
+            let (word, bit) = seq_bit(key.0 as u8);
             set[word] &= !bit;
             if *set == [0; 4] {
                 self.taken.remove(&key.stream());
@@ -316,9 +316,8 @@ impl Pending {
     }
 }
 
-/// Where `key`'s seq is in a 256-bit set: the word and the bit.
-fn seq_bit(key: Packed) -> (usize, u64) {
-    let seq = key.0 as u8;
+/// Where `seq` is in a 256-bit set: the word and the bit.
+fn seq_bit(seq: Seq) -> (usize, u64) {
     (usize::from(seq >> 6), 1 << (seq & 63))
 }
 
@@ -384,7 +383,8 @@ impl Commands {
         for _ in 0..=u8::MAX {
             let seq = self.next_seq;
             self.next_seq = seq.wrapping_add(1);
-            if taken[usize::from(seq >> 6)] & 1 << (seq & 63) == 0 {
+            let (word, bit) = seq_bit(seq);
+            if taken[word] & bit == 0 {
                 return Some(seq);
             }
         }
