@@ -218,7 +218,7 @@ impl Bench {
             if let Some(Event::FwReport(r)) = self.pump(Duration::from_millis(50))? {
                 if r.request_id.as_deref() == Some(request_id) {
                     let docking = dock_sent.zip(self.seen.docked).map(|(s, d)| d - s);
-                    return Ok((r, started.elapsed(), docking));
+                    return Ok((*r, started.elapsed(), docking));
                 }
             }
         }

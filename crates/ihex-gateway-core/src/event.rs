@@ -406,7 +406,8 @@ pub struct SimResult {
     pub reason: Option<String>,
 }
 
-/// One JSON event: `{"event": "<name>", "payload": {...}}`.
+/// One JSON event: `{"event": "<name>", "payload": {...}}`. The rare large payloads are boxed: every
+/// event waiting to be published is as large as the largest variant.
 #[derive(Clone, PartialEq, Debug, Serialize, Deserialize)]
 #[serde(tag = "event", content = "payload", rename_all = "snake_case")]
 pub enum Event {
@@ -429,7 +430,7 @@ pub enum Event {
     /// A node reported a fault, or misbehaved.
     Fault(FaultEvent),
     /// The bus or interface reported a problem, or a frame could not be decoded.
-    BusError(BusError),
+    BusError(Box<BusError>),
     /// A docking did not complete.
     DockFailed(DockFailed),
     /// Answer to `list`.
@@ -443,9 +444,9 @@ pub enum Event {
     /// Where one node is in a firmware update (throttled).
     FwProgress(crate::fwupdate::FwProgress),
     /// A firmware update ended: every node's outcome.
-    FwReport(crate::fwupdate::FwReport),
+    FwReport(Box<crate::fwupdate::FwReport>),
     /// An image uploaded over MQTT was stored, or rejected.
-    FwUpload(crate::fwupdate::FwUpload),
+    FwUpload(Box<crate::fwupdate::FwUpload>),
 }
 
 impl Event {
@@ -485,19 +486,25 @@ pub(crate) fn to_json<T: Serialize>(value: &T) -> String {
     String::from_utf8(json_bytes(value)).unwrap_or_else(|_| String::from("{}"))
 }
 
-/// [`to_json`]'s text as the bytes that are published, not checked again as UTF-8 (serde_json
-/// writes nothing else).
+/// [`to_json`]'s text as bytes, not checked again as UTF-8 (serde_json writes nothing else).
 pub(crate) fn json_bytes<T: Serialize>(value: &T) -> Vec<u8> {
     // Sized for a node's state document, the largest frequent publication: one allocation where
     // serde_json's own 128 bytes would grow three times.
     let mut out = Vec::with_capacity(JSON_CAPACITY);
-    match serde_json::to_writer(&mut out, value) {
-        Ok(()) => out,
-        Err(_) => b"{}".to_vec(),
+    write_json(value, &mut out);
+    out
+}
+
+/// Appends [`to_json`]'s text to `out` (what it held before is kept).
+pub(crate) fn write_json<T: Serialize>(value: &T, out: &mut Vec<u8>) {
+    let start = out.len();
+    if serde_json::to_writer(&mut *out, value).is_err() {
+        out.truncate(start);
+        out.extend_from_slice(b"{}");
     }
 }
 
-/// Bytes reserved for a publication's JSON text.
+/// Bytes reserved for a JSON text built on its own.
 const JSON_CAPACITY: usize = 768;
 
 /// The LED state a node acknowledged.

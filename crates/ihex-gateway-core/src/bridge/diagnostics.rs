@@ -201,14 +201,14 @@ impl Diagnostics {
             return;
         };
         let hex = ihex_proto::Hex(&data[..data.len().min(64)]).to_string();
-        out.emit(Event::BusError(BusError {
+        out.emit(Event::BusError(Box::new(BusError {
             error: "undecodable_frame".into(),
             message: format!("frame {raw_id:#010x} [{hex}] is not an iHEX packet: {err}"),
             raw_id: Some(format!("{raw_id:#010x}")),
             data: Some(hex),
             suppressed: suppressed(n),
             ..BusError::default()
-        }));
+        })));
     }
 
     /// A bus condition (error frame, bus-off, interface down/up, drops).
@@ -276,7 +276,7 @@ impl Diagnostics {
             self.rx_dropped = 0;
         }
         err.suppressed = suppressed(n);
-        out.emit(Event::BusError(err));
+        out.emit(Event::BusError(Box::new(err)));
     }
 
     /// Counts a frame that could not be sent (whoever reports it).
@@ -311,13 +311,13 @@ impl Diagnostics {
             "{kind:?} to {} not sent: {reason}",
             Target::from_dest(packet.dest)
         );
-        out.emit(Event::BusError(BusError {
+        out.emit(Event::BusError(Box::new(BusError {
             error: "send_failed".into(),
             message,
             raw_id: Some(format!("{raw_id:#010x}")),
             suppressed: suppressed(n),
             ..BusError::default()
-        }));
+        })));
     }
 }
 

@@ -84,7 +84,7 @@ impl FwUpdates {
             reason = answer.reason.as_deref().unwrap_or(""),
             "firmware image uploaded"
         );
-        out.emit(Event::FwUpload(answer));
+        out.emit(Event::FwUpload(Box::new(answer)));
     }
 
     pub(super) fn poll_load(&mut self) -> Option<FwLoad> {

@@ -714,7 +714,7 @@ impl FwSender {
             all_updated = report.all_updated(),
             "firmware update finished"
         );
-        self.events.push_back(Event::FwReport(report));
+        self.events.push_back(Event::FwReport(Box::new(report)));
     }
 }
 

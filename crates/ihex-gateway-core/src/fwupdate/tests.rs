@@ -272,7 +272,7 @@ fn run(mut models: Vec<Model>, image: FwImage, config: FwConfig) -> Run {
                 Event::FwProgress(p) => progress.push(p),
                 Event::FwReport(report) => {
                     return Run {
-                        report,
+                        report: *report,
                         progress,
                         sent,
                         models,
