@@ -7,14 +7,17 @@ use tracing_appender::{
     non_blocking::{NonBlocking, NonBlockingBuilder, WorkerGuard},
     rolling,
 };
-use tracing_subscriber::{fmt, layer::SubscriberExt, util::SubscriberInitExt, EnvFilter, Layer};
+use tracing_subscriber::{
+    filter::Targets, fmt, layer::SubscriberExt, util::SubscriberInitExt, Layer,
+};
 
 use crate::config::{LogConfig, Rotation};
 
 /// Lines each log writer buffers for its thread before further lines are dropped. The crate's
 /// default, 128,000, allocates and touches a 4 MB channel per writer at start-up: half the
-/// gateway's resident memory (docs/benchmarks.md); a burst of this many lines outruns no disk.
-pub const BUFFERED_LINES: usize = 4096;
+/// gateway's resident memory (docs/benchmarks.md). 1,024 lines (32 KB) are a third of a second of
+/// events at 3,000 a second, time enough for the writer's thread even on one busy core.
+pub const BUFFERED_LINES: usize = 1024;
 
 /// A non-blocking writer of [`BUFFERED_LINES`] lines around `w`.
 fn non_blocking<W: std::io::Write + Send + 'static>(w: W) -> (NonBlocking, WorkerGuard) {
@@ -57,9 +60,25 @@ fn directives(cfg: &LogConfig) -> String {
     }
 }
 
-fn filter(cfg: &LogConfig) -> Result<EnvFilter, LogError> {
+/// `target=level` directives and a default level: tracing-subscriber's `Targets`, not `EnvFilter`,
+/// whose span and field filters bring the regex engines (a quarter of a megabyte of code, resident
+/// all the gateway's life: docs/benchmarks.md, memory).
+fn filter(cfg: &LogConfig) -> Result<Targets, LogError> {
     let d = directives(cfg);
-    EnvFilter::try_new(&d).map_err(|e| LogError::Filter(d, e.to_string()))
+    // `Targets` would take `[span]` or `a{field}` for a target name and silently match nothing.
+    let target_char = |c: char| c.is_ascii_alphanumeric() || matches!(c, '_' | ':' | '-' | '.');
+    if let Some(bad) = d
+        .split(',')
+        .find(|dir| !dir.split('=').next().unwrap_or("").chars().all(target_char))
+    {
+        let why = format!(
+            "{bad:?} is not `target=level`: span and field filters are not supported, targets are \
+             module paths (e.g. `info,mc_gateway::mqtt=debug`)"
+        );
+        return Err(LogError::Filter(d, why));
+    }
+    d.parse()
+        .map_err(|e: tracing_subscriber::filter::ParseError| LogError::Filter(d, e.to_string()))
 }
 
 /// Colour on stderr only for a person at a terminal, and never when `NO_COLOR` is set to anything
@@ -145,5 +164,29 @@ mod tests {
         assert_eq!(directives(&cfg), "debug,rumqttd=info");
         cfg.filter = "info,[".into();
         assert!(matches!(filter(&cfg), Err(LogError::Filter(..))));
+    }
+
+    #[test]
+    fn filters_are_levels_and_module_paths() {
+        let cfg = |f: &str| LogConfig {
+            dir: None,
+            rotation: Rotation::Never,
+            filter: f.into(),
+        };
+        let t = filter(&cfg("warn,mc_gateway::mqtt=debug")).unwrap();
+        assert!(t.would_enable("mc_gateway::mqtt::conn", &tracing::Level::DEBUG));
+        assert!(!t.would_enable("mc_gateway::run", &tracing::Level::INFO));
+        assert!(t.would_enable("mc_gateway::run", &tracing::Level::WARN));
+        assert!(!t.would_enable("rumqttd::router", &tracing::Level::ERROR));
+        for bad in [
+            "info,mc_gateway=loud",
+            "info,[span]=debug",
+            "info,a{b}=debug",
+        ] {
+            let Err(LogError::Filter(_, why)) = filter(&cfg(bad)) else {
+                panic!("{bad:?} accepted");
+            };
+            assert!(!why.is_empty(), "{bad:?}");
+        }
     }
 }

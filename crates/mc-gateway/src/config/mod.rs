@@ -139,7 +139,7 @@ options! {
     /// When the log file rotates.
     log_rotation: String = "daily", env "IHEX_LOG_ROTATION", value "WHEN",
         one_of ["minutely", "hourly", "daily", "never"];
-    /// Log filter (tracing env-filter syntax, e.g. `info,mc_gateway=debug`).
+    /// Log filter: a default level and `target=level` directives, e.g. `info,mc_gateway=debug`.
     log: String = "info", env "IHEX_LOG", value "FILTER";
 }
 
@@ -305,7 +305,7 @@ pub struct LogConfig {
     pub dir: Option<PathBuf>,
     /// Rotation of the file.
     pub rotation: Rotation,
-    /// env-filter directive.
+    /// `--log`: a default level and `target=level` directives.
     pub filter: String,
 }
 
