@@ -1119,11 +1119,14 @@ pub fn run(s: Settings) -> Result<LiveResults> {
     b.next_index = u32::from(NODES);
     let responder = Responder::start(&s.iface, &mut b.notes)?;
 
+    // Which phase sets the gateway's peak: its VmHWM after each.
+    let mut peaks: Vec<(&str, u64)> = vec![("start", memory_kib(b.gw.pid())?.0)];
     println!("bench: latency at idle");
     let mqtt_loop = b.mqtt_loop(s.probes)?;
     let frame_to_event_idle = b.frame_to_event(s.probes)?;
     let cmd_to_frame_idle = b.cmd_to_frame(s.probes)?;
 
+    peaks.push(("idle latency", memory_kib(b.gw.pid())?.0));
     println!("bench: CAN->MQTT rate search");
     let ceiling = bare.rate_fps.max(1000.0);
     let (best, mut trials) = b.search(250.0, ceiling, Bench::trial)?;
@@ -1139,16 +1142,19 @@ pub fn run(s: Settings) -> Result<LiveResults> {
     let share_reports = cost.share;
     trials.push(cost);
 
+    peaks.push(("CAN->MQTT rates", memory_kib(b.gw.pid())?.0));
     println!("bench: MQTT->CAN rate");
     let (cps, mut command_trials) = b.search(250.0, ceiling, Bench::command_trial)?;
     let cost = b.command_trial((cps * 0.8).max(100.0))?;
     let cpu_ms_per_1k_commands = cost.gateway_cpu_ms * 1000.0 / cost.received.max(1) as f64;
     let share_commands = cost.share;
     command_trials.push(cost);
+    peaks.push(("MQTT->CAN rates", memory_kib(b.gw.pid())?.0));
     println!("bench: MQTT->CAN burst of {} commands", s.commands);
     let burst = b.command_trial(f64::INFINITY)?;
     let burst_secs = burst.sent as f64 / burst.sent_fps + burst.lag_ms.max(0.0) / 1e3;
 
+    peaks.push(("burst", memory_kib(b.gw.pid())?.0));
     let limit_background = Limit::new(BITRATE, frame(&background(0))?.data().len() as u8);
     let load_rate = limit_background.fps_worst;
     println!("bench: latency with the bus at {load_rate:.0} background frames/s");
@@ -1161,6 +1167,12 @@ pub fn run(s: Settings) -> Result<LiveResults> {
 
     b.gw.check_alive()?;
     let (hwm, rss) = memory_kib(b.gw.pid())?;
+    peaks.push(("bus load", hwm));
+    let peaks: Vec<String> = peaks.iter().map(|(p, k)| format!("{p} {k}")).collect();
+    b.notes.push(format!(
+        "gateway VmHWM (KiB) after each phase: {}",
+        peaks.join(", ")
+    ));
     let acked = responder.stop();
     b.notes.push(format!(
         "the bench acked {acked} LedSet commands as their nodes (each ack -> one command_result)"
