@@ -486,25 +486,19 @@ pub(crate) fn to_json<T: Serialize>(value: &T) -> String {
     String::from_utf8(json_bytes(value)).unwrap_or_else(|_| String::from("{}"))
 }
 
-/// [`to_json`]'s text as bytes, not checked again as UTF-8 (serde_json writes nothing else).
+/// [`to_json`]'s text as the bytes that are published, not checked again as UTF-8 (serde_json
+/// writes nothing else).
 pub(crate) fn json_bytes<T: Serialize>(value: &T) -> Vec<u8> {
     // Sized for a node's state document, the largest frequent publication: one allocation where
     // serde_json's own 128 bytes would grow three times.
     let mut out = Vec::with_capacity(JSON_CAPACITY);
-    write_json(value, &mut out);
-    out
-}
-
-/// Appends [`to_json`]'s text to `out` (what it held before is kept).
-pub(crate) fn write_json<T: Serialize>(value: &T, out: &mut Vec<u8>) {
-    let start = out.len();
-    if serde_json::to_writer(&mut *out, value).is_err() {
-        out.truncate(start);
-        out.extend_from_slice(b"{}");
+    match serde_json::to_writer(&mut out, value) {
+        Ok(()) => out,
+        Err(_) => b"{}".to_vec(),
     }
 }
 
-/// Bytes reserved for a JSON text built on its own.
+/// Bytes reserved for a publication's JSON text.
 const JSON_CAPACITY: usize = 768;
 
 /// The LED state a node acknowledged.

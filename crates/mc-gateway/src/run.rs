@@ -16,7 +16,6 @@ use std::{
     time::{Duration, Instant},
 };
 
-use bytes::Bytes;
 use ihex_gateway_core::{bridge::TRANSMIT_WINDOW, Bridge, Delivery, Publication, Transmit};
 use tokio::{sync::mpsc, task::JoinSet};
 use tokio_util::sync::CancellationToken;
@@ -40,8 +39,6 @@ const PUBLICATIONS: usize = 256;
 /// Inputs of one kind the core takes per turn of its loop when they are already waiting (the
 /// answers' bound [`Bridge::wants_commands`] is checked before each command).
 const BATCH: usize = 64;
-/// Capacity of the core's JSON text buffer kept from one publication to the next.
-const TEXT_KEEP: usize = 16 * 1024;
 /// How long the core spends at shutdown handing its last publications to the MQTT task.
 const SHUTDOWN_FLUSH: Duration = Duration::from_secs(1);
 
@@ -206,7 +203,6 @@ impl Gateway {
             views,
             stats: mqtt_stats,
             fw_dir: config.settings.fw_dir.clone(),
-            text: Vec::new(),
         };
         let result = core.run(can_in, mqtt_in, &mut tasks, &cancel).await;
 
@@ -238,8 +234,6 @@ struct Core {
     stats: Arc<MqttStats>,
     /// `--fw-dir`: where `fw_update` images are read from.
     fw_dir: Option<std::path::PathBuf>,
-    /// Where each publication's JSON text is written before it is copied out at its exact size.
-    text: Vec<u8>,
 }
 
 impl Core {
@@ -333,13 +327,7 @@ impl Core {
             let Some(publication) = self.bridge.poll_publication() else {
                 break;
             };
-            let p = outbound(
-                &self.topics,
-                self.feed.as_deref(),
-                &mut self.text,
-                publication,
-            );
-            permit.send(p);
+            permit.send(outbound(&self.topics, self.feed.as_deref(), publication));
         }
         self.stats
             .publications_dropped
@@ -351,12 +339,7 @@ impl Core {
     async fn flush_at_shutdown(&mut self) {
         let deadline = tokio::time::Instant::now() + SHUTDOWN_FLUSH;
         while let Some(publication) = self.bridge.poll_publication() {
-            let p = outbound(
-                &self.topics,
-                self.feed.as_deref(),
-                &mut self.text,
-                publication,
-            );
+            let p = outbound(&self.topics, self.feed.as_deref(), publication);
             match tokio::time::timeout_at(deadline, self.pub_tx.send(p)).await {
                 Ok(Ok(())) => {}
                 _ => {
@@ -409,24 +392,11 @@ fn on_mqtt(bridge: &mut Bridge, input: MqttInput) {
 
 /// The one place publications leave the core: serialised once, logged (every event at info, so
 /// the log alone tells the island's story), copied to the island view, addressed for the MQTT task.
-/// The text is written in `text` and copied into an allocation of its size: a burst's waiting
-/// publications hold what they say, not a reserve each (docs/benchmarks.md, memory).
-fn outbound(
-    topics: &Topics,
-    feed: Option<&Feed>,
-    text: &mut Vec<u8>,
-    publication: Publication,
-) -> Outbound {
-    text.clear();
-    if text.capacity() > TEXT_KEEP {
-        // An unusually large publication (a long node list): its room is not kept.
-        *text = Vec::new();
-    }
-    publication.write_payload(text);
-    let payload = &text[..];
+fn outbound(topics: &Topics, feed: Option<&Feed>, publication: Publication) -> Outbound {
+    let payload = publication.payload();
     // serde_json writes UTF-8 only; the text is checked only where it is read as text (a log line
     // that is enabled, the island view).
-    let json = || String::from_utf8_lossy(payload);
+    let json = || String::from_utf8_lossy(&payload);
     match &publication {
         Publication::Event(e) => info!(event = e.name(), payload = %json(), "event published"),
         Publication::State(s) => debug!(node = %s.id, payload = %json(), "state published"),
@@ -440,7 +410,7 @@ fn outbound(
     }
     Outbound {
         topic: topics.resolve(publication.topic()),
-        payload: Bytes::copy_from_slice(payload),
+        payload: payload.into(),
         retain: publication.retain(),
     }
 }

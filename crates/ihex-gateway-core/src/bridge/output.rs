@@ -76,19 +76,11 @@ impl Publication {
     /// What is published: compact JSON (`{"event":…,"payload":…}`, the state document, a Home
     /// Assistant config or light state), or nothing for [`Publication::Cleared`].
     pub fn payload(&self) -> Vec<u8> {
-        let mut out = Vec::new();
-        self.write_payload(&mut out);
-        out
-    }
-
-    /// Appends [`payload`](Self::payload) to `out`: an adapter that publishes many keeps one
-    /// buffer for the text and gives each publication an allocation of its exact size.
-    pub fn write_payload(&self, out: &mut Vec<u8>) {
         match self {
-            Publication::Event(e) => event::write_json(e, out),
-            Publication::State(s) => event::write_json(s, out),
-            Publication::Ha(h) => h.write_payload(out),
-            Publication::Cleared(_) => {}
+            Publication::Event(e) => event::json_bytes(e),
+            Publication::State(s) => event::json_bytes(s),
+            Publication::Ha(h) => h.payload(),
+            Publication::Cleared(_) => Vec::new(),
         }
     }
 
