@@ -61,8 +61,8 @@ fn directives(cfg: &LogConfig) -> String {
 }
 
 /// `target=level` directives and a default level: tracing-subscriber's `Targets`, not `EnvFilter`,
-/// whose span and field filters bring the regex engines (a quarter of a megabyte of code, resident
-/// all the gateway's life: docs/benchmarks.md, memory).
+/// whose span and field filters bring the regex engines (424 KB of code in the Pi build, resident all
+/// the gateway's life: docs/benchmarks.md, memory).
 fn filter(cfg: &LogConfig) -> Result<Targets, LogError> {
     let d = directives(cfg);
     // `Targets` would take `[span]` or `a{field}` for a target name and silently match nothing.
