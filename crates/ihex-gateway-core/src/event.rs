@@ -6,6 +6,7 @@
 
 use std::fmt;
 
+use bytes::{BufMut, BytesMut};
 use ihex_proto::{BuzzerCommand, LedCommand, NodeId, ResetReason};
 use serde::{Deserialize, Deserializer, Serialize, Serializer};
 
@@ -480,26 +481,23 @@ impl Event {
     }
 }
 
-/// Compact JSON of a DTO. Serialising these types cannot fail (plain structs, string keys only);
-/// should it ever, an empty object is published rather than panicking the gateway.
+/// Compact JSON of a DTO, as text (tests, logs and the simulator; the gateway publishes
+/// [`write_json`]'s bytes).
 pub(crate) fn to_json<T: Serialize>(value: &T) -> String {
-    String::from_utf8(json_bytes(value)).unwrap_or_else(|_| String::from("{}"))
+    let mut out = BytesMut::new();
+    write_json(value, &mut out);
+    String::from_utf8(out.into()).unwrap_or_else(|_| String::from("{}"))
 }
 
-/// [`to_json`]'s text as the bytes that are published, not checked again as UTF-8 (serde_json
-/// writes nothing else).
-pub(crate) fn json_bytes<T: Serialize>(value: &T) -> Vec<u8> {
-    // Sized for a node's state document, the largest frequent publication: one allocation where
-    // serde_json's own 128 bytes would grow three times.
-    let mut out = Vec::with_capacity(JSON_CAPACITY);
-    match serde_json::to_writer(&mut out, value) {
-        Ok(()) => out,
-        Err(_) => b"{}".to_vec(),
+/// Appends `value`'s compact JSON to `out`. Serialising these types cannot fail (plain structs,
+/// string keys only); should it ever, `{}` is written rather than panicking the gateway.
+pub(crate) fn write_json<T: Serialize>(value: &T, out: &mut BytesMut) {
+    let start = out.len();
+    if serde_json::to_writer((&mut *out).writer(), value).is_err() {
+        out.truncate(start);
+        out.extend_from_slice(b"{}");
     }
 }
-
-/// Bytes reserved for a publication's JSON text.
-const JSON_CAPACITY: usize = 768;
 
 /// The LED state a node acknowledged.
 #[derive(Clone, PartialEq, Eq, Debug, Serialize, Deserialize)]

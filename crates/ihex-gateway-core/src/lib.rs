@@ -49,7 +49,7 @@ pub mod throttle;
 pub mod topic;
 
 pub use bridge::{
-    Bridge, BridgeConfig, BusEvent, BusHealth, CommandCounters, Delivery, Publication,
-    PublicationCounters, Topic, Transmit,
+    Bridge, BridgeConfig, BusEvent, BusHealth, CommandCounters, Delivery, PayloadWriter,
+    Publication, PublicationCounters, Topic, Transmit,
 };
 pub use event::{Event, NodeState};

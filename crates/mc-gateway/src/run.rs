@@ -16,7 +16,9 @@ use std::{
     time::{Duration, Instant},
 };
 
-use ihex_gateway_core::{bridge::TRANSMIT_WINDOW, Bridge, Delivery, Publication, Transmit};
+use ihex_gateway_core::{
+    bridge::TRANSMIT_WINDOW, Bridge, Delivery, PayloadWriter, Publication, Transmit,
+};
 use tokio::{sync::mpsc, task::JoinSet};
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, error, info, warn};
@@ -199,6 +201,7 @@ impl Gateway {
             can_tx,
             pub_tx,
             topics: config.topics.clone(),
+            text: PayloadWriter::default(),
             feed,
             views,
             stats: mqtt_stats,
@@ -227,6 +230,8 @@ struct Core {
     can_tx: mpsc::Sender<Transmit>,
     pub_tx: mpsc::Sender<Outbound>,
     topics: Topics,
+    /// Where publications' text is written.
+    text: PayloadWriter,
     /// The island view's copy of every publication, when it runs.
     feed: Option<Arc<Feed>>,
     /// The island view's requests for views of the bridge.
@@ -327,7 +332,12 @@ impl Core {
             let Some(publication) = self.bridge.poll_publication() else {
                 break;
             };
-            permit.send(outbound(&self.topics, self.feed.as_deref(), publication));
+            permit.send(outbound(
+                &self.topics,
+                self.feed.as_deref(),
+                &mut self.text,
+                publication,
+            ));
         }
         self.stats
             .publications_dropped
@@ -339,7 +349,12 @@ impl Core {
     async fn flush_at_shutdown(&mut self) {
         let deadline = tokio::time::Instant::now() + SHUTDOWN_FLUSH;
         while let Some(publication) = self.bridge.poll_publication() {
-            let p = outbound(&self.topics, self.feed.as_deref(), publication);
+            let p = outbound(
+                &self.topics,
+                self.feed.as_deref(),
+                &mut self.text,
+                publication,
+            );
             match tokio::time::timeout_at(deadline, self.pub_tx.send(p)).await {
                 Ok(Ok(())) => {}
                 _ => {
@@ -392,8 +407,13 @@ fn on_mqtt(bridge: &mut Bridge, input: MqttInput) {
 
 /// The one place publications leave the core: serialised once, logged (every event at info, so
 /// the log alone tells the island's story), copied to the island view, addressed for the MQTT task.
-fn outbound(topics: &Topics, feed: Option<&Feed>, publication: Publication) -> Outbound {
-    let payload = publication.payload();
+fn outbound(
+    topics: &Topics,
+    feed: Option<&Feed>,
+    text: &mut PayloadWriter,
+    publication: Publication,
+) -> Outbound {
+    let payload = text.write(&publication);
     // serde_json writes UTF-8 only; the text is checked only where it is read as text (a log line
     // that is enabled, the island view).
     let json = || String::from_utf8_lossy(&payload);
@@ -410,7 +430,7 @@ fn outbound(topics: &Topics, feed: Option<&Feed>, publication: Publication) -> O
     }
     Outbound {
         topic: topics.resolve(publication.topic()),
-        payload: payload.into(),
+        payload,
         retain: publication.retain(),
     }
 }

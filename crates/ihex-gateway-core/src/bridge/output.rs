@@ -13,11 +13,12 @@
 //! dropped; *other events* wait in a queue of `event_queue` entries whose oldest is dropped and
 //! counted when it is full. Home Assistant's discovery configs and light states, and emptied
 //! retained topics, are kept like answers. The adapter serialises a publication exactly once
-//! ([`Publication::to_json`]) and sends it on [`Publication::topic`].
+//! ([`PayloadWriter`]) and sends it on [`Publication::topic`].
 
 use std::collections::{BTreeMap, BTreeSet, VecDeque};
 use std::time::Instant;
 
+use bytes::{Bytes, BytesMut};
 use ihex_proto::{NodeId, Packet};
 
 use crate::event::{self, Event, NodeState};
@@ -73,20 +74,46 @@ impl Publication {
         !matches!(self, Publication::Event(_))
     }
 
-    /// What is published: compact JSON (`{"event":…,"payload":…}`, the state document, a Home
-    /// Assistant config or light state), or nothing for [`Publication::Cleared`].
-    pub fn payload(&self) -> Vec<u8> {
+    /// Appends what is published to `out`: compact JSON (`{"event":…,"payload":…}`, the state
+    /// document, a Home Assistant config or light state), or nothing for [`Publication::Cleared`].
+    pub fn write_payload(&self, out: &mut BytesMut) {
         match self {
-            Publication::Event(e) => event::json_bytes(e),
-            Publication::State(s) => event::json_bytes(s),
-            Publication::Ha(h) => h.payload(),
-            Publication::Cleared(_) => Vec::new(),
+            Publication::Event(e) => event::write_json(e, out),
+            Publication::State(s) => event::write_json(s, out),
+            Publication::Ha(h) => h.write_payload(out),
+            Publication::Cleared(_) => {}
         }
     }
 
-    /// [`payload`](Self::payload) as text.
+    /// What is published, as text.
     pub fn to_json(&self) -> String {
-        String::from_utf8(self.payload()).unwrap_or_default()
+        let mut out = BytesMut::new();
+        self.write_payload(&mut out);
+        String::from_utf8(out.into()).unwrap_or_default()
+    }
+}
+
+/// Writes publications' text into shared chunks of memory: one allocation per [`CHUNK`] bytes of
+/// text instead of one per publication, and no room reserved beyond the text. A chunk is freed
+/// (or written again) once every publication in it was dropped, i.e. acknowledged by the broker.
+#[derive(Debug, Default)]
+pub struct PayloadWriter {
+    chunk: BytesMut,
+}
+
+/// Bytes of publication text allocated at a time.
+pub const CHUNK: usize = 16 * 1024;
+
+impl PayloadWriter {
+    /// The text [`Publication::write_payload`] writes, as bytes that share this writer's chunk.
+    pub fn write(&mut self, publication: &Publication) -> Bytes {
+        // Room for the largest frequent publication (a state document) without growing mid-way,
+        // which would copy the text written so far.
+        if self.chunk.capacity() < CHUNK / 16 {
+            self.chunk.reserve(CHUNK);
+        }
+        publication.write_payload(&mut self.chunk);
+        self.chunk.split().freeze()
     }
 }
 
@@ -623,5 +650,39 @@ mod tests {
         assert_eq!(t.pop(t0), Some(Err(late)));
         assert!(t.withdraw(&late));
         assert!(t.pop(t0).is_none());
+    }
+
+    #[test]
+    fn payload_writer_gives_each_publication_its_text_alone() {
+        let mut w = PayloadWriter::default();
+        // Kept alive, as publications waiting for the broker's ack are: many chunks fill up.
+        let mut kept = Vec::new();
+        for n in 0..(2 * CHUNK / 40) as u32 {
+            let p = Publication::Event(rejected(n));
+            let bytes = w.write(&p);
+            assert_eq!(bytes, p.to_json().as_bytes(), "publication {n}");
+            kept.push((p, bytes));
+        }
+        let (a, b) = (&kept[0].1, &kept[1].1);
+        assert_eq!(
+            a.as_ptr().wrapping_add(a.len()),
+            b.as_ptr(),
+            "one chunk, no room left between two texts"
+        );
+        // Larger than a chunk: grows in one piece.
+        let big = Publication::Event(Event::CommandRejected(CommandRejected {
+            request_id: None,
+            reason: "y".repeat(3 * CHUNK),
+        }));
+        let bytes = w.write(&big);
+        assert_eq!(bytes, big.to_json().as_bytes());
+        assert_eq!(w.write(&Publication::Cleared(Topic::Events)), "");
+        for (p, bytes) in &kept {
+            assert_eq!(
+                bytes,
+                p.to_json().as_bytes(),
+                "not overwritten by later text"
+            );
+        }
     }
 }

@@ -70,11 +70,11 @@ impl HaPublication {
         }
     }
 
-    /// The compact JSON that is published.
-    pub fn payload(&self) -> Vec<u8> {
+    /// Appends the compact JSON that is published to `out`.
+    pub fn write_payload(&self, out: &mut bytes::BytesMut) {
         match self {
-            HaPublication::Config { config, .. } => crate::event::json_bytes(config),
-            HaPublication::Light { state, .. } => crate::event::json_bytes(state),
+            HaPublication::Config { config, .. } => crate::event::write_json(config, out),
+            HaPublication::Light { state, .. } => crate::event::write_json(state, out),
         }
     }
 }
