@@ -32,6 +32,10 @@ type Attempt = Pin<Box<dyn Future<Output = Result<(Up, ConnAck), ConnectionError
 
 /// Bytes read from the socket at a time (a buffer grows to the largest packet it must hold).
 const READ_CHUNK: usize = 16 * 1024;
+/// Publications encoded ahead of one write, in bytes. The write buffer keeps the largest size it
+/// ever had: without this bound an island's Home Assistant configs (3 KB each) at start-up grew it
+/// beyond 100 KiB for good. The rest waits, already serialised, for the next round.
+pub const WRITE_BATCH: usize = READ_CHUNK;
 
 /// One MQTT 3.1.1 client connection that reconnects when polled after a failure.
 pub struct Connection {
@@ -109,15 +113,20 @@ impl Connection {
         matches!(self.link, Link::Up(_))
     }
 
-    /// Queues a QoS 1 publication, unless the connection is not up or the in-flight window (the
-    /// options' `inflight`) is full: then it is handed back, to be offered again later.
+    /// Queues a QoS 1 publication, unless the connection is not up, the in-flight window (the
+    /// options' `inflight`) is full or [`WRITE_BATCH`] bytes already wait for the next write: then
+    /// it is handed back, to be offered again later.
     pub fn publish(
         &mut self,
         topic: String,
         payload: Bytes,
         retain: bool,
     ) -> Result<(), (String, Bytes)> {
-        if !self.is_up()
+        let batch_full = match &self.link {
+            Link::Up(up) => up.write.len() >= WRITE_BATCH,
+            _ => true,
+        };
+        if batch_full
             || self.state.inflight() >= self.options.inflight()
             || self.state.collision.is_some()
         {

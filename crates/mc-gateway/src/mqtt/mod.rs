@@ -1027,4 +1027,55 @@ mod tests {
         );
         assert!(conn.take_back().is_empty(), "taken back once");
     }
+
+    /// Publications beyond one write's worth are handed back even with room in the in-flight
+    /// window, and taken again once the buffer was written.
+    #[tokio::test]
+    async fn one_write_holds_a_bounded_batch_of_publications() {
+        use tokio::io::{AsyncReadExt, AsyncWriteExt};
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let port = listener.local_addr().unwrap().port();
+        tokio::spawn(async move {
+            let (mut s, _) = listener.accept().await.unwrap();
+            let mut buf = [0u8; 4096];
+            let _ = s.read(&mut buf).await; // CONNECT
+            s.write_all(&[0x20, 0x02, 0x00, 0x00]).await.unwrap(); // CONNACK accepted
+            while let Ok(n) = s.read(&mut buf).await {
+                if n == 0 {
+                    break;
+                }
+            }
+        });
+        let mut conn = Connection::new(
+            MqttOptions::new("batch", "127.0.0.1", port),
+            MAX_OUTGOING,
+            CONNECT_TIMEOUT,
+        );
+        let ev = conn.poll().await.unwrap();
+        assert!(
+            matches!(ev, Event::Incoming(Incoming::ConnAck(_))),
+            "{ev:?}"
+        );
+        // A Home Assistant config's size.
+        let text = Bytes::from(vec![b'x'; 3000]);
+        let mut taken = 0;
+        while conn.publish("t".into(), text.clone(), true).is_ok() {
+            taken += 1;
+            assert!(
+                taken < 100,
+                "the in-flight window, not the batch, stopped it"
+            );
+        }
+        assert_eq!(
+            taken,
+            conn::WRITE_BATCH.div_ceil(3000 + 6),
+            "one write's worth"
+        );
+        // Nothing comes back from this broker: poll writes, then waits for input.
+        let _ = tokio::time::timeout(Duration::from_millis(300), conn.poll()).await;
+        assert!(
+            conn.publish("t".into(), text, true).is_ok(),
+            "room again once written"
+        );
+    }
 }
