@@ -20,10 +20,9 @@ pub mod topic;
 use std::collections::BTreeMap;
 
 use ihex_proto::{LedCommand, NodeId};
-use serde_json::Value;
 
 use crate::command::{Rejection, Request};
-use crate::event::NodeState;
+use crate::event::{to_json, NodeState};
 use crate::registry::NodeEntry;
 use crate::topic::Topics;
 pub use light::LightState;
@@ -49,8 +48,9 @@ pub enum HaPublication {
     Config {
         /// The gateway's config or an element's.
         topic: HaTopic,
-        /// The config.
-        config: Value,
+        /// The config's compact JSON, serialised when it is built: a config waiting to be published
+        /// is 3 KB of text, not a tree of values many times that size.
+        config: String,
     },
     /// An element's light state (retained).
     Light {
@@ -73,7 +73,7 @@ impl HaPublication {
     /// Appends the compact JSON that is published to `out`.
     pub fn write_payload(&self, out: &mut bytes::BytesMut) {
         match self {
-            HaPublication::Config { config, .. } => crate::event::write_json(config, out),
+            HaPublication::Config { config, .. } => out.extend_from_slice(config.as_bytes()),
             HaPublication::Light { state, .. } => crate::event::write_json(state, out),
         }
     }
@@ -108,7 +108,7 @@ impl Ha {
     pub fn gateway(&self) -> HaPublication {
         HaPublication::Config {
             topic: HaTopic::GatewayConfig,
-            config: discovery::gateway(&self.config),
+            config: to_json(&discovery::gateway(&self.config)),
         }
     }
 
@@ -127,7 +127,7 @@ impl Ha {
             let element = discovery::Element::of(doc, entry.uid);
             out.push(HaPublication::Config {
                 topic: HaTopic::DeviceConfig(id),
-                config: discovery::element(&self.config, &element),
+                config: to_json(&discovery::element(&self.config, &element)),
             });
             self.configs.insert(id, element);
         }
@@ -150,7 +150,7 @@ impl Ha {
                 .iter()
                 .map(|(&id, element)| HaPublication::Config {
                     topic: HaTopic::DeviceConfig(id),
-                    config: discovery::element(&self.config, element),
+                    config: to_json(&discovery::element(&self.config, element)),
                 }),
         );
         out
