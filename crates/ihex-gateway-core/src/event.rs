@@ -6,7 +6,7 @@
 
 use std::fmt;
 
-use bytes::{BufMut, BytesMut};
+use bytes::BytesMut;
 use ihex_proto::{BuzzerCommand, LedCommand, NodeId, ResetReason};
 use serde::{Deserialize, Deserializer, Serialize, Serializer};
 
@@ -493,9 +493,30 @@ pub(crate) fn to_json<T: Serialize>(value: &T) -> String {
 /// string keys only); should it ever, `{}` is written rather than panicking the gateway.
 pub(crate) fn write_json<T: Serialize>(value: &T, out: &mut BytesMut) {
     let start = out.len();
-    if serde_json::to_writer((&mut *out).writer(), value).is_err() {
+    if serde_json::to_writer(Append(&mut *out), value).is_err() {
         out.truncate(start);
         out.extend_from_slice(b"{}");
+    }
+}
+
+/// `io::Write` straight onto a `BytesMut`, as `Vec<u8>`'s: serde_json writes an event in some
+/// 25 small pieces, and `bytes`' own `Writer` takes each through the generic `write_all` loop
+/// (about 1,250 more instructions per event, callgrind).
+struct Append<'a>(&'a mut BytesMut);
+
+impl std::io::Write for Append<'_> {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        self.0.extend_from_slice(buf);
+        Ok(buf.len())
+    }
+
+    fn write_all(&mut self, buf: &[u8]) -> std::io::Result<()> {
+        self.0.extend_from_slice(buf);
+        Ok(())
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        Ok(())
     }
 }
 
