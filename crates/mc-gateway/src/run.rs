@@ -37,7 +37,9 @@ const CAN_INPUTS: usize = 1024;
 /// Messages from the MQTT task waiting for the core.
 const MQTT_INPUTS: usize = 256;
 /// Publications from the core waiting for the MQTT task (the bridge holds the rest, by its rules).
-const PUBLICATIONS: usize = 256;
+/// With the task's own `STAGING` and the connection's in-flight window behind it, enough to fill
+/// every write; more would only hold serialised text that the bridge keeps smaller (coalesced).
+const PUBLICATIONS: usize = 64;
 /// Inputs of one kind the core takes per turn of its loop when they are already waiting (the
 /// answers' bound [`Bridge::wants_commands`] is checked before each command).
 const BATCH: usize = 64;
