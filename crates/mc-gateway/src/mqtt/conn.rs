@@ -33,8 +33,9 @@ type Attempt = Pin<Box<dyn Future<Output = Result<(Up, ConnAck), ConnectionError
 /// Bytes read from the socket at a time (a buffer grows to the largest packet it must hold).
 const READ_CHUNK: usize = 16 * 1024;
 /// Publications encoded ahead of one write, in bytes. The write buffer keeps the largest size it
-/// ever had: without this bound an island's Home Assistant configs (3 KB each) at start-up grew it
-/// beyond 100 KiB for good. The rest waits, already serialised, for the next round.
+/// ever had: without this bound a window of Home Assistant configs (3 KB each, up to 100 in flight)
+/// at start-up could grow it to hundreds of KiB for good. The rest waits, already serialised, for
+/// the next round.
 pub const WRITE_BATCH: usize = READ_CHUNK;
 
 /// One MQTT 3.1.1 client connection that reconnects when polled after a failure.
