@@ -38,7 +38,7 @@ pub use commands::CommandCounters;
 pub use diagnostics::{BusEvent, BusHealth, ERROR_EVENT_WINDOW};
 pub use fw::FwLoad;
 pub use output::{
-    PayloadWriter, Publication, PublicationCounters, Topic, Transmit, ANSWER_BACKLOG, CHUNK,
+    PayloadWriter, Publication, PublicationCounters, Topic, Transmit, ANSWER_BACKLOG,
     TRANSMIT_WINDOW,
 };
 pub use readback::{INCOMPLETE_LIMIT, MAX_QUERIES, READ_BACK_VERSION, SILENT_LIMIT};

@@ -93,8 +93,8 @@ impl Publication {
     }
 }
 
-/// Writes publications' text into shared chunks of memory: one allocation per [`CHUNK`] bytes of
-/// text instead of one per publication, and no room reserved beyond the text. A chunk is freed
+/// Writes publications' text into shared chunks of memory: one allocation per 16 KiB of text
+/// instead of one per publication, and no room reserved beyond the text. A chunk is freed
 /// (or written again) once every publication in it was dropped, i.e. acknowledged by the broker.
 #[derive(Debug, Default)]
 pub struct PayloadWriter {
@@ -102,7 +102,7 @@ pub struct PayloadWriter {
 }
 
 /// Bytes of publication text allocated at a time.
-pub const CHUNK: usize = 16 * 1024;
+const CHUNK: usize = 16 * 1024;
 
 impl PayloadWriter {
     /// The text [`Publication::write_payload`] writes, as bytes that share this writer's chunk.

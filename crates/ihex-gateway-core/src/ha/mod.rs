@@ -62,6 +62,14 @@ pub enum HaPublication {
 }
 
 impl HaPublication {
+    /// A discovery config, serialised here, once: it waits for publication as its text.
+    fn config(topic: HaTopic, config: &serde_json::Value) -> HaPublication {
+        HaPublication::Config {
+            topic,
+            config: to_json(config),
+        }
+    }
+
     /// Where it goes.
     pub fn topic(&self) -> HaTopic {
         match self {
@@ -106,10 +114,7 @@ impl Ha {
 
     /// The gateway device's config.
     pub fn gateway(&self) -> HaPublication {
-        HaPublication::Config {
-            topic: HaTopic::GatewayConfig,
-            config: to_json(&discovery::gateway(&self.config)),
-        }
+        HaPublication::config(HaTopic::GatewayConfig, &discovery::gateway(&self.config))
     }
 
     /// An element's state document `doc` was published: its config and light state, each when it
@@ -125,10 +130,10 @@ impl Ha {
         let shown = self.configs.get(&id);
         if force || !shown.is_some_and(|e| e.shows(doc, entry.uid)) {
             let element = discovery::Element::of(doc, entry.uid);
-            out.push(HaPublication::Config {
-                topic: HaTopic::DeviceConfig(id),
-                config: to_json(&discovery::element(&self.config, &element)),
-            });
+            out.push(HaPublication::config(
+                HaTopic::DeviceConfig(id),
+                &discovery::element(&self.config, &element),
+            ));
             self.configs.insert(id, element);
         }
         let light = LightState::from_led(entry.led);
@@ -145,14 +150,12 @@ impl Ha {
     /// Every config again (Home Assistant started and announced itself): the gateway's first.
     pub fn configs(&self) -> Vec<HaPublication> {
         let mut out = vec![self.gateway()];
-        out.extend(
-            self.configs
-                .iter()
-                .map(|(&id, element)| HaPublication::Config {
-                    topic: HaTopic::DeviceConfig(id),
-                    config: to_json(&discovery::element(&self.config, element)),
-                }),
-        );
+        out.extend(self.configs.iter().map(|(&id, element)| {
+            HaPublication::config(
+                HaTopic::DeviceConfig(id),
+                &discovery::element(&self.config, element),
+            )
+        }));
         out
     }
 

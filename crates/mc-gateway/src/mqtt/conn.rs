@@ -123,11 +123,10 @@ impl Connection {
         payload: Bytes,
         retain: bool,
     ) -> Result<(), (String, Bytes)> {
-        let batch_full = match &self.link {
-            Link::Up(up) => up.write.len() >= WRITE_BATCH,
-            _ => true,
+        let Link::Up(up) = &self.link else {
+            return Err((topic, payload));
         };
-        if batch_full
+        if up.write.len() >= WRITE_BATCH
             || self.state.inflight() >= self.options.inflight()
             || self.state.collision.is_some()
         {
