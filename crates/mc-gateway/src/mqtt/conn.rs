@@ -11,7 +11,9 @@
 //! in the [`Connection`], including a connection attempt under way), so the MQTT task can select on
 //! it beside its channels.
 
-use std::{future::Future, io, pin::Pin, task::Poll, time::Duration};
+use std::{
+    future::Future, io, os::fd::AsRawFd, os::fd::RawFd, pin::Pin, task::Poll, time::Duration,
+};
 
 use bytes::{Buf, Bytes, BytesMut};
 use rumqttc::{
@@ -37,6 +39,12 @@ const READ_CHUNK: usize = 16 * 1024;
 /// at start-up could grow it to hundreds of KiB for good. The rest waits, already serialised, for
 /// the next round.
 pub const WRITE_BATCH: usize = READ_CHUNK;
+/// Publications in flight from which their PUBACKs are read in batches: the socket's receive
+/// low-water mark is raised to that many PUBACKs' bytes, so the kernel wakes the gateway once per
+/// batch instead of once per acknowledgement.
+const ACK_BATCH: u16 = 16;
+/// A PUBACK's encoded size: the fewest bytes on the wire per acknowledgement (TLS only adds).
+const PUBACK_LEN: u16 = 4;
 
 /// One MQTT 3.1.1 client connection that reconnects when polled after a failure.
 pub struct Connection {
@@ -55,6 +63,9 @@ pub struct Connection {
     notice: Option<Event>,
     /// A request the state refused or that could not be encoded: the connection is broken.
     broken: Option<StateError>,
+    /// SUBSCRIBEs and UNSUBSCRIBEs of this connection whose SUBACK or UNSUBACK has not come yet
+    /// (a request made while down is never sent).
+    replies_due: usize,
 }
 
 enum Link {
@@ -66,6 +77,10 @@ enum Link {
 /// An established connection and its buffers.
 struct Up {
     stream: Box<dyn Stream>,
+    /// The TCP socket under `stream`, for its receive low-water mark.
+    fd: RawFd,
+    /// The low-water mark set on `fd` (bytes); `None` once the system refused one.
+    lowat: Option<u16>,
     /// Received bytes not yet parsed (starts with what followed the CONNACK).
     read: BytesMut,
     /// Encoded packets not yet written.
@@ -106,6 +121,7 @@ impl Connection {
             disconnecting: false,
             notice: None,
             broken: None,
+            replies_due: 0,
         }
     }
 
@@ -140,11 +156,13 @@ impl Connection {
 
     /// Queues a subscription.
     pub fn subscribe(&mut self, filter: String, qos: QoS) {
+        self.replies_due += usize::from(self.is_up());
         self.request(Request::Subscribe(Subscribe::new(filter, qos)));
     }
 
     /// Queues an unsubscription.
     pub fn unsubscribe(&mut self, filter: String) {
+        self.replies_due += usize::from(self.is_up());
         self.request(Request::Unsubscribe(Unsubscribe::new(filter)));
     }
 
@@ -248,11 +266,13 @@ impl Connection {
             Link::Connecting(attempt) => {
                 let (up, connack) = attempt.as_mut().await?;
                 self.link = Link::Up(up);
+                self.replies_due = 0;
                 self.notice = Some(Event::Incoming(Packet::ConnAck(connack)));
                 // What came right behind the CONNACK.
                 Ok(self.parse()?)
             }
             Link::Up(up) => {
+                up.set_lowat(wanted_lowat(&self.state, self.replies_due));
                 let io = std::future::poll_fn(|cx| up.poll_io(cx)).await?;
                 match io {
                     Io::Closed => Err(ConnectionError::MqttState(StateError::ConnectionAborted)),
@@ -289,6 +309,9 @@ impl Connection {
                 Err(mqttbytes::Error::InsufficientBytes(_)) => return Ok(()),
                 Err(e) => return Err(StateError::Deserialization(e)),
             };
+            if let Packet::SubAck(_) | Packet::UnsubAck(_) = packet {
+                self.replies_due = self.replies_due.saturating_sub(1);
+            }
             if let Some(reply) = self.state.handle_incoming_packet(packet)? {
                 encode(Some(reply), &mut up.write, self.max_outgoing)?;
             }
@@ -297,9 +320,11 @@ impl Connection {
 }
 
 impl Up {
-    fn new(stream: Box<dyn Stream>, read: BytesMut, keep_alive: Duration) -> Up {
+    fn new(stream: Box<dyn Stream>, fd: RawFd, read: BytesMut, keep_alive: Duration) -> Up {
         let mut up = Up {
             stream,
+            fd,
+            lowat: Some(1),
             read,
             write: BytesMut::with_capacity(READ_CHUNK),
             unflushed: false,
@@ -314,6 +339,35 @@ impl Up {
         self.ping_at = (!keep_alive.is_zero()).then(|| Instant::now() + keep_alive);
         if let Some(at) = self.ping_at {
             self.ping.as_mut().reset(at);
+        }
+    }
+
+    /// Sets the socket's receive low-water mark: the kernel reports the socket readable only once
+    /// `bytes` have arrived (or the connection ended). Linux wakes a reader at once when a lowered
+    /// mark is already reached. A system that refuses the option keeps the mark at 1 (every PUBACK
+    /// wakes the gateway, as without it).
+    fn set_lowat(&mut self, bytes: u16) {
+        if self.lowat.is_none_or(|now| now == bytes) {
+            return;
+        }
+        let value = libc::c_int::from(bytes);
+        // SAFETY: `fd` is the open TCP socket owned by `stream` (which lives as long as `self`),
+        // and `value` is a c_int of the size passed, as SO_RCVLOWAT takes.
+        let r = unsafe {
+            libc::setsockopt(
+                self.fd,
+                libc::SOL_SOCKET,
+                libc::SO_RCVLOWAT,
+                (&value as *const libc::c_int).cast(),
+                std::mem::size_of::<libc::c_int>() as libc::socklen_t,
+            )
+        };
+        if r == 0 {
+            self.lowat = Some(bytes);
+        } else {
+            let e = io::Error::last_os_error();
+            tracing::debug!("SO_RCVLOWAT refused ({e}): every PUBACK is read as it comes");
+            self.lowat = None;
         }
     }
 
@@ -356,6 +410,20 @@ impl Up {
     }
 }
 
+/// The receive low-water mark for the connection's state: [`ACK_BATCH`] PUBACKs' bytes while more
+/// publications than that are in flight and nothing else is awaited, else 1. A raised mark never strands a
+/// packet: the PUBACKs still to come fill it, and a PINGRESP, SUBACK or UNSUBACK awaited (any
+/// smaller than the mark) lowers it first. Other packets from the broker (commands) wait at most
+/// for those PUBACKs.
+fn wanted_lowat(state: &MqttState, replies_due: usize) -> u16 {
+    // One more than the batch: a PUBACK already partly read counts in flight but brings fewer bytes.
+    if state.inflight() > ACK_BATCH && !state.await_pingresp && replies_due == 0 {
+        ACK_BATCH * PUBACK_LEN
+    } else {
+        1
+    }
+}
+
 /// Encodes a packet the state wants written.
 fn encode(packet: Option<Packet>, buf: &mut BytesMut, max: usize) -> Result<(), StateError> {
     if let Some(p) = packet {
@@ -374,6 +442,7 @@ async fn connect(
     let attempt = async {
         let (host, port) = options.broker_address();
         let tcp = tcp_connect(&host, port).await?;
+        let fd = tcp.as_raw_fd();
         let mut stream: Box<dyn Stream> = match options.transport() {
             Transport::Tcp => Box::new(tcp),
             #[cfg(feature = "tls")]
@@ -410,7 +479,7 @@ async fn connect(
                 return Err(StateError::ConnectionAborted.into());
             }
         };
-        Ok((Up::new(stream, read, options.keep_alive()), connack))
+        Ok((Up::new(stream, fd, read, options.keep_alive()), connack))
     };
     tokio::time::timeout(timeout, attempt)
         .await
@@ -459,4 +528,126 @@ async fn tls_connect(
         .map_err(|e| io::Error::new(io::ErrorKind::InvalidInput, e))?;
     let connector = rumqttc::tokio_rustls::TlsConnector::from(config);
     Ok(connector.connect(name, tcp).await?)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::mqtt::test_broker::broker;
+    use rumqttc::Incoming;
+
+    const PUBLISHED: u16 = ACK_BATCH + 4;
+
+    fn puback(pkid: u16) -> Vec<u8> {
+        let [hi, lo] = pkid.to_be_bytes();
+        vec![0x40, 0x02, hi, lo]
+    }
+
+    /// The socket's receive low-water mark as the kernel has it.
+    fn kernel_lowat(conn: &Connection) -> libc::c_int {
+        let Link::Up(up) = &conn.link else {
+            panic!("not connected")
+        };
+        let mut value: libc::c_int = 0;
+        let mut len = std::mem::size_of::<libc::c_int>() as libc::socklen_t;
+        // SAFETY: reads a c_int option of an open socket into a c_int of the size passed.
+        let r = unsafe {
+            libc::getsockopt(
+                up.fd,
+                libc::SOL_SOCKET,
+                libc::SO_RCVLOWAT,
+                (&mut value as *mut libc::c_int).cast(),
+                &mut len,
+            )
+        };
+        assert_eq!(r, 0, "{}", io::Error::last_os_error());
+        value
+    }
+
+    /// Polls until `n` PUBACKs came (other events are not expected), within 5 s.
+    async fn acks(conn: &mut Connection, n: usize) -> Vec<u16> {
+        let mut got = Vec::new();
+        while got.len() < n {
+            let ev = tokio::time::timeout(Duration::from_secs(5), conn.poll()).await;
+            match ev.expect("PUBACKs within 5 s").unwrap() {
+                Event::Incoming(Incoming::PubAck(a)) => got.push(a.pkid),
+                other => panic!("{other:?}"),
+            }
+        }
+        got
+    }
+
+    /// Connected, with `PUBLISHED` publications written and none acknowledged.
+    async fn connected_with_publications(options: MqttOptions) -> Connection {
+        let mut conn = Connection::new(options, 1 << 20, Duration::from_secs(5));
+        let ev = conn.poll().await.unwrap();
+        assert!(
+            matches!(ev, Event::Incoming(Incoming::ConnAck(_))),
+            "{ev:?}"
+        );
+        for n in 0..PUBLISHED {
+            conn.publish("EventsTopic".into(), vec![n as u8].into(), false)
+                .unwrap();
+        }
+        // Writes them, then waits for input that does not come yet.
+        let _ = tokio::time::timeout(Duration::from_millis(100), conn.poll()).await;
+        conn
+    }
+
+    /// Many publications in flight: their PUBACKs are read a batch at a time (the kernel holds a
+    /// lone one back), and none is stranded once fewer remain in flight than a batch.
+    #[tokio::test]
+    async fn acknowledgements_are_read_in_batches_and_none_is_stranded() {
+        let (port, broker) = broker(None).await;
+        let mut conn =
+            connected_with_publications(MqttOptions::new("lowat", "127.0.0.1", port)).await;
+        assert_eq!(
+            kernel_lowat(&conn),
+            libc::c_int::from(ACK_BATCH * PUBACK_LEN)
+        );
+
+        broker.send(puback(1)).unwrap();
+        let early = tokio::time::timeout(Duration::from_millis(300), conn.poll()).await;
+        assert!(early.is_err(), "a lone PUBACK woke the client: {early:?}");
+        for pkid in 2..=ACK_BATCH {
+            broker.send(puback(pkid)).unwrap();
+        }
+        let batch = acks(&mut conn, ACK_BATCH.into()).await;
+        assert_eq!(batch, (1..=ACK_BATCH).collect::<Vec<_>>());
+
+        // Four left in flight: each PUBACK is read as it comes.
+        for pkid in ACK_BATCH + 1..=PUBLISHED {
+            broker.send(puback(pkid)).unwrap();
+            assert_eq!(acks(&mut conn, 1).await, vec![pkid]);
+        }
+    }
+
+    /// A SUBACK or a PINGRESP awaited is read at once, however many publications are in flight.
+    #[tokio::test]
+    async fn awaited_replies_are_not_held_back() {
+        let (port, broker) = broker(None).await;
+        let mut options = MqttOptions::new("lowat-replies", "127.0.0.1", port);
+        options.set_keep_alive(Duration::from_secs(1));
+        let mut conn = connected_with_publications(options).await;
+
+        conn.subscribe("CommandsTopic".into(), QoS::AtLeastOnce);
+        let pkid = PUBLISHED + 1; // the subscription's packet id follows the publications'
+        let [hi, lo] = pkid.to_be_bytes();
+        broker.send(vec![0x90, 0x03, hi, lo, 0x01]).unwrap(); // SUBACK, granted QoS 1
+        let ev = tokio::time::timeout(Duration::from_secs(5), conn.poll()).await;
+        assert!(
+            matches!(ev, Ok(Ok(Event::Incoming(Incoming::SubAck(_))))),
+            "{ev:?}"
+        );
+
+        // No traffic for the keep-alive: a PINGREQ goes out and its 2-byte answer is read.
+        let _ = tokio::time::timeout(Duration::from_millis(1500), conn.poll()).await;
+        assert!(conn.state.await_pingresp, "a PINGREQ is due after 1 s");
+        broker.send(vec![0xd0, 0x00]).unwrap(); // PINGRESP
+        let ev = tokio::time::timeout(Duration::from_secs(5), conn.poll()).await;
+        assert!(
+            matches!(ev, Ok(Ok(Event::Incoming(Incoming::PingResp)))),
+            "{ev:?}"
+        );
+    }
 }

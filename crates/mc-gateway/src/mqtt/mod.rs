@@ -44,6 +44,8 @@ use tracing::{debug, info, warn};
 use crate::{config::MqttConfig, error::MqttError, topic::Topics};
 
 pub mod conn;
+#[cfg(test)]
+mod test_broker;
 pub use conn::Connection;
 
 /// Payload of the availability topic while the gateway runs.
@@ -978,32 +980,12 @@ mod tests {
         run.await.unwrap();
     }
 
-    /// A broker for one connection: accepts its CONNECT, then acknowledges nothing and reads
-    /// `reads` times (`None`: until the client hangs up) before it hangs up. Returns its port.
-    async fn silent_broker(reads: Option<usize>) -> u16 {
-        use tokio::io::{AsyncReadExt, AsyncWriteExt};
-        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-        let port = listener.local_addr().unwrap().port();
-        tokio::spawn(async move {
-            let (mut s, _) = listener.accept().await.unwrap();
-            let mut buf = [0u8; 4096];
-            let _ = s.read(&mut buf).await; // CONNECT
-            s.write_all(&[0x20, 0x02, 0x00, 0x00]).await.unwrap(); // CONNACK accepted
-            for _ in 0..reads.unwrap_or(usize::MAX) {
-                if !matches!(s.read(&mut buf).await, Ok(n) if n > 0) {
-                    break;
-                }
-            }
-        });
-        port
-    }
-
     /// A broker that accepts the connection, reads without acknowledging anything and hangs up:
     /// what the broker had not acknowledged comes back to the queue in order, `online` excepted.
     #[tokio::test]
     async fn publications_of_a_broken_connection_are_taken_back_in_order() {
         // The first write read, then hang up.
-        let port = silent_broker(Some(1)).await;
+        let (port, _script) = test_broker::broker(Some(1)).await;
         let t = task();
         let mut options = MqttOptions::new("takeback", "127.0.0.1", port);
         options.set_manual_acks(true);
@@ -1044,7 +1026,7 @@ mod tests {
     /// window, and taken again once the buffer was written.
     #[tokio::test]
     async fn one_write_holds_a_bounded_batch_of_publications() {
-        let port = silent_broker(None).await;
+        let (port, _script) = test_broker::broker(None).await;
         let mut conn = Connection::new(
             MqttOptions::new("batch", "127.0.0.1", port),
             MAX_OUTGOING,

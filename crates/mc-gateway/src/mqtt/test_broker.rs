@@ -1,0 +1,36 @@
+//! A scripted MQTT broker for the connection's tests: one connection, CONNACK, then only what the
+//! test sends it.
+
+use tokio::{
+    io::{AsyncReadExt, AsyncWriteExt},
+    net::TcpListener,
+    sync::mpsc,
+};
+
+/// Accepts one connection and its CONNECT with an accepted CONNACK, then writes whatever the test
+/// sends on the returned channel and acknowledges nothing by itself. It hangs up after `reads`
+/// reads of what the client wrote (`None`: once the client hangs up). Returns its port.
+pub async fn broker(reads: Option<usize>) -> (u16, mpsc::UnboundedSender<Vec<u8>>) {
+    let listener = TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let port = listener.local_addr().unwrap().port();
+    let (tx, mut script) = mpsc::unbounded_channel::<Vec<u8>>();
+    tokio::spawn(async move {
+        let (mut s, _) = listener.accept().await.unwrap();
+        let mut buf = vec![0u8; 64 * 1024];
+        let _ = s.read(&mut buf).await; // CONNECT
+        s.write_all(&[0x20, 0x02, 0x00, 0x00]).await.unwrap(); // CONNACK accepted
+        let mut left = reads.unwrap_or(usize::MAX);
+        while left > 0 {
+            tokio::select! {
+                Some(bytes) = script.recv() => s.write_all(&bytes).await.unwrap(),
+                n = s.read(&mut buf) => {
+                    if !matches!(n, Ok(n) if n > 0) {
+                        break;
+                    }
+                    left -= 1;
+                }
+            }
+        }
+    });
+    (port, tx)
+}
