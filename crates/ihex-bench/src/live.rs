@@ -7,7 +7,7 @@
 //! right before a write/publish, in this process; the bare pair is timed the same way.
 
 use std::collections::HashSet;
-use std::io::Write;
+use std::io::{Read, Write};
 use std::net::{Ipv4Addr, SocketAddr, TcpListener, TcpStream};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
@@ -353,7 +353,50 @@ fn bare_pair(iface: &str, n: usize, rounds: usize, notes: &mut Vec<String>) -> R
         sent: n,
         received,
         rtt: Summary::of(rtt),
+        process_rtt: process_round_trip(rounds)?,
     })
+}
+
+/// One byte to `ihex-bench echo` in a child process and back, `rounds` times: two process
+/// switches each. Threads of one process (the bare CAN RTT) switch without changing the address
+/// space; the gateway, Mosquitto and this benchmark are processes.
+fn process_round_trip(rounds: usize) -> Result<Summary> {
+    let mut child = Command::new(std::env::current_exe()?)
+        .arg("echo")
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .spawn()
+        .context("starting `ihex-bench echo`")?;
+    let (Some(mut to), Some(mut from)) = (child.stdin.take(), child.stdout.take()) else {
+        bail!("`ihex-bench echo` without pipes");
+    };
+    let mut rtt = Vec::with_capacity(rounds);
+    let mut byte = [0u8; 1];
+    for _ in 0..rounds {
+        let t = Instant::now();
+        to.write_all(&byte)?;
+        from.read_exact(&mut byte)?;
+        rtt.push(t.elapsed().as_secs_f64() * 1e6);
+    }
+    drop(to);
+    child.wait()?;
+    Ok(Summary::of(rtt))
+}
+
+/// Copies standard input to standard output, each read at once (the far end of
+/// `process_round_trip`), until the input ends.
+pub(crate) fn echo() -> Result<()> {
+    let mut input = std::io::stdin().lock();
+    let mut output = std::io::stdout().lock();
+    let mut buf = [0u8; 64];
+    loop {
+        let n = input.read(&mut buf)?;
+        if n == 0 {
+            return Ok(());
+        }
+        output.write_all(&buf[..n])?;
+        output.flush()?;
+    }
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -599,12 +642,34 @@ pub(crate) fn cpu_ms(pid: u32) -> Result<f64> {
     Ok(user + system)
 }
 
-/// CPU times of the three processes of a live trial, to share out its cost.
+/// Context switches of `pid` so far, voluntary and not, summed over its threads (threads that
+/// have ended no longer count: the gateway and Mosquitto keep theirs).
+pub(crate) fn switches(pid: u32) -> Result<u64> {
+    let mut sum = 0;
+    for task in std::fs::read_dir(format!("/proc/{pid}/task"))? {
+        let Ok(status) = std::fs::read_to_string(task?.path().join("status")) else {
+            continue; // the thread ended meanwhile
+        };
+        for line in status.lines() {
+            if let Some(n) = line
+                .strip_prefix("voluntary_ctxt_switches:")
+                .or_else(|| line.strip_prefix("nonvoluntary_ctxt_switches:"))
+            {
+                sum += n.trim().parse::<u64>()?;
+            }
+        }
+    }
+    Ok(sum)
+}
+
+/// CPU times of the three processes of a live trial (and the gateway's and broker's context
+/// switches), to share out its cost.
 #[derive(Clone, Copy)]
 struct CpuSnapshot {
     gateway: (f64, f64),
     broker: f64,
     bench: f64,
+    switches: (u64, u64),
 }
 
 impl CpuSnapshot {
@@ -613,6 +678,7 @@ impl CpuSnapshot {
             gateway: cpu_times(gateway)?,
             broker: cpu_ms(broker)?,
             bench: cpu_ms(std::process::id())?,
+            switches: (switches(gateway)?, switches(broker)?),
         })
     }
 
@@ -628,6 +694,8 @@ impl CpuSnapshot {
             gateway_system: (now.gateway.1 - self.gateway.1) * per_1k,
             broker: (now.broker - self.broker) * per_1k,
             bench: (now.bench - self.bench) * per_1k,
+            gateway_switches: now.switches.0.saturating_sub(self.switches.0) as f64 * per_1k,
+            broker_switches: now.switches.1.saturating_sub(self.switches.1) as f64 * per_1k,
         }
     }
 }
@@ -782,95 +850,90 @@ impl Bench {
         Ok((good, trials))
     }
 
-    fn frame_to_event(&mut self, probes: usize) -> Result<Summary> {
-        let mut lat = Vec::with_capacity(probes);
-        let mut missed = 0;
-        for _ in 0..probes {
-            self.mqtt.drain();
-            let i = self.next_index;
-            self.next_index = (self.next_index + 1) % INDEX_SPACE;
-            let f = frame(&report(i))?;
-            let t0 = Instant::now();
-            write(&self.can, &f)?;
-            let deadline = t0 + Duration::from_secs(2);
-            loop {
-                let left = deadline.saturating_duration_since(Instant::now());
-                match self.mqtt.next_event(left) {
-                    Some((t, v)) if report_index(&v) == Some(i) => {
-                        lat.push((t - t0).as_secs_f64() * 1e6);
-                        break;
-                    }
-                    Some(_) => {}
-                    None => {
-                        missed += 1;
-                        break;
-                    }
-                }
-            }
-            if missed >= 10 && lat.is_empty() {
-                self.notes
-                    .push("frame->event: 10 probes in a row got no event; series stopped".into());
-                break;
-            }
-            std::thread::sleep(Duration::from_millis(3));
-        }
-        if missed > 0 {
-            self.notes.push(format!(
-                "frame->event: {missed} of {probes} probes got no event in 2 s"
-            ));
-        }
-        Ok(Summary::of(lat))
-    }
-
-    fn cmd_to_frame(&mut self, probes: usize) -> Result<Summary> {
+    /// The latency series, interleaved: each round takes one probe of each (the MQTT loop only
+    /// `with_loop`), 3 ms apart, so a VM that slows down or speeds up during the phase moves every
+    /// series alike — the gateway-added estimate subtracts their medians from each other.
+    /// Returns the MQTT loop (when asked for), frame → event and command → frame.
+    fn latency(
+        &mut self,
+        probes: usize,
+        with_loop: bool,
+    ) -> Result<(Option<Summary>, Summary, Summary)> {
         let rx = open_can(&self.s.iface, &mut self.notes)?;
         rx.set_filters(&[led_filter()])?;
-        let mut lat = Vec::with_capacity(probes);
-        let mut missed = 0;
-        for _ in 0..probes {
-            let k = self.next_cmd;
-            self.next_cmd += 1;
-            let payload = led_command(k);
-            let t0 = Instant::now();
-            self.mqtt
-                .client
-                .publish("CommandsTopic", QoS::AtLeastOnce, false, payload)?;
-            let deadline = t0 + Duration::from_secs(2);
-            loop {
-                let left = deadline.saturating_duration_since(Instant::now());
-                if left.is_zero() {
-                    missed += 1;
-                    break;
-                }
-                match rx.read_frame_timeout(left) {
-                    Ok(f) => {
-                        let t = Instant::now();
-                        if Packet::from_frame(&f).ok().as_ref().and_then(led_index)
-                            == Some(k & 0xffff)
-                        {
-                            lat.push((t - t0).as_secs_f64() * 1e6);
-                            break;
-                        }
-                    }
-                    Err(_) => {
-                        missed += 1;
-                        break;
-                    }
-                }
+        let mut mqtt_loop = Series::new("MQTT loop", probes);
+        let mut to_event = Series::new("frame->event", probes);
+        let mut to_frame = Series::new("cmd->frame", probes);
+        for k in 0..probes {
+            if with_loop {
+                mqtt_loop.add(self.loop_probe(k)?);
+                std::thread::sleep(Duration::from_millis(3));
             }
-            if missed >= 10 && lat.is_empty() {
-                self.notes
-                    .push("cmd->frame: 10 probes in a row got no frame; series stopped".into());
+            to_event.add(self.event_probe()?);
+            std::thread::sleep(Duration::from_millis(3));
+            to_frame.add(self.command_probe(&rx)?);
+            std::thread::sleep(Duration::from_millis(3));
+            if to_event.dead() || to_frame.dead() {
+                self.notes.push(format!(
+                    "latency: 10 probes in a row got no answer (frame->event {}, cmd->frame {}); \
+                     series stopped",
+                    to_event.missed, to_frame.missed
+                ));
                 break;
             }
-            std::thread::sleep(Duration::from_millis(3));
         }
-        if missed > 0 {
-            self.notes.push(format!(
-                "cmd->frame: {missed} of {probes} probes got no frame in 2 s"
-            ));
+        let mqtt_loop = with_loop.then(|| mqtt_loop.finish(&mut self.notes));
+        Ok((
+            mqtt_loop,
+            to_event.finish(&mut self.notes),
+            to_frame.finish(&mut self.notes),
+        ))
+    }
+
+    /// One `BootUp` frame to its `node_rebooted` event, µs (`None`: no event within 2 s).
+    fn event_probe(&mut self) -> Result<Option<f64>> {
+        self.mqtt.drain();
+        let i = self.next_index;
+        self.next_index = (self.next_index + 1) % INDEX_SPACE;
+        let f = frame(&report(i))?;
+        let t0 = Instant::now();
+        write(&self.can, &f)?;
+        let deadline = t0 + Duration::from_secs(2);
+        loop {
+            let left = deadline.saturating_duration_since(Instant::now());
+            match self.mqtt.next_event(left) {
+                Some((t, v)) if report_index(&v) == Some(i) => {
+                    return Ok(Some((t - t0).as_secs_f64() * 1e6))
+                }
+                Some(_) => {}
+                None => return Ok(None),
+            }
         }
-        Ok(Summary::of(lat))
+    }
+
+    /// One `led` command to its `LedSet` frame on `rx`, µs (`None`: no frame within 2 s).
+    fn command_probe(&mut self, rx: &CanSocket) -> Result<Option<f64>> {
+        let k = self.next_cmd;
+        self.next_cmd += 1;
+        let payload = led_command(k);
+        let t0 = Instant::now();
+        self.mqtt
+            .client
+            .publish("CommandsTopic", QoS::AtLeastOnce, false, payload)?;
+        let deadline = t0 + Duration::from_secs(2);
+        loop {
+            let left = deadline.saturating_duration_since(Instant::now());
+            if left.is_zero() {
+                return Ok(None);
+            }
+            let Ok(f) = rx.read_frame_timeout(left) else {
+                return Ok(None);
+            };
+            let t = Instant::now();
+            if Packet::from_frame(&f).ok().as_ref().and_then(led_index) == Some(k & 0xffff) {
+                return Ok(Some((t - t0).as_secs_f64() * 1e6));
+            }
+        }
     }
 
     /// Publishes `count` commands at `rate` (or back to back when `rate` is infinite) and counts
@@ -1003,28 +1066,65 @@ impl Bench {
         Ok((out?, sent_fps, cpu * 1000.0 / bg_frames.max(1.0)))
     }
 
-    fn mqtt_loop(&mut self, probes: usize) -> Result<Summary> {
-        let mut lat = Vec::with_capacity(probes);
-        for k in 0..probes {
-            self.mqtt.drain();
-            let payload = format!("loop-{k}");
-            let t0 = Instant::now();
-            self.mqtt.client.publish(
-                "ihex-bench/loop",
-                QoS::AtLeastOnce,
-                false,
-                payload.clone(),
-            )?;
-            if self.mqtt.wait_topic(
+    /// One publication to the benchmark's own subscription through the broker, µs (`None`: not
+    /// back within 2 s).
+    fn loop_probe(&mut self, k: usize) -> Result<Option<f64>> {
+        self.mqtt.drain();
+        let payload = format!("loop-{k}");
+        let t0 = Instant::now();
+        self.mqtt
+            .client
+            .publish("ihex-bench/loop", QoS::AtLeastOnce, false, payload.clone())?;
+        Ok(self
+            .mqtt
+            .wait_topic(
                 "ihex-bench/loop",
                 payload.as_bytes(),
                 Duration::from_secs(2),
-            ) {
-                lat.push(t0.elapsed().as_secs_f64() * 1e6);
-            }
-            std::thread::sleep(Duration::from_millis(2));
+            )
+            .then(|| t0.elapsed().as_secs_f64() * 1e6))
+    }
+}
+
+/// One latency series being collected: its samples and the probes that got no answer.
+struct Series {
+    name: &'static str,
+    probes: usize,
+    lat: Vec<f64>,
+    missed: usize,
+}
+
+impl Series {
+    fn new(name: &'static str, probes: usize) -> Series {
+        Series {
+            name,
+            probes,
+            lat: Vec::with_capacity(probes),
+            missed: 0,
         }
-        Ok(Summary::of(lat))
+    }
+
+    fn add(&mut self, sample: Option<f64>) {
+        match sample {
+            Some(us) => self.lat.push(us),
+            None => self.missed += 1,
+        }
+    }
+
+    /// Ten probes and not one answer: the gateway is not answering at all.
+    fn dead(&self) -> bool {
+        self.missed >= 10 && self.lat.is_empty()
+    }
+
+    /// The summary, with a note when probes went unanswered.
+    fn finish(self, notes: &mut Vec<String>) -> Summary {
+        if self.missed > 0 {
+            notes.push(format!(
+                "{}: {} of {} probes got no answer in 2 s",
+                self.name, self.missed, self.probes
+            ));
+        }
+        Summary::of(self.lat)
     }
 }
 
@@ -1122,9 +1222,8 @@ pub fn run(s: Settings) -> Result<LiveResults> {
     // Which phase sets the gateway's peak: its VmHWM after each.
     let mut peaks: Vec<(&str, u64)> = vec![("start", memory_kib(b.gw.pid())?.0)];
     println!("bench: latency at idle");
-    let mqtt_loop = b.mqtt_loop(s.probes)?;
-    let frame_to_event_idle = b.frame_to_event(s.probes)?;
-    let cmd_to_frame_idle = b.cmd_to_frame(s.probes)?;
+    let (mqtt_loop, frame_to_event_idle, cmd_to_frame_idle) = b.latency(s.probes, true)?;
+    let mqtt_loop = mqtt_loop.unwrap_or_default();
 
     peaks.push(("idle latency", memory_kib(b.gw.pid())?.0));
     println!("bench: CAN->MQTT rate search");
@@ -1160,8 +1259,7 @@ pub fn run(s: Settings) -> Result<LiveResults> {
     println!("bench: latency with the bus at {load_rate:.0} background frames/s");
     let ((frame_to_event_load, cmd_to_frame_load), load_sent_fps, cpu_ms_per_1k_background) = b
         .under_load(load_rate, |b| {
-            let f = b.frame_to_event(s.probes)?;
-            let c = b.cmd_to_frame(s.probes)?;
+            let (_, f, c) = b.latency(s.probes, false)?;
             Ok((f, c))
         })?;
 
@@ -1283,5 +1381,16 @@ mod tests {
         assert!(cpu_ms(pid).unwrap() >= 0.0);
         let (hwm, rss) = memory_kib(pid).unwrap();
         assert!(hwm >= rss && rss > 0);
+    }
+
+    #[test]
+    fn each_sleep_counts_as_a_context_switch() {
+        let pid = std::process::id();
+        let before = switches(pid).unwrap();
+        for _ in 0..3 {
+            std::thread::sleep(Duration::from_millis(1));
+        }
+        let after = switches(pid).unwrap();
+        assert!(after >= before + 3, "{before} -> {after}");
     }
 }

@@ -132,6 +132,10 @@ enum Cmd {
         #[arg(long)]
         out: Option<PathBuf>,
     },
+    /// Copy standard input to standard output as it comes: the far end of the live run's process
+    /// round trip (the harness starts it; there is no need to run it by hand).
+    #[command(hide = true)]
+    Echo,
     /// Drive the sans-IO bridge over a fixed workload (run under callgrind).
     Workload {
         /// Which path.
@@ -268,6 +272,7 @@ fn main() -> Result<()> {
                 ..Default::default()
             })?;
         }
+        Cmd::Echo => live::echo()?,
         Cmd::Workload { path, n } => {
             let p = match path {
                 WorkPath::Can => workload::Path::CanToEvent,

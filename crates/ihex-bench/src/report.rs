@@ -281,13 +281,16 @@ fn pass(ok: bool) -> &'static str {
 fn share_line(what: &str, s: &CpuShare, cpus: usize) -> String {
     format!(
         "{what:<9} gateway {:>6.0} (user {:.0} + system {:.0})  mosquitto {:>6.0}  bench {:>6.0}  \
-         -> all three allow at most {:.0}/s",
+         -> all three allow at most {:.0}/s\n            \
+         context switches per 1,000: gateway {:.0}, mosquitto {:.0}",
         s.gateway_user + s.gateway_system,
         s.gateway_user,
         s.gateway_system,
         s.broker,
         s.bench,
-        s.ceiling(cpus)
+        s.ceiling(cpus),
+        s.gateway_switches,
+        s.broker_switches
     )
 }
 
@@ -366,6 +369,11 @@ pub fn table(r: &Results) -> String {
             o,
             "  bare CAN RTT (2 hops)                {}",
             lat(&l.bare.rtt)
+        );
+        let _ = writeln!(
+            o,
+            "  process round trip (2 switches)      {}",
+            lat(&l.bare.process_rtt)
         );
         let _ = writeln!(
             o,
@@ -943,6 +951,8 @@ mod tests {
             gateway_system: 230.0,
             broker: 700.0,
             bench: 700.0,
+            gateway_switches: 1062.0,
+            broker_switches: 2500.0,
         };
         assert_eq!(s.total(), 2000.0);
         assert_eq!(s.ceiling(1), 500.0);
@@ -952,7 +962,11 @@ mod tests {
             line.contains("gateway    600 (user 370 + system 230)"),
             "{line}"
         );
-        assert!(line.ends_with("at most 500/s"), "{line}");
+        assert!(line.contains("at most 500/s\n"), "{line}");
+        assert!(
+            line.ends_with("context switches per 1,000: gateway 1062, mosquitto 2500"),
+            "{line}"
+        );
         let mut l = sample();
         l.cpus = 1;
         l.share_reports = Some(s);

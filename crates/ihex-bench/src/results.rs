@@ -46,6 +46,13 @@ pub struct CpuShare {
     pub broker: f64,
     /// The benchmark process (CAN writer, acks, MQTT client), user + system.
     pub bench: f64,
+    /// Times the gateway's threads were switched out (blocked or preempted): about once per
+    /// wake-up.
+    #[serde(default)]
+    pub gateway_switches: f64,
+    /// The same for Mosquitto.
+    #[serde(default)]
+    pub broker_switches: f64,
 }
 
 impl CpuShare {
@@ -80,6 +87,10 @@ pub struct Bare {
     pub received: usize,
     /// Round trip writer → echo thread → writer.
     pub rtt: Summary,
+    /// Round trip of one byte to another process and back over two pipes (`ihex-bench echo`):
+    /// the cost of two process switches, which every bridged frame makes several of.
+    #[serde(default)]
+    pub process_rtt: Summary,
 }
 
 /// Everything the live run measures.
