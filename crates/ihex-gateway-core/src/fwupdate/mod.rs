@@ -2,9 +2,13 @@
 //! `docs/protocol.md` "Firmware transfer"), under a bus-share cap, with a per-node outcome.
 //!
 //! The sender works in rounds. Each round it looks at what every node last said and queues, in
-//! order: a `FwBegin` to each node without a transfer (a new one, or one that reset), the frames
-//! the nodes miss (broadcast when several miss a frame, else to the one node), a `FwEnd commit`
-//! to each node that has everything, and a `FwQuery` to each node still receiving. When the
+//! order: a `FwBegin` to each node without a transfer (a new one, or one that reset), a `FwQuery`
+//! to each node that did not answer the last round, the frames the other nodes miss (broadcast
+//! when several miss a frame, else to the one node), a `FwEnd commit` to each node that has
+//! everything, and a `FwQuery` to each node still receiving. A node that did not answer gets no
+//! data until it does: what it last said is stale, so resending from it repeats what it may
+//! already have, and a node swamped by a burst drops the query at the burst's tail again (the
+//! vicious circle that left a node `unreachable`). When the
 //! queue has drained and every node asked has answered (or the reply time is up: a miss), the
 //! next round starts. A node's first answer after the header says it misses the whole image,
 //! so the first data round is one broadcast of the image; later rounds resend only the gaps.
@@ -50,7 +54,7 @@ pub struct FwConfig {
     /// How long a node has to answer a begin, a query or a commit once the queue has drained
     /// (the gateway uses its command timeout).
     pub reply_timeout: Duration,
-    /// Unanswered requests in a row after which a node is `unreachable`.
+    /// Unanswered requests in a row a node may have; one more and it is `unreachable`.
     pub max_misses: u32,
     /// How long a node may erase before the others get data anyway.
     pub erase_timeout: Duration,
@@ -536,6 +540,8 @@ impl FwSender {
         });
         let mut begins = Vec::new();
         let mut commits = Vec::new();
+        // Nodes that did not answer the last round, asked before any data (see the module doc).
+        let mut asked_first = Vec::new();
         let mut queries = Vec::new();
         // frame index → the nodes missing it
         let mut wanted: BTreeMap<u16, Vec<NodeId>> = BTreeMap::new();
@@ -556,6 +562,7 @@ impl FwSender {
                     phase: FwPhase::Complete,
                     ..
                 }) => commits.push(id),
+                Some(_) if n.misses > 0 => asked_first.push(id),
                 Some(FwStatus {
                     phase: FwPhase::Header | FwPhase::Receiving,
                     first_missing,
@@ -582,6 +589,10 @@ impl FwSender {
                 },
             ));
         }
+        for &id in &asked_first {
+            self.queue
+                .push_back(Packet::command(id, Message::FwQuery { image_id }));
+        }
         for (index, who) in wanted {
             let dest = match who.as_slice() {
                 [one] => *one,
@@ -605,7 +616,7 @@ impl FwSender {
                 .push_back(Packet::command(id, Message::FwQuery { image_id }));
         }
         let reboot = self.config.reboot_timeout;
-        for id in begins.iter().chain(&queries) {
+        for id in begins.iter().chain(&asked_first).chain(&queries) {
             if let Some(n) = self.nodes.get_mut(id) {
                 n.awaiting = true;
             }

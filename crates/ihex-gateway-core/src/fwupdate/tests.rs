@@ -50,6 +50,9 @@ struct Quirks {
     never_confirms: bool,
     /// Never answers anything.
     dead: bool,
+    /// Leave this many queries unanswered once data has come (a receive queue still full of the
+    /// burst drops them).
+    deaf_after_data: u32,
 }
 
 #[derive(Clone, Copy, PartialEq, Debug)]
@@ -150,6 +153,11 @@ impl Model {
                     self.phase = NPhase::Header;
                 }
                 say(self);
+            }
+            Message::FwQuery { .. }
+                if !self.received.is_empty() && self.quirks.deaf_after_data > 0 =>
+            {
+                self.quirks.deaf_after_data -= 1;
             }
             Message::FwQuery { .. } => say(self),
             Message::FwEnd {
@@ -357,6 +365,40 @@ fn a_node_missing_frames_gets_only_those() {
     let lossy = &r.models[0];
     assert_eq!(lossy.received.len() as u32, data);
     assert_eq!(r.models[1].received.len() as u32, data);
+    assert_eq!(r.report.frames_sent, u64::from(frames) + lose.len() as u64);
+}
+
+/// A node whose answer was lost is asked again before it is sent anything: the sender does not
+/// resend from what it last said (stale), which would repeat frames it has and bury its next
+/// query behind them.
+#[test]
+fn a_node_that_did_not_answer_is_asked_before_it_is_sent_more() {
+    let img = image(3000);
+    let frames = img.frames();
+    let lose: BTreeSet<u32> = (200..204).collect();
+    let models = vec![
+        // The query right after the image's broadcast goes unanswered.
+        Model::new(
+            0x161,
+            frames,
+            Quirks {
+                lose: lose.clone(),
+                deaf_after_data: 1,
+                ..Quirks::default()
+            },
+        ),
+        Model::new(0x162, frames, Quirks::default()),
+    ];
+    let r = run(models, img, FwConfig::default());
+    assert!(r.report.all_updated(), "{:?}", outcomes(&r.report));
+    // Each data frame reached it once: nothing was resent from its stale status.
+    let quiet = &r.models[0];
+    let mut distinct = quiet.received.clone();
+    distinct.sort_unstable();
+    distinct.dedup();
+    let resent = quiet.received.len() - distinct.len();
+    assert_eq!(resent, 0, "data frames it got twice");
+    assert_eq!(distinct.len() as u32, frames - HEADER_FRAMES);
     assert_eq!(r.report.frames_sent, u64::from(frames) + lose.len() as u64);
 }
 
