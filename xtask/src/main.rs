@@ -130,6 +130,10 @@ struct TestArgs {
     /// Run the SocketCAN tests in the microVM even where native vcan exists (IHEX_VCAN=vm).
     #[arg(long)]
     vm: bool,
+    /// In the vcan stage, run only this integration test (`--vcan-test gateway_fw_update`: one
+    /// file of tests/tests/, to chase a failure without the whole stage).
+    #[arg(long, value_name = "TEST")]
+    vcan_test: Option<String>,
     #[command(flatten)]
     vm_args: VmArgs,
 }
@@ -398,7 +402,7 @@ fn run_stage(stage: Stage, args: &TestArgs) -> Result<Done> {
             vcan::stage(
                 vcan::Mode::from_env(args.vm)?,
                 args.vm_args.settings(),
-                None,
+                args.vcan_test.as_deref(),
             )?;
             Ok(Done::Ran)
         }

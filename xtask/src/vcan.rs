@@ -303,13 +303,25 @@ const CARRIED_PROGRAMS: [(&str, &str); 2] = [
 ];
 
 fn run_in_vm(settings: VmSettings, only: Option<&str>) -> Result<()> {
-    let bins: Vec<(String, PathBuf)> = build_tests()?
-        .into_iter()
+    let built = build_tests()?;
+    let bins: Vec<(String, PathBuf)> = built
+        .iter()
         .filter(|(name, _)| match only {
             Some(t) => *name == format!("{t} (test)"),
             None => !NOT_IN_STAGE.contains(&name.as_str()),
         })
+        .cloned()
         .collect();
+    if let (Some(t), true) = (only, bins.is_empty()) {
+        let tests: Vec<&str> = built
+            .iter()
+            .filter_map(|(name, _)| name.strip_suffix(" (test)"))
+            .collect();
+        bail!(
+            "no integration test \"{t}\"; there are: {}",
+            tests.join(", ")
+        );
+    }
     // Tests run the workspace's programs as users do (the fault suite the gateway, the firmware
     // update test ihex-provision): built with the tests (each has tests of its own binary),
     // found beside the test binaries' `deps/` folder.
