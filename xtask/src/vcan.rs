@@ -290,6 +290,11 @@ fn build_tests() -> Result<Vec<(String, PathBuf)>> {
     Ok(bins)
 }
 
+/// The integration test (a file of `tests/tests/`) a [`build_tests`] label names, if it names one.
+fn integration_test(label: &str) -> Option<&str> {
+    label.strip_suffix(" (test)")
+}
+
 /// Test binaries of `ihex-tests` the stage leaves out: `security` and `bridge` need no CAN (the
 /// host stage runs them). The fault suite (`faults`) runs its bounded run here (every kind of
 /// fault once; `cargo xtask soak` makes it a soak).
@@ -307,7 +312,7 @@ fn run_in_vm(settings: VmSettings, only: Option<&str>) -> Result<()> {
     let bins: Vec<(String, PathBuf)> = built
         .iter()
         .filter(|(name, _)| match only {
-            Some(t) => *name == format!("{t} (test)"),
+            Some(t) => integration_test(name) == Some(t),
             None => !NOT_IN_STAGE.contains(&name.as_str()),
         })
         .cloned()
@@ -315,7 +320,7 @@ fn run_in_vm(settings: VmSettings, only: Option<&str>) -> Result<()> {
     if let (Some(t), true) = (only, bins.is_empty()) {
         let tests: Vec<&str> = built
             .iter()
-            .filter_map(|(name, _)| name.strip_suffix(" (test)"))
+            .filter_map(|(name, _)| integration_test(name))
             .collect();
         bail!(
             "no integration test \"{t}\"; there are: {}",

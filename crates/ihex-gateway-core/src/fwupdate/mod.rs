@@ -589,10 +589,8 @@ impl FwSender {
                 },
             ));
         }
-        for &id in &asked_first {
-            self.queue
-                .push_back(Packet::command(id, Message::FwQuery { image_id }));
-        }
+        let query = |id| Packet::command(id, Message::FwQuery { image_id });
+        self.queue.extend(asked_first.iter().map(|&id| query(id)));
         for (index, who) in wanted {
             let dest = match who.as_slice() {
                 [one] => *one,
@@ -611,10 +609,7 @@ impl FwSender {
                 },
             ));
         }
-        for &id in &queries {
-            self.queue
-                .push_back(Packet::command(id, Message::FwQuery { image_id }));
-        }
+        self.queue.extend(queries.iter().map(|&id| query(id)));
         let reboot = self.config.reboot_timeout;
         for id in begins.iter().chain(&asked_first).chain(&queries) {
             if let Some(n) = self.nodes.get_mut(id) {
