@@ -41,7 +41,7 @@ const READ_CHUNK: usize = 16 * 1024;
 pub const WRITE_BATCH: usize = READ_CHUNK;
 /// Publications in flight from which their PUBACKs are read in batches: the socket's receive
 /// low-water mark is raised to that many PUBACKs' bytes, so the kernel wakes the gateway once per
-/// batch instead of once per acknowledgement.
+/// batch instead of once per acknowledgement (below it, see [`wanted_lowat`]).
 const ACK_BATCH: u16 = 16;
 /// A PUBACK's encoded size: the fewest bytes on the wire per acknowledgement (TLS only adds).
 const PUBACK_LEN: u16 = 4;
@@ -66,6 +66,11 @@ pub struct Connection {
     /// SUBSCRIBEs and UNSUBSCRIBEs of this connection whose SUBACK or UNSUBACK has not come yet
     /// (a request made while down is never sent).
     replies_due: usize,
+    /// The fewest bytes a PUBLISH the broker may deliver on this connection takes on the wire:
+    /// the smallest over its subscriptions (an unsubscription does not raise it: a delivery may
+    /// still be on its way). `None` before any subscription, and over TLS, whose records the
+    /// kernel counts and whose partial records the TLS layer holds.
+    smallest_publish: Option<u16>,
 }
 
 enum Link {
@@ -122,6 +127,7 @@ impl Connection {
             notice: None,
             broken: None,
             replies_due: 0,
+            smallest_publish: None,
         }
     }
 
@@ -156,6 +162,11 @@ impl Connection {
 
     /// Queues a subscription.
     pub fn subscribe(&mut self, filter: String, qos: QoS) {
+        if self.is_up() && matches!(self.options.transport(), Transport::Tcp) {
+            let smallest = smallest_publish(&filter);
+            self.smallest_publish =
+                Some(self.smallest_publish.map_or(smallest, |s| s.min(smallest)));
+        }
         self.replies_due += usize::from(self.is_up());
         self.request(Request::Subscribe(Subscribe::new(filter, qos)));
     }
@@ -267,12 +278,19 @@ impl Connection {
                 let (up, connack) = attempt.as_mut().await?;
                 self.link = Link::Up(up);
                 self.replies_due = 0;
+                self.smallest_publish = None;
                 self.notice = Some(Event::Incoming(Packet::ConnAck(connack)));
                 // What came right behind the CONNACK.
                 Ok(self.parse()?)
             }
             Link::Up(up) => {
-                up.set_lowat(wanted_lowat(&self.state, self.replies_due));
+                up.set_lowat(wanted_lowat(
+                    &self.state,
+                    self.replies_due,
+                    !up.read.is_empty(),
+                    self.smallest_publish,
+                    self.options.inflight(),
+                ));
                 let io = std::future::poll_fn(|cx| up.poll_io(cx)).await?;
                 match io {
                     Io::Closed => Err(ConnectionError::MqttState(StateError::ConnectionAborted)),
@@ -410,18 +428,52 @@ impl Up {
     }
 }
 
-/// The receive low-water mark for the connection's state: [`ACK_BATCH`] PUBACKs' bytes while more
-/// publications than that are in flight and nothing else is awaited, else 1. A raised mark never strands a
-/// packet: the PUBACKs still to come fill it, and a PINGRESP, SUBACK or UNSUBACK awaited (any
-/// smaller than the mark) lowers it first. Other packets from the broker (commands) wait at most
-/// for those PUBACKs.
-fn wanted_lowat(state: &MqttState, replies_due: usize) -> u16 {
-    // One more than the batch: a PUBACK already partly read counts in flight but brings fewer bytes.
-    if state.inflight() > ACK_BATCH && !state.await_pingresp && replies_due == 0 {
+/// The receive low-water mark for the connection's state, the largest that strands nothing:
+///
+/// - 1 byte while a PINGRESP, SUBACK or UNSUBACK is awaited (any smaller than a raised mark), or
+///   while the read buffer holds the start of a packet (its rest may be short);
+/// - else the smallest PUBLISH the broker may deliver (`smallest_publish`): a command always wakes
+///   the gateway at once, and up to a few PUBACKs, which need no answer, wait in the kernel for the
+///   next wake-up (a command, more PUBACKs, the keep-alive's PINGRESP) instead of each waking it;
+/// - and while more than [`ACK_BATCH`] publications are in flight, at least that many PUBACKs'
+///   bytes: they are sure to come, and a command waits at most for them.
+///
+/// Never more than the PUBACKs of a full in-flight window (`window`) bring, so a window waiting
+/// for room is always woken.
+fn wanted_lowat(
+    state: &MqttState,
+    replies_due: usize,
+    partial: bool,
+    smallest_publish: Option<u16>,
+    window: u16,
+) -> u16 {
+    if state.await_pingresp || replies_due > 0 || partial {
+        return 1;
+    }
+    let acks = if state.inflight() > ACK_BATCH {
         ACK_BATCH * PUBACK_LEN
     } else {
         1
-    }
+    };
+    acks.max(smallest_publish.unwrap_or(1))
+        .min(window.saturating_mul(PUBACK_LEN))
+        .max(1)
+}
+
+/// The fewest bytes of a PUBLISH whose topic matches `filter`: a 2-byte fixed header, the topic's
+/// 2-byte length, the shortest topic matching (`+` may match an empty level, `/#` no level at all,
+/// and a topic has at least one byte), no packet id (QoS 0) and no payload.
+fn smallest_publish(filter: &str) -> u16 {
+    let filter = filter
+        .strip_suffix("/#")
+        .or_else(|| filter.strip_suffix('#'))
+        .unwrap_or(filter);
+    let topic: usize = filter
+        .split('/')
+        .map(|level| if level == "+" { 0 } else { level.len() })
+        .sum::<usize>()
+        + filter.matches('/').count();
+    u16::try_from(4 + topic.max(1)).unwrap_or(u16::MAX)
 }
 
 /// Encodes a packet the state wants written.
@@ -533,7 +585,7 @@ async fn tls_connect(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::mqtt::test_broker::broker;
+    use crate::mqtt::test_broker::{broker, Script};
     use rumqttc::Incoming;
 
     const PUBLISHED: u16 = ACK_BATCH + 4;
@@ -619,6 +671,106 @@ mod tests {
         for pkid in ACK_BATCH + 1..=PUBLISHED {
             broker.send(puback(pkid)).unwrap();
             assert_eq!(acks(&mut conn, 1).await, vec![pkid]);
+        }
+    }
+
+    /// A QoS 0 PUBLISH of `topic`, empty, cut after `cut` bytes: (head, rest).
+    fn command(topic: &str, cut: usize) -> (Vec<u8>, Vec<u8>) {
+        let mut p = vec![0x30, 2 + topic.len() as u8, 0, topic.len() as u8];
+        p.extend_from_slice(topic.as_bytes());
+        let rest = p.split_off(cut);
+        (p, rest)
+    }
+
+    /// Subscribed to `CommandsTopic` (its SUBACK read), then `n` publications written and none
+    /// acknowledged (packet ids 2..=n+1).
+    async fn subscribed_with_publications(port: u16, broker: &Script, n: u16) -> Connection {
+        let options = MqttOptions::new("lowat-commands", "127.0.0.1", port);
+        let mut conn = Connection::new(options, 1 << 20, Duration::from_secs(5));
+        let ev = conn.poll().await.unwrap();
+        assert!(
+            matches!(ev, Event::Incoming(Incoming::ConnAck(_))),
+            "{ev:?}"
+        );
+        conn.subscribe("CommandsTopic".into(), QoS::AtLeastOnce);
+        broker.send(vec![0x90, 0x03, 0x00, 0x01, 0x01]).unwrap(); // SUBACK, granted QoS 1
+        let ev = tokio::time::timeout(Duration::from_secs(5), conn.poll()).await;
+        assert!(
+            matches!(ev, Ok(Ok(Event::Incoming(Incoming::SubAck(_))))),
+            "{ev:?}"
+        );
+        for n in 0..n {
+            conn.publish("EventsTopic".into(), vec![n as u8].into(), false)
+                .unwrap();
+        }
+        let _ = tokio::time::timeout(Duration::from_millis(100), conn.poll()).await;
+        conn
+    }
+
+    /// The next event within 5 s.
+    async fn next(conn: &mut Connection) -> Event {
+        let ev = tokio::time::timeout(Duration::from_secs(5), conn.poll()).await;
+        ev.expect("an event within 5 s").unwrap()
+    }
+
+    /// The smallest publication a subscription can bring, for the filters the gateway subscribes.
+    #[test]
+    fn smallest_publication_of_a_filter() {
+        assert_eq!(smallest_publish("CommandsTopic"), 4 + 13);
+        assert_eq!(smallest_publish("ihex/node/+/state"), 4 + 16);
+        assert_eq!(smallest_publish("ihex/ha/+/+/set"), 4 + 13);
+        assert_eq!(smallest_publish("ihex/fw/#"), 4 + 7);
+        assert_eq!(smallest_publish("#"), 5);
+        assert_eq!(smallest_publish("+"), 5);
+        assert_eq!(smallest_publish("+/+"), 5);
+    }
+
+    /// With a few publications in flight, a lone PUBACK waits in the kernel, while a command (the
+    /// smallest the subscription allows) wakes the client at once and brings the PUBACK with it.
+    #[tokio::test]
+    async fn a_lone_acknowledgement_waits_but_a_command_does_not() {
+        let (port, broker) = broker(None).await;
+        let mut conn = subscribed_with_publications(port, &broker, 2).await;
+        assert_eq!(
+            kernel_lowat(&conn),
+            libc::c_int::from(smallest_publish("CommandsTopic"))
+        );
+
+        broker.send(puback(2)).unwrap();
+        let early = tokio::time::timeout(Duration::from_millis(300), conn.poll()).await;
+        assert!(early.is_err(), "a lone PUBACK woke the client: {early:?}");
+
+        broker.send(command("CommandsTopic", 17).0).unwrap();
+        assert!(
+            matches!(next(&mut conn).await, Event::Incoming(Incoming::PubAck(a)) if a.pkid == 2)
+        );
+        match next(&mut conn).await {
+            Event::Incoming(Incoming::Publish(p)) => assert_eq!(p.topic, "CommandsTopic"),
+            other => panic!("{other:?}"),
+        }
+        // The last PUBACK with nothing behind it: held too, never lost.
+        broker.send(puback(3)).unwrap();
+        let early = tokio::time::timeout(Duration::from_millis(300), conn.poll()).await;
+        assert!(early.is_err(), "a lone PUBACK woke the client: {early:?}");
+        assert_eq!(conn.state.inflight(), 1);
+    }
+
+    /// The start of a command read with a batch of PUBACKs: its short rest wakes the client.
+    #[tokio::test]
+    async fn the_rest_of_a_command_read_in_part_is_not_held_back() {
+        let (port, broker) = broker(None).await;
+        let mut conn = subscribed_with_publications(port, &broker, 5).await;
+        let (head, rest) = command("CommandsTopic", 5);
+        let mut burst: Vec<u8> = (2..=6).flat_map(puback).collect();
+        burst.extend_from_slice(&head);
+        broker.send(burst).unwrap();
+        assert_eq!(acks(&mut conn, 5).await, vec![2, 3, 4, 5, 6]);
+
+        assert!(rest.len() < usize::from(smallest_publish("CommandsTopic")));
+        broker.send(rest).unwrap();
+        match next(&mut conn).await {
+            Event::Incoming(Incoming::Publish(p)) => assert_eq!(p.topic, "CommandsTopic"),
+            other => panic!("{other:?}"),
         }
     }
 

@@ -7,10 +7,13 @@ use tokio::{
     sync::mpsc,
 };
 
+/// What the test sends the client through the broker: bytes written as they are.
+pub type Script = mpsc::UnboundedSender<Vec<u8>>;
+
 /// Accepts one connection and its CONNECT with an accepted CONNACK, then writes whatever the test
 /// sends on the returned channel and acknowledges nothing by itself. It hangs up after `reads`
 /// reads of what the client wrote (`None`: once the client hangs up). Returns its port.
-pub async fn broker(reads: Option<usize>) -> (u16, mpsc::UnboundedSender<Vec<u8>>) {
+pub async fn broker(reads: Option<usize>) -> (u16, Script) {
     let listener = TcpListener::bind("127.0.0.1:0").await.unwrap();
     let port = listener.local_addr().unwrap().port();
     let (tx, mut script) = mpsc::unbounded_channel::<Vec<u8>>();
