@@ -629,20 +629,31 @@ mod tests {
         got
     }
 
-    /// Connected, with `PUBLISHED` publications written and none acknowledged.
-    async fn connected_with_publications(options: MqttOptions) -> Connection {
+    /// Connected (its CONNACK read).
+    async fn connected(options: MqttOptions) -> Connection {
         let mut conn = Connection::new(options, 1 << 20, Duration::from_secs(5));
         let ev = conn.poll().await.unwrap();
         assert!(
             matches!(ev, Event::Incoming(Incoming::ConnAck(_))),
             "{ev:?}"
         );
-        for n in 0..PUBLISHED {
+        conn
+    }
+
+    /// `n` publications written, none acknowledged.
+    async fn publish(conn: &mut Connection, n: u16) {
+        for n in 0..n {
             conn.publish("EventsTopic".into(), vec![n as u8].into(), false)
                 .unwrap();
         }
         // Writes them, then waits for input that does not come yet.
         let _ = tokio::time::timeout(Duration::from_millis(100), conn.poll()).await;
+    }
+
+    /// Connected, with `PUBLISHED` publications written and none acknowledged.
+    async fn connected_with_publications(options: MqttOptions) -> Connection {
+        let mut conn = connected(options).await;
+        publish(&mut conn, PUBLISHED).await;
         conn
     }
 
@@ -685,13 +696,7 @@ mod tests {
     /// Subscribed to `CommandsTopic` (its SUBACK read), then `n` publications written and none
     /// acknowledged (packet ids 2..=n+1).
     async fn subscribed_with_publications(port: u16, broker: &Script, n: u16) -> Connection {
-        let options = MqttOptions::new("lowat-commands", "127.0.0.1", port);
-        let mut conn = Connection::new(options, 1 << 20, Duration::from_secs(5));
-        let ev = conn.poll().await.unwrap();
-        assert!(
-            matches!(ev, Event::Incoming(Incoming::ConnAck(_))),
-            "{ev:?}"
-        );
+        let mut conn = connected(MqttOptions::new("lowat-commands", "127.0.0.1", port)).await;
         conn.subscribe("CommandsTopic".into(), QoS::AtLeastOnce);
         broker.send(vec![0x90, 0x03, 0x00, 0x01, 0x01]).unwrap(); // SUBACK, granted QoS 1
         let ev = tokio::time::timeout(Duration::from_secs(5), conn.poll()).await;
@@ -699,11 +704,7 @@ mod tests {
             matches!(ev, Ok(Ok(Event::Incoming(Incoming::SubAck(_))))),
             "{ev:?}"
         );
-        for n in 0..n {
-            conn.publish("EventsTopic".into(), vec![n as u8].into(), false)
-                .unwrap();
-        }
-        let _ = tokio::time::timeout(Duration::from_millis(100), conn.poll()).await;
+        publish(&mut conn, n).await;
         conn
     }
 
