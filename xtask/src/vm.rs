@@ -154,8 +154,8 @@ pub fn static_busybox() -> Option<PathBuf> {
 }
 
 impl Vm {
-    /// An x86_64 TCG microVM from the host's kernel, busybox and QEMU (KVM hangs on the project's
-    /// machines, so TCG always).
+    /// An x86_64 TCG microVM from the host's kernel, busybox and QEMU (KVM does not work on the
+    /// project's machines, see docs/testing.md, so TCG always).
     pub fn x86_64(cache_root: &Path) -> Result<Vm> {
         let (kernel, modules_dir) = host_kernel()?;
         let qemu = cmd::find("qemu-system-x86_64").ok_or_else(|| {
