@@ -92,7 +92,8 @@ async fn a_frozen_broker_link_is_replaced_within_the_ack_bound() {
     });
     let topics = gateway.config.topics.clone();
     let mut client = Client::connect(broker.addr(), "frozen-watch", &["frozen/#".to_owned()]);
-    let online = |m: &gateway_support::Seen| m.topic == topics.availability && m.payload == b"online";
+    let online =
+        |m: &gateway_support::Seen| m.topic == topics.availability && m.payload == b"online";
     client.expect("gateway online", online).await;
     assert_eq!(proxy.accepted(), 1);
 
