@@ -154,7 +154,8 @@ impl Plan {
     fn fault(&mut self, kind: u8, t: &Timing, island: &Island) -> Fault {
         let hp = t.health_period_ms;
         // Zombie connections: short enough that neither end's keep-alive notices, or long enough
-        // that both do (the broker after 1.5 keep-alives of silence, the client after two pings).
+        // that the broker does (after 1.5 keep-alives of silence; the gateway after a keep-alive plus
+        // its acknowledgement bound, or when the proxy passes again and delivers the broker's close).
         let ka = t.keep_alive_s * 1000;
         match kind {
             0 => Fault::BrokerKill {
