@@ -15,6 +15,8 @@
 //! # Ok(()) }
 //! ```
 #![warn(missing_docs)]
+// The one exception is `mqtt::sockopt` (socket options std and tokio do not offer).
+#![deny(unsafe_code)]
 
 pub mod can;
 pub mod config;

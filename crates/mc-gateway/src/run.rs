@@ -113,6 +113,7 @@ impl Gateway {
             ha: config.ha.is_some(),
             broker: config.mqtt.broker.to_string(),
             stats,
+            ack_timeout: config.mqtt.ack_timeout,
         };
         Ok(Gateway {
             config,

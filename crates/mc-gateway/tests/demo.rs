@@ -225,6 +225,7 @@ async fn publications_queued_before_the_broker_exists_are_delivered() {
         credentials: None,
         tls: None,
         keep_alive: Duration::from_secs(20),
+        ack_timeout: Duration::from_secs(5),
     };
     let topics = Topics::seed();
     let stats = std::sync::Arc::new(MqttStats::default());
@@ -234,6 +235,7 @@ async fn publications_queued_before_the_broker_exists_are_delivered() {
         ha: false,
         broker: format!("127.0.0.1:{port}"),
         stats: stats.clone(),
+        ack_timeout: Duration::from_secs(5),
     };
     let (pub_tx, pub_rx) = mpsc::channel(16);
     let (in_tx, mut in_rx) = mpsc::channel(16);

@@ -325,6 +325,8 @@ impl Rig {
             &timing.dock_timeout_ms.to_string(),
             "--keep-alive",
             &timing.keep_alive_s.to_string(),
+            "--broker-ack-timeout-ms",
+            &timing.broker_ack_timeout_ms.to_string(),
             "--log-dir",
             "-",
         ]

@@ -43,6 +43,10 @@ pub struct Timing {
     pub dock_timeout_ms: u64,
     /// MQTT keep-alive of the gateway, seconds (the broker notices a silent client after 1.5×).
     pub keep_alive_s: u64,
+    /// How long the gateway waits for a PUBACK or PINGRESP before it gives the link up: scaled
+    /// like everything else, so a delayed link (a round trip of two proxy delays) is never taken
+    /// for dead.
+    pub broker_ack_timeout_ms: u64,
     /// What the machine may add to any expectation.
     pub slack_ms: u64,
     /// The machine's slowness factor (`IHEX_TEST_TIME_SCALE`): durations of activity scale by it.
@@ -60,6 +64,7 @@ impl Timing {
             command_timeout_ms: ms(1000),
             dock_timeout_ms: ms(3000),
             keep_alive_s: 5,
+            broker_ack_timeout_ms: ms(5000),
             slack_ms: ms(1000),
             scale: ms(1000) as f64 / 1000.0,
         }
@@ -149,7 +154,8 @@ impl Plan {
     fn fault(&mut self, kind: u8, t: &Timing, island: &Island) -> Fault {
         let hp = t.health_period_ms;
         // Zombie connections: short enough that neither end's keep-alive notices, or long enough
-        // that both do (the broker after 1.5 keep-alives of silence, the client after two pings).
+        // that the broker does (after 1.5 keep-alives of silence; the gateway after a keep-alive plus
+        // its acknowledgement bound, or when the proxy passes again and delivers the broker's close).
         let ka = t.keep_alive_s * 1000;
         match kind {
             0 => Fault::BrokerKill {

@@ -70,8 +70,14 @@ options! {
     tls: bool = false, env "IHEX_MQTT_TLS", value "BOOL";
     /// PEM CA certificate for TLS.
     tls_ca: PathBuf = (text "the system's roots"), env "IHEX_MQTT_TLS_CA", value "FILE";
-    /// MQTT keep-alive, seconds.
-    keep_alive: u64 = 20, env "IHEX_KEEP_ALIVE", value "SECS", range 5..=3600;
+    /// MQTT keep-alive, seconds: the gateway pings the broker this often, and the broker takes a
+    /// silent gateway for gone (last will `offline`) after 1.5 times this.
+    keep_alive: u64 = {crate::mqtt::DEFAULT_KEEP_ALIVE.as_secs()}, env "IHEX_KEEP_ALIVE",
+        value "SECS", range 5..=3600;
+    /// How long a PUBACK or PINGRESP the gateway waits for may stay missing before it takes the
+    /// broker link for dead and reconnects, ms.
+    broker_ack_timeout_ms: u64 = {ms(crate::mqtt::DEFAULT_ACK_TIMEOUT)},
+        env "IHEX_BROKER_ACK_TIMEOUT_MS", value "MS", range 500..=600000;
     /// Command topic (before the island prefix).
     commands_topic: String = {topic::COMMANDS}, env "IHEX_COMMANDS_TOPIC", value "TOPIC";
     /// Event topic (before the island prefix).
@@ -272,6 +278,8 @@ pub struct MqttConfig {
     pub tls: Option<Option<PathBuf>>,
     /// Keep-alive interval.
     pub keep_alive: Duration,
+    /// How long a PUBACK or PINGRESP may stay missing before the link is taken for dead.
+    pub ack_timeout: Duration,
 }
 
 /// CAN side settings.
@@ -547,6 +555,7 @@ impl Config {
                 credentials,
                 tls,
                 keep_alive: Duration::from_secs(s.keep_alive),
+                ack_timeout: Duration::from_millis(s.broker_ack_timeout_ms),
             },
             can: CanConfig {
                 link,
@@ -662,7 +671,7 @@ mod tests {
         );
         assert_eq!(c.can.link, Link::Simulated { island_file: None });
         assert_eq!(c.topics, topic::Topics::seed());
-        assert_eq!(c.mqtt.keep_alive, Duration::from_secs(20));
+        assert_eq!(c.mqtt.keep_alive, Duration::from_secs(10));
         assert_eq!(c.can.bitrate, 500_000);
     }
 
@@ -1012,7 +1021,7 @@ mod tests {
         );
         assert_eq!(c.can.link, Link::SocketCan("can0".into()));
         assert_eq!(c.can.bitrate, 500_000);
-        assert_eq!(c.mqtt.keep_alive, Duration::from_secs(20));
+        assert_eq!(c.mqtt.keep_alive, Duration::from_secs(10));
     }
 
     #[test]

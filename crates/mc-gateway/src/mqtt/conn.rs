@@ -9,7 +9,9 @@
 //! only encode into a write buffer, and [`Connection::poll`] writes whatever is buffered, reads
 //! whatever arrived, and returns the next incoming packet. `poll` is cancel-safe (all its state lives
 //! in the [`Connection`], including a connection attempt under way), so the MQTT task can select on
-//! it beside its channels.
+//! it beside its channels. When to ping and when to give a silent link up is the session's decision
+//! ([`super::session`]): the connection pings when asked ([`Connection::ping`]) and closes when told
+//! ([`Connection::close`]). rumqttc's state is reached only through [`super::rumqttc_state`].
 
 use std::{
     future::Future, io, os::fd::AsRawFd, os::fd::RawFd, pin::Pin, task::Poll, time::Duration,
@@ -17,14 +19,15 @@ use std::{
 
 use bytes::{Buf, Bytes, BytesMut};
 use rumqttc::{
-    mqttbytes, ConnAck, Connect, ConnectReturnCode, ConnectionError, Event, MqttOptions, MqttState,
-    Outgoing, Packet, PubAck, Publish, QoS, Request, StateError, Subscribe, Transport, Unsubscribe,
+    mqttbytes, ConnAck, Connect, ConnectReturnCode, ConnectionError, Event, MqttOptions, Outgoing,
+    Packet, PubAck, Publish, QoS, Request, StateError, Subscribe, Transport, Unsubscribe,
 };
 use tokio::{
     io::{AsyncRead, AsyncWrite, AsyncWriteExt},
     net::TcpSocket,
-    time::Instant,
 };
+
+use super::{rumqttc_state::State, sockopt};
 
 /// Anything a connection can run over (TCP, TLS over TCP).
 trait Stream: AsyncRead + AsyncWrite + Send + Unpin {}
@@ -55,14 +58,15 @@ pub struct Connection {
     max_outgoing: usize,
     /// Limit of the TCP connect, TLS handshake and CONNECT/CONNACK exchange together.
     connect_timeout: Duration,
-    state: MqttState,
+    state: State,
     link: Link,
     /// A DISCONNECT is queued: `poll` says so once it has been written.
     disconnecting: bool,
     /// What `poll` returns next, before anything else.
     notice: Option<Event>,
-    /// A request the state refused or that could not be encoded: the connection is broken.
-    broken: Option<StateError>,
+    /// A request the state refused or that could not be encoded, or the session gave the link up:
+    /// the connection is broken.
+    broken: Option<ConnectionError>,
     /// SUBSCRIBEs and UNSUBSCRIBEs of this connection whose SUBACK or UNSUBACK has not come yet
     /// (a request made while down is never sent).
     replies_due: usize,
@@ -92,9 +96,6 @@ struct Up {
     write: BytesMut,
     /// Written to the stream but not flushed yet (TLS buffers).
     unflushed: bool,
-    /// When the next PINGREQ is due (`None`: keep-alive off).
-    ping_at: Option<Instant>,
-    ping: Pin<Box<tokio::time::Sleep>>,
 }
 
 /// What one round of I/O produced.
@@ -103,8 +104,6 @@ enum Io {
     Read,
     /// The broker closed the connection.
     Closed,
-    /// The keep-alive timer ran out.
-    Ping,
     /// Everything queued was written and flushed.
     Flushed,
 }
@@ -115,7 +114,7 @@ impl Connection {
     /// attempted: the first [`poll`](Self::poll) connects.
     pub fn new(options: MqttOptions, max_outgoing: usize, connect_timeout: Duration) -> Connection {
         let max_incoming = options.max_packet_size();
-        let state = MqttState::new(options.inflight(), options.manual_acks());
+        let state = State::new(options.inflight(), options.manual_acks());
         Connection {
             options,
             max_incoming,
@@ -150,7 +149,7 @@ impl Connection {
         };
         if up.write.len() >= WRITE_BATCH
             || self.state.inflight() >= self.options.inflight()
-            || self.state.collision.is_some()
+            || self.state.collided()
         {
             return Err((topic, payload));
         }
@@ -182,6 +181,21 @@ impl Connection {
         self.request(Request::PubAck(PubAck::new(pkid)));
     }
 
+    /// Queues a PINGREQ (the session asks for one at the keep-alive, and to probe a silent link;
+    /// never while one is awaited).
+    pub fn ping(&mut self) {
+        self.request(Request::PingReq(rumqttc::PingReq));
+    }
+
+    /// Gives the link up: the next `poll` ends the connection with `why` (an I/O error of kind
+    /// `TimedOut`), like a broken socket, and the one after reconnects.
+    pub fn close(&mut self, why: String) {
+        if self.is_up() {
+            let e = io::Error::new(io::ErrorKind::TimedOut, why);
+            self.broken.get_or_insert(ConnectionError::Io(e));
+        }
+    }
+
     /// Queues a DISCONNECT; `poll` returns `Event::Outgoing(Outgoing::Disconnect)` once it (and
     /// everything queued before it) is written.
     pub fn disconnect(&mut self) {
@@ -192,14 +206,7 @@ impl Connection {
     /// After a connection error: the publications the broker had not acknowledged, oldest first.
     /// The next session is clean, so they are the caller's to send again.
     pub fn take_back(&mut self) -> Vec<Publish> {
-        self.state
-            .clean()
-            .into_iter()
-            .filter_map(|r| match r {
-                Request::Publish(p) => Some(p),
-                _ => None,
-            })
-            .collect()
+        self.state.take_back()
     }
 
     /// Encodes a request into the write buffer (nothing is written before the next `poll`). A
@@ -211,15 +218,10 @@ impl Connection {
         };
         let result = self
             .state
-            .handle_outgoing_packet(request)
+            .handle_outgoing(request)
             .and_then(|p| encode(p, &mut up.write, self.max_outgoing));
         if let Err(e) = result {
-            self.broken.get_or_insert(e);
-        }
-        // The state notes every outgoing packet as an event; nobody reads those (the caller knows
-        // what it queued), and a burst of publications between two polls would pile them up.
-        if let Some(Event::Outgoing(_)) = self.state.events.back() {
-            self.state.events.pop_back();
+            self.broken.get_or_insert(e.into());
         }
     }
 
@@ -233,7 +235,7 @@ impl Connection {
                 return Ok(event);
             }
             let step = match self.broken.take() {
-                Some(e) => Err(e.into()),
+                Some(e) => Err(e),
                 None => self.advance().await,
             };
             match step {
@@ -241,7 +243,7 @@ impl Connection {
                 Err(e) => {
                     self.link = Link::Down;
                     self.disconnecting = false;
-                    self.state.events.clear();
+                    self.state.forget_incoming();
                     return Err(e);
                 }
             }
@@ -255,12 +257,7 @@ impl Connection {
         if let Some(event) = self.notice.take() {
             return Some(event);
         }
-        while let Some(event) = self.state.events.pop_front() {
-            if let Event::Incoming(_) = event {
-                return Some(event);
-            }
-        }
-        None
+        self.state.next_incoming()
     }
 
     /// One step: start or continue a connection attempt, or one round of I/O.
@@ -285,7 +282,8 @@ impl Connection {
             }
             Link::Up(up) => {
                 up.set_lowat(wanted_lowat(
-                    &self.state,
+                    self.state.inflight(),
+                    self.state.awaits_pingresp(),
                     self.replies_due,
                     !up.read.is_empty(),
                     self.smallest_publish,
@@ -294,14 +292,6 @@ impl Connection {
                 let io = std::future::poll_fn(|cx| up.poll_io(cx)).await?;
                 match io {
                     Io::Closed => Err(ConnectionError::MqttState(StateError::ConnectionAborted)),
-                    Io::Ping => {
-                        up.schedule_ping(self.options.keep_alive());
-                        let p = self
-                            .state
-                            .handle_outgoing_packet(Request::PingReq(rumqttc::PingReq))?;
-                        encode(p, &mut up.write, self.max_outgoing)?;
-                        Ok(())
-                    }
                     Io::Flushed => {
                         if std::mem::take(&mut self.disconnecting) {
                             self.notice = Some(Event::Outgoing(Outgoing::Disconnect));
@@ -330,7 +320,7 @@ impl Connection {
             if let Packet::SubAck(_) | Packet::UnsubAck(_) = packet {
                 self.replies_due = self.replies_due.saturating_sub(1);
             }
-            if let Some(reply) = self.state.handle_incoming_packet(packet)? {
+            if let Some(reply) = self.state.handle_incoming(packet)? {
                 encode(Some(reply), &mut up.write, self.max_outgoing)?;
             }
         }
@@ -338,25 +328,14 @@ impl Connection {
 }
 
 impl Up {
-    fn new(stream: Box<dyn Stream>, fd: RawFd, read: BytesMut, keep_alive: Duration) -> Up {
-        let mut up = Up {
+    fn new(stream: Box<dyn Stream>, fd: RawFd, read: BytesMut) -> Up {
+        Up {
             stream,
             fd,
             lowat: Some(1),
             read,
             write: BytesMut::with_capacity(READ_CHUNK),
             unflushed: false,
-            ping_at: None,
-            ping: Box::pin(tokio::time::sleep(Duration::ZERO)),
-        };
-        up.schedule_ping(keep_alive);
-        up
-    }
-
-    fn schedule_ping(&mut self, keep_alive: Duration) {
-        self.ping_at = (!keep_alive.is_zero()).then(|| Instant::now() + keep_alive);
-        if let Some(at) = self.ping_at {
-            self.ping.as_mut().reset(at);
         }
     }
 
@@ -368,28 +347,17 @@ impl Up {
         if self.lowat.is_none_or(|now| now == bytes) {
             return;
         }
-        let value = libc::c_int::from(bytes);
-        // SAFETY: `fd` is the open TCP socket owned by `stream` (which lives as long as `self`),
-        // and `value` is a c_int of the size passed, as SO_RCVLOWAT takes.
-        let r = unsafe {
-            libc::setsockopt(
-                self.fd,
-                libc::SOL_SOCKET,
-                libc::SO_RCVLOWAT,
-                (&value as *const libc::c_int).cast(),
-                std::mem::size_of::<libc::c_int>() as libc::socklen_t,
-            )
-        };
-        if r == 0 {
-            self.lowat = Some(bytes);
-        } else {
-            let e = io::Error::last_os_error();
-            tracing::debug!("SO_RCVLOWAT refused ({e}): every PUBACK is read as it comes");
-            self.lowat = None;
+        // `fd` is the TCP socket under `stream`, which lives as long as `self`.
+        match sockopt::set_rcvlowat(self.fd, bytes) {
+            Ok(()) => self.lowat = Some(bytes),
+            Err(e) => {
+                tracing::debug!("SO_RCVLOWAT refused ({e}): every PUBACK is read as it comes");
+                self.lowat = None;
+            }
         }
     }
 
-    /// Writes and flushes everything queued, then waits for input or the keep-alive timer.
+    /// Writes and flushes everything queued, then waits for input.
     fn poll_io(&mut self, cx: &mut std::task::Context<'_>) -> Poll<Result<Io, ConnectionError>> {
         while !self.write.is_empty() {
             match Pin::new(&mut self.stream).poll_write(cx, &self.write) {
@@ -421,9 +389,6 @@ impl Up {
             Poll::Ready(Err(e)) => return Poll::Ready(Err(e.into())),
             Poll::Pending => {}
         }
-        if self.ping_at.is_some() && self.ping.as_mut().poll(cx).is_ready() {
-            return Poll::Ready(Ok(Io::Ping));
-        }
         Poll::Pending
     }
 }
@@ -441,16 +406,17 @@ impl Up {
 /// Never more than the PUBACKs of a full in-flight window (`window`) bring, so a window waiting
 /// for room is always woken.
 fn wanted_lowat(
-    state: &MqttState,
+    inflight: u16,
+    awaits_pingresp: bool,
     replies_due: usize,
     partial: bool,
     smallest_publish: Option<u16>,
     window: u16,
 ) -> u16 {
-    if state.await_pingresp || replies_due > 0 || partial {
+    if awaits_pingresp || replies_due > 0 || partial {
         return 1;
     }
-    let acks = if state.inflight() > ACK_BATCH {
+    let acks = if inflight > ACK_BATCH {
         ACK_BATCH * PUBACK_LEN
     } else {
         1
@@ -531,7 +497,7 @@ async fn connect(
                 return Err(StateError::ConnectionAborted.into());
             }
         };
-        Ok((Up::new(stream, fd, read, options.keep_alive()), connack))
+        Ok((Up::new(stream, fd, read), connack))
     };
     tokio::time::timeout(timeout, attempt)
         .await
@@ -600,20 +566,7 @@ mod tests {
         let Link::Up(up) = &conn.link else {
             panic!("not connected")
         };
-        let mut value: libc::c_int = 0;
-        let mut len = std::mem::size_of::<libc::c_int>() as libc::socklen_t;
-        // SAFETY: reads a c_int option of an open socket into a c_int of the size passed.
-        let r = unsafe {
-            libc::getsockopt(
-                up.fd,
-                libc::SOL_SOCKET,
-                libc::SO_RCVLOWAT,
-                (&mut value as *mut libc::c_int).cast(),
-                &mut len,
-            )
-        };
-        assert_eq!(r, 0, "{}", io::Error::last_os_error());
-        value
+        sockopt::rcvlowat(up.fd).unwrap()
     }
 
     /// Polls until `n` PUBACKs came (other events are not expected), within 5 s.
@@ -726,6 +679,47 @@ mod tests {
         assert_eq!(smallest_publish("+/+"), 5);
     }
 
+    /// The low-water mark never holds a command back: whatever the state, a PUBLISH the
+    /// subscriptions allow reaches the mark at once unless more than a batch of PUBACKs, which the
+    /// broker sends right behind the publications, is sure to come first; and a full window's
+    /// PUBACKs always reach it.
+    #[test]
+    fn the_low_water_mark_never_holds_a_command_back() {
+        let window = 100;
+        for inflight in 0..=window {
+            for smallest in [None, Some(5), Some(17), Some(40), Some(500)] {
+                for (ping, replies, partial) in [
+                    (false, 0, false),
+                    (true, 0, false),
+                    (false, 1, false),
+                    (false, 0, true),
+                ] {
+                    let mark = wanted_lowat(inflight, ping, replies, partial, smallest, window);
+                    assert!(mark >= 1);
+                    if ping || replies > 0 || partial {
+                        assert_eq!(
+                            mark, 1,
+                            "an awaited reply or a packet's rest is read at once"
+                        );
+                        continue;
+                    }
+                    if inflight <= ACK_BATCH {
+                        assert!(
+                            mark <= smallest.unwrap_or(1),
+                            "{inflight} in flight: a command of {smallest:?} bytes waits (mark {mark})"
+                        );
+                    } else {
+                        assert!(mark <= smallest.unwrap_or(1).max(ACK_BATCH * PUBACK_LEN));
+                    }
+                    assert!(
+                        mark <= window * PUBACK_LEN,
+                        "a full window's PUBACKs do not wake it"
+                    );
+                }
+            }
+        }
+    }
+
     /// With a few publications in flight, a lone PUBACK waits in the kernel, while a command (the
     /// smallest the subscription allows) wakes the client at once and brings the PUBACK with it.
     #[tokio::test]
@@ -779,8 +773,7 @@ mod tests {
     #[tokio::test]
     async fn awaited_replies_are_not_held_back() {
         let (port, broker) = broker(None).await;
-        let mut options = MqttOptions::new("lowat-replies", "127.0.0.1", port);
-        options.set_keep_alive(Duration::from_secs(1));
+        let options = MqttOptions::new("lowat-replies", "127.0.0.1", port);
         let mut conn = connected_with_publications(options).await;
 
         conn.subscribe("CommandsTopic".into(), QoS::AtLeastOnce);
@@ -793,9 +786,10 @@ mod tests {
             "{ev:?}"
         );
 
-        // No traffic for the keep-alive: a PINGREQ goes out and its 2-byte answer is read.
-        let _ = tokio::time::timeout(Duration::from_millis(1500), conn.poll()).await;
-        assert!(conn.state.await_pingresp, "a PINGREQ is due after 1 s");
+        // A PINGREQ (the session asks for one at the keep-alive): its 2-byte answer is read.
+        conn.ping();
+        let _ = tokio::time::timeout(Duration::from_millis(300), conn.poll()).await;
+        assert!(conn.state.awaits_pingresp(), "the PINGREQ went out");
         broker.send(vec![0xd0, 0x00]).unwrap(); // PINGRESP
         let ev = tokio::time::timeout(Duration::from_secs(5), conn.poll()).await;
         assert!(

@@ -1,30 +1,18 @@
 //! The MQTT side: exactly one task owns the broker [`Connection`] (see [`conn`]: rumqttc's sans-IO
-//! state, our own I/O, one write per batch of packets). It connects with keep-alive,
-//! clean session and a retained `offline` last will, (re)subscribes the command topic (and with
-//! Home Assistant discovery, Home Assistant's status and command topics) on *every* ConnAck, publishes `online` (retained), forwards commands to the core and carries out its
-//! publications (QoS 1). The connection reconnects whenever `poll()` is called again but has no back-off, so
-//! this task sleeps with a capped exponential delay between failed polls, and says why at the
-//! default log level, naming the broker and what to check — at the first failure, then at growing
-//! intervals ([`WARN_FIRST`] doubling to [`WARN_MAX`]), not at every attempt.
+//! state, our own I/O, one write per batch of packets) and the [`Session`] (see [`session`]: every
+//! rule of the MQTT session — manual acks per connection, commands held for the core and QoS 0
+//! floods shed, the retained-state window, `online`, publications taken back after a break,
+//! back-off, warnings, the keep-alive and the dead-link bound — as a sans-IO state machine).
+//! [`MqttTask::run`] only carries the session's requests to the connection, the connection's
+//! packets and the core's publications to the session, and the session's inputs to the core.
 //!
-//! Nothing is dropped here. Publications are taken from the core only while fewer than
-//! [`STAGING`] wait in this task (the core keeps the rest, coalesced, see
-//! `ihex_gateway_core::bridge`), and those the connection had queued but the broker had not acknowledged
-//! when the connection broke are taken back and sent again after reconnecting. Commands are
-//! acknowledged to the broker (manual acks) only once the core took them, so while the core does
-//! not want commands the broker holds QoS 1 commands back (its in-flight window); QoS 0 commands,
-//! which MQTT cannot hold back, wait here up to [`HELD_MAX`] and beyond that are shed and counted
-//! ([`MqttStats::commands_shed`]).
-//!
-//! On every ConnAck it also subscribes to the island's state topics (`<root>/+/state`), to hand the
-//! core the *retained* documents an earlier run left ([`MqttInput::RetainedState`]); the first live
-//! message there (this run's own publications coming back) ends that subscription.
-//!
-//! Every packet the broker delivers is read, up to the MQTT maximum ([`MAX_INCOMING`]), so an
-//! oversized command reaches the core and is answered instead of breaking the connection.
+//! It connects with keep-alive, clean session and a retained `offline` last will. Every packet the
+//! broker delivers is read, up to the MQTT maximum ([`MAX_INCOMING`]), so an oversized command
+//! reaches the core and is answered instead of breaking the connection. rumqttc's undocumented
+//! state fields are read in [`rumqttc_state`] only, the socket options set in `sockopt` only (the
+//! crate's one `unsafe` module).
 
 use std::{
-    collections::VecDeque,
     sync::{
         atomic::{AtomicBool, AtomicU64, Ordering},
         Arc, Mutex,
@@ -33,44 +21,35 @@ use std::{
 };
 
 use bytes::Bytes;
-use rumqttc::{
-    ConnectReturnCode, ConnectionError, Event, Incoming, LastWill, MqttOptions, Outgoing, QoS,
-    SubscribeReasonCode,
-};
+use rumqttc::{ConnectReturnCode, ConnectionError, Event, LastWill, MqttOptions, Outgoing, QoS};
 use tokio::sync::mpsc;
 use tokio_util::sync::CancellationToken;
-use tracing::{debug, info, warn};
+use tracing::{info, warn};
 
 use crate::{config::MqttConfig, error::MqttError, topic::Topics};
 
 pub mod conn;
+pub mod rumqttc_state;
+pub mod session;
+#[allow(unsafe_code)]
+mod sockopt;
 #[cfg(test)]
 mod test_broker;
 pub use conn::Connection;
+pub use session::{
+    Request, Session, Timing, DEFAULT_ACK_TIMEOUT, DEFAULT_KEEP_ALIVE, HELD_MAX, RECONNECT_MAX,
+    RECONNECT_MIN, STAGING, WARN_FIRST, WARN_MAX,
+};
 
 /// Payload of the availability topic while the gateway runs.
 pub const ONLINE: &str = "online";
 /// Payload of the availability topic once it stops (also the last will).
 pub const OFFLINE: &str = "offline";
-/// First delay after a failed connection attempt; doubles up to [`RECONNECT_MAX`].
-pub const RECONNECT_MIN: Duration = Duration::from_millis(100);
-/// Longest delay between connection attempts.
-pub const RECONNECT_MAX: Duration = Duration::from_secs(5);
-/// After the first warning about an unreachable broker, the next comes this much later; the
-/// interval doubles up to [`WARN_MAX`].
-pub const WARN_FIRST: Duration = Duration::from_secs(5);
-/// Longest interval between two warnings about an unreachable broker.
-pub const WARN_MAX: Duration = Duration::from_secs(300);
 /// The largest packet MQTT allows (remaining length 268 435 455 plus a 5-byte fixed header): the
 /// incoming limit, so no packet a broker delivers can break the connection.
 pub const MAX_INCOMING: usize = 268_435_455 + 5;
 /// Largest outgoing packet (the gateway's own publications are small).
 const MAX_OUTGOING: usize = 1 << 20;
-/// Publications taken from the core and waiting here for room in the connection's in-flight
-/// window (the core holds the rest).
-pub const STAGING: usize = 64;
-/// Commands received and not yet taken by the core, beyond which QoS 0 commands are shed.
-pub const HELD_MAX: usize = 1024;
 /// Limit of one connection attempt: TCP connect, TLS handshake, CONNECT and CONNACK.
 const CONNECT_TIMEOUT: Duration = Duration::from_secs(5);
 /// How long shutdown waits for the last publications, `offline` and the DISCONNECT to go out.
@@ -263,7 +242,7 @@ fn set_tls(_: &mut MqttOptions, _: Option<&std::path::Path>) -> Result<(), MqttE
 
 /// The MQTT task's fixed parts.
 pub struct MqttTask {
-    /// Connection options (see [`options`]).
+    /// Connection options (see [`options`]); their keep-alive is the session's too.
     pub options: MqttOptions,
     /// Topic names.
     pub topics: Topics,
@@ -273,42 +252,9 @@ pub struct MqttTask {
     pub broker: String,
     /// Counters.
     pub stats: Arc<MqttStats>,
-}
-
-/// A command the core has not taken yet, and how to acknowledge it.
-struct Held {
-    input: MqttInput,
-    /// The packet id to acknowledge once the core took it (QoS 1), on the connection it came on.
-    ack: Option<(u16, u64)>,
-}
-
-/// When to warn again about an unreachable broker.
-struct WarnSchedule {
-    next: Option<Instant>,
-    interval: Duration,
-}
-
-impl WarnSchedule {
-    fn new() -> Self {
-        WarnSchedule {
-            next: None,
-            interval: WARN_FIRST,
-        }
-    }
-
-    /// True when a failure now deserves a warning (the first one, then at growing intervals).
-    fn due(&mut self, now: Instant) -> bool {
-        if self.next.is_some_and(|n| now < n) {
-            return false;
-        }
-        self.next = Some(now + self.interval);
-        self.interval = (self.interval * 2).min(WARN_MAX);
-        true
-    }
-
-    fn reset(&mut self) {
-        *self = WarnSchedule::new();
-    }
+    /// How long a PUBACK or PINGRESP may stay missing before the link is taken for dead
+    /// ([`Timing::ack_timeout`]).
+    pub ack_timeout: Duration,
 }
 
 /// Why a connection attempt failed, and what to check, in a person's words.
@@ -356,307 +302,74 @@ impl MqttTask {
     ) {
         let mut conn = Connection::new(self.options.clone(), MAX_OUTGOING, CONNECT_TIMEOUT);
         let tls = !matches!(self.options.transport(), rumqttc::Transport::Tcp);
-
-        let mut backlog: VecDeque<Outbound> = VecDeque::new();
-        let mut held: VecDeque<Held> = VecDeque::new();
-        let mut acks: VecDeque<u16> = VecDeque::new();
-        // Connection number: an ack only goes back on the connection its message came on.
-        let mut generation = 0u64;
-        let mut connected = false;
-        let mut delay = RECONNECT_MIN;
-        let mut warn_at = WarnSchedule::new();
-        let mut inputs_open = true;
-        // Subscribed to the state topics for the retained documents (see the module docs).
-        let mut reading_states = false;
-        'run: loop {
-            // Everything queued between two polls leaves in one write: acks and publications are
-            // queued first, then `poll()` (cancel-safe) writes them while waiting for the broker.
-            let ev = {
-                loop {
-                    if connected {
-                        for pkid in acks.drain(..) {
-                            conn.ack(pkid);
+        let timing = Timing {
+            keep_alive: self.options.keep_alive(),
+            ack_timeout: self.ack_timeout,
+        };
+        let mut session = Session::new(
+            self.topics.clone(),
+            self.ha,
+            self.broker.clone(),
+            self.stats.clone(),
+            timing,
+        );
+        let mut publications_open = true;
+        loop {
+            // Everything queued between two polls leaves in one write: requests and publications
+            // are queued first, then `poll()` (cancel-safe) writes them while waiting for the broker.
+            if !deliver(&mut session, &inputs) {
+                break;
+            }
+            carry_out(&mut session, &mut conn);
+            let deadline = session.poll_timeout().map(tokio::time::Instant::from_std);
+            let wants_link = session.wants_link();
+            let wants_publications = publications_open && session.wants_publications();
+            let has_input = session.has_input();
+            tokio::select! {
+                _ = cancel.cancelled() => break,
+                p = publications.recv(), if wants_publications => match p {
+                    Some(p) => {
+                        session.handle_publication(p);
+                        // The rest of the core's turn, without another round of the loop.
+                        while session.wants_publications() {
+                            let Ok(p) = publications.try_recv() else { break };
+                            session.handle_publication(p);
                         }
-                        self.flush(&mut conn, &mut backlog);
                     }
-                    tokio::select! {
-                        _ = cancel.cancelled() => break 'run,
-                        p = publications.recv(), if inputs_open && backlog.len() < STAGING => match p {
-                            Some(p) => {
-                                backlog.push_back(p);
-                                // The rest of the core's turn, without another round of the loop.
-                                while backlog.len() < STAGING {
-                                    let Ok(p) = publications.try_recv() else { break };
-                                    backlog.push_back(p);
-                                }
-                            }
-                            None => inputs_open = false,
-                        },
-                        permit = inputs.reserve(), if !held.is_empty() => {
-                            let Ok(permit) = permit else { break 'run };
-                            if let Some(h) = held.pop_front() {
-                                permit.send(h.input);
-                                if let Some((ack, g)) = h.ack {
-                                    if g == generation && connected {
-                                        acks.push_back(ack);
-                                    }
-                                }
-                            }
-                        }
-                        ev = conn.poll() => break ev,
+                    None => publications_open = false,
+                },
+                permit = inputs.reserve(), if has_input => {
+                    let Ok(permit) = permit else { break };
+                    if let Some(input) = session.poll_input() {
+                        permit.send(input);
                     }
                 }
-            };
-            match ev {
-                Ok(Event::Incoming(Incoming::ConnAck(_))) => {
-                    // rumqttc turns a refusing ConnAck into an error: this one is accepted.
-                    connected = true;
-                    generation += 1;
-                    delay = RECONNECT_MIN;
-                    let failed = self.stats.failed_attempts.swap(0, Ordering::Relaxed);
-                    self.stats.connected.store(true, Ordering::Relaxed);
-                    self.stats.set_error(None);
-                    warn_at.reset();
-                    let n = self.stats.connects.fetch_add(1, Ordering::Relaxed) + 1;
-                    info!(
-                        broker = %self.broker,
-                        connects = n,
-                        failed_attempts = failed,
-                        backlog = backlog.len(),
-                        "connected to the broker"
-                    );
-                    self.on_connack(&mut conn);
-                    reading_states = true;
-                    // After the commands received before it, never shed.
-                    if held.is_empty() {
-                        match inputs.try_send(MqttInput::Connected) {
-                            Ok(()) => {}
-                            Err(mpsc::error::TrySendError::Full(input)) => {
-                                held.push_back(Held { input, ack: None })
-                            }
-                            Err(mpsc::error::TrySendError::Closed(_)) => break,
-                        }
-                    } else {
-                        held.push_back(Held {
-                            input: MqttInput::Connected,
-                            ack: None,
+                _ = sleep_until(deadline) => session.handle_timeout(Instant::now()),
+                ev = conn.poll(), if wants_link => match ev {
+                    Ok(Event::Incoming(packet)) => session.handle_incoming(packet, Instant::now()),
+                    Ok(Event::Outgoing(_)) => {}
+                    Err(e) => {
+                        let why = explain(&e, &self.broker, tls);
+                        let back = conn.take_back().into_iter().map(|p| Outbound {
+                            topic: p.topic,
+                            payload: p.payload,
+                            retain: p.retain,
                         });
+                        session.handle_connection_lost(&e.to_string(), why, back.collect(), Instant::now());
                     }
-                }
-                Ok(Event::Incoming(Incoming::Publish(p))) => {
-                    let ack = (p.qos != QoS::AtMostOnce).then_some((p.pkid, generation));
-                    let input = if p.topic == self.topics.commands {
-                        self.stats.commands.fetch_add(1, Ordering::Relaxed);
-                        MqttInput::Command {
-                            payload: p.payload,
-                            received: Instant::now(),
-                            retained: p.retain,
-                        }
-                    } else if let Some(name) = self.topics.parse_fw_upload(&p.topic) {
-                        MqttInput::FwUpload {
-                            name: name.to_owned(),
-                            payload: p.payload,
-                            retained: p.retain,
-                        }
-                    } else if let Some(id) = self.topics.parse_node_state(&p.topic) {
-                        if !p.retain {
-                            // Retained messages come right after the subscription, before anything
-                            // live: the rest are our own publications, not wanted back.
-                            if reading_states {
-                                reading_states = false;
-                                let filter = self.topics.node_state_filter();
-                                conn.unsubscribe(filter);
-                            }
-                            if let Some((ack, _)) = ack {
-                                acks.push_back(ack);
-                            }
-                            continue;
-                        }
-                        MqttInput::RetainedState {
-                            id,
-                            payload: p.payload.to_vec(),
-                        }
-                    } else if self.ha && p.topic == self.topics.ha.status {
-                        MqttInput::HaStatus(p.payload.to_vec())
-                    } else if self.ha && self.topics.ha.parse_command(&p.topic).is_some() {
-                        self.stats.commands.fetch_add(1, Ordering::Relaxed);
-                        MqttInput::HaCommand {
-                            topic: p.topic.clone(),
-                            payload: p.payload.to_vec(),
-                        }
-                    } else {
-                        debug!(topic = %p.topic, "message on an unexpected topic ignored");
-                        if let Some((ack, _)) = ack {
-                            // Unacknowledged, it would hold a place of the broker's in-flight window.
-                            acks.push_back(ack);
-                        }
-                        continue;
-                    };
-                    let h = Held { input, ack };
-                    if !self.hold(&mut held, h, &inputs, &mut acks) {
-                        break;
-                    }
-                }
-                Ok(Event::Incoming(Incoming::SubAck(s))) => {
-                    if s.return_codes
-                        .iter()
-                        .any(|c| matches!(c, SubscribeReasonCode::Failure))
-                    {
-                        warn!(
-                            broker = %self.broker,
-                            topic = %self.topics.commands,
-                            "broker refused the subscription to the command topic: check the \
-                             broker's ACL for this user"
-                        );
-                    }
-                }
-                Ok(_) => {}
-                Err(e) => {
-                    let why = explain(&e, &self.broker, tls);
-                    let attempts = self.stats.failed_attempts.fetch_add(1, Ordering::Relaxed) + 1;
-                    if connected {
-                        warn!(broker = %self.broker, error = %e, "connection to the broker lost; reconnecting");
-                    } else if warn_at.due(Instant::now()) {
-                        warn!(broker = %self.broker, attempts, retry_in = ?delay, "{why}");
-                    } else {
-                        debug!(broker = %self.broker, attempts, retry_in = ?delay, "{why}");
-                    }
-                    connected = false;
-                    self.stats.connected.store(false, Ordering::Relaxed);
-                    self.stats.set_error(Some(why));
-                    acks.clear();
-                    self.take_back(&mut conn, &mut backlog);
-                    tokio::select! {
-                        _ = cancel.cancelled() => break,
-                        _ = tokio::time::sleep(delay) => {}
-                    }
-                    delay = (delay * 2).min(RECONNECT_MAX);
-                }
+                },
             }
         }
         self.stats.connected.store(false, Ordering::Relaxed);
-        if connected {
-            self.goodbye(&mut conn, &mut publications, &mut backlog)
+        if session.is_connected() {
+            self.goodbye(&mut conn, &mut session, &mut publications)
                 .await;
         }
         info!(
-            unsent = backlog.len() + publications.len(),
-            commands_not_taken = held.len(),
+            unsent = session.staged() + publications.len(),
+            commands_not_taken = session.held(),
             "MQTT task stopped"
         );
-    }
-
-    /// Hands a command to the core at once when it has room and nothing waits before it, else
-    /// keeps it (unacknowledged) until it has; sheds it beyond [`HELD_MAX`]. False when the core
-    /// is gone.
-    fn hold(
-        &self,
-        held: &mut VecDeque<Held>,
-        h: Held,
-        inputs: &mpsc::Sender<MqttInput>,
-        acks: &mut VecDeque<u16>,
-    ) -> bool {
-        if held.is_empty() {
-            match inputs.try_send(h.input) {
-                Ok(()) => {
-                    if let Some((ack, _)) = h.ack {
-                        acks.push_back(ack);
-                    }
-                    return true;
-                }
-                Err(mpsc::error::TrySendError::Full(input)) => {
-                    held.push_back(Held { input, ack: h.ack });
-                    return true;
-                }
-                Err(mpsc::error::TrySendError::Closed(_)) => return false,
-            }
-        }
-        if held.len() < HELD_MAX {
-            held.push_back(h);
-            return true;
-        }
-        // Acknowledged all the same: an unacknowledged message would hold a place of the broker's
-        // in-flight window for the rest of the connection.
-        if let Some((ack, _)) = h.ack {
-            acks.push_back(ack);
-        }
-        let n = self.stats.commands_shed.fetch_add(1, Ordering::Relaxed) + 1;
-        if n.is_power_of_two() {
-            warn!(
-                commands_shed = n,
-                held = HELD_MAX,
-                "command intake full: a command was dropped unanswered (publish commands with QoS 1 \
-                 so that the broker holds them back while the gateway is busy)"
-            );
-        }
-        true
-    }
-
-    /// Subscribes and announces `online`; runs on every ConnAck (a clean session forgets both).
-    fn on_connack(&self, conn: &mut Connection) {
-        let mut filters = vec![self.topics.commands.clone(), self.topics.fw_upload_filter()];
-        if self.ha {
-            filters.push(self.topics.ha.status.clone());
-            filters.push(self.topics.ha.command_filter());
-        }
-        for t in filters {
-            conn.subscribe(t, QoS::AtLeastOnce);
-        }
-        // QoS 0: retained documents need no acknowledgement.
-        conn.subscribe(self.topics.node_state_filter(), QoS::AtMostOnce);
-        let online = Bytes::from_static(ONLINE.as_bytes());
-        let topic = self.topics.availability.clone();
-        if conn.publish(topic, online, true).is_err() {
-            warn!("cannot queue the online announcement");
-        }
-    }
-
-    /// Hands queued publications to the connection while its in-flight window has room.
-    fn flush(&self, conn: &mut Connection, backlog: &mut VecDeque<Outbound>) {
-        while let Some(p) = backlog.pop_front() {
-            // Moved, not copied: a refused publication comes back whole.
-            match conn.publish(p.topic, p.payload, p.retain) {
-                Ok(()) => {
-                    self.stats.published.fetch_add(1, Ordering::Relaxed);
-                }
-                Err((topic, payload)) => {
-                    backlog.push_front(Outbound {
-                        topic,
-                        payload,
-                        retain: p.retain,
-                    });
-                    return;
-                }
-            }
-        }
-    }
-
-    /// After a broken connection the publications the broker had not acknowledged would be lost
-    /// with the (clean) session: move them back to the front of our queue, in order.
-    /// Subscriptions, acks and `online` are redone or void on the next connection.
-    fn take_back(&self, conn: &mut Connection, backlog: &mut VecDeque<Outbound>) {
-        let mut back: Vec<Outbound> = conn
-            .take_back()
-            .into_iter()
-            .filter(|p| p.topic != self.topics.availability)
-            .map(|p| Outbound {
-                topic: p.topic,
-                payload: p.payload,
-                retain: p.retain,
-            })
-            .collect();
-        if !back.is_empty() {
-            debug!(
-                count = back.len(),
-                "publications taken back for the next connection"
-            );
-            self.stats
-                .published
-                .fetch_sub(back.len() as u64, Ordering::Relaxed);
-        }
-        while let Some(p) = back.pop() {
-            backlog.push_front(p);
-        }
     }
 
     /// Sends what is still queued and what the core still hands over (until it closes the
@@ -665,15 +378,15 @@ impl MqttTask {
     async fn goodbye(
         &self,
         conn: &mut Connection,
+        session: &mut Session,
         publications: &mut mpsc::Receiver<Outbound>,
-        backlog: &mut VecDeque<Outbound>,
     ) {
         let deadline = tokio::time::Instant::now() + SHUTDOWN_GRACE;
         let mut said_goodbye = false;
         let mut open = true;
         loop {
-            self.flush(conn, backlog);
-            if backlog.is_empty() && !open && !said_goodbye {
+            carry_out(session, conn);
+            if session.staged() == 0 && !open && !said_goodbye {
                 let offline = Bytes::from_static(OFFLINE.as_bytes());
                 said_goodbye = conn
                     .publish(self.topics.availability.clone(), offline, true)
@@ -683,9 +396,9 @@ impl MqttTask {
                 }
             }
             let ev = tokio::select! {
-                p = publications.recv(), if open && backlog.len() < STAGING => {
+                p = publications.recv(), if open && session.wants_publications() => {
                     match p {
-                        Some(p) => backlog.push_back(p),
+                        Some(p) => session.handle_publication(p),
                         None => open = false,
                     }
                     continue;
@@ -697,13 +410,14 @@ impl MqttTask {
                     info!("published offline and disconnected");
                     return;
                 }
+                Ok(Ok(Event::Incoming(packet))) => session.handle_incoming(packet, Instant::now()),
                 Ok(Ok(_)) => {}
                 Ok(Err(e)) => {
                     warn!(error = %e, "connection ended during shutdown");
                     return;
                 }
                 Err(_) => {
-                    warn!(unsent = backlog.len(), "shutdown grace period over");
+                    warn!(unsent = session.staged(), "shutdown grace period over");
                     return;
                 }
             }
@@ -711,10 +425,60 @@ impl MqttTask {
     }
 }
 
+/// Hands the core the inputs it has room for; false once the core is gone.
+fn deliver(session: &mut Session, inputs: &mpsc::Sender<MqttInput>) -> bool {
+    while session.has_input() {
+        match inputs.try_reserve() {
+            Ok(permit) => {
+                if let Some(input) = session.poll_input() {
+                    permit.send(input);
+                }
+            }
+            Err(mpsc::error::TrySendError::Full(())) => break,
+            Err(mpsc::error::TrySendError::Closed(())) => return false,
+        }
+    }
+    true
+}
+
+/// Queues the session's requests, then its publications while the connection takes them.
+fn carry_out(session: &mut Session, conn: &mut Connection) {
+    while let Some(request) = session.poll_request() {
+        match request {
+            Request::Subscribe { filter, qos } => conn.subscribe(filter, qos),
+            Request::Unsubscribe(filter) => conn.unsubscribe(filter),
+            Request::Ack(pkid) => conn.ack(pkid),
+            Request::Ping => conn.ping(),
+            Request::Close(why) => conn.close(why),
+        }
+    }
+    let now = Instant::now();
+    while let Some(p) = session.poll_publication(now) {
+        // Moved, not copied: a refused publication comes back whole.
+        if let Err((topic, payload)) = conn.publish(p.topic, p.payload, p.retain) {
+            session.handle_publication_refused(Outbound {
+                topic,
+                payload,
+                retain: p.retain,
+            });
+            return;
+        }
+    }
+}
+
+/// Sleeps until `deadline`; forever without one.
+async fn sleep_until(deadline: Option<tokio::time::Instant>) {
+    match deadline {
+        Some(t) => tokio::time::sleep_until(t).await,
+        None => std::future::pending().await,
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::config::{Broker, MqttConfig};
+    use rumqttc::Incoming;
 
     fn task() -> MqttTask {
         let cfg = MqttConfig {
@@ -726,6 +490,7 @@ mod tests {
             credentials: Some(("u".into(), "p".into())),
             tls: None,
             keep_alive: Duration::from_secs(20),
+            ack_timeout: Duration::from_secs(5),
         };
         let topics = Topics::seed();
         MqttTask {
@@ -734,6 +499,7 @@ mod tests {
             ha: false,
             broker: "127.0.0.1:1".into(),
             stats: Arc::default(),
+            ack_timeout: Duration::from_secs(5),
         }
     }
 
@@ -778,34 +544,12 @@ mod tests {
             credentials: None,
             tls: Some(None),
             keep_alive: Duration::from_secs(20),
+            ack_timeout: Duration::from_secs(5),
         };
         assert!(matches!(
             options(&cfg, &Topics::seed()),
             Err(MqttError::TlsUnavailable)
         ));
-    }
-
-    #[test]
-    fn warnings_about_an_unreachable_broker_follow_a_growing_interval() {
-        let t0 = Instant::now();
-        let mut w = WarnSchedule::new();
-        // Attempts every 100 ms doubling to 5 s, for ten minutes: when is there a warning?
-        let mut at = Duration::ZERO;
-        let mut delay = RECONNECT_MIN;
-        let mut warned = Vec::new();
-        while at < Duration::from_secs(600) {
-            if w.due(t0 + at) {
-                warned.push(at.as_secs());
-            }
-            at += delay;
-            delay = (delay * 2).min(RECONNECT_MAX);
-        }
-        assert_eq!(warned, [0, 6, 16, 36, 76, 156, 316]);
-        w.reset();
-        assert!(
-            w.due(t0 + at),
-            "after a success the next failure warns at once"
-        );
     }
 
     #[test]
@@ -827,41 +571,6 @@ mod tests {
             "{e}"
         );
         assert!(e.ends_with("check --tls-ca and that the broker's certificate names this host"));
-    }
-
-    #[test]
-    fn commands_wait_for_the_core_and_only_qos0_floods_are_shed() {
-        let t = task();
-        let (tx, mut rx) = mpsc::channel(1);
-        let mut held = VecDeque::new();
-        let mut acks = VecDeque::new();
-        let cmd = |n: u8, qos: Option<u16>| Held {
-            input: MqttInput::Command {
-                payload: Bytes::from(vec![n]),
-                received: Instant::now(),
-                retained: false,
-            },
-            ack: qos.map(|pkid| (pkid, 1)),
-        };
-        // The core takes the first at once: acknowledged at once.
-        assert!(t.hold(&mut held, cmd(0, Some(1)), &tx, &mut acks));
-        assert_eq!((held.len(), acks.len()), (0, 1));
-        // The core is full: the next wait here, unacknowledged.
-        for n in 1..=HELD_MAX as u16 {
-            assert!(t.hold(&mut held, cmd(1, Some(n + 1)), &tx, &mut acks));
-        }
-        assert_eq!((held.len(), acks.len()), (HELD_MAX, 1));
-        // Beyond the limit a command is shed, counted and acknowledged (not left in the broker's
-        // window).
-        assert!(t.hold(&mut held, cmd(2, None), &tx, &mut acks));
-        assert_eq!(t.stats.commands_shed.load(Ordering::Relaxed), 1);
-        assert_eq!(held.len(), HELD_MAX);
-        assert!(matches!(rx.try_recv(), Ok(MqttInput::Command { .. })));
-        drop(rx);
-        assert!(
-            !t.hold(&mut VecDeque::new(), cmd(3, None), &tx, &mut acks),
-            "the core is gone"
-        );
     }
 
     /// A scripted broker: the gateway's client must not acknowledge a command before the core took
@@ -1005,21 +714,34 @@ mod tests {
         let err = tokio::time::timeout(Duration::from_secs(10), conn.poll()).await;
         assert!(err.expect("the broker hung up").is_err());
         assert!(!conn.is_up());
-        let mut q = VecDeque::from([publication(9)]);
-        t.take_back(&mut conn, &mut q);
-        let got: Vec<(String, u8, bool)> = q
-            .iter()
+        let timing = Timing {
+            keep_alive: Duration::from_secs(20),
+            ack_timeout: Duration::from_secs(5),
+        };
+        let mut session = Session::new(t.topics.clone(), false, t.broker, t.stats, timing);
+        let now = Instant::now();
+        session.handle_connack(now);
+        session.handle_publication(publication(9));
+        let back = conn.take_back().into_iter().map(|p| Outbound {
+            topic: p.topic,
+            payload: p.payload,
+            retain: p.retain,
+        });
+        session.handle_connection_lost("hung up", "hung up".into(), back.collect(), now);
+        assert!(conn.take_back().is_empty(), "taken back once");
+        session.handle_connack(now);
+        let got: Vec<(String, u8, bool)> = std::iter::from_fn(|| session.poll_publication(now))
             .map(|p| (p.topic.clone(), p.payload[0], p.retain))
             .collect();
         assert_eq!(
             got,
             vec![
+                (t.topics.availability.clone(), b'o', true),
                 ("EventsTopic".into(), 1, false),
                 ("ihex/node/1/state".into(), 2, true),
                 ("EventsTopic".into(), 9, false),
             ]
         );
-        assert!(conn.take_back().is_empty(), "taken back once");
     }
 
     /// Publications beyond one write's worth are handed back even with room in the in-flight
