@@ -24,6 +24,7 @@ pub(crate) mod output;
 pub(crate) mod readback;
 #[cfg(test)]
 pub(crate) mod test_support;
+mod timer;
 
 use std::time::{Duration, Instant};
 
@@ -36,7 +37,8 @@ pub use crate::command::pending::CommandCounters;
 pub use crate::fwupdate::FwLoad;
 pub use diagnostics::{BusEvent, BusHealth, ERROR_EVENT_WINDOW};
 pub use output::{
-    PayloadWriter, Publication, PublicationCounters, Transmit, ANSWER_BACKLOG, TRANSMIT_WINDOW,
+    FrameOwner, PayloadWriter, Publication, PublicationCounters, Transmit, ANSWER_BACKLOG,
+    TRANSMIT_WINDOW,
 };
 pub use readback::{INCOMPLETE_LIMIT, MAX_QUERIES, READ_BACK_VERSION, SILENT_LIMIT};
 
@@ -46,8 +48,7 @@ use crate::command::{self, Command, CommandError, FwNodes, Request};
 use crate::docking::glue::{self as dock, DockParts};
 use crate::docking::Docking;
 use crate::event::{
-    CommandRejected, CommandResult, Connection, Event, HexId, NodeList, NodeState, Outcome,
-    PublicationsDropped, Target,
+    CommandRejected, CommandResult, Connection, Event, HexId, NodeList, NodeState, Outcome, Target,
 };
 use crate::fwupdate::FwUpdates;
 use crate::ha::Ha;
@@ -55,8 +56,9 @@ use crate::registry::{millis, Registry, Seen};
 use diagnostics::Diagnostics;
 use health::Health;
 use inherited::Inherited;
-use output::{Next, Outputs};
+use output::{FrameFate, Next, Outputs};
 use readback::{ReadBack, Reply};
+use timer::Timer;
 
 /// The part of the [`TRANSMIT_WINDOW`] a firmware update's frames may fill: a command that comes
 /// while they are out is handed on at once, never behind a full window of update frames.
@@ -516,9 +518,9 @@ impl Bridge {
                 self.fw.on_bus(true, now, &mut self.out);
                 // The kernel drops what a downed interface had queued — or it went out just before:
                 // nobody can tell any more.
-                for p in self.out.transmit.clear_in_flight() {
+                for (p, owner) in self.out.transmit.clear_in_flight() {
                     let why = "the CAN interface went down before confirming it was sent";
-                    self.pending.on_unconfirmed(&p, why, now, &mut self.out);
+                    self.on_frame_fate(p, owner, FrameFate::Unconfirmed(why), now);
                 }
             }
             BusEvent::Recovered => {
@@ -542,16 +544,8 @@ impl Bridge {
     /// written. [`Bridge::handle_packet`] calls this for frames from the gateway's own address.
     pub fn handle_transmitted(&mut self, packet: Packet, now: Instant) {
         self.set_now(now);
-        if !self.out.transmit.release(&packet) {
-            tracing::debug!(
-                ?packet,
-                "echo of a frame not waiting for one (late, or another gateway's)"
-            );
-        }
-        self.pending.on_transmitted(&packet, now);
-        if let Message::StateQuery { .. } = packet.msg {
-            self.readback.on_transmitted(packet.dest, now);
-        }
+        let owner = self.release(&packet);
+        self.on_frame_fate(packet, owner, FrameFate::Transmitted, now);
         self.finish_input(now);
     }
 
@@ -559,41 +553,72 @@ impl Bridge {
     /// command ends `expired` or `failed`, and the frame is never sent.
     pub fn handle_withdrawn(&mut self, packet: Packet, now: Instant) {
         self.set_now(now);
-        self.out.transmit.release(&packet);
-        if let Message::StateQuery { .. } = packet.msg {
-            self.readback.on_not_sent(packet.dest);
-        }
-        self.pending.on_withdrawn(&packet, now, &mut self.out);
+        let owner = self.release(&packet);
+        self.on_frame_fate(packet, owner, FrameFate::Withdrawn, now);
         self.finish_input(now);
     }
 
     /// A frame from [`Bridge::poll_transmit`] could not be transmitted.
     pub fn handle_send_failed(&mut self, packet: Packet, reason: &str, now: Instant) {
         self.set_now(now);
-        self.out.transmit.release(&packet);
-        self.send_failed(packet, reason, now);
+        let owner = self.release(&packet);
+        self.on_frame_fate(packet, owner, FrameFate::Failed(reason), now);
         self.finish_input(now);
     }
 
-    fn send_failed(&mut self, packet: Packet, reason: &str, now: Instant) {
-        self.diagnostics.count_send_failure();
-        if let Message::StateQuery { .. } = packet.msg {
-            self.readback.on_not_sent(packet.dest);
+    /// Frees the place of `packet` in the transmit window, and tells who queued it.
+    fn release(&mut self, packet: &Packet) -> FrameOwner {
+        if let Some(owner) = self.out.transmit.release(packet) {
+            return owner;
         }
-        if let Message::DockConfirm { seq, .. } = packet.msg {
-            self.pending.on_send_failed(&packet, reason, &mut self.out);
-            let steps = self
-                .docking
-                .on_confirm_failed(packet.dest, seq, reason, now);
-            if !steps.is_empty() {
+        tracing::debug!(
+            ?packet,
+            "fate of a frame not in the transmit window (late, or another gateway's)"
+        );
+        // Its tag left the window with it: the concern that sends frames of its kind gets it. A
+        // command's frame is found by the frame itself, so a relay off the docking sequence sent
+        // goes to the commands just as well.
+        match packet.msg.kind() {
+            Kind::StateQuery => FrameOwner::ReadBack,
+            Kind::DockConfirm | Kind::DockRefuse | Kind::DockLink => FrameOwner::Docking,
+            Kind::HealthCheck => FrameOwner::HealthCheck,
+            Kind::FwBegin | Kind::FwData | Kind::FwEnd | Kind::FwQuery => FrameOwner::FwUpdate,
+            _ => FrameOwner::Command,
+        }
+    }
+
+    /// Tells the concern that queued `packet` what became of it: the one place where a frame's
+    /// fate is routed. A failure no concern answered for becomes a `bus_error` (`send_failed`).
+    fn on_frame_fate(
+        &mut self,
+        packet: Packet,
+        owner: FrameOwner,
+        fate: FrameFate<'_>,
+        now: Instant,
+    ) {
+        if let FrameFate::Failed(_) = fate {
+            self.diagnostics.count_send_failure();
+        }
+        let answered = match owner {
+            FrameOwner::Command => self.pending.on_fate(&packet, fate, now, &mut self.out),
+            FrameOwner::Docking => {
+                // The frame's number is freed first; a failed confirm then ends the docking.
+                self.pending.on_fate(&packet, fate, now, &mut self.out);
+                let steps = dock::on_fate(&mut self.docking, &packet, fate, now);
+                let answered = !steps.is_empty();
                 self.apply(steps, now);
-                return;
+                answered
             }
-        } else if self.pending.on_send_failed(&packet, reason, &mut self.out) {
-            return;
+            FrameOwner::ReadBack => {
+                self.readback.on_fate(packet.dest, fate, now);
+                false
+            }
+            FrameOwner::HealthCheck | FrameOwner::FwUpdate => false,
+        };
+        if let (FrameFate::Failed(reason), false) = (fate, answered) {
+            self.diagnostics
+                .on_send_failed(&packet, reason, now, &mut self.out);
         }
-        self.diagnostics
-            .on_send_failed(&packet, reason, now, &mut self.out);
     }
 
     /// The MQTT session is (re)established: queue the retained node states again (a restarted broker
@@ -665,92 +690,30 @@ impl Bridge {
 
     /// An `fw_update` whose image file the adapter must read and hand to
     /// [`Bridge::handle_fw_image`]; `None` when there is none.
+    #[must_use]
     pub fn poll_fw_load(&mut self) -> Option<FwLoad> {
         self.fw.poll_load()
     }
 
-    /// Advances timers: withdrawals, ack and docking timeouts, frames never confirmed, the health
-    /// broadcast and lost nodes, the report of dropped publications, a firmware update's rounds.
+    /// Runs the timers ([`timer::Timer`], in their order): firmware update rounds, frames never
+    /// confirmed, command withdrawals and ack timeouts, read-back answers, inherited documents,
+    /// the docking handshake, the health broadcast and lost nodes, the report of dropped
+    /// publications. Each acts on what is due by `now`.
     pub fn handle_timeout(&mut self, now: Instant) {
         self.set_now(now);
-        self.fw.tick(now, &mut self.out);
-        if let Some(cutoff) = now.checked_sub(TRANSMIT_CONFIRM_TIMEOUT) {
-            for p in self.out.transmit.expire_in_flight(cutoff) {
-                tracing::warn!(
-                    ?p,
-                    "frame not confirmed on the bus within {} ms",
-                    TRANSMIT_CONFIRM_TIMEOUT.as_millis()
-                );
-                let why = "the CAN interface did not confirm sending it";
-                self.pending.on_unconfirmed(&p, why, now, &mut self.out);
-            }
-        }
-        self.pending.expire(now, &mut self.out);
-        self.readback.expire(now);
-        self.republish_inherited(now);
-        let steps = self.docking.tick(now);
-        self.apply(steps, now);
-        self.adopt_unrecorded(now);
-        let Bridge {
-            registry,
-            docking,
-            pending,
-            health,
-            diagnostics,
-            readback,
-            out,
-            ..
-        } = self;
-        health.tick(registry, now, out, |id, out| {
-            readback.on_lost(id);
-            let steps = docking.on_lost(id);
-            let parts = DockParts {
-                pending: &mut *pending,
-                docking: &mut *docking,
-                diagnostics: &mut *diagnostics,
-                readback: &*readback,
-            };
-            dock::apply(steps, parts, now, out);
-        });
-        if self.out.publish.has_unreported() && now >= self.next_drop_report {
-            let (dropped, events) = self.out.publish.take_unreported();
-            let total = self.out.publish.total_dropped();
-            self.out
-                .emit(Event::PublicationsDropped(PublicationsDropped {
-                    dropped,
-                    total,
-                    events,
-                }));
-            self.next_drop_report = now + DROP_REPORT_PERIOD;
+        for timer in Timer::VALUES {
+            self.expire(timer, now);
         }
         self.finish_input(now);
     }
 
-    /// When [`Bridge::handle_timeout`] must run next.
+    /// When [`Bridge::handle_timeout`] must run next: the earliest deadline of the timer table.
+    #[must_use]
     pub fn poll_timeout(&self) -> Instant {
-        let mut next = self.health.next_deadline();
-        let mut at = |d: Option<Instant>| {
-            if let Some(d) = d {
-                next = next.min(d);
-            }
-        };
-        at(self.pending.next_deadline());
-        at(self.readback.next_deadline());
-        at(self.docking.deadline());
-        at(self.inherited.next_deadline());
-        at(self
-            .out
-            .transmit
-            .oldest_in_flight()
-            .map(|t| t + TRANSMIT_CONFIRM_TIMEOUT));
-        at(self.out.transmit.next_not_after());
-        if self.out.publish.has_unreported() {
-            at(Some(self.next_drop_report));
-        }
-        if let Some(d) = self.fw.deadline() {
-            next = next.min(d);
-        }
-        next
+        // The health check always has a deadline: the fallback is never taken.
+        self.timers()
+            .next_timeout()
+            .unwrap_or_else(|| self.health.next_deadline())
     }
 
     /// The next frame to transmit at `now`, `None` when there is none or when
@@ -759,12 +722,13 @@ impl Bridge {
     /// [`Bridge::handle_withdrawn`]). A firmware update's frames come last, only when nothing
     /// else waits, within the update's bus share, and only while fewer than [`FW_WINDOW`] frames
     /// are out: the rest of the window is always free for a command that comes meanwhile.
+    #[must_use]
     pub fn poll_transmit(&mut self, now: Instant) -> Option<Transmit> {
         self.set_now(now);
         loop {
             if self.out.transmit.queued() == 0 && self.out.transmit.in_flight() < FW_WINDOW {
                 if let Some(p) = self.fw.poll_transmit() {
-                    self.out.transmit.push(p, None);
+                    self.out.transmit.push(p, None, FrameOwner::FwUpdate);
                 }
             }
             match self.out.transmit.pop(now)? {
@@ -787,6 +751,7 @@ impl Bridge {
     /// The next event or state document to publish, `None` when there is none. State documents are
     /// built when taken (the latest, as of the last input), at most one per node waits, and one
     /// that has not changed since it was last published is skipped.
+    #[must_use]
     pub fn poll_publication(&mut self) -> Option<Publication> {
         loop {
             match self.out.publish.pop()? {
@@ -1032,8 +997,8 @@ impl Bridge {
                 "CAN transmit queue full ({} frames)",
                 self.out.transmit.cap()
             );
-            for p in refused {
-                self.send_failed(p, &reason, now);
+            for (p, owner) in refused {
+                self.on_frame_fate(p, owner, FrameFate::Failed(&reason), now);
             }
         }
         for id in std::mem::take(&mut self.out.unsure) {
@@ -1693,6 +1658,44 @@ mod tests {
         // One report per period at most; nothing to report, nothing sent.
         b.handle_timeout(t0 + DROP_REPORT_PERIOD);
         assert!(drain(&mut b).named("publications_dropped").is_empty());
+    }
+
+    /// Each frame's fate goes to the concern that queued it, as its tag says: a state query that
+    /// could not be sent is asked again, a command's frame ends its command `failed`, a health
+    /// check nobody answers for is a `bus_error`.
+    #[test]
+    fn a_frames_fate_goes_to_the_concern_that_queued_it() {
+        let (mut b, t0) = with_nodes(&[]);
+        b.handle_packet(Packet::report(id(2), reply(0, 0)), t0 + MS);
+        let query = b.poll_transmit(t0 + MS).unwrap();
+        assert_eq!(query.owner, FrameOwner::ReadBack);
+        b.handle_send_failed(query.packet, "test", t0 + MS);
+        let again = b.poll_transmit(t0 + MS).expect("asked again");
+        assert_eq!(again.packet.msg.kind(), Kind::StateQuery);
+        assert!(drain(&mut b).named("bus_error").len() == 1);
+        answer_queries(
+            &mut b,
+            &Out {
+                queries: vec![again.packet],
+                ..Out::default()
+            },
+            t0 + MS,
+        );
+
+        b.handle_command(br#"{"cmd":"identify","node":"2","seconds":1}"#, t0 + MS);
+        let cmd = b.poll_transmit(t0 + MS).unwrap();
+        assert_eq!(cmd.owner, FrameOwner::Command);
+        b.handle_send_failed(cmd.packet, "test", t0 + MS);
+        let out = drain(&mut b);
+        assert_eq!(out.one("command_result")["result"], "failed");
+        assert!(out.named("bus_error").is_empty(), "answered by its command");
+
+        b.handle_timeout(t0 + S);
+        let check = b.poll_transmit(t0 + S).unwrap();
+        assert_eq!(check.owner, FrameOwner::HealthCheck);
+        b.handle_send_failed(check.packet, "test", t0 + S);
+        let out = drain(&mut b);
+        assert_eq!(out.one("bus_error")["error"], "send_failed");
     }
 
     #[test]
