@@ -1407,15 +1407,7 @@ mod tests {
         b.handle_bus_event(BusEvent::Recovered, t0 + MS);
         assert!(!b.bus_health().bus_down);
 
-        b.handle_packet(
-            Packet::report(id(0x111), Message::DockDetected { port: port(3) }),
-            t0,
-        );
-        b.handle_packet(
-            Packet::report(id(2), Message::Handshake { port: port(0) }),
-            t0,
-        );
-        drain(&mut b);
+        dock(&mut b, 0x111, 3, 2, t0);
         assert_eq!(b.connections().len(), 1);
         let ids: Vec<_> = b.node_states(t0 + S).iter().map(|s| s.id.0).collect();
         assert_eq!(ids, [id(2), id(0x111)]);

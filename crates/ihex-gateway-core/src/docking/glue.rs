@@ -320,15 +320,7 @@ mod tests {
     #[test]
     fn lost_mobile_element_removes_its_connection() {
         let (mut b, t0) = with_nodes(&[0x111, 2]);
-        b.handle_packet(
-            Packet::report(id(0x111), Message::DockDetected { port: port(3) }),
-            t0 + MS,
-        );
-        b.handle_packet(
-            Packet::report(id(2), Message::Handshake { port: port(0) }),
-            t0 + MS,
-        );
-        drain(&mut b);
+        dock(&mut b, 0x111, 3, 2, t0 + MS);
         let mut removed = None;
         for k in 1..=4u32 {
             b.handle_timeout(t0 + S * k);
@@ -395,14 +387,7 @@ mod tests {
     #[test]
     fn timeout_with_other_elements_docked_withdraws_only_that_port() {
         let (mut b, t0) = with_nodes(&[0x111]);
-        b.handle_packet(
-            Packet::report(id(0x111), Message::DockDetected { port: port(3) }),
-            t0,
-        );
-        b.handle_packet(
-            Packet::report(id(2), Message::Handshake { port: port(0) }),
-            t0,
-        );
+        dock(&mut b, 0x111, 3, 2, t0);
         b.handle_packet(
             Packet::report(id(0x111), Message::DockDetected { port: port(4) }),
             t0,
