@@ -25,6 +25,8 @@ pub(crate) mod readback;
 #[cfg(test)]
 pub(crate) mod test_support;
 mod timer;
+#[cfg(test)]
+mod traffic;
 
 use std::time::{Duration, Instant};
 
@@ -1040,10 +1042,9 @@ fn is_read_back_kind(kind: u8) -> bool {
 mod tests {
     use super::test_support::*;
     use super::*;
-    use ihex_proto::{AckResult, DecodeError, HealthFlags, Kind, Message, NodeId, Packet};
+    use ihex_proto::{DecodeError, HealthFlags, Kind, Message, NodeId, Packet};
     use serde_json::{json, Value};
-    use std::collections::BTreeMap;
-    use std::time::{Duration, Instant};
+    use std::time::Instant;
 
     #[test]
     fn unknown_node_is_rejected_with_the_known_list() {
@@ -1142,169 +1143,6 @@ mod tests {
         b.handle_command(&big, t0);
         let reason = drain(&mut b).one("command_rejected")["reason"].clone();
         assert_eq!(reason, "command is 5000 bytes; the limit is 4096 bytes");
-    }
-
-    /// Deterministic chaos: random reports, acks of what was sent, commands, bus events and time.
-    /// Nothing panics, every frame sent is valid, every event reads back as an [`Event`], and every
-    /// command that was accepted ends in exactly one `command_result`.
-    #[test]
-    fn random_traffic_keeps_every_invariant() {
-        let mut x: u64 = 0x9e37_79b9_7f4a_7c15;
-        let mut rnd = move |n: u64| {
-            x ^= x << 13;
-            x ^= x >> 7;
-            x ^= x << 17;
-            x % n
-        };
-        let t0 = Instant::now();
-        let mut now = t0;
-        let mut b = Bridge::new(BridgeConfig::default(), t0);
-        let nodes = [1u16, 2, 3, 0x111, 0x112];
-        let targets = ["1", "2", "3", "111", "112", "all", "5a"];
-        let mut sent: Vec<Packet> = Vec::new();
-        let (mut accepted, mut results, mut events) = (0usize, 0usize, 0usize);
-        let mut seen = BTreeMap::new();
-        for _ in 0..20_000 {
-            match rnd(10) {
-                0..=3 => {
-                    // A valid report from a random node: random bytes, kept when they decode.
-                    let kinds = [
-                        Kind::Fault,
-                        Kind::DockDetected,
-                        Kind::DockRemoved,
-                        Kind::Handshake,
-                        Kind::BootUp,
-                        Kind::HealthReply,
-                        Kind::AssignReply,
-                    ];
-                    let kind = kinds[rnd(kinds.len() as u64) as usize];
-                    let src = id(nodes[rnd(nodes.len() as u64) as usize]);
-                    let mut data = [0u8; 8];
-                    for d in &mut data {
-                        let range = if rnd(2) == 0 { 8 } else { 256 };
-                        *d = rnd(range) as u8;
-                    }
-                    let len = Message::len_of(kind) as usize;
-                    if let Ok(msg) = Message::decode(kind, &data[..len]) {
-                        b.handle_packet(Packet::report(src, msg), now);
-                    }
-                }
-                4..=5 if !sent.is_empty() => {
-                    // Answer something that was sent (possibly twice, possibly late).
-                    let p = sent[rnd(sent.len() as u64) as usize];
-                    let from = if p.dest == NodeId::BROADCAST {
-                        id(nodes[rnd(nodes.len() as u64) as usize])
-                    } else {
-                        p.dest
-                    };
-                    let result = AckResult::from_raw(rnd(7) as u8);
-                    let msg = match p.msg {
-                        Message::AssignCommit {
-                            uid_tail,
-                            new_id,
-                            seq,
-                        } => Message::AssignReply {
-                            seq,
-                            result,
-                            new_id,
-                            uid_tail,
-                        },
-                        m => match m.ack_seq() {
-                            Some(seq) => ack(m.kind(), seq, result),
-                            None => continue,
-                        },
-                    };
-                    let src = match msg {
-                        Message::AssignReply { new_id, .. } => new_id,
-                        _ => from,
-                    };
-                    b.handle_packet(Packet::report(src, msg), now);
-                }
-                6 => {
-                    let node = targets[rnd(targets.len() as u64) as usize];
-                    let cmd = match rnd(6) {
-                        0 => json!({"cmd": "led", "node": node, "color": [rnd(300), 0, 1]}),
-                        1 => json!({"cmd": "buzzer", "node": node, "mode": "pattern",
-                                    "on_ms": rnd(3000), "off_ms": 100}),
-                        2 => json!({"cmd": "power", "node": node, "on": rnd(2) == 0}),
-                        3 => json!({"cmd": "identify", "node": node, "seconds": rnd(300)}),
-                        4 => json!({"cmd": "assign", "uid": "00112233445566778899aabb",
-                                    "new_id": targets[rnd(5) as usize], "force": rnd(2) == 0}),
-                        _ => json!({"cmd": "list"}),
-                    };
-                    b.handle_command(cmd.to_string().as_bytes(), now);
-                    if cmd["cmd"] != "list" {
-                        accepted += 1; // corrected below when rejected
-                    }
-                }
-                7 => {
-                    let ev = match rnd(5) {
-                        0 => BusEvent::BusOff,
-                        1 => BusEvent::Recovered,
-                        2 => BusEvent::RxDropped(rnd(5) as u32),
-                        3 => BusEvent::ErrorFrame {
-                            class: rnd(0x400) as u32,
-                            data: [rnd(256) as u8; 8],
-                        },
-                        _ => BusEvent::InterfaceDown,
-                    };
-                    b.handle_bus_event(ev, now);
-                }
-                8 if !sent.is_empty() && rnd(4) == 0 => {
-                    let p = sent[rnd(sent.len() as u64) as usize];
-                    b.handle_send_failed(p, "test", now);
-                }
-                _ => {
-                    now += Duration::from_millis(rnd(400));
-                    b.handle_timeout(now);
-                }
-            }
-            let out = drain(&mut b);
-            for raw in &out.raw_events {
-                let ev: Event = serde_json::from_str(raw).unwrap_or_else(|e| panic!("{raw}: {e}"));
-                events += 1;
-                *seen.entry(ev.name()).or_insert(0usize) += 1;
-                match ev {
-                    Event::CommandResult(_) => results += 1,
-                    Event::CommandRejected(_) => accepted -= 1,
-                    _ => {}
-                }
-            }
-            sent.extend(
-                out.sent
-                    .iter()
-                    .filter(|p| p.msg.kind() != Kind::HealthCheck),
-            );
-            if sent.len() > 64 {
-                sent.drain(..32);
-            }
-        }
-        // Everything still pending times out.
-        now += Duration::from_secs(60);
-        b.handle_timeout(now);
-        let out = drain(&mut b);
-        results += out.named("command_result").len();
-        assert_eq!(b.command_counters().in_flight, 0);
-        for name in [
-            "new_connection",
-            "connection_removed",
-            "dock_failed",
-            "node_online",
-            "node_lost",
-            "node_rebooted",
-            "command_result",
-            "command_rejected",
-            "fault",
-            "bus_error",
-            "node_list",
-        ] {
-            assert!(seen.contains_key(name), "no {name} in {seen:?}");
-        }
-        assert!(
-            accepted > 100 && events > 1000,
-            "the test exercised little: {accepted} {events}"
-        );
-        assert_eq!(results, accepted, "one command_result per accepted command");
     }
 
     /// Every frame through the bridge is counted with its bits on the wire (67 + 8 per data byte,
