@@ -168,15 +168,7 @@ mod tests {
     #[test]
     fn forgetting_a_lost_static_element_ends_its_connections() {
         let (mut b, t0) = with_nodes(&[2, 0x111]);
-        b.handle_packet(
-            Packet::report(id(0x111), Message::DockDetected { port: port(3) }),
-            t0,
-        );
-        b.handle_packet(
-            Packet::report(id(2), Message::Handshake { port: port(0) }),
-            t0,
-        );
-        drain(&mut b);
+        dock(&mut b, 0x111, 3, 2, t0);
         // 111 falls silent; 2 keeps answering (it is powered by 111's relay).
         for n in 1..=3u8 {
             let t = t0 + S * u32::from(n);

@@ -10,7 +10,7 @@ use std::time::{Duration, Instant};
 
 use ihex_proto::{BootRole, HealthFlags, Message, NodeId, Packet, Seq};
 
-use super::output::Outputs;
+use super::output::{FrameOwner, Outputs};
 use crate::event::{Event, HexId, NodeLost, NodeOnline, NodeRebooted, Role};
 use crate::registry::{millis, Registry, Seen};
 
@@ -181,10 +181,10 @@ impl Health {
         let seq = self.seq;
         self.seq = seq.wrapping_add(1);
         self.outstanding = Some(seq);
-        out.send(Packet::command(
-            NodeId::BROADCAST,
-            Message::HealthCheck { seq },
-        ));
+        out.send(
+            Packet::command(NodeId::BROADCAST, Message::HealthCheck { seq }),
+            FrameOwner::HealthCheck,
+        );
         self.next += self.period;
         if self.next <= now {
             // Far behind (a suspended process): skip the missed checks instead of bursting them.

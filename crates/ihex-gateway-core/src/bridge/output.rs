@@ -115,6 +115,38 @@ pub struct Transmit {
     /// `failed` by then): the adapter reports it with [`super::Bridge::handle_withdrawn`] instead.
     /// `None` for frames without a deadline (health checks, docking).
     pub not_after: Option<Instant>,
+    /// The concern that queued it.
+    pub owner: FrameOwner,
+}
+
+/// What became of a frame the bridge queued, as its owner is told.
+#[derive(Clone, Copy, PartialEq, Eq, Debug)]
+pub(crate) enum FrameFate<'a> {
+    /// It went on the bus (its echo, or the adapter wrote it).
+    Transmitted,
+    /// The adapter did not write it: its deadline had passed.
+    Withdrawn,
+    /// It could not be sent, for this reason.
+    Failed(&'a str),
+    /// Handed out and never confirmed (why): it may or may not reach the bus.
+    Unconfirmed(&'static str),
+}
+
+/// The concern that queued a frame: its echo, withdrawal, failure or lack of confirmation goes
+/// back to it, routed by one `match` on this tag in the bridge. A new concern that sends frames
+/// adds its variant here, and the compiler asks for its arm there.
+#[derive(Clone, Copy, PartialEq, Eq, Debug)]
+pub enum FrameOwner {
+    /// A command from the JSON API or Home Assistant (for `assign`, its select and its commit).
+    Command,
+    /// The docking sequence: confirms, refusals, relay off, dock links.
+    Docking,
+    /// The broadcast health check.
+    HealthCheck,
+    /// A state query of the read-back.
+    ReadBack,
+    /// A firmware update's frame.
+    FwUpdate,
 }
 
 /// How publications fared since start, and what waits now.
@@ -336,6 +368,16 @@ impl PublishQueue {
 struct Queued {
     packet: Packet,
     not_after: Option<Instant>,
+    owner: FrameOwner,
+}
+
+/// A frame handed to the adapter, waiting for its echo or failure.
+#[derive(Clone, Copy, Debug)]
+struct InFlight {
+    packet: Packet,
+    /// When it was handed out.
+    handed: Instant,
+    owner: FrameOwner,
 }
 
 /// Frames not yet handed to the adapter, and those handed and not yet confirmed.
@@ -343,10 +385,10 @@ struct Queued {
 pub(crate) struct TransmitQueue {
     queue: VecDeque<Queued>,
     cap: usize,
-    /// Handed to the adapter at the given time, waiting for its echo or failure.
-    in_flight: Vec<(Packet, Instant)>,
+    /// Handed to the adapter, waiting for its echo or failure.
+    in_flight: Vec<InFlight>,
     /// Frames refused because the queue was full: the bridge reports them as failed sends.
-    refused: Vec<Packet>,
+    refused: Vec<(Packet, FrameOwner)>,
 }
 
 impl TransmitQueue {
@@ -360,11 +402,15 @@ impl TransmitQueue {
     }
 
     /// Queues a frame; when the queue is full it is refused (the bridge then fails it).
-    pub(crate) fn push(&mut self, packet: Packet, not_after: Option<Instant>) {
+    pub(crate) fn push(&mut self, packet: Packet, not_after: Option<Instant>, owner: FrameOwner) {
         if self.queue.len() >= self.cap {
-            self.refused.push(packet);
+            self.refused.push((packet, owner));
         } else {
-            self.queue.push_back(Queued { packet, not_after });
+            self.queue.push_back(Queued {
+                packet,
+                not_after,
+                owner,
+            });
         }
     }
 
@@ -373,7 +419,7 @@ impl TransmitQueue {
         self.cap
     }
 
-    pub(crate) fn take_refused(&mut self) -> Vec<Packet> {
+    pub(crate) fn take_refused(&mut self) -> Vec<(Packet, FrameOwner)> {
         std::mem::take(&mut self.refused)
     }
 
@@ -388,10 +434,15 @@ impl TransmitQueue {
             return Some(Err(q.packet));
         }
         self.queue.pop_front();
-        self.in_flight.push((q.packet, now));
+        self.in_flight.push(InFlight {
+            packet: q.packet,
+            handed: now,
+            owner: q.owner,
+        });
         Some(Ok(Transmit {
             packet: q.packet,
             not_after: q.not_after,
+            owner: q.owner,
         }))
     }
 
@@ -414,25 +465,20 @@ impl TransmitQueue {
             .unwrap_or(self.queue.len())
     }
 
-    /// The frame's fate is known (echoed, failed): its place in the window is free. True if it was
-    /// in the window.
-    pub(crate) fn release(&mut self, packet: &Packet) -> bool {
-        match self.in_flight.iter().position(|(p, _)| p == packet) {
-            Some(i) => {
-                self.in_flight.swap_remove(i);
-                true
-            }
-            None => false,
-        }
+    /// The frame's fate is known (echoed, withdrawn, failed): its place in the window is free.
+    /// Its owner if it was in the window.
+    pub(crate) fn release(&mut self, packet: &Packet) -> Option<FrameOwner> {
+        let i = self.in_flight.iter().position(|f| f.packet == *packet)?;
+        Some(self.in_flight.swap_remove(i).owner)
     }
 
     /// Frames in the window handed out at or before `cutoff`: removed and returned.
-    pub(crate) fn expire_in_flight(&mut self, cutoff: Instant) -> Vec<Packet> {
+    pub(crate) fn expire_in_flight(&mut self, cutoff: Instant) -> Vec<(Packet, FrameOwner)> {
         let mut gone = Vec::new();
-        self.in_flight.retain(|&(p, t)| {
-            let keep = t > cutoff;
+        self.in_flight.retain(|f| {
+            let keep = f.handed > cutoff;
             if !keep {
-                gone.push(p);
+                gone.push((f.packet, f.owner));
             }
             keep
         });
@@ -440,13 +486,16 @@ impl TransmitQueue {
     }
 
     /// Every frame in the window: removed and returned (the interface went down).
-    pub(crate) fn clear_in_flight(&mut self) -> Vec<Packet> {
-        self.in_flight.drain(..).map(|(p, _)| p).collect()
+    pub(crate) fn clear_in_flight(&mut self) -> Vec<(Packet, FrameOwner)> {
+        self.in_flight
+            .drain(..)
+            .map(|f| (f.packet, f.owner))
+            .collect()
     }
 
     /// When the oldest frame in the window was handed out.
     pub(crate) fn oldest_in_flight(&self) -> Option<Instant> {
-        self.in_flight.iter().map(|&(_, t)| t).min()
+        self.in_flight.iter().map(|f| f.handed).min()
     }
 
     /// The earliest deadline of a queued frame.
@@ -488,14 +537,15 @@ impl Outputs {
         }
     }
 
-    /// Queues a frame without a deadline.
-    pub(crate) fn send(&mut self, packet: Packet) {
-        self.transmit.push(packet, None);
+    /// Queues a frame of `owner`'s without a deadline.
+    pub(crate) fn send(&mut self, packet: Packet, owner: FrameOwner) {
+        self.transmit.push(packet, None, owner);
     }
 
     /// Queues a command's frame that must not be written after `not_after`.
     pub(crate) fn send_until(&mut self, packet: Packet, not_after: Instant) {
-        self.transmit.push(packet, Some(not_after));
+        self.transmit
+            .push(packet, Some(not_after), FrameOwner::Command);
     }
 
     /// Queues an event.
@@ -614,20 +664,20 @@ mod tests {
         let mut t = TransmitQueue::new(3);
         let frame = |seq| Packet::command(id(2), Message::Identify { seq, seconds: 1 });
         for seq in 0..(TRANSMIT_WINDOW as u8 + 4) {
-            t.push(frame(seq), None);
+            t.push(frame(seq), None, FrameOwner::Command);
         }
         assert_eq!(t.queued(), 3);
         assert_eq!(t.take_refused().len(), TRANSMIT_WINDOW + 1);
         let mut t = TransmitQueue::new(64);
         for seq in 0..(TRANSMIT_WINDOW as u8 + 2) {
-            t.push(frame(seq), None);
+            t.push(frame(seq), None, FrameOwner::Command);
         }
         for _ in 0..TRANSMIT_WINDOW {
             assert!(matches!(t.pop(t0), Some(Ok(_))));
         }
         assert!(t.pop(t0).is_none(), "the window is full");
-        assert!(t.release(&frame(0)));
-        assert!(!t.release(&frame(0)), "released once");
+        assert_eq!(t.release(&frame(0)), Some(FrameOwner::Command));
+        assert_eq!(t.release(&frame(0)), None, "released once");
         assert_eq!(
             t.pop(t0).unwrap().unwrap().packet,
             frame(TRANSMIT_WINDOW as u8)
@@ -635,7 +685,7 @@ mod tests {
         // A frame past its deadline is not handed out; it waits to be withdrawn.
         let late = frame(200);
         let mut t = TransmitQueue::new(4);
-        t.push(late, Some(t0));
+        t.push(late, Some(t0), FrameOwner::Command);
         assert_eq!(t.pop(t0), Some(Err(late)));
         assert!(t.withdraw(&late));
         assert!(t.pop(t0).is_none());

@@ -18,7 +18,7 @@ use std::time::{Duration, Instant};
 
 use ihex_proto::{Message, NodeId, Packet, Seq, StateParts, StateReport};
 
-use super::output::Outputs;
+use super::output::{FrameFate, FrameOwner, Outputs};
 
 /// Nodes asked at the same time (each reply is up to 16 frames).
 pub const MAX_QUERIES: usize = 4;
@@ -129,7 +129,7 @@ impl ReadBack {
 
     /// The query to `id` never went out (the transmit queue was full, the write failed): not the
     /// node's silence; it is asked again.
-    pub(crate) fn on_not_sent(&mut self, id: NodeId) {
+    fn on_not_sent(&mut self, id: NodeId) {
         if let Some(q) = self.nodes.get_mut(&id) {
             if q.asking.take().is_some() {
                 q.due = !q.unsupported;
@@ -138,8 +138,19 @@ impl ReadBack {
         }
     }
 
+    /// What became of the question to `id`: on the bus, the node has the whole timeout from then to
+    /// answer; not sent, it is asked again; handed out and never confirmed, it waits for its
+    /// answer or its deadline.
+    pub(crate) fn on_fate(&mut self, id: NodeId, fate: FrameFate<'_>, now: Instant) {
+        match fate {
+            FrameFate::Transmitted => self.on_transmitted(id, now),
+            FrameFate::Withdrawn | FrameFate::Failed(_) => self.on_not_sent(id),
+            FrameFate::Unconfirmed(_) => {}
+        }
+    }
+
     /// The question to `id` is on the bus: the node has the whole timeout from now to answer.
-    pub(crate) fn on_transmitted(&mut self, id: NodeId, now: Instant) {
+    fn on_transmitted(&mut self, id: NodeId, now: Instant) {
         if let Some(a) = self.nodes.get_mut(&id).and_then(|q| q.asking.as_mut()) {
             if !a.sent {
                 a.sent = true;
@@ -262,13 +273,9 @@ impl ReadBack {
                 reports: Vec::new(),
             });
             asking += 1;
-            out.send(Packet::command(
-                id,
-                Message::StateQuery {
-                    seq,
-                    parts: StateParts::ALL,
-                },
-            ));
+            let parts = StateParts::ALL;
+            let query = Packet::command(id, Message::StateQuery { seq, parts });
+            out.send(query, FrameOwner::ReadBack);
         }
         self.seq = next_seq;
         self.maybe_due = still_due;

@@ -172,6 +172,21 @@ pub(crate) fn with_nodes(nodes: &[u16]) -> (Bridge, Instant) {
     (b, t0)
 }
 
+/// Docks `mobile` on `static_id`'s `port` at `now`, as the elements tell it when no docking is
+/// pending: the static element reports the detection, the mobile element handshakes on its port 0.
+/// Returns what that made the bridge do (drained).
+pub(crate) fn dock(b: &mut Bridge, static_id: u16, port: u8, mobile: u16, now: Instant) -> Out {
+    let detected = Message::DockDetected {
+        port: self::port(port),
+    };
+    b.handle_packet(Packet::report(id(static_id), detected), now);
+    let handshake = Message::Handshake {
+        port: self::port(0),
+    };
+    b.handle_packet(Packet::report(id(mobile), handshake), now);
+    drain(b)
+}
+
 pub(crate) fn command(b: &mut Bridge, json: Value, now: Instant) -> Out {
     b.handle_command(json.to_string().as_bytes(), now);
     drain(b)

@@ -24,7 +24,7 @@ use std::time::{Duration, Instant};
 
 use ihex_proto::{AckResult, Kind, Message, NodeId, Packet, Seq, Uid};
 
-use crate::bridge::output::Outputs;
+use crate::bridge::output::{FrameFate, FrameOwner, Outputs};
 use crate::bridge::TRANSMIT_CONFIRM_TIMEOUT;
 use crate::command::{CommandError, NodeAction};
 use crate::event::{CommandResult, Event, HexId, Outcome, Refusal, Target};
@@ -520,6 +520,7 @@ impl Pending {
     /// sequence number (returned); `None`, and nothing sent, when every number is in use.
     pub(crate) fn send_internal(
         &mut self,
+        owner: FrameOwner,
         dest: NodeId,
         kind: Kind,
         msg: impl FnOnce(Seq) -> Message,
@@ -545,12 +546,13 @@ impl Pending {
                 fate: Fate::Queued,
             },
         );
-        out.send(frame);
+        out.send(frame, owner);
         Some(seq)
     }
 
     /// An `Ack` from `src`. Ends the command it answers; for a frame of the bridge's own, frees its
-    /// sequence number and returns true (the caller routes the ack, e.g. to the docking sequence).
+    /// sequence number (what the ack means to the concern that sent the frame, e.g. the docking
+    /// sequence, is the caller's to route: a late ack finds no entry here and still counts there).
     #[allow(clippy::too_many_arguments)]
     pub(crate) fn on_ack(
         &mut self,
@@ -561,7 +563,7 @@ impl Pending {
         registry: &mut Registry,
         now: Instant,
         out: &mut Outputs,
-    ) -> bool {
+    ) {
         let key = (src, kind, seq);
         if let Some(p) = self.pending.get(&key) {
             if matches!(p.what, What::Internal) {
@@ -569,13 +571,13 @@ impl Pending {
                 if result != AckResult::Ok {
                     tracing::debug!(%src, ?kind, seq, %result, "the node refused a frame of the gateway's own");
                 }
-                return true;
+                return;
             }
             let Some(p) = self.remove(&key) else {
-                return false;
+                return;
             };
             let What::Node(action) = p.what else {
-                return false;
+                return;
             };
             if result == AckResult::Ok {
                 apply_action_state(registry, out, src, action, now);
@@ -583,15 +585,15 @@ impl Pending {
             } else {
                 self.emit_result(p, Outcome::Refused, Some(result.to_string()), out);
             }
-            return false;
+            return;
         }
         let key = (NodeId::BROADCAST, kind, seq);
         let Some(p) = self.pending.get_mut(&key) else {
             tracing::debug!(%src, ?kind, seq, "ack for no pending command (late or not ours)");
-            return false;
+            return;
         };
         let What::Broadcast { action, answers } = &mut p.what else {
-            return false;
+            return;
         };
         let action = *action;
         let Answers {
@@ -616,7 +618,6 @@ impl Pending {
                 self.finish_broadcast(p, None, out);
             }
         }
-        false
     }
 
     /// An `AssignReply` (from the board's new ID, or from an unconfigured board). Returns the
@@ -669,6 +670,24 @@ impl Pending {
         }
     }
 
+    /// What became of `packet` (a frame queued here). True when a command's frame could not be
+    /// sent and its command ended `failed`; otherwise the caller reports a failure.
+    pub(crate) fn on_fate(
+        &mut self,
+        packet: &Packet,
+        fate: FrameFate<'_>,
+        now: Instant,
+        out: &mut Outputs,
+    ) -> bool {
+        match fate {
+            FrameFate::Transmitted => self.on_transmitted(packet, now),
+            FrameFate::Withdrawn => self.on_withdrawn(packet, now, out),
+            FrameFate::Failed(reason) => return self.on_send_failed(packet, reason, out),
+            FrameFate::Unconfirmed(why) => self.on_unconfirmed(packet, why, now, out),
+        }
+        false
+    }
+
     /// `packet` left the bridge's queue for the adapter.
     pub(crate) fn on_handed(&mut self, packet: &Packet, now: Instant) {
         if matches!(packet.msg, Message::AssignSelect { .. }) {
@@ -682,7 +701,7 @@ impl Pending {
     }
 
     /// The adapter confirmed `packet` on the bus: the node has `command_timeout` from now to answer.
-    pub(crate) fn on_transmitted(&mut self, packet: &Packet, now: Instant) {
+    fn on_transmitted(&mut self, packet: &Packet, now: Instant) {
         if matches!(packet.msg, Message::AssignSelect { .. }) {
             return;
         }
@@ -700,7 +719,7 @@ impl Pending {
 
     /// The adapter can no longer tell whether `packet` reaches the bus (`why`); a command past its
     /// deadline ends now.
-    pub(crate) fn on_unconfirmed(
+    fn on_unconfirmed(
         &mut self,
         packet: &Packet,
         why: &'static str,
@@ -733,12 +752,7 @@ impl Pending {
 
     /// `packet` could not be sent: if it carried a command, that command ends `failed` (returns
     /// true); otherwise the caller reports it (a frame of the bridge's own frees its number).
-    pub(crate) fn on_send_failed(
-        &mut self,
-        packet: &Packet,
-        reason: &str,
-        out: &mut Outputs,
-    ) -> bool {
+    fn on_send_failed(&mut self, packet: &Packet, reason: &str, out: &mut Outputs) -> bool {
         let Some(key) = self.carrier(packet) else {
             return false;
         };
@@ -755,7 +769,7 @@ impl Pending {
     }
 
     /// The adapter did not write `packet` because its `not_after` had passed.
-    pub(crate) fn on_withdrawn(&mut self, packet: &Packet, now: Instant, out: &mut Outputs) {
+    fn on_withdrawn(&mut self, packet: &Packet, now: Instant, out: &mut Outputs) {
         let Some(key) = self.carrier(packet) else {
             return;
         };

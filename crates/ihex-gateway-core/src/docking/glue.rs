@@ -8,11 +8,11 @@
 
 use std::time::Instant;
 
-use ihex_proto::{DockPartner, DockRefuseReason, Kind, Message, NodeId, Port};
+use ihex_proto::{DockPartner, DockRefuseReason, Kind, Message, NodeId, Packet, Port};
 
 use super::{Docking, Step};
 use crate::bridge::diagnostics::Diagnostics;
-use crate::bridge::output::Outputs;
+use crate::bridge::output::{FrameFate, FrameOwner, Outputs};
 use crate::bridge::readback::ReadBack;
 use crate::command::pending::Pending;
 use crate::event::{DockFailed, Event, HexId};
@@ -43,13 +43,20 @@ pub(crate) fn apply(steps: Vec<Step>, parts: DockParts<'_>, now: Instant, out: &
                 let msg = |seq| Message::DockConfirm { seq, port };
                 // Without a free sequence number the confirm is not sent; the docking then ends
                 // with its handshake timeout.
-                if let Some(seq) = pending.send_internal(node, Kind::DockConfirm, msg, now, out) {
+                if let Some(seq) = pending.send_internal(
+                    FrameOwner::Docking,
+                    node,
+                    Kind::DockConfirm,
+                    msg,
+                    now,
+                    out,
+                ) {
                     docking.confirm_sent(node, port, seq);
                 }
             }
             Step::Adopt { node, port } => {
                 let msg = |seq| Message::DockConfirm { seq, port };
-                pending.send_internal(node, Kind::DockConfirm, msg, now, out);
+                pending.send_internal(FrameOwner::Docking, node, Kind::DockConfirm, msg, now, out);
             }
             Step::RefuseBusy { node, port } => {
                 send_dock_refuse(pending, out, node, port, DockRefuseReason::Busy, now)
@@ -59,7 +66,7 @@ pub(crate) fn apply(steps: Vec<Step>, parts: DockParts<'_>, now: Instant, out: &
             }
             Step::PowerOff { node } => {
                 let msg = |seq| Message::PowerSet { seq, on: false };
-                pending.send_internal(node, Kind::PowerSet, msg, now, out);
+                pending.send_internal(FrameOwner::Docking, node, Kind::PowerSet, msg, now, out);
             }
             Step::Connected(c) => {
                 out.mark_changed(c.n.id.0);
@@ -99,6 +106,22 @@ pub(crate) fn apply(steps: Vec<Step>, parts: DockParts<'_>, now: Instant, out: &
     }
 }
 
+/// What the fate of one of the sequence's frames means to it: a confirm that could not be sent
+/// ends the docking it was for (the steps that follow; none when it was not that docking's).
+pub(crate) fn on_fate(
+    docking: &mut Docking,
+    packet: &Packet,
+    fate: FrameFate<'_>,
+    now: Instant,
+) -> Vec<Step> {
+    match (fate, packet.msg) {
+        (FrameFate::Failed(reason), Message::DockConfirm { seq, .. }) => {
+            docking.on_confirm_failed(packet.dest, seq, reason, now)
+        }
+        _ => Vec::new(),
+    }
+}
+
 /// Tells static `node` which mobile element is docked on its `port` (`None`: none any more).
 fn send_dock_link(
     pending: &mut Pending,
@@ -111,7 +134,7 @@ fn send_dock_link(
 ) {
     if readback.supports(node) {
         let msg = |seq| Message::DockLink { seq, port, partner };
-        pending.send_internal(node, Kind::DockLink, msg, now, out);
+        pending.send_internal(FrameOwner::Docking, node, Kind::DockLink, msg, now, out);
     }
 }
 
@@ -125,7 +148,7 @@ fn send_dock_refuse(
     now: Instant,
 ) {
     let msg = |seq| Message::DockRefuse { seq, port, reason };
-    pending.send_internal(node, Kind::DockRefuse, msg, now, out);
+    pending.send_internal(FrameOwner::Docking, node, Kind::DockRefuse, msg, now, out);
 }
 
 #[cfg(test)]
@@ -297,15 +320,7 @@ mod tests {
     #[test]
     fn lost_mobile_element_removes_its_connection() {
         let (mut b, t0) = with_nodes(&[0x111, 2]);
-        b.handle_packet(
-            Packet::report(id(0x111), Message::DockDetected { port: port(3) }),
-            t0 + MS,
-        );
-        b.handle_packet(
-            Packet::report(id(2), Message::Handshake { port: port(0) }),
-            t0 + MS,
-        );
-        drain(&mut b);
+        dock(&mut b, 0x111, 3, 2, t0 + MS);
         let mut removed = None;
         for k in 1..=4u32 {
             b.handle_timeout(t0 + S * k);
@@ -372,14 +387,7 @@ mod tests {
     #[test]
     fn timeout_with_other_elements_docked_withdraws_only_that_port() {
         let (mut b, t0) = with_nodes(&[0x111]);
-        b.handle_packet(
-            Packet::report(id(0x111), Message::DockDetected { port: port(3) }),
-            t0,
-        );
-        b.handle_packet(
-            Packet::report(id(2), Message::Handshake { port: port(0) }),
-            t0,
-        );
+        dock(&mut b, 0x111, 3, 2, t0);
         b.handle_packet(
             Packet::report(id(0x111), Message::DockDetected { port: port(4) }),
             t0,

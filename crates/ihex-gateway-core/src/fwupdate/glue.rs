@@ -87,6 +87,7 @@ impl FwUpdates {
         out.emit(Event::FwUpload(Box::new(answer)));
     }
 
+    #[must_use]
     pub(crate) fn poll_load(&mut self) -> Option<FwLoad> {
         let load = self.loads.pop_front()?;
         self.loading = true;
@@ -187,6 +188,7 @@ impl FwUpdates {
         self.sender.as_ref().and_then(FwSender::poll_timeout)
     }
 
+    #[must_use]
     pub(crate) fn poll_transmit(&mut self) -> Option<Packet> {
         let s = self.sender.as_mut()?;
         let p = s.poll_transmit();

@@ -214,6 +214,7 @@ impl FwSender {
     }
 
     /// The next event to publish (`fw_progress`, `fw_report`).
+    #[must_use]
     pub fn poll_event(&mut self) -> Option<Event> {
         self.events.pop_front()
     }
@@ -350,6 +351,7 @@ impl FwSender {
     }
 
     /// When [`FwSender::handle_timeout`] must run next (`None`: only an input moves it on).
+    #[must_use]
     pub fn poll_timeout(&self) -> Option<Instant> {
         if self.bus_down || self.is_done() {
             return None;
@@ -372,6 +374,7 @@ impl FwSender {
 
     /// The next frame, if the bus share allows it now. The caller sends it at the lowest
     /// priority (after every other frame it has).
+    #[must_use]
     pub fn poll_transmit(&mut self) -> Option<Packet> {
         if self.bus_down {
             return None;

@@ -127,15 +127,7 @@ mod tests {
             out.ha.extend(o.ha);
             out.states.extend(o.states);
         }
-        b.handle_packet(
-            Packet::report(id(0x111), Message::DockDetected { port: port(3) }),
-            t0 + MS,
-        );
-        b.handle_packet(
-            Packet::report(id(2), Message::Handshake { port: port(0) }),
-            t0 + MS,
-        );
-        let o = drain(&mut b);
+        let o = dock(&mut b, 0x111, 3, 2, t0 + MS);
         out.ha.extend(o.ha);
         out.raw_events.extend(o.raw_events);
         out.states.extend(o.states);
