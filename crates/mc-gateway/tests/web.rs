@@ -790,8 +790,15 @@ async fn the_snapshot_and_the_event_stream() {
     .await;
     assert!(text.contains("event: event\nid: "), "{text}");
     // A body that is not declared JSON never reaches the core.
-    let (status, _, _) = http(port, "POST", "/api/command", &[], "{}").await;
+    let (status, _, body) = http(port, "POST", "/api/command", &[], "{}").await;
     assert_eq!(status, 415);
+    assert!(serde_json::from_str::<Value>(&body).unwrap()["error"].is_string());
+    // Nor does one over the body limit (1 MiB here): refused with a JSON reason like every error.
+    let big = format!(r#"{{"cmd":"list","request_id":"{}"}}"#, "x".repeat(2 << 20));
+    let (status, _, body) = http(port, "POST", "/api/command", &[JSON], &big).await;
+    assert_eq!(status, 413, "{body}");
+    let reason: Value = serde_json::from_str(&body).unwrap_or_else(|e| panic!("{e}: {body}"));
+    assert!(reason["error"].is_string(), "{body}");
     gateway.stop();
 }
 
