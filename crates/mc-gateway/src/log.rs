@@ -224,9 +224,7 @@ pub fn init(cfg: &LogConfig) -> Result<LogGuard, LogError> {
         Some(file) => tracing::info!(
             file = %file.display(),
             pid = std::process::id(),
-            "JSON log: {} (this gateway's lines have \"pid\":{})",
-            file.display(),
-            std::process::id()
+            "JSON log file"
         ),
         None => tracing::info!("no JSON log file (--log-dir -)"),
     }
