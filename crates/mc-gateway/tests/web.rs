@@ -283,16 +283,34 @@ async fn viewport(c: &Client, width: u32, height: u32) {
         (v[0].as_u64().unwrap() as u32, v[1].as_u64().unwrap() as u32)
     };
     // The window's frame, if any, is what the window has beyond the viewport: measured, then added.
+    // A resize shows in the page a moment later, so each size is read until it holds still.
+    let settled = || async {
+        let mut last = inner().await;
+        for _ in 0..40 {
+            tokio::time::sleep(Duration::from_millis(50)).await;
+            let now = inner().await;
+            if now == last {
+                return now;
+            }
+            last = now;
+        }
+        last
+    };
     let (mut w, mut h) = (width, height);
-    for _ in 0..3 {
+    let mut seen = Vec::new();
+    for _ in 0..4 {
         c.set_window_size(w, h).await.unwrap();
-        let (iw, ih) = inner().await;
+        let (iw, ih) = settled().await;
+        seen.push(format!("window {w}x{h}: viewport {iw}x{ih}"));
         if (iw, ih) == (width, height) {
             return;
         }
-        (w, h) = (w + width - iw, h + height - ih);
+        (w, h) = (
+            (w + width).saturating_sub(iw),
+            (h + height).saturating_sub(ih),
+        );
     }
-    panic!("the viewport cannot be set to {width}x{height}");
+    panic!("the viewport cannot be set to {width}x{height}: {seen:?}");
 }
 
 /// The map's element `id`: a CSS selector.
