@@ -2,13 +2,29 @@
 //! both written by background threads (`tracing-appender` non-blocking writers, lossy when full:
 //! [`BUFFERED_LINES`] lines each), so logging never blocks the data path. Keep the returned
 //! [`LogGuard`] until shutdown: dropping it flushes what is still buffered.
+//!
+//! Every gateway of a machine started with the same log directory writes to the same file (one file
+//! per rotation period, pruned by the appender): each JSON line carries the writing process's
+//! `pid`, so `jq 'select(.pid == 1234)'` separates them. A file per process instead would escape the
+//! appender's pruning and grow the directory with every run.
 
+use std::path::PathBuf;
 use tracing_appender::{
     non_blocking::{NonBlocking, NonBlockingBuilder, WorkerGuard},
     rolling,
 };
+
 use tracing_subscriber::{
-    filter::Targets, fmt, layer::SubscriberExt, util::SubscriberInitExt, Layer,
+    filter::{LevelFilter, Targets},
+    fmt::{
+        self,
+        format::{Format, Json, JsonFields, Writer},
+        FmtContext, FormatEvent, FormatFields,
+    },
+    layer::SubscriberExt,
+    registry::LookupSpan,
+    util::SubscriberInitExt,
+    Layer,
 };
 
 use crate::config::{LogConfig, Rotation};
@@ -28,6 +44,67 @@ fn non_blocking<W: std::io::Write + Send + 'static>(w: W) -> (NonBlocking, Worke
 
 /// Name of the log files: `mc-gateway.<date>.jsonl` in the log directory.
 pub const FILE_PREFIX: &str = "mc-gateway";
+
+/// The target of the line that reports why the gateway stopped on an error ([`fatal`]): written to
+/// the JSON file whatever the filter says, never to stderr (where `main` prints the error itself).
+pub const FATAL_TARGET: &str = "mc_gateway::fatal";
+
+/// Logs `error`, the reason the gateway stops, to the JSON file (see [`FATAL_TARGET`]).
+pub fn fatal(error: &str) {
+    tracing::error!(target: FATAL_TARGET, error, "the gateway stopped on an error");
+}
+
+/// The file the JSON lines go to now: `DIR/mc-gateway.<period>.jsonl`, the period in UTC as the
+/// appender names it (`YYYY-MM-DD` daily, `-HH` hourly, `-HH-mm` minutely, none when never
+/// rotated); `None` without a file.
+pub fn current_file(cfg: &LogConfig, now: time::OffsetDateTime) -> Option<PathBuf> {
+    let dir = cfg.dir.as_deref()?;
+    Some(dir.join(file_name(cfg.rotation, now)))
+}
+
+fn file_name(rotation: Rotation, now: time::OffsetDateTime) -> String {
+    let now = now.to_offset(time::UtcOffset::UTC);
+    let day = format!(
+        "{:04}-{:02}-{:02}",
+        now.year(),
+        u8::from(now.month()),
+        now.day()
+    );
+    let period = match rotation {
+        Rotation::Never => return format!("{FILE_PREFIX}.jsonl"),
+        Rotation::Daily => day,
+        Rotation::Hourly => format!("{day}-{:02}", now.hour()),
+        Rotation::Minutely => format!("{day}-{:02}-{:02}", now.hour(), now.minute()),
+    };
+    format!("{FILE_PREFIX}.{period}.jsonl")
+}
+
+/// The JSON format with the process ID as every line's first field.
+struct WithPid {
+    json: Format<Json>,
+    pid: u32,
+}
+
+impl<S, N> FormatEvent<S, N> for WithPid
+where
+    S: tracing::Subscriber + for<'a> LookupSpan<'a>,
+    N: for<'a> FormatFields<'a> + 'static,
+{
+    fn format_event(
+        &self,
+        ctx: &FmtContext<'_, S, N>,
+        mut writer: Writer<'_>,
+        event: &tracing::Event<'_>,
+    ) -> std::fmt::Result {
+        let mut line = String::new();
+        self.json.format_event(ctx, Writer::new(&mut line), event)?;
+        // The JSON formatter writes one object per line; the pid goes in as its first member.
+        match line.strip_prefix('{') {
+            Some(rest) => write!(writer, "{{\"pid\":{},{rest}", self.pid),
+            None => writer.write_str(&line),
+        }
+    }
+}
 
 /// Flushes the log writers when dropped.
 #[must_use = "dropping the guard stops the log writers"]
@@ -99,7 +176,7 @@ pub fn init(cfg: &LogConfig) -> Result<LogGuard, LogError> {
     let term_layer = fmt::layer()
         .with_ansi(ansi)
         .with_writer(term)
-        .with_filter(filter(cfg)?);
+        .with_filter(filter(cfg)?.with_target(FATAL_TARGET, LevelFilter::OFF));
     let file_layer = match &cfg.dir {
         Some(dir) => {
             let rotation = match cfg.rotation {
@@ -121,13 +198,19 @@ pub fn init(cfg: &LogConfig) -> Result<LogGuard, LogError> {
                 .map_err(|e| LogError::File(dir.display().to_string(), e.to_string()))?;
             let (file, g) = non_blocking(appender);
             guards.push(g);
+            let json = fmt::format()
+                .json()
+                .with_current_span(true)
+                .with_span_list(false);
             Some(
                 fmt::layer()
-                    .json()
-                    .with_current_span(true)
-                    .with_span_list(false)
+                    .fmt_fields(JsonFields::new())
+                    .event_format(WithPid {
+                        json,
+                        pid: std::process::id(),
+                    })
                     .with_writer(file)
-                    .with_filter(filter(cfg)?),
+                    .with_filter(filter(cfg)?.with_target(FATAL_TARGET, LevelFilter::ERROR)),
             )
         }
         None => None,
@@ -137,12 +220,46 @@ pub fn init(cfg: &LogConfig) -> Result<LogGuard, LogError> {
         .with(file_layer)
         .try_init()
         .map_err(|e| LogError::Init(e.to_string()))?;
+    match current_file(cfg, time::OffsetDateTime::now_utc()) {
+        Some(file) => tracing::info!(
+            file = %file.display(),
+            pid = std::process::id(),
+            "JSON log file"
+        ),
+        None => tracing::info!("no JSON log file (--log-dir -)"),
+    }
     Ok(LogGuard { _guards: guards })
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_current_file_is_named_as_the_appender_names_it() {
+        // 2026-11-25 21:07:09 UTC, given in another offset.
+        let now = time::OffsetDateTime::from_unix_timestamp(1_795_640_829)
+            .unwrap()
+            .to_offset(time::UtcOffset::from_hms(2, 0, 0).unwrap());
+        let mut cfg = LogConfig {
+            dir: Some("/var/log/ihex".into()),
+            rotation: Rotation::Daily,
+            filter: "info".into(),
+        };
+        let name = |cfg: &LogConfig| current_file(cfg, now).unwrap().display().to_string();
+        assert_eq!(name(&cfg), "/var/log/ihex/mc-gateway.2026-11-25.jsonl");
+        cfg.rotation = Rotation::Hourly;
+        assert_eq!(name(&cfg), "/var/log/ihex/mc-gateway.2026-11-25-21.jsonl");
+        cfg.rotation = Rotation::Minutely;
+        assert_eq!(
+            name(&cfg),
+            "/var/log/ihex/mc-gateway.2026-11-25-21-07.jsonl"
+        );
+        cfg.rotation = Rotation::Never;
+        assert_eq!(name(&cfg), "/var/log/ihex/mc-gateway.jsonl");
+        cfg.dir = None;
+        assert_eq!(current_file(&cfg, now), None);
+    }
 
     #[test]
     fn colour_only_on_a_terminal_without_no_color() {

@@ -1,5 +1,6 @@
 //! `mc-gateway`: parse the configuration, set up logging and signals, run until SIGINT/SIGTERM.
-//! A failure is one line on stderr and exit status 1.
+//! A failure is one line on stderr and exit status 1; once logging runs, it is also the JSON log's
+//! last line.
 
 use std::process::ExitCode;
 
@@ -23,11 +24,20 @@ async fn main() -> ExitCode {
 async fn run() -> anyhow::Result<()> {
     let config = mc_gateway::Config::from_env_and_args()?;
     // Held to the end: dropping it flushes the log file.
-    let _log = mc_gateway::log::init(&config.log)?;
-    let shutdown = CancellationToken::new();
-    mc_gateway::shutdown::on_signals(shutdown.clone()).context("cannot install signal handlers")?;
-    mc_gateway::run(config, shutdown).await?;
-    Ok(())
+    let log = mc_gateway::log::init(&config.log)?;
+    let result = async {
+        let shutdown = CancellationToken::new();
+        mc_gateway::shutdown::on_signals(shutdown.clone())
+            .context("cannot install signal handlers")?;
+        mc_gateway::run(config, shutdown).await?;
+        anyhow::Ok(())
+    }
+    .await;
+    if let Err(e) = &result {
+        mc_gateway::log::fatal(&report(e));
+    }
+    drop(log);
+    result
 }
 
 /// An error and its causes on one line, each cause only when the text so far does not say it

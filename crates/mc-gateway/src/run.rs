@@ -86,7 +86,11 @@ impl Gateway {
                 "bitrate differs from the island's; the interface's own configuration decides"
             );
         }
-        // Bound first: a taken address fails before the demo starts its broker.
+        // In the order that puts a fatal error before anything else is said or started: the island
+        // file and the embedded broker's port (the errors a demo most often meets), then the view's
+        // address (its default being taken is only a warning), then the island's boot.
+        #[cfg(feature = "demo")]
+        let mut demo = crate::demo::Demo::prepare(&config).await?;
         #[cfg(feature = "web")]
         let web = crate::web::Web::bind(&config).await?;
         #[cfg(not(feature = "web"))]
@@ -94,7 +98,7 @@ impl Gateway {
             return Err(GatewayError::WebUnavailable);
         }
         #[cfg(feature = "demo")]
-        let (demo, island_link) = crate::demo::Demo::build(&config).await?;
+        let island_link = demo.start_island(&config).await?;
         #[cfg(all(feature = "demo", feature = "web"))]
         let web = web.map(|w| w.with_island_layout(demo.layout()));
         #[cfg(not(feature = "demo"))]

@@ -154,17 +154,42 @@ fn sigterm_stops_the_demo_cleanly_and_flushes_the_log() {
     let log_dir = dir.path().to_str().unwrap();
     let demo = DemoRun::start(&["--log-dir", log_dir], None, &[]);
     let port = demo.port;
+    let demo_banner = demo.banner.clone();
     assert!(
         demo.banner
             .contains(&format!("mosquitto_pub -h 127.0.0.1 -p {}", demo.port)),
         "{}",
         demo.banner
     );
+    let pid = demo.child.id();
     // Let the MQTT task connect before asking it to say goodbye.
     std::thread::sleep(Duration::from_millis(500));
     let status = demo.stop();
     assert!(status.success(), "exit status {status}");
     let (text, records) = log_records(dir.path());
+    // Where the log is, said in the banner and in the log itself; whose lines they are, in each.
+    let file = std::fs::read_dir(dir.path())
+        .unwrap()
+        .next()
+        .unwrap()
+        .unwrap()
+        .path();
+    assert!(
+        demo_banner.contains(&format!(
+            "The JSON log: {} (this gateway's lines have \"pid\":{pid}).",
+            file.display()
+        )),
+        "{demo_banner}"
+    );
+    assert_eq!(
+        records[0]["fields"]["file"],
+        file.display().to_string(),
+        "the first line names the file: {text}"
+    );
+    assert!(
+        records.iter().all(|r| r["pid"] == pid),
+        "a line without pid {pid}: {text}"
+    );
     let said = |m: &str| records.iter().any(|r| r["fields"]["message"] == m);
     // Start-up lines say what a person reads, not Rust's Debug of the configuration.
     let running = records
@@ -182,6 +207,44 @@ fn sigterm_stops_the_demo_cleanly_and_flushes_the_log() {
     }
     assert!(said("published offline and disconnected"), "{text}");
     assert!(said("gateway stopped"), "the last line was flushed: {text}");
+}
+
+/// A fatal start-up error (the embedded broker's port is taken) is the first thing the gateway says
+/// and the JSON log's last line: the island does not boot and nothing else is started before it.
+#[test]
+fn a_fatal_start_up_error_comes_first_and_is_logged() {
+    let taken = TcpListener::bind("127.0.0.1:0").unwrap();
+    let addr = taken.local_addr().unwrap().to_string();
+    let dir = tempfile::tempdir().unwrap();
+    let mut cmd = Command::new(BIN);
+    cmd.args(["--broker-listen", &addr, "--http", "off", "--log-dir"])
+        .arg(dir.path());
+    for (k, _) in std::env::vars_os() {
+        if k.to_string_lossy().starts_with("IHEX_") {
+            cmd.env_remove(k);
+        }
+    }
+    let out = cmd.output().unwrap();
+    assert_eq!(out.status.code(), Some(1));
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    let why = format!("cannot listen on {addr} for the embedded broker");
+    // Said once on stderr, as the one line main prints (not a second time by the log).
+    assert_eq!(stderr.matches(&why).count(), 1, "{stderr}");
+    assert!(
+        stderr.lines().last().unwrap().starts_with("mc-gateway: "),
+        "{stderr}"
+    );
+    let (text, records) = log_records(dir.path());
+    let last = records.last().unwrap();
+    assert_eq!(last["level"], "ERROR", "{text}");
+    assert_eq!(last["fields"]["message"], "the gateway stopped on an error");
+    assert!(
+        last["fields"]["error"].as_str().unwrap().contains(&why),
+        "{text}"
+    );
+    // Nothing but the log's own first line before it: no island boot, no warning.
+    assert_eq!(records.len(), 2, "{text}");
+    assert!(!text.contains("simulated island started"), "{text}");
 }
 
 fn git(dir: &Path, args: &[&str]) -> String {

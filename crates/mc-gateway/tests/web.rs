@@ -272,6 +272,47 @@ async fn click(c: &Client, css: &str) {
     panic!("{css} kept being redrawn under the click");
 }
 
+/// Resizes the browser so the page's viewport is `width`×`height` CSS pixels (the window around it
+/// may be larger).
+async fn viewport(c: &Client, width: u32, height: u32) {
+    let inner = || async {
+        let v = c
+            .execute("return [window.innerWidth, window.innerHeight]", vec![])
+            .await
+            .unwrap();
+        (v[0].as_u64().unwrap() as u32, v[1].as_u64().unwrap() as u32)
+    };
+    // The window's frame, if any, is what the window has beyond the viewport: measured, then added.
+    // A resize shows in the page a moment later, so each size is read until it holds still.
+    let settled = || async {
+        let mut last = inner().await;
+        for _ in 0..40 {
+            tokio::time::sleep(Duration::from_millis(50)).await;
+            let now = inner().await;
+            if now == last {
+                return now;
+            }
+            last = now;
+        }
+        last
+    };
+    let (mut w, mut h) = (width, height);
+    let mut seen = Vec::new();
+    for _ in 0..4 {
+        c.set_window_size(w, h).await.unwrap();
+        let (iw, ih) = settled().await;
+        seen.push(format!("window {w}x{h}: viewport {iw}x{ih}"));
+        if (iw, ih) == (width, height) {
+            return;
+        }
+        (w, h) = (
+            (w + width).saturating_sub(iw),
+            (h + height).saturating_sub(ih),
+        );
+    }
+    panic!("the viewport cannot be set to {width}x{height}: {seen:?}");
+}
+
 /// The map's element `id`: a CSS selector.
 fn on_map(id: &str) -> String {
     format!("#map g.element[data-node='{id}']")
@@ -372,7 +413,121 @@ async fn the_island_view_follows_the_bench() {
         "document.getElementById('stale').hidden",
     )
     .await;
+    until(
+        &c,
+        one_second,
+        "the port's tooltip naming the element on it",
+        &format!(
+            "document.querySelector(\"{} circle.port[data-port='3'] title\").textContent === 'port 3: element 2 docked (by its port 0)'",
+            on_map("111")
+        ),
+    )
+    .await;
     shoot(&c, "island.png").await;
+    let view_box = "document.getElementById('map').getAttribute('viewBox')";
+    let first_box = c
+        .execute(&format!("return {view_box}"), vec![])
+        .await
+        .unwrap();
+
+    let first_viewport = c
+        .execute("return [window.innerWidth, window.innerHeight]", vec![])
+        .await
+        .unwrap();
+    let first_viewport = (
+        first_viewport[0].as_u64().unwrap() as u32,
+        first_viewport[1].as_u64().unwrap() as u32,
+    );
+    // On a phone (390×844) the page fits the screen's width and the island is drawn in it; on a
+    // desktop (1400×900) the events are above the fold.
+    viewport(&c, 390, 844).await;
+    until(
+        &c,
+        one_second,
+        "no horizontal scroll on a phone",
+        "document.documentElement.scrollWidth <= window.innerWidth",
+    )
+    .await;
+    until(
+        &c,
+        one_second,
+        "the island on a phone",
+        &format!(
+            "(r => r.width > 40 && r.left >= 0 && r.right <= window.innerWidth && r.bottom < window.innerHeight)\
+             (document.querySelector(\"{}\").getBoundingClientRect())",
+            on_map("111")
+        ),
+    )
+    .await;
+    shoot(&c, "phone.png").await;
+    viewport(&c, 1400, 900).await;
+    until(
+        &c,
+        one_second,
+        "the events above the fold",
+        "(r => r.bottom <= window.innerHeight)(document.querySelector('#timeline li').getBoundingClientRect())",
+    )
+    .await;
+    shoot(&c, "desktop.png").await;
+    viewport(&c, first_viewport.0, first_viewport.1).await;
+
+    // The signs inside a static hexagon (relay, buzzer, a reboot) overlap neither its ports, their
+    // numbers, its ID nor each other: 111 with its relay on and its buzzer sounding, 112 just
+    // restarted and sounding.
+    bus.publish(
+        "ihex/sim",
+        QoS::AtLeastOnce,
+        false,
+        r#"{"sim":"power_cycle","node":"112"}"#,
+    )
+    .await
+    .unwrap();
+    until(
+        &c,
+        Duration::from_secs(3),
+        "112 rebooted",
+        &format!("{} === 'rebooted'", attr("112", "status")),
+    )
+    .await;
+    for node in ["111", "112"] {
+        bus.publish(
+            "CommandsTopic",
+            QoS::AtLeastOnce,
+            false,
+            format!(r#"{{"cmd":"buzzer","node":"{node}","mode":"on","freq_hz":2000}}"#),
+        )
+        .await
+        .unwrap();
+    }
+    until(
+        &c,
+        Duration::from_secs(2),
+        "the signs of 111 and 112 apart from the ports",
+        "(() => {
+            const hit = (a, b) => a.x < b.x + b.width && b.x < a.x + a.width && a.y < b.y + b.height && b.y < a.y + a.height;
+            const boxes = (g, css) => [...g.querySelectorAll(css)].map((e) => e.getBBox());
+            let tags = 0;
+            for (const g of document.querySelectorAll(\"#map g.element[data-role='static']\")) {
+                const t = boxes(g, 'text.tag'), other = boxes(g, 'circle.port, text.port-no, text.id');
+                tags += t.length;
+                if (t.some((a) => other.some((b) => hit(a, b)))) return 'a sign on a port or the ID of ' + g.dataset.node;
+                if (t.some((a, i) => t.some((b, j) => i < j && hit(a, b)))) return 'signs on each other in ' + g.dataset.node;
+            }
+            return tags === 4 || tags + ' signs';
+        })()",
+    )
+    .await;
+    shoot(&c, "signs.png").await;
+    for node in ["111", "112"] {
+        bus.publish(
+            "CommandsTopic",
+            QoS::AtLeastOnce,
+            false,
+            format!(r#"{{"cmd":"buzzer","node":"{node}","mode":"off"}}"#),
+        )
+        .await
+        .unwrap();
+    }
 
     // Docking in the simulator redraws 3 against 112's port 2; undocking puts it back in the tray.
     bus.publish(
@@ -413,6 +568,12 @@ async fn the_island_view_follows_the_bench() {
         &format!("{} === 'true'", attr("3", "free")),
     )
     .await;
+    // The tray's row was there before anything was in it: the map kept its scale.
+    let box_now = c
+        .execute(&format!("return {view_box}"), vec![])
+        .await
+        .unwrap();
+    assert_eq!(box_now, first_box, "the map rescaled when the tray filled");
     // Without power it stops answering: lost after three missed health checks of 250 ms.
     until(
         &c,
@@ -434,6 +595,9 @@ async fn the_island_view_follows_the_bench() {
     until(&c, one_second, "111 green", &format!(
         "{} === '#00ff00' && document.querySelector(\"{} polygon.body\").getAttribute('fill') === '#00ff00'",
         attr("111", "led"), on_map("111"))).await;
+    // Its result is 111's last command, though it did not come from the page.
+    until(&c, one_second, "the MQTT command's result in the list",
+        "document.querySelector(\"#elements tr[data-node='111'] td.result\").textContent === 'led: ok'").await;
     shoot(&c, "led.png").await;
 
     // A command given on the page reaches the simulated node and its result shows beside it.
@@ -494,6 +658,30 @@ async fn the_island_view_follows_the_bench() {
         &format!("{} === 'off'", attr("111", "relay")),
     )
     .await;
+    until(
+        &c,
+        one_second,
+        "111's closed signal loop named by its port",
+        "[...document.querySelectorAll('#details-facts dt')].some(dt => dt.textContent === 'Closed signal loops' && dt.nextElementSibling.textContent === 'port 3')",
+    )
+    .await;
+    // 2 lost its power but is still in 111's port 3 (the loop stays closed): drawn there, unpowered,
+    // not in the tray of elements that are not docked.
+    until(
+        &c,
+        Duration::from_secs(3),
+        "2 lost, docked without power",
+        &format!(
+            "{} === 'lost' && {} === '111' && {} === '3' && {} === 'off' && {} === undefined",
+            attr("2", "status"),
+            attr("2", "dockedTo"),
+            attr("2", "dockPort"),
+            attr("2", "power"),
+            attr("2", "free")
+        ),
+    )
+    .await;
+    shoot(&c, "unpowered.png").await;
     shoot(&c, "command.png").await;
 
     // A command the gateway refuses (a tone below 20 Hz): the page shows the reason beside 111.
@@ -790,8 +978,15 @@ async fn the_snapshot_and_the_event_stream() {
     .await;
     assert!(text.contains("event: event\nid: "), "{text}");
     // A body that is not declared JSON never reaches the core.
-    let (status, _, _) = http(port, "POST", "/api/command", &[], "{}").await;
+    let (status, _, body) = http(port, "POST", "/api/command", &[], "{}").await;
     assert_eq!(status, 415);
+    assert!(serde_json::from_str::<Value>(&body).unwrap()["error"].is_string());
+    // Nor does one over the body limit (1 MiB here): refused with a JSON reason like every error.
+    let big = format!(r#"{{"cmd":"list","request_id":"{}"}}"#, "x".repeat(2 << 20));
+    let (status, _, body) = http(port, "POST", "/api/command", &[JSON], &big).await;
+    assert_eq!(status, 413, "{body}");
+    let reason: Value = serde_json::from_str(&body).unwrap_or_else(|e| panic!("{e}: {body}"));
+    assert!(reason["error"].is_string(), "{body}");
     gateway.stop();
 }
 

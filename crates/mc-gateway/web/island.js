@@ -80,9 +80,50 @@
     return b.mode;
   }
   function relayText(n) { return n.relay === null || n.relay === undefined ? unknown : (n.relay ? 'on' : 'off'); }
+  // Its dockings as the gateway records them, and those of elements in its ports without power.
   function dockText(n) {
-    if (!n.connections || n.connections.length === 0) return n.role === 'mobile' ? 'free' : '–';
-    return n.connections.map((c) => 'port ' + c.port + ' ↔ ' + c.peer + ' port ' + c.peer_port).join(', ');
+    const link = (port, peer, peerPort) => 'port ' + port + ' ↔ ' + peer + ' port ' + peerPort;
+    const texts = (n.connections || []).map((c) => link(c.port, c.peer, c.peer_port));
+    const unpowered = unpoweredDocks();
+    const u = unpowered.byMobile.get(n.id);
+    if (u) texts.push(link(u.ownPort, u.static, u.port) + ', no power');
+    for (const c of unpowered.byPort.values()) {
+      if (c.static === n.id) texts.push(link(c.port, c.peer, c.peer_port) + ', no power');
+    }
+    if (texts.length) return texts.join(', ');
+    return n.role === 'mobile' ? 'free' : '–';
+  }
+  function loopsText(n) {
+    const loops = n.loops || [];
+    if (!loops.length) return 'none';
+    return (loops.length === 1 ? 'port ' : 'ports ') + loops.join(', ');
+  }
+
+  // Where a mobile element was last docked, from the newest docking event naming it.
+  function lastDock(id) {
+    const e = S.events.find((x) => (x.ev.event === 'new_connection' || x.ev.event === 'connection_removed')
+      && x.ev.payload && x.ev.payload.n && x.ev.payload.n.id === id);
+    if (!e) return null;
+    const p = e.ev.payload;
+    return { static: p['n-1'].id, port: p['n-1'].port, ownPort: p.n.port };
+  }
+  // Mobile elements that lost their power while still in a port: the gateway ends their connection
+  // when they go silent, but the static element's signal loop on that port is still closed and no
+  // other element is recorded there, so they are physically docked, only unpowered.
+  function unpoweredDocks() {
+    const byMobile = new Map(), byPort = new Map();
+    for (const m of S.nodes.values()) {
+      if (m.role !== 'mobile' || m.online || (m.connections && m.connections.length)) continue;
+      const d = lastDock(m.id);
+      const s = d && S.nodes.get(d.static);
+      if (!s || s.role !== 'static' || !(s.loops || []).includes(d.port)) continue;
+      if ((s.connections || []).some((c) => c.port === d.port)) continue;
+      const key = d.static + ':' + d.port;
+      if (byPort.has(key)) continue;
+      byMobile.set(m.id, d);
+      byPort.set(key, { static: d.static, port: d.port, peer: m.id, peer_port: d.ownPort, unpowered: true });
+    }
+    return { byMobile, byPort };
   }
 
   // ---- geometry ----
@@ -156,15 +197,18 @@
         { fillOpacity: 0.12, offset: d }, { fillOpacity: 0.12, offset: 1 }],
       { duration: led.period, iterations: Infinity });
     }
-    g.append(svg('text', { class: 'id', x: cx, y: cy - (role === 'static' ? 6 : 0),
+    g.append(svg('text', { class: 'id', x: cx, y: cy - (role === 'static' ? 8 : 0),
       'font-size': role === 'static' ? 18 : 13 }, id));
     g.append(svg('title', {}, 'element ' + id + ' (' + role + '): ' + status + ', LED ' + (led.color || led.mode)));
     if (role === 'static' && n) {
-      const tags = [];
-      if (n.relay) tags.push('⚡');
-      if (n.buzzer && n.buzzer.mode !== 'off') tags.push('♪');
-      if (status !== 'online') tags.push(status === 'rebooted' ? 'reboot' : status);
-      if (tags.length) g.append(svg('text', { class: 'tag', x: cx, y: cy + 14 }, tags.join(' ')));
+      // Inside the ring of ports: the status under the ID, the relay and buzzer signs in the left and
+      // right corners, where no port and no port number is.
+      const inset = R - 12;
+      if (status !== 'online') {
+        g.append(svg('text', { class: 'tag status', x: cx, y: cy + 9 }, status === 'rebooted' ? 'reboot' : status));
+      }
+      if (n.relay) g.append(svg('text', { class: 'tag relay', x: cx + inset, y: cy }, '⚡'));
+      if (n.buzzer && n.buzzer.mode !== 'off') g.append(svg('text', { class: 'tag buzzer', x: cx - inset, y: cy }, '♪'));
     } else if (n && n.buzzer && n.buzzer.mode !== 'off') {
       g.append(svg('text', { class: 'tag', x: cx, y: cy + 12 }, '♪'));
     }
@@ -180,6 +224,7 @@
     const statics = nodes.filter((n) => n.role === 'static');
     const pos = placeStatics(statics);
     const docked = new Set();
+    const unpowered = unpoweredDocks();
     const layer = { lines: svg('g'), statics: svg('g'), mobiles: svg('g') };
     let minX = Infinity, minY = Infinity, maxX = -Infinity, maxY = -Infinity;
     const grow = (x, y, rad) => {
@@ -193,44 +238,55 @@
       g.setAttribute('data-hex', pos.get(n.id).join(','));
       const ports = n.ports === null || n.ports === undefined ? 6 : n.ports;
       const loops = new Set(n.loops || []);
+      const onPort = new Map((n.connections || []).map((c) => [c.port, c]));
+      for (let p = 0; p < ports; p++) {
+        const u = unpowered.byPort.get(n.id + ':' + p);
+        if (u) onPort.set(p, u);
+      }
       for (let p = 0; p < ports; p++) {
         const a = portAngle(p);
         const d = R * APO - 9;
         const x = cx + d * Math.cos(a), y = cy + d * Math.sin(a);
         const closed = loops.has(p);
+        const c = onPort.get(p);
+        let what = ': free';
+        if (c) what = ': element ' + c.peer + ' docked (by its port ' + c.peer_port + ')' + (c.unpowered ? ', without power' : '');
+        else if (closed) what = ': signal loop closed, no element known on it yet';
         g.append(svg('circle', { class: 'port' + (closed ? ' closed' : ''), 'data-port': p, cx: x, cy: y, r: 7 },
-          svg('title', {}, 'port ' + p + (closed ? ': something docked' : ': free'))));
+          svg('title', {}, 'port ' + p + what)));
         g.append(svg('text', { class: 'port-no' + (closed ? ' closed' : ''), x, y }, p));
       }
       layer.statics.append(g);
-      for (const c of n.connections || []) {
+      for (const c of onPort.values()) {
         const a = portAngle(c.port);
         const dist = R * APO + M * APO + 6;
         const mx = cx + dist * Math.cos(a), my = cy + dist * Math.sin(a);
-        layer.lines.append(svg('line', { class: 'dock-line', x1: cx + R * APO * Math.cos(a), y1: cy + R * APO * Math.sin(a),
+        layer.lines.append(svg('line', { class: 'dock-line' + (c.unpowered ? ' unpowered' : ''), x1: cx + R * APO * Math.cos(a), y1: cy + R * APO * Math.sin(a),
           x2: mx - M * APO * Math.cos(a), y2: my - M * APO * Math.sin(a) }));
         const mg = elementGroup(c.peer, S.nodes.get(c.peer), mx, my, M, 'mobile');
         mg.setAttribute('data-docked-to', n.id);
         mg.setAttribute('data-dock-port', c.port);
         mg.setAttribute('data-own-port', c.peer_port);
+        mg.setAttribute('data-power', c.unpowered ? 'off' : 'on');
+        if (c.unpowered) mg.classList.add('unpowered');
         layer.mobiles.append(mg);
         docked.add(c.peer);
       }
     }
     if (minX === Infinity) { minX = -R; maxX = R; minY = -R; maxY = R; }
     // Elements on no static element's side: free mobiles, and nodes whose role is not known yet.
+    // The tray's row is always there, so the map keeps its scale when an element comes or goes.
     const loose = nodes.filter((n) => n.role !== 'static' && !docked.has(n.id));
-    if (loose.length) {
-      const y = maxY + M + 26;
-      map.append(svg('text', { class: 'tray-title', x: minX, y: maxY + 14 }, 'not docked'));
-      loose.forEach((n, i) => {
-        const x = minX + M + 4 + i * (2 * M + 14);
-        const g = elementGroup(n.id, n, x, y, M, n.role || 'unknown');
-        g.setAttribute('data-free', 'true');
-        layer.mobiles.append(g);
-        grow(x, y, M + 4);
-      });
-    }
+    const trayTop = maxY, trayY = maxY + M + 26;
+    map.append(svg('text', { class: 'tray-title', x: minX, y: trayTop + 14 }, loose.length ? 'not docked' : 'not docked: none'));
+    grow(minX + M + 4, trayY, M + 4);
+    loose.forEach((n, i) => {
+      const x = minX + M + 4 + i * (2 * M + 14);
+      const g = elementGroup(n.id, n, x, trayY, M, n.role || 'unknown');
+      g.setAttribute('data-free', 'true');
+      layer.mobiles.append(g);
+      grow(x, trayY, M + 4);
+    });
     map.append(layer.lines, layer.statics, layer.mobiles);
     const pad = 8;
     map.setAttribute('viewBox', [minX - pad, minY - pad, maxX - minX + 2 * pad, maxY - minY + 2 * pad].map((v) => v.toFixed(1)).join(' '));
@@ -299,7 +355,7 @@
     fact(dl, 'Buzzer', buzzerText(n));
     fact(dl, 'Relay', relayText(n));
     fact(dl, 'Docking', dockText(n));
-    fact(dl, 'Closed loops', (n.loops || []).length ? n.loops.join(', ') : 'none');
+    if (n.role !== 'mobile') fact(dl, 'Closed signal loops', loopsText(n));
     fact(dl, 'Firmware', firmwareOf(n));
     fact(dl, 'UID', n.uid || unknown);
     const r = lastReboot(id);
@@ -385,7 +441,8 @@
     const failed = e.ev.event === 'command_result' && e.ev.payload.result !== 'ok';
     return el('li', { 'data-event': e.ev.event, 'data-nodes': nodesOf(e.ev).join(' '),
       class: PROBLEMS.has(e.ev.event) || failed ? 'problem' : null },
-    el('time', { datetime: t.toISOString() }, when), el('span', { class: 'name' }, e.ev.event), summary(e.ev));
+    el('time', { datetime: t.toISOString() }, when), el('span', { class: 'name' }, e.ev.event),
+    el('span', { class: 'what' }, summary(e.ev)));
   }
   function renderTimeline() {
     const list = $('timeline');
@@ -409,19 +466,33 @@
     S.nodes.set(doc.id, doc);
   }
 
+  // The last command of each element, whoever gave it (this page, MQTT, Home Assistant, a tool):
+  // every command_result names its node; a command_rejected names none, so only this page's own
+  // rejections (found by their request_id) are shown beside an element.
+  function noteResult(ev) {
+    const p = ev.payload || {};
+    const mine = p.request_id && S.pending.has(p.request_id) ? S.pending.get(p.request_id) : null;
+    if (mine !== null) S.pending.delete(p.request_id);
+    if (ev.event === 'command_rejected') {
+      if (mine !== null) S.results.set(mine, { text: 'rejected: ' + p.reason, kind: 'failed' });
+      return;
+    }
+    if (ev.event !== 'command_result') return;
+    const said = (result, reason) => ({ text: p.cmd + ': ' + result + (reason ? ' (' + reason + ')' : ''),
+      kind: result === 'ok' ? 'ok' : 'failed' });
+    if (p.node && p.node !== 'all') {
+      S.results.set(p.node, said(p.result, p.reason));
+    } else {
+      for (const id of p.acked || []) S.results.set(id, said('ok'));
+      for (const id of p.refused || []) S.results.set(id, said('refused'));
+      for (const id of p.missing || []) S.results.set(id, said('timeout'));
+    }
+  }
+
   function applyEvent(ev, time) {
     S.events.unshift({ ev, time });
     if (S.events.length > TIMELINE_MAX) S.events.length = TIMELINE_MAX;
-    const p = ev.payload || {};
-    if ((ev.event === 'command_result' || ev.event === 'command_rejected') && p.request_id && S.pending.has(p.request_id)) {
-      const node = S.pending.get(p.request_id);
-      S.pending.delete(p.request_id);
-      const ok = ev.event === 'command_result' && p.result === 'ok';
-      const text = ev.event === 'command_result'
-        ? p.cmd + ': ' + p.result + (p.reason ? ' (' + p.reason + ')' : '')
-        : 'rejected: ' + p.reason;
-      S.results.set(node, { text, kind: ok ? 'ok' : 'failed' });
-    }
+    noteResult(ev);
   }
 
   function applySnapshot(snap) {
@@ -432,6 +503,7 @@
     S.nodes = new Map();
     for (const doc of snap.nodes) setNode(doc, now);
     S.events = snap.events.map((e) => ({ ev: e.event, time: e.time_ms }));
+    for (let i = S.events.length - 1; i >= 0; i--) noteResult(S.events[i].ev);
     S.health = { gateway: snap.gateway, bus: snap.bus };
     $('island-name').textContent = snap.island ? '“' + snap.island + '”' : '';
   }

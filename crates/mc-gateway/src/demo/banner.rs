@@ -37,11 +37,17 @@ fn dock_example(desc: &IslandDesc) -> Option<DockExample> {
         .filter(configured)
         .find(|m| m.dock.is_none())
     {
-        // The last static element with a free port: the first one usually has the docked example.
-        let (static_id, port) = desc.statics.iter().rev().find_map(|s| {
-            let port = free_ports(desc, s.id, s.ports).next()?;
-            Some((s.id, port))
-        })?;
+        // The last static element with a node ID and a free port: the first one usually has the
+        // docked example, and one without an ID is silent on the bus (its docking reaches no one).
+        let (static_id, port) = desc
+            .statics
+            .iter()
+            .rev()
+            .filter(|s| s.configured)
+            .find_map(|s| {
+                let port = free_ports(desc, s.id, s.ports).next()?;
+                Some((s.id, port))
+            })?;
         return Some(DockExample {
             mobile: m.id,
             static_id,
@@ -64,7 +70,7 @@ fn dock_example(desc: &IslandDesc) -> Option<DockExample> {
 }
 
 /// The banner for `desc` (loaded from `file`, or the built-in island), the broker at `host:port`,
-/// the island view at `view_url` when it runs.
+/// the island view at `view_url` when it runs, the JSON log in `log` when there is one.
 pub fn banner(
     topics: &Topics,
     host: &str,
@@ -72,6 +78,7 @@ pub fn banner(
     desc: &IslandDesc,
     file: Option<&Path>,
     view_url: Option<&str>,
+    log: Option<&Path>,
 ) -> String {
     let b = format!("-h {host} -p {port}");
     let (events, cmds, sim) = (&topics.events, &topics.commands, &topics.sim);
@@ -210,6 +217,22 @@ pub fn banner(
         t,
         "Mistakes on '{sim}' are answered on '{events}' (sim_rejected, sim_result)."
     );
+    match log {
+        Some(log) => {
+            let _ = writeln!(
+                t,
+                "The JSON log: {} (this gateway's lines have \"pid\":{}).",
+                log.display(),
+                std::process::id()
+            );
+        }
+        None => {
+            let _ = writeln!(
+                t,
+                "No JSON log file (--log-dir -): the log is on stderr only."
+            );
+        }
+    }
     let _ = write!(
         t,
         "Ctrl-C stops the gateway. Commands: docs/mqtt-api.md; options: mc-gateway --help, docs/gateway.md."
@@ -225,8 +248,9 @@ mod tests {
     fn the_banner_uses_the_configured_topics() {
         let topics = Topics::new(Some("lab"), "CommandsTopic", "EventsTopic", "a", "n");
         let desc = IslandDesc::parse(super::super::BUILTIN_ISLAND).unwrap();
-        let text = banner(&topics, "127.0.0.1", 1884, &desc, None, None);
+        let text = banner(&topics, "127.0.0.1", 1884, &desc, None, None, None);
         assert!(!text.contains("browser"), "{text}");
+        assert!(text.contains("No JSON log file"), "{text}");
         let text = banner(
             &topics,
             "127.0.0.1",
@@ -234,6 +258,14 @@ mod tests {
             &desc,
             None,
             Some("http://127.0.0.1:8080/"),
+            Some(Path::new("/var/log/ihex/mc-gateway.2026-11-25.jsonl")),
+        );
+        assert!(
+            text.contains(&format!(
+                "The JSON log: /var/log/ihex/mc-gateway.2026-11-25.jsonl (this gateway's lines have \"pid\":{}).",
+                std::process::id()
+            )),
+            "{text}"
         );
         assert!(
             text.contains("See the island live in a browser: http://127.0.0.1:8080/\n"),
@@ -268,7 +300,15 @@ mod tests {
         );
         let topics = Topics::seed();
         for (file, desc) in islands {
-            let text = banner(&topics, "127.0.0.1", 1883, &desc, file.as_deref(), None);
+            let text = banner(
+                &topics,
+                "127.0.0.1",
+                1883,
+                &desc,
+                file.as_deref(),
+                None,
+                None,
+            );
             let island = Island::start(&desc, Link::Mem(MemBus::new())).unwrap();
             let payload = |line: &str| {
                 line.split(" -m '")
@@ -288,6 +328,16 @@ mod tests {
                     ihex_gateway_core::event::Outcome::Ok,
                     "{file:?}: {line}: {r:?}"
                 );
+                // A docking only reaches the gateway (new_connection) through a static element that
+                // has a node ID: one without is silent on the bus.
+                let v: serde_json::Value = serde_json::from_str(&payload(line)).unwrap();
+                if let Some(s) = v["static"].as_str() {
+                    let s: NodeId = s.parse().unwrap();
+                    assert!(
+                        desc.statics.iter().any(|st| st.id == s && st.configured),
+                        "{file:?}: {line} docks onto a board without a node ID"
+                    );
+                }
                 sims += 1;
             }
             assert!(

@@ -94,41 +94,28 @@ impl FrameSender for MemLinkSender {
 /// A running simulated island and its control client (subscribed, not yet running).
 struct SimIsland {
     handle: IslandHandle,
-    desc: IslandDesc,
-    file: Option<PathBuf>,
     /// Taken when the gateway runs.
     control: Option<sim::Control>,
 }
 
-/// What the demo adds to a gateway: built (broker accepting, island running, control client
-/// subscribed) before the gateway runs.
+/// What the demo adds to a gateway, built in two steps before the gateway runs: [`Demo::prepare`]
+/// (the island file read, the broker accepting) and [`Demo::start_island`] (the island booted, its
+/// control client subscribed).
 pub struct Demo {
     broker: Option<std::net::SocketAddr>,
+    /// The island to simulate, and the file it came from.
+    desc: Option<(IslandDesc, Option<PathBuf>)>,
     island: Option<SimIsland>,
 }
 
 impl Demo {
-    /// Builds the parts `config` asks for; the CAN link is returned when the island is simulated.
-    /// The island file is checked before the broker starts, so a typo fails fast.
-    pub async fn build(config: &Config) -> Result<(Demo, Option<CanLink>), GatewayError> {
-        let island = match &config.can.link {
+    /// Reads the island file and starts the embedded broker, whichever of the two `config` asks
+    /// for: the start-up errors a person most often meets (a typo in the file, port 1883 taken)
+    /// come before anything else has started or said anything.
+    pub async fn prepare(config: &Config) -> Result<Demo, GatewayError> {
+        let desc = match &config.can.link {
             Link::Simulated { island_file } => {
-                let desc = load_island(island_file.as_deref())?;
-                let bus = MemBus::new();
-                // Created before the island starts, so no boot frame is missed.
-                let endpoint = bus.endpoint();
-                endpoint.set_filters(&filter::gateway_filters());
-                let handle = Island::start(&desc, SimLink::Mem(bus))
-                    .map_err(|e| GatewayError::Sim(e.to_string()))?;
-                info!(
-                    statics = desc.statics.len(),
-                    mobiles = desc.mobiles.len(),
-                    file = island_file
-                        .as_ref()
-                        .map_or("built-in".into(), |f| f.display().to_string()),
-                    "simulated island started"
-                );
-                Some((desc, handle, endpoint, island_file.clone()))
+                Some((load_island(island_file.as_deref())?, island_file.clone()))
             }
             Link::SocketCan(_) => None,
         };
@@ -143,30 +130,46 @@ impl Demo {
             }
             Broker::External { .. } => None,
         };
-        let (island, link) = match island {
-            Some((desc, handle, endpoint, file)) => {
-                let control = sim::Control::connect(config, handle.clone()).await?;
-                let island = SimIsland {
-                    handle,
-                    desc,
-                    file,
-                    control: Some(control),
-                };
-                (
-                    Some(island),
-                    Some(CanLink::frames("simulated island", MemLink(endpoint))),
-                )
-            }
-            None => (None, None),
+        Ok(Demo {
+            broker,
+            desc,
+            island: None,
+        })
+    }
+
+    /// Boots the simulated island, when there is one, and subscribes its control client; returns
+    /// the gateway's CAN link to it.
+    pub async fn start_island(&mut self, config: &Config) -> Result<Option<CanLink>, GatewayError> {
+        let Some((desc, island_file)) = &self.desc else {
+            return Ok(None);
         };
-        Ok((Demo { broker, island }, link))
+        let bus = MemBus::new();
+        // Created before the island starts, so no boot frame is missed.
+        let endpoint = bus.endpoint();
+        endpoint.set_filters(&filter::gateway_filters());
+        let handle =
+            Island::start(desc, SimLink::Mem(bus)).map_err(|e| GatewayError::Sim(e.to_string()))?;
+        info!(
+            statics = desc.statics.len(),
+            mobiles = desc.mobiles.len(),
+            file = island_file
+                .as_ref()
+                .map_or("built-in".into(), |f| f.display().to_string()),
+            "simulated island started"
+        );
+        let control = sim::Control::connect(config, handle.clone()).await?;
+        self.island = Some(SimIsland {
+            handle,
+            control: Some(control),
+        });
+        Ok(Some(CanLink::frames("simulated island", MemLink(endpoint))))
     }
 
     /// Positions of static elements the island file gives, for the island view.
     pub fn layout(&self) -> crate::config::web::Layout {
-        self.island
+        self.desc
             .as_ref()
-            .map(|island| island_layout(&island.desc))
+            .map(|(desc, _)| island_layout(desc))
             .unwrap_or_default()
     }
 
@@ -179,20 +182,22 @@ impl Demo {
         cancel: CancellationToken,
         view_url: Option<&str>,
     ) {
-        let Some(island) = &mut self.island else {
+        let (Some(island), Some((desc, file))) = (&mut self.island, &self.desc) else {
             return;
         };
         if let Some(control) = island.control.take() {
             tasks.spawn(control.run(cancel));
         }
         if let Some(listen) = self.broker {
+            let log = crate::log::current_file(&config.log, time::OffsetDateTime::now_utc());
             let text = banner::banner(
                 &config.topics,
                 &listen.ip().to_string(),
                 listen.port(),
-                &island.desc,
-                island.file.as_deref(),
+                desc,
+                file.as_deref(),
                 view_url,
+                log.as_deref(),
             );
             println!("{text}");
         }

@@ -16,7 +16,7 @@ use std::{
 
 use axum::{
     body::Bytes,
-    extract::{DefaultBodyLimit, State},
+    extract::{rejection::BytesRejection, DefaultBodyLimit, State},
     http::{header, HeaderMap, HeaderValue, StatusCode},
     response::{
         sse::{Event, KeepAlive, Sse},
@@ -145,10 +145,19 @@ async fn events(State(app): State<Arc<App>>) -> Sse<impl Stream<Item = Result<Ev
 }
 
 /// `POST /api/command`: the body goes, unchanged, to the core's command input.
-async fn command(State(app): State<Arc<App>>, headers: HeaderMap, body: Bytes) -> Response {
+async fn command(
+    State(app): State<Arc<App>>,
+    headers: HeaderMap,
+    body: Result<Bytes, BytesRejection>,
+) -> Response {
     if let Err(refused) = authorize(app.info.controls, app.token.as_deref(), &headers) {
         return refused.into_response();
     }
+    // axum's own answer (`413` over the body limit) is plain text; the API's errors are JSON.
+    let body = match body {
+        Ok(body) => body,
+        Err(rejection) => return error(rejection.status(), &rejection.body_text()),
+    };
     let json_body = headers
         .get(header::CONTENT_TYPE)
         .and_then(|v| v.to_str().ok())
