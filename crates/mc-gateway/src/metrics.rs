@@ -16,7 +16,7 @@ use std::{
 
 use ihex_gateway_core::{event::Event, fwupdate::NodeOutcome, Publication};
 use prometheus_client::{
-    encoding::{EncodeLabelSet, EncodeLabelValue},
+    encoding::{EncodeLabelSet, EncodeLabelValue, LabelValueEncoder},
     metrics::{
         counter::{ConstCounter, Counter},
         family::Family,
@@ -46,7 +46,7 @@ const PENDING_MAX: usize = 4096;
 const PENDING_FOR: Duration = Duration::from_secs(15 * 60);
 
 /// Where a command came from.
-#[derive(Clone, Copy, Debug, Hash, PartialEq, Eq, EncodeLabelValue)]
+#[derive(Clone, Copy, Debug, Hash, PartialEq, Eq)]
 pub enum Interface {
     /// The command topic.
     Mqtt,
@@ -59,7 +59,7 @@ pub enum Interface {
 }
 
 /// How a command ended: `command_result`'s `result`, or `rejected` for `command_rejected`.
-#[derive(Clone, Copy, Debug, Hash, PartialEq, Eq, EncodeLabelValue)]
+#[derive(Clone, Copy, Debug, Hash, PartialEq, Eq)]
 pub enum CommandResult {
     /// `ok`.
     Ok,
@@ -76,7 +76,7 @@ pub enum CommandResult {
 }
 
 /// How one node's firmware update ended (`fw_report`'s per-node `outcome`).
-#[derive(Clone, Copy, Debug, Hash, PartialEq, Eq, EncodeLabelValue)]
+#[derive(Clone, Copy, Debug, Hash, PartialEq, Eq)]
 pub enum FwOutcome {
     /// `updated`.
     Updated,
@@ -89,6 +89,43 @@ pub enum FwOutcome {
     /// `failed`.
     Failed,
 }
+
+/// The label value of each variant: its word as the MQTT API writes it.
+macro_rules! label_words {
+    ($ty:ty { $($variant:ident => $word:literal),+ $(,)? }) => {
+        impl $ty {
+            /// The label value.
+            pub fn as_str(self) -> &'static str {
+                match self {
+                    $(<$ty>::$variant => $word,)+
+                }
+            }
+        }
+
+        impl EncodeLabelValue for $ty {
+            fn encode(&self, encoder: &mut LabelValueEncoder) -> Result<(), std::fmt::Error> {
+                std::fmt::Write::write_str(encoder, self.as_str())
+            }
+        }
+    };
+}
+
+label_words!(Interface { Mqtt => "mqtt", Web => "web", Ha => "ha", Unknown => "unknown" });
+label_words!(CommandResult {
+    Ok => "ok",
+    Refused => "refused",
+    Timeout => "timeout",
+    Failed => "failed",
+    Expired => "expired",
+    Rejected => "rejected",
+});
+label_words!(FwOutcome {
+    Updated => "updated",
+    Refused => "refused",
+    Reverted => "reverted",
+    Unreachable => "unreachable",
+    Failed => "failed",
+});
 
 #[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
 struct CommandLabels {
@@ -161,13 +198,14 @@ impl Default for Counted {
         };
         for interface in INTERFACES {
             for result in RESULTS {
-                c.commands
+                let _ = c
+                    .commands
                     .get_or_create(&CommandLabels { interface, result });
             }
-            c.round_trip.get_or_create(&InterfaceLabels { interface });
+            let _ = c.round_trip.get_or_create(&InterfaceLabels { interface });
         }
         for outcome in FW_OUTCOMES {
-            c.fw_nodes.get_or_create(&FwLabels { outcome });
+            let _ = c.fw_nodes.get_or_create(&FwLabels { outcome });
         }
         c
     }
