@@ -540,3 +540,209 @@ impl Scrape<'_> {
         text
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use ihex_gateway_core::{
+        bridge::{BusHealth, CommandCounters},
+        event::{self, CommandRejected, Outcome},
+        fwupdate::{FwReport, NodeReport},
+    };
+
+    fn result(id: Option<&str>, result: Outcome) -> Publication {
+        Publication::Event(Event::CommandResult(event::CommandResult {
+            request_id: id.map(Into::into),
+            cmd: "led".into(),
+            node: event::Target::All,
+            result,
+            reason: None,
+            acked: None,
+            refused: None,
+            missing: None,
+        }))
+    }
+
+    fn rejected(id: Option<&str>) -> Publication {
+        Publication::Event(Event::CommandRejected(CommandRejected {
+            request_id: id.map(Into::into),
+            reason: "r".into(),
+        }))
+    }
+
+    fn scrape(counted: &Counted) -> String {
+        let view = CoreView {
+            seq: 0,
+            at: Instant::now(),
+            nodes: Some(vec![]),
+            bus: BusHealth {
+                frame_bits: 1000,
+                ..BusHealth::default()
+            },
+            commands: CommandCounters::default(),
+        };
+        Scrape {
+            view: &view,
+            mqtt: &MqttStats::default(),
+            counted,
+            bitrate: 500_000,
+            bus_load: 0.25,
+            started: view.at,
+        }
+        .encode()
+    }
+
+    /// The sample line of `series` (name and labels exactly as written).
+    fn sample<'a>(text: &'a str, series: &str) -> &'a str {
+        text.lines()
+            .find_map(|l| l.strip_prefix(series).and_then(|v| v.strip_prefix(' ')))
+            .unwrap_or_else(|| panic!("no {series} in\n{text}"))
+    }
+
+    #[test]
+    fn answers_are_paired_with_their_commands_interface_and_arrival() {
+        let counted = Counted::default();
+        let mut m = CommandMeter::new(counted.clone());
+        let t0 = Instant::now();
+        m.command(Interface::Web, br#"{"cmd":"led","request_id":"a"}"#, t0);
+        m.command(Interface::Mqtt, br#"{"cmd":"led","request_id":"a"}"#, t0);
+        m.command(Interface::Mqtt, br#"{"cmd":"led"}"#, t0);
+        m.noted(Interface::Ha, Some("homeassistant".into()), t0);
+        // Same request_id: first come, first answered.
+        m.published(
+            &result(Some("a"), Outcome::Ok),
+            t0 + Duration::from_millis(20),
+        );
+        m.published(
+            &result(Some("a"), Outcome::Timeout),
+            t0 + Duration::from_millis(600),
+        );
+        m.published(&rejected(None), t0);
+        m.published(&result(Some("homeassistant"), Outcome::Refused), t0);
+        // An answer whose command the meter never saw.
+        m.published(&result(Some("zzz"), Outcome::Failed), t0);
+        let text = scrape(&counted);
+        for (series, v) in [
+            (r#"ihex_commands_total{interface="web",result="ok"}"#, "1"),
+            (
+                r#"ihex_commands_total{interface="mqtt",result="timeout"}"#,
+                "1",
+            ),
+            (
+                r#"ihex_commands_total{interface="mqtt",result="rejected"}"#,
+                "1",
+            ),
+            (
+                r#"ihex_commands_total{interface="ha",result="refused"}"#,
+                "1",
+            ),
+            (
+                r#"ihex_commands_total{interface="unknown",result="failed"}"#,
+                "1",
+            ),
+            (r#"ihex_commands_total{interface="mqtt",result="ok"}"#, "0"),
+            (
+                r#"ihex_command_round_trip_seconds_count{interface="mqtt"}"#,
+                "2",
+            ),
+            (
+                r#"ihex_command_round_trip_seconds_bucket{interface="web",le="0.025"}"#,
+                "1",
+            ),
+            (
+                r#"ihex_command_round_trip_seconds_bucket{interface="mqtt",le="0.5"}"#,
+                "1",
+            ),
+            (
+                r#"ihex_command_round_trip_seconds_bucket{interface="mqtt",le="1"}"#,
+                "2",
+            ),
+        ] {
+            assert_eq!(sample(&text, series), v, "{series}\n{text}");
+        }
+        assert!(m.pending.is_empty(), "{:?}", m.pending);
+    }
+
+    #[test]
+    fn the_meter_forgets_unanswered_commands() {
+        let mut m = CommandMeter::default();
+        let t0 = Instant::now();
+        for _ in 0..PENDING_MAX + 10 {
+            m.command(Interface::Mqtt, b"{}", t0);
+        }
+        assert_eq!(m.pending.len(), PENDING_MAX);
+        m.command(
+            Interface::Mqtt,
+            b"{}",
+            t0 + PENDING_FOR + Duration::from_secs(1),
+        );
+        assert_eq!(m.pending.len(), 1, "the stale ones are gone");
+    }
+
+    #[test]
+    fn firmware_reports_count_each_elements_outcome() {
+        let counted = Counted::default();
+        let mut m = CommandMeter::new(counted.clone());
+        let node = |id: &str, outcome| NodeReport {
+            node: event::HexId(id.parse().unwrap()),
+            outcome,
+            reason: None,
+            duration_ms: 1,
+        };
+        let report = FwReport {
+            request_id: None,
+            image_id: "00000000".into(),
+            version: "1.0.0".into(),
+            duration_ms: 1,
+            frames_sent: 1,
+            bus_share: 50,
+            nodes: vec![
+                node("111", NodeOutcome::Updated),
+                node("112", NodeOutcome::Updated),
+                node("2", NodeOutcome::Reverted),
+            ],
+        };
+        m.published(
+            &Publication::Event(Event::FwReport(Box::new(report))),
+            Instant::now(),
+        );
+        let text = scrape(&counted);
+        assert_eq!(
+            sample(&text, r#"ihex_fw_update_nodes_total{outcome="updated"}"#),
+            "2"
+        );
+        assert_eq!(
+            sample(&text, r#"ihex_fw_update_nodes_total{outcome="reverted"}"#),
+            "1"
+        );
+        assert_eq!(
+            sample(&text, r#"ihex_fw_update_nodes_total{outcome="failed"}"#),
+            "0"
+        );
+    }
+
+    #[test]
+    fn the_exposition_follows_prometheus_conventions() {
+        let text = scrape(&Counted::default());
+        assert_eq!(sample(&text, "ihex_can_frame_bytes_total"), "125.0");
+        assert_eq!(sample(&text, "ihex_can_bus_load_ratio"), "0.25");
+        assert_eq!(
+            sample(&text, "ihex_can_bitrate_bytes_per_second"),
+            "62500.0"
+        );
+        for line in text.lines().filter(|l| !l.starts_with('#')) {
+            let name = line.split(['{', ' ']).next().unwrap_or_default();
+            assert!(name.starts_with("ihex_"), "{line}");
+            assert!(!name.contains("bits"), "base units: {line}");
+        }
+        for line in text.lines().filter(|l| l.starts_with("# TYPE")) {
+            if line.ends_with(" counter") {
+                assert!(line.contains("_total "), "{line}");
+            }
+        }
+        assert!(text.contains(&format!(
+            "ihex_build_info{{version=\"{}\"}} 1",
+            env!("CARGO_PKG_VERSION")
+        )));
+    }
+}
