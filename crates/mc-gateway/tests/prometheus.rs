@@ -86,6 +86,24 @@ fn get(addr: SocketAddr, path: &str) -> std::io::Result<(u16, String)> {
     Ok((status, body.to_owned()))
 }
 
+/// `POST path` with a JSON body over HTTP/1.0: the status.
+fn post_json(addr: SocketAddr, path: &str, body: &str) -> u16 {
+    let mut s = TcpStream::connect(addr).unwrap();
+    s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
+    write!(
+        s,
+        "POST {path} HTTP/1.0\r\nHost: {addr}\r\nContent-Type: application/json\r\nContent-Length: {}\r\n\r\n{body}",
+        body.len()
+    )
+    .unwrap();
+    let mut text = String::new();
+    s.read_to_string(&mut text).unwrap();
+    text.split_whitespace()
+        .nth(1)
+        .and_then(|c| c.parse().ok())
+        .unwrap_or(0)
+}
+
 /// A query string value, percent-encoded.
 fn encode(v: &str) -> String {
     v.bytes()
@@ -198,7 +216,7 @@ fn prometheus_scrapes_the_demo_gateway_and_the_dashboard_has_data() {
     }
     let view: SocketAddr = format!("127.0.0.1:{http}").parse().unwrap();
 
-    // Three LED commands over MQTT, each answered `ok`.
+    // Three LED commands over MQTT, each answered `ok` (and one from the island view).
     let rt = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()
@@ -227,6 +245,20 @@ fn prometheus_scrapes_the_demo_gateway_and_the_dashboard_has_data() {
                 .await;
             assert_eq!(answer.json().unwrap()["payload"]["result"], "ok");
         }
+        // And one from the island view, counted under its own interface.
+        let body = r#"{"cmd":"led","node":"111","color":"white","request_id":"prom-web"}"#;
+        let status = tokio::task::spawn_blocking(move || post_json(view, "/api/command", body))
+            .await
+            .unwrap();
+        assert_eq!(status, 202);
+        let answer = c
+            .expect("command_result of prom-web", |s: &Seen| {
+                s.json().is_some_and(|j| {
+                    j["event"] == "command_result" && j["payload"]["request_id"] == "prom-web"
+                })
+            })
+            .await;
+        assert_eq!(answer.json().unwrap()["payload"]["result"], "ok");
     });
 
     // promtool on the exposition itself.
@@ -312,6 +344,14 @@ fn prometheus_scrapes_the_demo_gateway_and_the_dashboard_has_data() {
     assert!(rt_sum > 0.0 && rt_sum < 3.0 * 5.0, "round trips {rt_sum}");
     assert_eq!(
         one("ihex_commands_total{interface=\"web\",result=\"ok\"}"),
+        1.0
+    );
+    assert_eq!(
+        one("ihex_command_round_trip_seconds_count{interface=\"web\"}"),
+        1.0
+    );
+    assert_eq!(
+        one("ihex_commands_total{interface=\"ha\",result=\"ok\"}"),
         0.0
     );
     assert_eq!(one("sum(ihex_commands_total{result!=\"ok\"})"), 0.0);
@@ -323,8 +363,8 @@ fn prometheus_scrapes_the_demo_gateway_and_the_dashboard_has_data() {
     assert_eq!(one("ihex_commands_in_flight"), 0.0);
     assert_eq!(one("ihex_publications_dropped_total"), 0.0);
     assert!(one("ihex_can_frames_received_total") > 0.0);
-    // Three commands went out, beside the health checks and read-backs.
-    assert!(one("ihex_can_frames_sent_total") >= 3.0);
+    // Four commands went out, beside the health checks and read-backs.
+    assert!(one("ihex_can_frames_sent_total") >= 4.0);
     assert!(one("ihex_can_frame_bytes_total") > 0.0);
     assert_eq!(one("ihex_can_bitrate_bytes_per_second"), 500_000.0 / 8.0);
     assert_eq!(
