@@ -10,6 +10,7 @@ mod cpio;
 mod dbc;
 mod fwsize;
 mod lint;
+mod prometheus;
 mod setup;
 #[cfg(test)]
 mod tidy;
@@ -344,6 +345,10 @@ fn run_stage(stage: Stage, args: &TestArgs) -> Result<Done> {
             println!("==> xtask: host: the island view in headless Chromium");
             if let Err(e) = browser::run() {
                 failures.push(format!("browser test: {e:#}"));
+            }
+            println!("==> xtask: host: Prometheus scraping the demo gateway");
+            if let Err(e) = prometheus::run() {
+                failures.push(format!("Prometheus test: {e:#}"));
             }
             if !failures.is_empty() {
                 anyhow::bail!("{}", failures.join("; "));

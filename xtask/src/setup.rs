@@ -147,6 +147,7 @@ fn wanted() -> Vec<&'static str> {
     v.push(MCU_EMULATOR_PACKAGE);
     v.push(XZ_PACKAGE);
     v.extend(crate::browser::PACKAGES);
+    v.extend(crate::prometheus::PACKAGES);
     v
 }
 
@@ -223,6 +224,7 @@ fn check_without_apt(wanted: &[&str]) -> Result<()> {
             "xz-utils" => (cmd::exists("xz"), "xz (package xz-utils / xz)"),
             "chromium" => (crate::browser::present(), "Chromium and chromedriver (or set IHEX_CHROMIUM and IHEX_CHROMEDRIVER)"),
             "chromium-driver" => (true, ""),
+            "prometheus" => (crate::prometheus::present(), "Prometheus and promtool (or set IHEX_PROMETHEUS and IHEX_PROMTOOL)"),
             _ => (cmd::exists("mosquitto"), "mosquitto (package mosquitto)"),
         };
         if !ok {

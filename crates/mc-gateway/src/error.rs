@@ -30,9 +30,30 @@ pub enum ConfigError {
         /// What is wrong, with the offending value.
         reason: String,
     },
+    /// A value is out of range or malformed, named where it was given: the flag, the environment
+    /// variable, or the file and key.
+    #[error("invalid {origin}: {reason}")]
+    At {
+        /// Where the value came from.
+        origin: crate::config::Origin,
+        /// What is wrong, with the offending value and what is accepted.
+        reason: String,
+    },
 }
 
 impl ConfigError {
+    /// An [`ConfigError::Invalid`] of an option given somewhere (not its default) as
+    /// [`ConfigError::At`] that place.
+    pub fn located(self, origins: &crate::config::Origins) -> ConfigError {
+        match self {
+            ConfigError::Invalid { field, reason } => match origins.of(&field) {
+                crate::config::Origin::Default => ConfigError::Invalid { field, reason },
+                origin => ConfigError::At { origin, reason },
+            },
+            other => other,
+        }
+    }
+
     pub(crate) fn invalid(field: impl Into<String>, reason: impl Into<String>) -> Self {
         ConfigError::Invalid {
             field: field.into(),

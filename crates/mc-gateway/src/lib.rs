@@ -3,7 +3,7 @@
 //! The logic is the sans-IO [`ihex_gateway_core::Bridge`]; this crate is the tokio shell around it:
 //! [`can`] (SocketCAN, or any [`can::FrameLink`]), [`mqtt`] (rumqttc, one task owning the event
 //! loop), [`mod@run`] building the resources and then running them around the core, [`config`]
-//! (CLI > env > TOML > defaults), [`log`], [`shutdown`], [`feed`] (the core's publications and
+//! (CLI > env > TOML > defaults), [`log`], [`shutdown`], [`metrics`], [`feed`] (the core's publications and
 //! views for other adapters); with the default `demo` feature the embedded broker and the simulated
 //! island (`demo`), and with the default `web` feature the island view (`web`, `docs/web.md`).
 //!
@@ -26,6 +26,7 @@ pub mod error;
 pub mod feed;
 pub mod fw;
 pub mod log;
+pub mod metrics;
 pub mod mqtt;
 pub mod run;
 pub mod shutdown;

@@ -23,6 +23,9 @@ async fn main() -> ExitCode {
 
 async fn run() -> anyhow::Result<()> {
     let config = mc_gateway::Config::from_env_and_args()?;
+    if config.settings.check_config {
+        return check(&config);
+    }
     // Held to the end: dropping it flushes the log file.
     let log = mc_gateway::log::init(&config.log)?;
     let result = async {
@@ -38,6 +41,21 @@ async fn run() -> anyhow::Result<()> {
     }
     drop(log);
     result
+}
+
+/// `--check-config`: the report on stdout; problems make it fail (exit status 1).
+fn check(config: &mc_gateway::Config) -> anyhow::Result<()> {
+    print!("{}", mc_gateway::config::check::report(config));
+    let problems = mc_gateway::config::check::problems(config);
+    if problems.is_empty() {
+        println!("configuration OK");
+        return Ok(());
+    }
+    anyhow::bail!(
+        "the configuration has {} problem(s):\n  {}",
+        problems.len(),
+        problems.join("\n  ")
+    )
 }
 
 /// An error and its causes on one line, each cause only when the text so far does not say it

@@ -28,6 +28,7 @@ use crate::{
     config::{Config, Link},
     error::GatewayError,
     feed::{Feed, ViewRequests},
+    metrics::{CommandMeter, Counted, Interface},
     mqtt::{self, MqttInput, MqttStats, MqttTask, Outbound},
     topic::Topics,
 };
@@ -36,6 +37,9 @@ use crate::{
 const CAN_INPUTS: usize = 1024;
 /// Messages from the MQTT task waiting for the core.
 const MQTT_INPUTS: usize = 256;
+/// Commands from the island view waiting for the core (a full queue is answered `503`).
+#[cfg(feature = "web")]
+const WEB_INPUTS: usize = 64;
 /// Publications from the core waiting for the MQTT task (the bridge holds the rest, by its rules).
 /// With the task's own `STAGING` and the connection's in-flight window behind it, enough to fill
 /// every write; more would only hold serialised text that the bridge keeps smaller (coalesced).
@@ -156,29 +160,32 @@ impl Gateway {
         let (can_in_tx, can_in) = mpsc::channel(CAN_INPUTS);
         let (mqtt_in_tx, mqtt_in) = mpsc::channel(MQTT_INPUTS);
         let (pub_tx, pub_rx) = mpsc::channel(PUBLICATIONS);
+        let counted = Counted::default();
 
         // The island view reads the core through the feed and its views, and sends commands into
-        // the same input as MQTT.
+        // an input of its own (so their outcomes are counted by interface).
         #[cfg(feature = "web")]
-        let (feed, views, view_url) = match web {
+        let (feed, views, web_in, view_url) = match web {
             Some(web) => {
                 let feed = Arc::new(Feed::default());
                 let (views_tx, views) = ViewRequests::channel();
+                let (web_tx, web_in) = mpsc::channel(WEB_INPUTS);
                 let url = web.url();
                 let parts = crate::web::Parts {
                     feed: feed.clone(),
                     views: views_tx,
-                    commands: mqtt_in_tx.clone(),
+                    commands: web_tx,
                     mqtt: mqtt.stats.clone(),
+                    counted: counted.clone(),
                 };
                 web.spawn(parts, &mut tasks, cancel.clone());
-                (Some(feed), views, Some(url))
+                (Some(feed), views, Some(web_in), Some(url))
             }
-            None => (None, ViewRequests::default(), None),
+            None => (None, ViewRequests::default(), None, None),
         };
         #[cfg(not(feature = "web"))]
-        let (feed, views, view_url): (Option<Arc<Feed>>, _, Option<String>) =
-            (None, ViewRequests::default(), None);
+        let (feed, views, web_in, view_url): (Option<Arc<Feed>>, _, _, Option<String>) =
+            (None, ViewRequests::default(), None, None);
         let can_tx = link.spawn(TRANSMIT_WINDOW, can_in_tx, &mut tasks, cancel.clone());
         tasks.spawn(mqtt.run(pub_rx, mqtt_in_tx, cancel.clone()));
         #[cfg(feature = "demo")]
@@ -213,8 +220,14 @@ impl Gateway {
             views,
             stats: mqtt_stats,
             fw_dir: config.settings.fw_dir.clone(),
+            meter: CommandMeter::new(counted),
         };
-        let result = core.run(can_in, mqtt_in, &mut tasks, &cancel).await;
+        let inputs = Inputs {
+            can: can_in,
+            mqtt: mqtt_in,
+            web: web_in,
+        };
+        let result = core.run(inputs, &mut tasks, &cancel).await;
 
         cancel.cancel();
         let mut failure = result.err();
@@ -246,16 +259,41 @@ struct Core {
     stats: Arc<MqttStats>,
     /// `--fw-dir`: where `fw_update` images are read from.
     fw_dir: Option<std::path::PathBuf>,
+    /// Counts command outcomes by interface for the metrics.
+    meter: CommandMeter,
+}
+
+/// The core task's inputs.
+struct Inputs {
+    can: mpsc::Receiver<CanInput>,
+    mqtt: mpsc::Receiver<MqttInput>,
+    /// The island view's commands, when it runs.
+    web: Option<mpsc::Receiver<MqttInput>>,
+}
+
+/// The next message of an optional input; pending forever without one (or once it is closed).
+async fn next_of<T>(rx: &mut Option<mpsc::Receiver<T>>) -> T {
+    if let Some(r) = rx {
+        if let Some(v) = r.recv().await {
+            return v;
+        }
+        *rx = None;
+    }
+    std::future::pending().await
 }
 
 impl Core {
     async fn run(
         mut self,
-        mut can_in: mpsc::Receiver<CanInput>,
-        mut mqtt_in: mpsc::Receiver<MqttInput>,
+        inputs: Inputs,
         tasks: &mut JoinSet<()>,
         cancel: &CancellationToken,
     ) -> Result<(), GatewayError> {
+        let Inputs {
+            can: mut can_in,
+            mqtt: mut mqtt_in,
+            web: mut web_in,
+        } = inputs;
         loop {
             self.carry_out();
             let deadline = tokio::time::Instant::from_std(self.bridge.poll_timeout());
@@ -295,14 +333,17 @@ impl Core {
                 // While answers cannot be handed on, commands stay with the MQTT task (unacknowledged,
                 // so the broker holds back more): answers are never dropped and stay bounded.
                 Some(input) = mqtt_in.recv(), if wants_commands => {
-                    on_mqtt(&mut self.bridge, input);
+                    on_mqtt(&mut self.bridge, &mut self.meter, input, Interface::Mqtt);
                     for _ in 1..BATCH {
                         if !self.bridge.wants_commands() {
                             break;
                         }
                         let Ok(input) = mqtt_in.try_recv() else { break };
-                        on_mqtt(&mut self.bridge, input);
+                        on_mqtt(&mut self.bridge, &mut self.meter, input, Interface::Mqtt);
                     }
+                }
+                input = next_of(&mut web_in), if wants_commands => {
+                    on_mqtt(&mut self.bridge, &mut self.meter, input, Interface::Web);
                 }
                 // Room for publications again: the loop's top hands them on.
                 _ = self.pub_tx.reserve(), if publications_waiting => {}
@@ -339,6 +380,7 @@ impl Core {
             let Some(publication) = self.bridge.poll_publication() else {
                 break;
             };
+            self.meter.published(&publication, now);
             permit.send(outbound(
                 &self.topics,
                 self.feed.as_deref(),
@@ -356,6 +398,7 @@ impl Core {
     async fn flush_at_shutdown(&mut self) {
         let deadline = tokio::time::Instant::now() + SHUTDOWN_FLUSH;
         while let Some(publication) = self.bridge.poll_publication() {
+            self.meter.published(&publication, Instant::now());
             let p = outbound(
                 &self.topics,
                 self.feed.as_deref(),
@@ -388,8 +431,9 @@ fn on_can(bridge: &mut Bridge, input: CanInput) {
     }
 }
 
-/// One input from the MQTT task (or the island view) into the bridge.
-fn on_mqtt(bridge: &mut Bridge, input: MqttInput) {
+/// One input from the MQTT task (or the island view) into the bridge; a command is noted for the
+/// metrics as coming from `from` (Home Assistant's are always [`Interface::Ha`]).
+fn on_mqtt(bridge: &mut Bridge, meter: &mut CommandMeter, input: MqttInput, from: Interface) {
     let now = Instant::now();
     match input {
         MqttInput::Command {
@@ -397,10 +441,15 @@ fn on_mqtt(bridge: &mut Bridge, input: MqttInput) {
             received,
             retained,
         } => {
+            meter.command(from, &payload, received);
             let delivery = Delivery { received, retained };
             bridge.handle_delivered_command(&payload, delivery, now);
         }
-        MqttInput::HaCommand { topic, payload } => bridge.handle_ha_command(&topic, &payload, now),
+        MqttInput::HaCommand { topic, payload } => {
+            let id = ihex_gateway_core::ha::command::REQUEST_ID.to_owned();
+            meter.noted(Interface::Ha, Some(id), now);
+            bridge.handle_ha_command(&topic, &payload, now)
+        }
         MqttInput::HaStatus(payload) => bridge.handle_ha_status(&payload, now),
         MqttInput::FwUpload {
             name,

@@ -6,6 +6,7 @@
 //! When neither a broker nor a CAN interface is configured anywhere, the result is the embedded demo:
 //! an embedded broker on `broker_listen` and a simulated island.
 
+pub mod check;
 pub mod options;
 pub mod web;
 
@@ -19,6 +20,7 @@ use std::{
 use ihex_gateway_core::{bridge, fwupdate, ha, topic, BridgeConfig};
 
 use crate::error::ConfigError;
+pub use options::Origin;
 use options::{default_text, ms, options, setting_type, setting_value};
 
 /// The lab broker of the seed.
@@ -31,6 +33,9 @@ pub const MQTT_PORT: u16 = 1883;
 options! {
     /// TOML configuration file (keys as the long flags, with `_` for `-`).
     config: PathBuf = none, env "IHEX_CONFIG", value "FILE", [cli_only];
+    /// Check the whole configuration (files and certificates included), print every option with
+    /// its value and where it came from, and exit: 0 when it is valid, 1 when not.
+    check_config: bool = false, env "IHEX_CHECK_CONFIG", value "BOOL", [cli_only];
     /// MQTT broker to connect to (`[v6]:port` for IPv6). Unset together with `can`: the embedded
     /// demo broker.
     broker: String = (text format!("lab: `{DEFAULT_BROKER}`")), env "IHEX_BROKER",
@@ -198,12 +203,44 @@ impl Options {
         Options::parse_toml(path, &text)
     }
 
-    /// Parses config text (`path` only names it in errors). Unknown keys are errors.
+    /// Parses config text (`path` only names it in errors). Unknown keys are errors, and a value
+    /// of the wrong type is named by its key with what it must be.
     pub fn parse_toml(path: &Path, text: &str) -> Result<Options, ConfigError> {
-        let o: Options = toml::from_str(text).map_err(|e| ConfigError::Parse {
+        let table: toml::Table = toml::from_str(text).map_err(|e| ConfigError::Parse {
             path: path.to_owned(),
             source: Box::new(e),
         })?;
+        let specs = specs();
+        for (key, value) in &table {
+            let Some(spec) = specs.iter().find(|s| s.key == key && !s.cli_only) else {
+                let hint = if key == "config" {
+                    "a config file cannot name another one".to_owned()
+                } else {
+                    "not an option (the keys are the long flags with `_` for `-`, listed in \
+                     docs/gateway.md)"
+                        .to_owned()
+                };
+                return Err(ConfigError::At {
+                    origin: Origin::File(path.to_owned(), key.clone()),
+                    reason: format!("unknown key `{key}`: {hint}"),
+                });
+            };
+            let mut one = toml::Table::new();
+            one.insert(key.clone(), value.clone());
+            if let Err(e) = toml::Value::Table(one).try_into::<Options>() {
+                tracing::debug!(error = %e, "config file value");
+                return Err(ConfigError::At {
+                    origin: Origin::File(path.to_owned(), spec.key.to_owned()),
+                    reason: format!("{value} is not {}", spec.expected()),
+                });
+            }
+        }
+        let o: Options = toml::Value::Table(table)
+            .try_into()
+            .map_err(|e| ConfigError::Parse {
+                path: path.to_owned(),
+                source: Box::new(e),
+            })?;
         if o.config.is_some() {
             return Err(ConfigError::invalid(
                 "config",
@@ -342,13 +379,118 @@ pub struct Config {
     /// What a person should know about how the configuration was completed (a lab default used
     /// because only half of broker/CAN was given); logged at start-up.
     pub warnings: Vec<String>,
+    /// Where each option came from (all [`Origin::Default`] unless read by
+    /// [`Config::from_env_and_args`]).
+    pub origins: Origins,
+}
+
+/// Where each option's value came from (what `--check-config` prints, and what errors name).
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct Origins(Vec<(&'static str, Origin)>);
+
+impl Origins {
+    /// The origins of a parsed command line (with its environment) over `file` (read from
+    /// `path`).
+    pub fn new(m: &clap::ArgMatches, file: &Options, path: Option<&Path>) -> Origins {
+        let in_file = file.set_keys();
+        Origins(
+            specs()
+                .iter()
+                .map(|spec| {
+                    let origin = match m.value_source(spec.key) {
+                        Some(clap::parser::ValueSource::CommandLine) => Origin::Flag(spec.flag()),
+                        Some(clap::parser::ValueSource::EnvVariable) => Origin::Env(spec.env),
+                        _ => match path {
+                            Some(p) if in_file.contains(&spec.key) => {
+                                Origin::File(p.to_owned(), spec.key.to_owned())
+                            }
+                            _ => Origin::Default,
+                        },
+                    };
+                    (spec.key, origin)
+                })
+                .collect(),
+        )
+    }
+
+    /// Where the option `key` (TOML key or flag name) came from.
+    pub fn of(&self, key: &str) -> Origin {
+        let key = key.replace('-', "_");
+        self.0
+            .iter()
+            .find(|(k, _)| *k == key)
+            .map_or(Origin::Default, |(_, o)| o.clone())
+    }
+}
+
+/// A command-line or environment value clap could not read, as a [`ConfigError::At`] naming the
+/// flag or the variable and what the value must be; `None` for any other clap error (`--help`).
+fn value_error(e: &clap::Error, args: &[std::ffi::OsString]) -> Option<ConfigError> {
+    use clap::error::{ContextKind, ContextValue, ErrorKind};
+    if !matches!(
+        e.kind(),
+        ErrorKind::ValueValidation | ErrorKind::InvalidValue
+    ) {
+        return None;
+    }
+    let text = |kind| match e.get(kind) {
+        Some(ContextValue::String(s)) => Some(s.clone()),
+        _ => None,
+    };
+    let arg = text(ContextKind::InvalidArg)?;
+    let value = text(ContextKind::InvalidValue).unwrap_or_default();
+    let flag = arg
+        .trim_start_matches('-')
+        .split([' ', '=', '['])
+        .next()
+        .unwrap_or_default()
+        .to_owned();
+    let spec = specs().into_iter().find(|s| s.flag() == flag)?;
+    let long = format!("--{flag}");
+    let on_command_line = args.iter().any(|a| {
+        let a = a.to_string_lossy();
+        a == long || a.starts_with(&format!("{long}="))
+    });
+    let origin = if on_command_line {
+        Origin::Flag(flag)
+    } else {
+        Origin::Env(spec.env)
+    };
+    Some(ConfigError::At {
+        origin,
+        reason: format!("{value:?} is not {}", spec.expected()),
+    })
 }
 
 impl Config {
-    /// Parses the process's command line and environment, reads `--config` if given, and resolves.
-    /// `--help`, `--version` and malformed arguments end the process the way clap does.
+    /// Parses the process's command line and environment, reads `--config` if given, and resolves;
+    /// errors name where the bad value came from (flag, environment variable, file and key).
+    /// `--help` and `--version` end the process the way clap does.
     pub fn from_env_and_args() -> Result<Config, ConfigError> {
-        Config::from_cli(Options::from_matches(&command().get_matches()))
+        Config::from_args_and_env(std::env::args_os())
+    }
+
+    /// [`Config::from_env_and_args`] with the command line `args` (`args[0]` is the program).
+    pub fn from_args_and_env(
+        args: impl IntoIterator<Item = std::ffi::OsString>,
+    ) -> Result<Config, ConfigError> {
+        let args: Vec<_> = args.into_iter().collect();
+        let m = match command().try_get_matches_from(&args) {
+            Ok(m) => m,
+            Err(e) => match value_error(&e, &args) {
+                Some(err) => return Err(err),
+                None => e.exit(),
+            },
+        };
+        let cli = Options::from_matches(&m);
+        let file = match &cli.config {
+            Some(path) => Options::load(path)?,
+            None => Options::default(),
+        };
+        let origins = Origins::new(&m, &file, cli.config.as_deref());
+        let mut config = Config::resolve(cli, file).map_err(|e| e.located(&origins))?;
+        config.origins = origins;
+        Ok(config)
     }
 
     /// Resolves command-line options (reading their `--config` file, if any).
@@ -570,6 +712,7 @@ impl Config {
             web: web::WebConfig::from_settings(&s)?,
             settings: s,
             warnings,
+            origins: Origins::default(),
         })
     }
 }
@@ -617,7 +760,7 @@ pub fn parse_host_port(s: &str) -> Result<(String, u16), ConfigError> {
         Some((h, p)) if !h.contains(':') => (
             h,
             p.parse::<u16>()
-                .map_err(|_| bad("port is not a number 1..=65535"))?,
+                .map_err(|_| bad("the port is not a number from 1 to 65535"))?,
         ),
         _ if s.parse::<std::net::Ipv6Addr>().is_ok() => (s, MQTT_PORT),
         Some(_) => return Err(bad("expected HOST[:PORT] (IPv6 as [ADDR]:PORT)")),
@@ -850,17 +993,35 @@ mod tests {
     #[test]
     fn unknown_and_mistyped_file_keys_are_refused() {
         let p = Path::new("x.toml");
+        let at = |text: &str| match Options::parse_toml(p, text) {
+            Err(ConfigError::At {
+                origin: Origin::File(path, key),
+                reason,
+            }) => {
+                assert_eq!(path, p);
+                (key, reason)
+            }
+            other => panic!("{text}: {other:?}"),
+        };
+        assert_eq!(at("brokr = \"h\"").0, "brokr");
+        assert_eq!(
+            at("lost_after = \"three\""),
+            (
+                "lost_after".into(),
+                "\"three\" is not a whole number from 1 to 1000".into()
+            )
+        );
+        assert_eq!(
+            at("config = \"other.toml\""),
+            (
+                "config".into(),
+                "unknown key `config`: a config file cannot name another one".into()
+            )
+        );
+        assert_eq!(at("check_config = true").0, "check_config");
         assert!(matches!(
-            Options::parse_toml(p, "brokr = \"h\""),
+            Options::parse_toml(p, "lost_after = "),
             Err(ConfigError::Parse { .. })
-        ));
-        assert!(matches!(
-            Options::parse_toml(p, "lost_after = \"three\""),
-            Err(ConfigError::Parse { .. })
-        ));
-        assert!(matches!(
-            Options::parse_toml(p, "config = \"other.toml\""),
-            Err(ConfigError::Invalid { .. })
         ));
         assert!(matches!(
             Options::load(Path::new("/nonexistent/gw.toml")),

@@ -12,23 +12,36 @@ use crate::error::ConfigError;
 pub trait OptionType: Clone + Send + Sync + 'static {
     /// A switch: `--flag` alone means true, `--flag=false` switches off a file's `true`.
     const SWITCH: bool = false;
+    /// What a value must be, as errors say it (`a whole number`).
+    const WORD: &'static str;
     /// Sets the value parser.
     fn configure(arg: Arg) -> Arg;
 }
 
 macro_rules! option_types {
-    ($($ty:ty),*) => {$(
+    ($($ty:ty => $word:literal),*) => {$(
         impl OptionType for $ty {
+            const WORD: &'static str = $word;
             fn configure(arg: Arg) -> Arg {
                 arg.value_parser(clap::value_parser!($ty))
             }
         }
     )*};
 }
-option_types!(String, PathBuf, u8, u16, u32, u64, usize, SocketAddr);
+option_types!(
+    String => "text",
+    PathBuf => "a path",
+    u8 => "a whole number",
+    u16 => "a whole number",
+    u32 => "a whole number",
+    u64 => "a whole number",
+    usize => "a whole number",
+    SocketAddr => "an address ADDR:PORT (e.g. 127.0.0.1:1883 or [::1]:1883)"
+);
 
 impl OptionType for bool {
     const SWITCH: bool = true;
+    const WORD: &'static str = "true or false";
     fn configure(arg: Arg) -> Arg {
         arg.value_parser(clap::value_parser!(bool))
             .num_args(0..=1)
@@ -155,6 +168,8 @@ pub struct Spec {
     pub secret: bool,
     /// A switch (`--flag[=BOOL]`).
     pub switch: bool,
+    /// What a value must be ([`OptionType::WORD`]).
+    pub word: &'static str,
 }
 
 impl Spec {
@@ -188,6 +203,19 @@ impl Spec {
             .hide_env_values(self.secret)
     }
 
+    /// What a value must be, with the accepted values: `a whole number from 1 to 1000`.
+    pub fn expected(&self) -> String {
+        match self.accepted {
+            Accepted::Any => self.word.to_owned(),
+            Accepted::Range(..) => format!(
+                "{} from {}",
+                self.word,
+                self.accepted.render("").unwrap_or_default()
+            ),
+            Accepted::OneOf(_) => self.accepted.render("").unwrap_or_default(),
+        }
+    }
+
     /// The option's row of the docs table.
     pub fn docs_row(&self) -> String {
         let flag = if self.switch {
@@ -210,6 +238,59 @@ impl Spec {
     }
 }
 
+/// A value as `--check-config` prints it.
+pub trait Show {
+    /// The text, `None` when unset.
+    fn show(&self) -> Option<String>;
+}
+
+macro_rules! show_display {
+    ($($ty:ty),*) => {$(
+        impl Show for $ty {
+            fn show(&self) -> Option<String> {
+                Some(self.to_string())
+            }
+        }
+    )*};
+}
+show_display!(String, bool, u8, u16, u32, u64, usize, SocketAddr);
+
+impl Show for PathBuf {
+    fn show(&self) -> Option<String> {
+        Some(self.display().to_string())
+    }
+}
+
+impl<T: Show> Show for Option<T> {
+    fn show(&self) -> Option<String> {
+        self.as_ref().and_then(Show::show)
+    }
+}
+
+/// Where an option's value came from.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Origin {
+    /// The command line (`--flag`).
+    Flag(String),
+    /// The environment (`IHEX_…`).
+    Env(&'static str),
+    /// The `--config` file, this key.
+    File(PathBuf, String),
+    /// The default.
+    Default,
+}
+
+impl Display for Origin {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Origin::Flag(flag) => write!(f, "flag --{flag}"),
+            Origin::Env(var) => write!(f, "environment variable {var}"),
+            Origin::File(path, key) => write!(f, "file {}, key {key}", path.display()),
+            Origin::Default => f.write_str("default"),
+        }
+    }
+}
+
 /// The range check of a number.
 pub fn check_range<T: PartialOrd + Display>(
     key: &str,
@@ -220,7 +301,7 @@ pub fn check_range<T: PartialOrd + Display>(
     if v < lo || v > hi {
         return Err(ConfigError::invalid(
             flag_name(key),
-            format!("{v} not in {lo}..={hi}"),
+            format!("{v} is not in the range {lo} to {hi}"),
         ));
     }
     Ok(v)
@@ -327,6 +408,17 @@ macro_rules! options {
             )*
         }
 
+        impl Settings {
+            /// Every option's value as `--check-config` prints it, in table order (secrets
+            /// hidden, unset options `None`).
+            pub fn shown(&self) -> Vec<(&'static str, Option<String>)> {
+                vec![$((
+                    stringify!($key),
+                    $crate::config::options::Show::show(&self.$key),
+                ),)*]
+            }
+        }
+
         /// The table, in declaration order.
         pub fn specs() -> Vec<$crate::config::options::Spec> {
             vec![$(
@@ -340,6 +432,7 @@ macro_rules! options {
                     cli_only: options!(@has cli_only; $($($marker)*)?),
                     secret: options!(@has secret; $($($marker)*)?),
                     switch: <$ty as $crate::config::options::OptionType>::SWITCH,
+                    word: <$ty as $crate::config::options::OptionType>::WORD,
                 },
             )*]
         }
@@ -355,6 +448,15 @@ macro_rules! options {
                 Ok(Settings {
                     $($key: setting_value!($key, self.$key.clone(), $ty, $default $(, $lo, $hi)? $(; $($choice),+)?)?,)*
                 })
+            }
+
+            /// The keys this layer sets, in table order.
+            pub fn set_keys(&self) -> Vec<&'static str> {
+                let mut keys = Vec::new();
+                $(if self.$key.is_some() {
+                    keys.push(stringify!($key));
+                })*
+                keys
             }
 
             /// The options a parsed command line (with its environment) gives.

@@ -49,6 +49,7 @@ pub struct App {
     pub(super) views: mpsc::Sender<ViewRequest>,
     pub(super) commands: mpsc::Sender<MqttInput>,
     pub(super) mqtt: Arc<MqttStats>,
+    pub(super) counted: crate::metrics::Counted,
     pub(super) started: Instant,
     pub(super) info: Info,
     pub(super) token: Option<String>,
@@ -67,12 +68,13 @@ pub fn router(app: Arc<App>, max_command: usize) -> Router {
             "/api/command",
             post(command).layer(DefaultBodyLimit::max(max_command)),
         )
+        .merge(super::monitor::routes())
         .merge(assets::routes())
         .with_state(app)
 }
 
 /// A JSON response.
-fn json(status: StatusCode, body: String) -> Response {
+pub(super) fn json(status: StatusCode, body: String) -> Response {
     (
         status,
         [
@@ -85,7 +87,7 @@ fn json(status: StatusCode, body: String) -> Response {
 }
 
 /// An error as `{"error": "..."}`.
-fn error(status: StatusCode, why: &str) -> Response {
+pub(super) fn error(status: StatusCode, why: &str) -> Response {
     json(
         status,
         snapshot::to_json(&serde_json::json!({ "error": why })),

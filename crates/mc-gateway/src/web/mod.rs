@@ -8,6 +8,8 @@
 //!   of the gateway and the bus.
 //! - `POST /api/command`: a command in the JSON of the command topic, handed to the core's one
 //!   command entry point; its answer is the usual `command_result` event.
+//! - `GET /metrics`, `GET /healthz`, `GET /readyz` ([`monitor`]): Prometheus metrics and the
+//!   liveness and readiness checks (`docs/metrics.md`).
 //!
 //! The view only reads the core through [`crate::feed`] and writes through the core's command
 //! input, so it cannot make the core wait: a view request or a command that finds its queue full is
@@ -15,6 +17,7 @@
 
 pub mod api;
 pub mod assets;
+pub mod monitor;
 pub mod snapshot;
 
 use std::{
@@ -78,10 +81,12 @@ pub struct Parts {
     pub feed: Arc<Feed>,
     /// Views of the core.
     pub views: mpsc::Sender<ViewRequest>,
-    /// The core's command input (the one the MQTT task uses).
+    /// The core's command input for the view.
     pub commands: mpsc::Sender<MqttInput>,
     /// The MQTT task's counters.
     pub mqtt: Arc<MqttStats>,
+    /// The core task's counts for the metrics.
+    pub counted: crate::metrics::Counted,
 }
 
 impl Web {
@@ -161,6 +166,7 @@ impl Web {
             views: parts.views,
             commands: parts.commands,
             mqtt: parts.mqtt,
+            counted: parts.counted,
             started: Instant::now(),
             info: self.info,
             token: self.token,
