@@ -669,3 +669,36 @@ fn text_report_has_one_line_per_check_with_marks() {
     );
     assert_eq!(out.status.code(), Some(1));
 }
+
+#[test]
+fn help_names_the_subcommand_and_its_options() {
+    let out = Command::new(env!("CARGO_BIN_EXE_mc-gateway"))
+        .arg("--help")
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(text.contains("doctor"), "{text}");
+    let out = Command::new(env!("CARGO_BIN_EXE_mc-gateway"))
+        .args(["doctor", "--help"])
+        .output()
+        .unwrap();
+    assert!(out.status.success());
+    let text = String::from_utf8_lossy(&out.stdout);
+    for needle in [
+        "--boot-config",
+        "--hat-oscillator",
+        "--hat-interrupt",
+        "--listen-ms",
+        "--json",
+        "--config",
+        "Exit status: 0 when no check failed",
+    ] {
+        assert!(text.contains(needle), "doctor --help lacks {needle}");
+    }
+    // No `help` subcommand appeared with `doctor`: the gateway's command line is as before.
+    let out = Command::new(env!("CARGO_BIN_EXE_mc-gateway"))
+        .arg("help")
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+}
