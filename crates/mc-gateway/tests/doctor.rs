@@ -297,8 +297,10 @@ fn traffic_error_frames_say_what_they_mean() {
     let v = traffic::check(&f, LISTEN);
     assert!(v.action.unwrap().starts_with("bus-off"));
 
-    let mut p = traffic::Facts::default();
-    p.frames = 5;
+    let mut p = traffic::Facts {
+        frames: 5,
+        ..Default::default()
+    };
     p.observe_error(0x08, [0, 0, 0x04, 0, 0, 0, 0, 0]);
     let v = traffic::check(&p, LISTEN);
     assert_eq!(v.status, Status::Fail);

@@ -173,7 +173,7 @@ pub fn check(path: &str, text: &str, hat: &Hat) -> Vec<Verdict> {
         Some((false, line)) => Verdict::fail(
             SPI,
             format!("{path}:{line} switches SPI off"),
-            format!("change that line to dtparam=spi=on (the HAT talks SPI) and reboot"),
+            "change that line to dtparam=spi=on (the HAT talks SPI) and reboot",
         ),
         None => Verdict::fail(
             SPI,
