@@ -5,7 +5,8 @@
 //! loop), [`mod@run`] building the resources and then running them around the core, [`config`]
 //! (CLI > env > TOML > defaults), [`log`], [`shutdown`], [`metrics`], [`feed`] (the core's publications and
 //! views for other adapters); with the default `demo` feature the embedded broker and the simulated
-//! island (`demo`), and with the default `web` feature the island view (`web`, `docs/web.md`).
+//! island (`demo`), and with the default `web` feature the island view (`web`, `docs/web.md`);
+//! [`doctor`] is `mc-gateway doctor`, the bring-up checks.
 //!
 //! ```no_run
 //! # async fn f() -> Result<(), Box<dyn std::error::Error>> {
@@ -15,13 +16,14 @@
 //! # Ok(()) }
 //! ```
 #![warn(missing_docs)]
-// The one exception is `mqtt::sockopt` (socket options std and tokio do not offer).
+// The one exception is `sys` (system calls std and tokio do not offer).
 #![deny(unsafe_code)]
 
 pub mod can;
 pub mod config;
 #[cfg(feature = "demo")]
 pub mod demo;
+pub mod doctor;
 pub mod error;
 pub mod feed;
 pub mod fw;
@@ -30,6 +32,8 @@ pub mod metrics;
 pub mod mqtt;
 pub mod run;
 pub mod shutdown;
+#[allow(unsafe_code)]
+mod sys;
 #[cfg(feature = "web")]
 pub mod web;
 

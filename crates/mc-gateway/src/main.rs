@@ -1,10 +1,12 @@
 //! `mc-gateway`: parse the configuration, set up logging and signals, run until SIGINT/SIGTERM.
-//! A failure is one line on stderr and exit status 1; once logging runs, it is also the JSON log's
-//! last line.
+//! `mc-gateway doctor` runs the bring-up checks instead (`mc_gateway::doctor`) and exits 0 only
+//! when none failed; `--check-config` prints the effective configuration and exits. A failure is
+//! one line on stderr and exit status 1; once logging runs, it is also the JSON log's last line.
 
 use std::process::ExitCode;
 
 use anyhow::Context as _;
+use mc_gateway::doctor::{self, Invocation};
 use tokio_util::sync::CancellationToken;
 
 // One thread: the gateway's tasks hand every frame and publication to each other, which on one
@@ -13,7 +15,7 @@ use tokio_util::sync::CancellationToken;
 #[tokio::main(flavor = "current_thread")]
 async fn main() -> ExitCode {
     match run().await {
-        Ok(()) => ExitCode::SUCCESS,
+        Ok(code) => code,
         Err(e) => {
             eprintln!("mc-gateway: {}", report(&e));
             ExitCode::FAILURE
@@ -21,10 +23,33 @@ async fn main() -> ExitCode {
     }
 }
 
-async fn run() -> anyhow::Result<()> {
-    let config = mc_gateway::Config::from_env_and_args()?;
+async fn run() -> anyhow::Result<ExitCode> {
+    let config = match doctor::invocation()? {
+        Invocation::Gateway(config) => config,
+        Invocation::Doctor {
+            config,
+            options,
+            json,
+        } => {
+            for w in &config.warnings {
+                eprintln!("mc-gateway doctor: {w}");
+            }
+            let report = doctor::run(&config, &options).await;
+            if json {
+                println!("{}", report.json());
+            } else {
+                print!("{}", report.text());
+            }
+            return Ok(if report.ok {
+                ExitCode::SUCCESS
+            } else {
+                ExitCode::FAILURE
+            });
+        }
+    };
     if config.settings.check_config {
-        return check(&config);
+        check(&config)?;
+        return Ok(ExitCode::SUCCESS);
     }
     // Held to the end: dropping it flushes the log file.
     let log = mc_gateway::log::init(&config.log)?;
@@ -32,7 +57,7 @@ async fn run() -> anyhow::Result<()> {
         let shutdown = CancellationToken::new();
         mc_gateway::shutdown::on_signals(shutdown.clone())
             .context("cannot install signal handlers")?;
-        mc_gateway::run(config, shutdown).await?;
+        mc_gateway::run(*config, shutdown).await?;
         anyhow::Ok(())
     }
     .await;
@@ -40,7 +65,7 @@ async fn run() -> anyhow::Result<()> {
         mc_gateway::log::fatal(&report(e));
     }
     drop(log);
-    result
+    result.map(|()| ExitCode::SUCCESS)
 }
 
 /// `--check-config`: the report on stdout; problems make it fail (exit status 1).

@@ -460,12 +460,12 @@ macro_rules! options {
             }
 
             /// The options a parsed command line (with its environment) gives.
-            fn from_matches(m: &clap::ArgMatches) -> Options {
+            pub(crate) fn from_matches(m: &clap::ArgMatches) -> Options {
                 Options { $($key: m.get_one::<$ty>(stringify!($key)).cloned(),)* }
             }
 
             /// The command-line arguments, in table order.
-            fn args() -> Vec<clap::Arg> {
+            pub(crate) fn args() -> Vec<clap::Arg> {
                 specs()
                     .iter()
                     .zip([$(<$ty as $crate::config::options::OptionType>::configure as fn(clap::Arg) -> clap::Arg),*])

@@ -27,7 +27,8 @@ use tokio::{
     net::TcpSocket,
 };
 
-use super::{rumqttc_state::State, sockopt};
+use super::rumqttc_state::State;
+use crate::sys as sockopt;
 
 /// Anything a connection can run over (TCP, TLS over TCP).
 trait Stream: AsyncRead + AsyncWrite + Send + Unpin {}

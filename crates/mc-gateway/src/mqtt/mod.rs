@@ -9,8 +9,8 @@
 //! It connects with keep-alive, clean session and a retained `offline` last will. Every packet the
 //! broker delivers is read, up to the MQTT maximum ([`MAX_INCOMING`]), so an oversized command
 //! reaches the core and is answered instead of breaking the connection. rumqttc's undocumented
-//! state fields are read in [`rumqttc_state`] only, the socket options set in `sockopt` only (the
-//! crate's one `unsafe` module).
+//! state fields are read in [`rumqttc_state`] only, the socket options set through
+//! `crate::sys` only (the crate's one `unsafe` module).
 
 use std::{
     sync::{
@@ -32,7 +32,6 @@ pub mod conn;
 pub mod rumqttc_state;
 pub mod session;
 #[allow(unsafe_code)]
-mod sockopt;
 #[cfg(test)]
 mod test_broker;
 pub use conn::Connection;

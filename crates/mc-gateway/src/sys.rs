@@ -1,6 +1,6 @@
-//! The socket options the MQTT connection sets that neither std nor tokio offer: the one place of
-//! the crate allowed `unsafe` (`#![deny(unsafe_code)]` everywhere else), each block a plain
-//! `setsockopt`/`getsockopt` of one `c_int`.
+//! The system calls neither std nor tokio offer: the MQTT connection's socket options (each a plain
+//! `setsockopt`/`getsockopt` of one `c_int`) and the doctor's free-space query (`statvfs`). The one
+//! place of the crate allowed `unsafe` (`#![deny(unsafe_code)]` everywhere else).
 
 use std::{io, os::fd::RawFd};
 
@@ -49,4 +49,18 @@ pub fn rcvlowat(fd: RawFd) -> io::Result<libc::c_int> {
     } else {
         Err(io::Error::last_os_error())
     }
+}
+
+/// Free space for an unprivileged user and total size, in bytes, of the file system holding `p`.
+pub fn statvfs(p: &std::path::Path) -> std::io::Result<(u64, u64)> {
+    use std::os::unix::ffi::OsStrExt;
+    let c = std::ffi::CString::new(p.as_os_str().as_bytes())
+        .map_err(|e| std::io::Error::new(std::io::ErrorKind::InvalidInput, e))?;
+    let mut s: libc::statvfs = unsafe { std::mem::zeroed() };
+    // SAFETY: `c` is a NUL-terminated path and `s` a properly sized, writable statvfs.
+    if unsafe { libc::statvfs(c.as_ptr(), &mut s) } != 0 {
+        return Err(std::io::Error::last_os_error());
+    }
+    let frsize = s.f_frsize as u64;
+    Ok((s.f_bavail as u64 * frsize, s.f_blocks as u64 * frsize))
 }
