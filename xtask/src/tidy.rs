@@ -10,7 +10,7 @@ use std::time::{Duration, Instant};
 
 use clap::CommandFactory;
 
-use crate::{cmd, lint, Cli, Stage, FIRMWARE_CHECKS};
+use crate::{cmd, fuzz, lint, Cli, Stage, FIRMWARE_CHECKS};
 
 fn read(rel: &str) -> String {
     let path = cmd::root().join(rel);
@@ -123,6 +123,37 @@ fn testing_md_shows_every_lint_command_and_firmware_check() {
         assert!(
             doc.contains(&format!("`{shown}")),
             "docs/testing.md's firmware stage does not name `{shown}` ({what})"
+        );
+    }
+}
+
+#[test]
+fn every_fuzz_workspace_is_built_and_formatted() {
+    let found: Vec<String> = tracked_files()
+        .into_iter()
+        .filter(|f| f.ends_with("/fuzz/Cargo.toml") && read(f).contains("cargo-fuzz = true"))
+        .map(|f| f.trim_end_matches("/Cargo.toml").to_string())
+        .collect();
+    assert!(
+        found.iter().any(|f| f == "crates/ihex-proto/fuzz"),
+        "{found:?}"
+    );
+    for ws in &found {
+        assert!(
+            fuzz::WORKSPACES.contains(&ws.as_str()),
+            "{ws} is a cargo-fuzz workspace missing from xtask's fuzz::WORKSPACES (built by the lint stage)"
+        );
+        assert!(
+            lint::STEPS
+                .iter()
+                .any(|s| s.dir == ws && s.args.first() == Some(&"fmt")),
+            "{ws} has no fmt step in lint::STEPS"
+        );
+    }
+    for ws in fuzz::WORKSPACES {
+        assert!(
+            found.iter().any(|f| f == ws),
+            "fuzz::WORKSPACES names {ws}, which is no tracked cargo-fuzz workspace"
         );
     }
 }
