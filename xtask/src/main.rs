@@ -2,7 +2,6 @@
 //! stage, streams their output, collects all failures and ends with `xtask: N passed, M failed`.
 
 mod bench;
-mod broker;
 mod browser;
 mod cantools;
 mod cmd;
