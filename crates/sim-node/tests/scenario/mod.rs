@@ -32,8 +32,6 @@ fn scaled(d: Duration) -> Duration {
     d.mul_f64(f)
 }
 
-/// A node ID from its raw value.
-
 /// The island every scenario uses: two static hexagons (111 with 6 ports, 112 with 4 and a
 /// firmware of its own), a mobile element 2 that docks by its own port 1, a mobile 3, and a
 /// factory-fresh static 120.
