@@ -3,12 +3,12 @@
 //! [`Mosquitto::start`] spawns the system's `mosquitto` with a generated config that needs no other
 //! files, so it runs natively and inside the test microVM alike (the harness copies the binary and
 //! its libraries into the VM). [`Mosquitto::start_with`] adds what a [`Setup`] says: TLS,
-//! passwords, access control, bridges, and the files they need. [`external`] returns the broker the
-//! harness itself started on the host, if any (`IHEX_TEST_MQTT`).
+//! passwords, access control, bridges, and the files they need. It is the one broker launcher of
+//! the tests (the benchmark's live harness starts its own, tuned for measurement: docs/benchmarks.md).
 
 use std::fs;
 use std::io;
-use std::net::{Ipv4Addr, SocketAddr, TcpListener, TcpStream};
+use std::net::{Ipv4Addr, SocketAddr, TcpStream};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, ExitStatus, Stdio};
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -17,9 +17,6 @@ use std::time::{Duration, Instant};
 /// Environment variable naming the mosquitto binary to use (default: `mosquitto` on `PATH`, then
 /// `/usr/sbin/mosquitto`).
 pub const BIN_ENV: &str = "IHEX_MOSQUITTO";
-
-/// Environment variable with the address (`host:port`) of a broker the harness started on the host.
-pub const EXTERNAL_ENV: &str = "IHEX_TEST_MQTT";
 
 /// How long a started broker may take to accept connections (before [`crate::time::scaled`]).
 const READY_TIMEOUT: Duration = Duration::from_secs(10);
@@ -68,12 +65,6 @@ pub enum Error {
 fn io_err(action: impl Into<String>) -> impl FnOnce(io::Error) -> Error {
     let action = action.into();
     move |source| Error::Io { action, source }
-}
-
-/// The broker address in `IHEX_TEST_MQTT`, if the harness started one (in the VM this is the
-/// host's broker at `10.0.2.2:port`).
-pub fn external() -> Option<SocketAddr> {
-    std::env::var(EXTERNAL_ENV).ok()?.trim().parse().ok()
 }
 
 /// The mosquitto binary this process would run.
@@ -366,10 +357,6 @@ fn read_log(path: &Path) -> String {
     fs::read_to_string(path).unwrap_or_else(|e| format!("(no log: {e})"))
 }
 
-/// A loopback port nobody listens on right now (the kernel picks it; we release it for mosquitto).
 fn free_port() -> Result<u16, Error> {
-    let l = TcpListener::bind((Ipv4Addr::LOCALHOST, 0)).map_err(io_err("binding a free port"))?;
-    Ok(l.local_addr()
-        .map_err(io_err("reading the bound port"))?
-        .port())
+    crate::net::try_free_port().map_err(io_err("binding a free loopback port"))
 }

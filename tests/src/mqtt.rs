@@ -5,6 +5,10 @@
 //! One task owns rumqttc's event loop; after an error it waits a little and polls again, which
 //! makes rumqttc reconnect. [`Client::subscribe_on_connect`] filters are subscribed again after
 //! every ConnAck.
+//!
+//! The one MQTT test client of the repository: tests that only care about messages use
+//! [`Client::subscribed`], [`Client::expect_msg`] and [`Message`]; tests of what the broker
+//! answered match the whole [`Seen`].
 
 use std::net::SocketAddr;
 use std::time::Duration;
@@ -41,7 +45,41 @@ pub enum Seen {
     Error(String),
 }
 
+/// A message as a test that only cares about messages sees it.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Message {
+    /// Its topic.
+    pub topic: String,
+    /// Its payload.
+    pub payload: Vec<u8>,
+    /// The RETAIN flag as delivered.
+    pub retain: bool,
+}
+
+impl Message {
+    /// The payload as JSON; `Null` when it is not JSON.
+    pub fn json(&self) -> serde_json::Value {
+        serde_json::from_slice(&self.payload).unwrap_or(serde_json::Value::Null)
+    }
+}
+
 impl Seen {
+    /// The message, if this is one.
+    pub fn message(&self) -> Option<Message> {
+        match self {
+            Seen::Message {
+                topic,
+                payload,
+                retain,
+            } => Some(Message {
+                topic: topic.clone(),
+                payload: payload.clone(),
+                retain: *retain,
+            }),
+            _ => None,
+        }
+    }
+
     /// The payload as JSON, if this is a message with a JSON payload.
     pub fn json(&self) -> Option<serde_json::Value> {
         match self {
@@ -72,6 +110,8 @@ pub struct Client {
     task: JoinHandle<()>,
     /// Everything seen so far, in order (filled by the waiting methods).
     pub log: Vec<Seen>,
+    /// How long a waiting method waits (before [`crate::time::scaled`]).
+    wait: Duration,
 }
 
 impl Client {
@@ -125,7 +165,57 @@ impl Client {
             rx,
             task,
             log: Vec::new(),
+            wait: WAIT,
         }
+    }
+
+    /// A client of `broker` with the [`options`] of a test client, named `client_id`, that
+    /// subscribes `filters` after every ConnAck.
+    pub fn subscribed(broker: SocketAddr, client_id: &str, filters: &[impl AsRef<str>]) -> Client {
+        let filters: Vec<&str> = filters.iter().map(AsRef::as_ref).collect();
+        Client::subscribe_on_connect(options(broker, client_id), &filters)
+    }
+
+    /// Waits `wait` (scaled) instead of [`WAIT`] from now on.
+    pub fn set_wait(&mut self, wait: Duration) {
+        self.wait = wait;
+    }
+
+    /// Waits for the first message from now on that `pred` accepts; panics with `what` and
+    /// everything seen on timeout.
+    pub async fn expect_msg(&mut self, what: &str, pred: impl Fn(&Message) -> bool) -> Message {
+        let seen = self
+            .expect(what, |s| s.message().is_some_and(|m| pred(&m)))
+            .await;
+        seen.message()
+            .expect("expect returned what the predicate accepted")
+    }
+
+    /// Waits for an event named `name` on the topic `events` whose payload passes `pred`; returns
+    /// the whole event.
+    pub async fn expect_event(
+        &mut self,
+        events: &str,
+        name: &str,
+        pred: impl Fn(&serde_json::Value) -> bool,
+    ) -> serde_json::Value {
+        let what = format!("{name} on {events}");
+        self.expect_msg(&what, |m| {
+            let v = m.json();
+            m.topic == events && v["event"] == name && pred(&v["payload"])
+        })
+        .await
+        .json()
+    }
+
+    /// The messages of the log from index `from` on (an index of [`Client::log`]).
+    pub fn messages_since(&self, from: usize) -> Vec<Message> {
+        self.log
+            .get(from..)
+            .unwrap_or_default()
+            .iter()
+            .filter_map(Seen::message)
+            .collect()
     }
 
     /// Starts a client that subscribes nothing by itself.
@@ -136,7 +226,7 @@ impl Client {
     /// Waits for the first report from now on that `pred` accepts; panics with `what` and
     /// everything seen on timeout.
     pub async fn expect(&mut self, what: &str, pred: impl Fn(&Seen) -> bool) -> Seen {
-        let deadline = tokio::time::Instant::now() + crate::time::scaled(WAIT);
+        let deadline = tokio::time::Instant::now() + crate::time::scaled(self.wait);
         loop {
             match tokio::time::timeout_at(deadline, self.rx.recv()).await {
                 Ok(Some(s)) => {

@@ -11,7 +11,7 @@ use std::time::Duration;
 use embedded_can::{ExtendedId, Id, StandardId};
 use ihex_proto::filter::{self, Filter};
 use ihex_proto::{AckResult, Header, Kind, LedCommand, Message, NodeId, Packet, Port, Rgb};
-use ihex_tests::{can, within};
+use ihex_tests::{can, id as node, within};
 use socketcan::tokio::CanSocket;
 use socketcan::{CanErrorFrame, CanFilter, CanFrame, EmbeddedFrame, Frame, SocketOptions};
 
@@ -27,10 +27,6 @@ fn ext(raw: u32) -> Id {
 
 fn data_frame(id: Id, data: &[u8]) -> CanFrame {
     CanFrame::new(id, data).expect("valid frame")
-}
-
-fn node(raw: u16) -> NodeId {
-    NodeId::new(raw).expect("12-bit node id")
 }
 
 /// A data frame of `kind` from `src` to `dest`.

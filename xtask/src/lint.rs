@@ -1,5 +1,5 @@
 //! `cargo xtask lint` and the `lint` stage: formatting, clippy and rustdoc warnings of the host and
-//! firmware workspaces, and the declared MSRV (nothing to do while it is the pinned toolchain's
+//! firmware workspaces, every fuzz target built and run on its seeds, and the declared MSRV (nothing to do while it is the pinned toolchain's
 //! version). Every step runs; their failures are reported together.
 //!
 //! Cheap by construction: clippy and rustdoc build dependencies as metadata only and share it
@@ -11,7 +11,7 @@ use std::process::Command;
 
 use anyhow::{bail, Context, Result};
 
-use crate::{cmd, setup};
+use crate::{cmd, fuzz, setup};
 
 /// One cargo invocation of the lint.
 pub struct Step {
@@ -55,8 +55,20 @@ pub const STEPS: &[Step] = &[
         env: &[],
     },
     Step {
-        what: "fmt: protocol fuzz target",
+        what: "fmt: protocol fuzz targets",
         dir: "crates/ihex-proto/fuzz",
+        args: &["fmt", "--check"],
+        env: &[],
+    },
+    Step {
+        what: "fmt: image fuzz targets",
+        dir: "crates/ihex-image/fuzz",
+        args: &["fmt", "--check"],
+        env: &[],
+    },
+    Step {
+        what: "fmt: gateway core fuzz targets",
+        dir: "crates/ihex-gateway-core/fuzz",
         args: &["fmt", "--check"],
         env: &[],
     },
@@ -153,6 +165,11 @@ pub fn run() -> Result<()> {
             println!("==> xtask: lint: {} FAILED: {e:#}", step.what);
             failed.push(step.what.to_string());
         }
+    }
+    println!("==> xtask: lint: fuzz targets (built with nightly, each run on its seeds)");
+    if let Err(e) = fuzz::run(0) {
+        println!("==> xtask: lint: fuzz targets FAILED: {e:#}");
+        failed.push("fuzz targets".to_string());
     }
     println!("==> xtask: lint: MSRV");
     if let Err(e) = msrv() {

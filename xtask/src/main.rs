@@ -2,12 +2,12 @@
 //! stage, streams their output, collects all failures and ends with `xtask: N passed, M failed`.
 
 mod bench;
-mod broker;
 mod browser;
 mod cantools;
 mod cmd;
 mod cpio;
 mod dbc;
+mod fuzz;
 mod fwsize;
 mod lint;
 mod prometheus;
@@ -75,6 +75,13 @@ enum Task {
     /// The fault suite as a soak: random faults for M minutes against the real gateway (in the
     /// microVM where vcan is missing), then the contract checker's verdict (docs/testing.md).
     Soak(SoakArgs),
+    /// Build every cargo-fuzz target (nightly) and run each for a bounded time, its seeds first
+    /// (docs/testing.md, "Fuzzing").
+    Fuzz {
+        /// How long each target runs (0: only its seeds, once each).
+        #[arg(long, default_value_t = 60)]
+        seconds: u64,
+    },
     /// Boot the SocketCAN microVM to an interactive shell (vcan0..15 up).
     VmShell {
         #[command(flatten)]
@@ -192,6 +199,7 @@ fn main() -> ExitCode {
             Err(e) => Err(e),
         },
         Task::VmShell { vm } => vcan::vm_shell(vm.settings()),
+        Task::Fuzz { seconds } => fuzz::run(seconds),
         Task::Soak(args) => soak(args),
         Task::Bench(args) => bench::run(args, &firmware_release_dir()),
         Task::Dbc { check: true, .. } => dbc::check(),

@@ -41,6 +41,10 @@ pub fn run() -> Result<()> {
         }
         Err(e) => problems.push(format!("{e:#}")),
     }
+    // The fuzz targets (the lint stage builds them and runs their seeds).
+    if let Err(e) = toolchain(crate::fuzz::TOOLCHAIN, &[]).and_then(|()| cargo_fuzz()) {
+        problems.push(format!("{e:#}"));
+    }
     if let Err(e) = packages() {
         problems.push(format!("{e:#}"));
     }
@@ -134,6 +138,25 @@ pub fn toolchain(version: &str, targets: &[&str]) -> Result<()> {
         Command::new("rustup")
             .args(["target", "add", "--toolchain", version])
             .args(&missing),
+    )
+}
+
+/// Installs cargo-fuzz [`crate::fuzz::CARGO_FUZZ_VERSION`] from crates.io unless that version is
+/// there (about 1.5 min of CPU, once).
+fn cargo_fuzz() -> Result<()> {
+    let version = crate::fuzz::CARGO_FUZZ_VERSION;
+    let installed = cmd::output(Command::new("cargo").args(["fuzz", "--version"]));
+    // `cargo-fuzz 0.13.2`
+    if installed.is_some_and(|v| v.split_whitespace().nth(1) == Some(version)) {
+        println!("setup: cargo-fuzz {version} present");
+        return Ok(());
+    }
+    cmd::run(
+        cmd::cargo()
+            .args(["install", "--locked", "cargo-fuzz", "--version", version])
+            // Its own build, not with the flags of whatever cargo started us.
+            .env_remove("CARGO_TARGET_DIR")
+            .env_remove("CARGO_BUILD_TARGET"),
     )
 }
 

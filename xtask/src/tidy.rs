@@ -10,7 +10,7 @@ use std::time::{Duration, Instant};
 
 use clap::CommandFactory;
 
-use crate::{cmd, lint, Cli, Stage, FIRMWARE_CHECKS};
+use crate::{cmd, fuzz, lint, Cli, Stage, FIRMWARE_CHECKS};
 
 fn read(rel: &str) -> String {
     let path = cmd::root().join(rel);
@@ -125,6 +125,149 @@ fn testing_md_shows_every_lint_command_and_firmware_check() {
             "docs/testing.md's firmware stage does not name `{shown}` ({what})"
         );
     }
+}
+
+#[test]
+fn every_fuzz_workspace_is_built_and_formatted() {
+    let found: Vec<String> = tracked_files()
+        .into_iter()
+        .filter(|f| f.ends_with("/fuzz/Cargo.toml") && read(f).contains("cargo-fuzz = true"))
+        .map(|f| f.trim_end_matches("/Cargo.toml").to_string())
+        .collect();
+    assert!(
+        found.iter().any(|f| f == "crates/ihex-proto/fuzz"),
+        "{found:?}"
+    );
+    for ws in &found {
+        assert!(
+            fuzz::WORKSPACES.contains(&ws.as_str()),
+            "{ws} is a cargo-fuzz workspace missing from xtask's fuzz::WORKSPACES (built by the lint stage)"
+        );
+        assert!(
+            lint::STEPS
+                .iter()
+                .any(|s| s.dir == ws && s.args.first() == Some(&"fmt")),
+            "{ws} has no fmt step in lint::STEPS"
+        );
+    }
+    for ws in fuzz::WORKSPACES {
+        assert!(
+            found.iter().any(|f| f == ws),
+            "fuzz::WORKSPACES names {ws}, which is no tracked cargo-fuzz workspace"
+        );
+    }
+}
+
+/// `(Type, NAME N)` labels of a diagram: (type, constant, value).
+fn channel_labels(diagram: &str) -> Vec<(String, String, usize)> {
+    let mut out = Vec::new();
+    for part in diagram.split('(').skip(1) {
+        let Some((inside, _)) = part.split_once(')') else {
+            continue;
+        };
+        let Some((ty, size)) = inside.split_once(", ") else {
+            continue;
+        };
+        let mut words = size.split_whitespace();
+        let (Some(name), Some(value), None) = (words.next(), words.next(), words.next()) else {
+            continue;
+        };
+        let is_const = name.chars().all(|c| c.is_ascii_uppercase() || c == '_');
+        if let (true, Ok(value)) = (is_const, value.parse()) {
+            out.push((ty.trim().to_string(), name.to_string(), value));
+        }
+    }
+    out
+}
+
+/// `const NAME: usize = VALUE;` definitions (with or without `pub`) in the Rust files under `dirs`,
+/// test modules included (a name defined twice is reported by the caller).
+fn usize_consts(dirs: &[&str]) -> Vec<(String, String, PathBuf)> {
+    let mut files = Vec::new();
+    for dir in dirs {
+        rust_files(&cmd::root().join(dir), &mut files);
+    }
+    let mut out = Vec::new();
+    for f in files {
+        for line in fs::read_to_string(&f).unwrap_or_default().lines() {
+            let line = line.trim();
+            let rest = line.strip_prefix("pub ").unwrap_or(line);
+            let Some(rest) = rest.strip_prefix("const ") else {
+                continue;
+            };
+            if let Some((name, value)) = rest.split_once(": usize = ") {
+                let value = value.trim_end_matches(';').replace('_', "");
+                out.push((name.to_string(), value, f.clone()));
+            }
+        }
+    }
+    out
+}
+
+#[test]
+fn gateway_diagram_names_the_channels_the_code_sizes() {
+    let doc = read("docs/gateway.md");
+    let inside = doc
+        .split("## Inside")
+        .nth(1)
+        .and_then(|s| s.split("```").nth(1))
+        .expect("docs/gateway.md has a diagram under `## Inside`");
+    let labels = channel_labels(inside);
+    assert!(labels.len() >= 5, "{labels:?}");
+    let consts = usize_consts(&["crates/mc-gateway/src", "crates/ihex-gateway-core/src"]);
+    let gateway_src = {
+        let mut files = Vec::new();
+        rust_files(&cmd::root().join("crates/mc-gateway/src"), &mut files);
+        files
+            .iter()
+            .map(|f| fs::read_to_string(f).unwrap_or_default())
+            .collect::<Vec<_>>()
+            .join("\n")
+    };
+    for (ty, name, value) in &labels {
+        let defs: Vec<_> = consts.iter().filter(|(n, _, _)| n == name).collect();
+        assert_eq!(
+            defs.len(),
+            1,
+            "docs/gateway.md's diagram names `{name}`: the code should define it once, found {defs:?}"
+        );
+        assert_eq!(
+            defs[0].1,
+            value.to_string(),
+            "docs/gateway.md's diagram says {name} is {value}; {} says {}",
+            defs[0].2.display(),
+            defs[0].1
+        );
+        assert!(
+            gateway_src.contains(&format!("Sender<{ty}>"))
+                || gateway_src.contains(&format!("Sender<Arc<{ty}>>")),
+            "docs/gateway.md's diagram says a channel carries `{ty}`: no `Sender<{ty}>` in mc-gateway"
+        );
+    }
+    // The other way: every channel the gateway sizes by a constant is in the diagram.
+    for kind in ["mpsc::channel(", "broadcast::channel(", "link.spawn("] {
+        for part in gateway_src.split(kind).skip(1) {
+            let arg: String = part
+                .chars()
+                .take_while(|c| c.is_ascii_alphanumeric() || *c == '_')
+                .collect();
+            if arg.len() > 1 && arg.chars().all(|c| c.is_ascii_uppercase() || c == '_') {
+                assert!(
+                    labels.iter().any(|(_, n, _)| *n == arg),
+                    "mc-gateway sizes a channel by `{arg}` ({kind}...), which docs/gateway.md's \
+                     `## Inside` diagram does not name"
+                );
+            }
+        }
+    }
+}
+
+#[test]
+fn channel_labels_read_type_constant_and_value() {
+    assert_eq!(
+        channel_labels("a ──(CanInput, CAN_INPUTS 1024)──► (demo: x, y) (Transmit, same channel)"),
+        [("CanInput".to_string(), "CAN_INPUTS".to_string(), 1024)]
+    );
 }
 
 /// The comment block at the top of a script (after the shebang and an optional re-exec line), without

@@ -12,7 +12,6 @@ use std::time::Duration;
 
 use anyhow::{anyhow, bail, Context, Result};
 
-use crate::broker::HostBroker;
 use crate::cmd;
 use crate::vm::{shared_libraries, Payload, Program, Vm};
 
@@ -147,16 +146,12 @@ fn run_native(ifaces: &[String], only: Option<&str>) -> Result<()> {
             .current_dir(cmd::root())
             .args(["build", "-p", "mc-gateway"]),
     )?;
-    let broker = HostBroker::start()?;
     let mut c = cmd::cargo();
     c.current_dir(cmd::root())
         .args(["test", "-p", "ihex-tests", "--features", "vcan"])
         .env("IHEX_TEST_CAN", ifaces.join(","));
     if let Some(test) = only {
         c.args(["--test", test]);
-    }
-    if let Some(b) = &broker {
-        c.env("IHEX_TEST_MQTT", b.addr.to_string());
     }
     cmd::run(&mut c)
 }
@@ -207,7 +202,7 @@ fn repo_files() -> Vec<PathBuf> {
 
 /// Variables the programs in the VM see: the test settings plus what cargo and the user set for
 /// tests (`RUST_*`, `IHEX_*`, `CARGO_PKG_*`, `CARGO_MANIFEST_DIR`...).
-fn guest_env(broker: Option<&HostBroker>) -> Vec<(String, String)> {
+fn guest_env() -> Vec<(String, String)> {
     let mut env: Vec<(String, String)> = std::env::vars()
         .filter(|(k, _)| {
             (k.starts_with("RUST_") && k != "RUSTUP_HOME")
@@ -216,26 +211,11 @@ fn guest_env(broker: Option<&HostBroker>) -> Vec<(String, String)> {
                 || k == "CARGO_MANIFEST_DIR"
                 || k == "CARGO_CRATE_NAME"
         })
-        .filter(|(k, _)| k != "IHEX_TEST_CAN" && k != "IHEX_TEST_MQTT")
+        .filter(|(k, _)| k != "IHEX_TEST_CAN")
         .collect();
     // TCG emulation is many times slower than the host: stretch the tests' deadlines.
     if !env.iter().any(|(k, _)| k == "IHEX_TEST_TIME_SCALE") {
         env.push(("IHEX_TEST_TIME_SCALE".into(), "5".into()));
-    }
-    // Slirp maps the guest's 10.0.2.2 to the host's loopback.
-    let mqtt = match broker {
-        Some(b) => Some(format!("10.0.2.2:{}", b.addr.port())),
-        None => std::env::var("IHEX_TEST_MQTT")
-            .ok()
-            .map(|v| match v.rsplit_once(':') {
-                Some((host, port)) if host == "127.0.0.1" || host == "localhost" => {
-                    format!("10.0.2.2:{port}")
-                }
-                _ => v,
-            }),
-    };
-    if let Some(m) = mqtt {
-        env.push(("IHEX_TEST_MQTT".into(), m));
     }
     env
 }
@@ -339,7 +319,6 @@ fn run_in_vm(settings: VmSettings, only: Option<&str>) -> Result<()> {
         programs.push((env, stripped_copy(&path)));
     }
     let vm = test_vm(settings)?;
-    let broker = HostBroker::start()?;
     // The binaries are dynamically linked: their libraries (glibc) go in at the host's paths.
     let mut files = repo_files();
     files.extend(programs.iter().map(|(_, p)| p.clone()));
@@ -364,7 +343,7 @@ fn run_in_vm(settings: VmSettings, only: Option<&str>) -> Result<()> {
             })
             .collect(),
         env: {
-            let mut env = guest_env(broker.as_ref());
+            let mut env = guest_env();
             for (var, path) in &programs {
                 env.push((var.to_string(), path.display().to_string()));
             }
@@ -429,12 +408,6 @@ fn stripped_copy(program: &Path) -> PathBuf {
 pub fn vm_run(settings: VmSettings, binary: &Path, args: &[String]) -> Result<i32> {
     let path = fs::canonicalize(binary).with_context(|| format!("{}", binary.display()))?;
     let vm = test_vm(settings)?;
-    // A broker the caller already runs (IHEX_TEST_MQTT) is reused, else one is started for this run.
-    let broker = if std::env::var_os("IHEX_TEST_MQTT").is_some() {
-        None
-    } else {
-        HostBroker::start()?
-    };
     let name = path
         .file_name()
         .unwrap_or_default()
@@ -455,7 +428,7 @@ pub fn vm_run(settings: VmSettings, binary: &Path, args: &[String]) -> Result<i3
             path,
             args: args.to_vec(),
         }],
-        env: guest_env(broker.as_ref()),
+        env: guest_env(),
         cwd: std::env::current_dir().ok(),
         files,
     };

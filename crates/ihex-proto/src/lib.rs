@@ -47,6 +47,8 @@ mod hex;
 mod message;
 pub mod schema;
 mod state;
+#[cfg(any(test, feature = "test-util"))]
+pub mod test_util;
 pub mod timing;
 pub mod uart;
 pub mod unit;

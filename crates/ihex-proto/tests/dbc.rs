@@ -16,6 +16,7 @@ use std::process::{Command, Stdio};
 use can_dbc::{ByteOrder, Dbc, MessageId, MultiplexIndicator, NumericValue, ValueType};
 use ihex_proto::dbc::{self, Layout, FRAME_ID_MASK};
 use ihex_proto::schema::{self, Direction, MessageSchema, Mux};
+use ihex_proto::test_util::id as node;
 use ihex_proto::{Header, Kind, NodeId, Packet};
 use proptest::strategy::{Strategy, ValueTree};
 use proptest::test_runner::TestRunner;
@@ -36,10 +37,6 @@ fn generate(layout: Layout<'_>) -> String {
     let mut text = String::new();
     dbc::write(&mut text, layout).unwrap();
     text
-}
-
-fn node(raw: u16) -> NodeId {
-    NodeId::new(raw).unwrap()
 }
 
 #[test]

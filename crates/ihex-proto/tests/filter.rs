@@ -4,11 +4,8 @@ use ihex_proto::filter::{
     self, accepts, bxcan_bits, kernel_bits, to_bxcan, to_kernel, BxcanBank, Filter, FilterError,
     KernelFilter, EFF, RTR, WORD_MASK,
 };
+use ihex_proto::test_util::id as node;
 use ihex_proto::{Message, NodeId, Packet, Port};
-
-fn node(raw: u16) -> NodeId {
-    NodeId::new(raw).unwrap()
-}
 
 /// The match word of an extended data frame.
 fn ext(id: u32) -> u32 {

@@ -284,10 +284,7 @@ impl Session {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    fn id(raw: u16) -> NodeId {
-        NodeId::new(raw).unwrap()
-    }
+    use ihex_proto::test_util::id;
 
     fn feed(dec: &mut ReplyDecoder, bytes: &[u8]) -> Vec<Result<UartReply, String>> {
         bytes

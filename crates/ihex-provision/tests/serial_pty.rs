@@ -15,6 +15,7 @@ use std::{
     time::{Duration, Instant},
 };
 
+use ihex_proto::test_util::id;
 use ihex_proto::{
     uart::{UartError, UartRequest},
     BootRole, NodeId, ResetReason, Uid,
@@ -162,10 +163,6 @@ fn drain(node: &mut Node, file: &mut File, fail_store: bool, seen: &Mutex<Seen>,
 
 fn session(path: &Path) -> Session {
     Session::new(SerialPort::open(path).unwrap(), Duration::from_secs(2))
-}
-
-fn id(raw: u16) -> NodeId {
-    NodeId::new(raw).unwrap()
 }
 
 #[test]

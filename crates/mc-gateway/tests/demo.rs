@@ -2,22 +2,19 @@
 //! driven by a real MQTT client. (The SocketCAN end-to-end tests are in `tests/tests/gateway_*.rs`.)
 #![cfg(feature = "demo")]
 
-use std::{net::TcpListener, time::Duration};
+use std::{
+    net::{SocketAddr, TcpListener},
+    time::Duration,
+};
 
+use ihex_tests::free_port;
+use ihex_tests::mqtt::Client;
 use mc_gateway::{config::Options, error::BrokerError, CancellationToken, Config, GatewayError};
-use rumqttc::{AsyncClient, Event, Incoming, MqttOptions, QoS};
+use rumqttc::QoS;
 use serde_json::Value;
 use tokio::sync::mpsc;
 
 const WAIT: Duration = Duration::from_secs(20);
-
-fn free_port() -> u16 {
-    TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
 
 fn demo_config(port: u16) -> Config {
     let cli = Options {
@@ -31,48 +28,18 @@ fn demo_config(port: u16) -> Config {
     c
 }
 
-/// A client subscribed to everything, forwarding (topic, payload).
-fn client(port: u16, name: &str) -> (AsyncClient, mpsc::UnboundedReceiver<(String, Vec<u8>)>) {
-    let mut o = MqttOptions::new(name, "127.0.0.1", port);
-    o.set_keep_alive(Duration::from_secs(5));
-    let (c, mut el) = AsyncClient::new(o, 32);
-    let (tx, rx) = mpsc::unbounded_channel();
-    let sub = c.clone();
-    tokio::spawn(async move {
-        loop {
-            match el.poll().await {
-                Ok(Event::Incoming(Incoming::ConnAck(_))) => {
-                    let _ = sub.try_subscribe("#", QoS::AtLeastOnce);
-                }
-                Ok(Event::Incoming(Incoming::Publish(p))) => {
-                    if tx.send((p.topic, p.payload.to_vec())).is_err() {
-                        return;
-                    }
-                }
-                Ok(_) => {}
-                Err(_) => tokio::time::sleep(Duration::from_millis(50)).await,
-            }
-        }
-    });
-    (c, rx)
+/// The test MQTT client of the demo broker on `port`, subscribed to everything.
+fn client(port: u16, name: &str) -> Client {
+    let mut c = Client::subscribed(SocketAddr::from(([127, 0, 0, 1], port)), name, &["#"]);
+    c.set_wait(WAIT);
+    c
 }
 
-async fn expect(
-    rx: &mut mpsc::UnboundedReceiver<(String, Vec<u8>)>,
-    what: &str,
-    pred: impl Fn(&str, &[u8]) -> bool,
-) -> Vec<u8> {
-    let fut = async {
-        while let Some((t, p)) = rx.recv().await {
-            if pred(&t, &p) {
-                return p;
-            }
-        }
-        panic!("client stopped");
-    };
-    tokio::time::timeout(WAIT, fut)
+/// The payload of the next message for which `pred(topic, payload)` holds.
+async fn expect(c: &mut Client, what: &str, pred: impl Fn(&str, &[u8]) -> bool) -> Vec<u8> {
+    c.expect_msg(what, |m| pred(&m.topic, &m.payload))
         .await
-        .unwrap_or_else(|_| panic!("timed out waiting for {what}"))
+        .payload
 }
 
 fn event(p: &[u8]) -> Value {
@@ -90,7 +57,8 @@ async fn the_demo_answers_commands_docks_and_says_goodbye() {
         stats.clone(),
     ));
     // run() returns only after the broker accepts connections; the client retries until then.
-    let (c, mut rx) = client(port, "demo-test");
+    let mut rx = client(port, "demo-test");
+    let c = rx.client.clone();
     expect(&mut rx, "online", |t, p| {
         t == "ihex/gateway/availability" && p == b"online"
     })
@@ -272,7 +240,7 @@ async fn publications_queued_before_the_broker_exists_are_delivered() {
     assert!(link.connected && link.last_error.is_none(), "{link:?}");
 
     // A client arriving later finds every queued (retained) publication.
-    let (_c, mut rx) = client(port, "late-reader");
+    let mut rx = client(port, "late-reader");
     let mut seen = std::collections::BTreeSet::new();
     while seen.len() < 5 {
         let p = expect(&mut rx, "the queued publications", |t, _| {

@@ -11,27 +11,19 @@
 
 use std::{
     io::{BufRead, BufReader},
-    net::TcpListener,
     path::{Path, PathBuf},
     process::{Child, Command, Stdio},
     time::Duration,
 };
 
 use fantoccini::{Client, ClientBuilder, Locator};
+use ihex_tests::free_port;
+use ihex_tests::mqtt::Client as MqttClient;
 use ihex_tests::time::scaled;
-use rumqttc::{AsyncClient, Event, Incoming, MqttOptions, QoS};
+use rumqttc::QoS;
 use serde_json::{json, Value};
-use tokio::sync::mpsc;
 
 const BIN: &str = env!("CARGO_BIN_EXE_mc-gateway");
-
-fn free_port() -> u16 {
-    TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
 
 /// A program on `PATH` (or named by the environment variable `var`).
 fn program(var: &str, names: &[&str]) -> PathBuf {
@@ -183,49 +175,20 @@ async fn browser(driver: &Driver, profile: &Path) -> Client {
     }
 }
 
-/// An MQTT client of the demo broker seeing every message; reconnects on its own.
-fn mqtt(port: u16) -> (AsyncClient, mpsc::UnboundedReceiver<(String, Value)>) {
-    let mut o = MqttOptions::new("browser-test", "127.0.0.1", port);
-    o.set_keep_alive(Duration::from_secs(5));
-    let (c, mut el) = AsyncClient::new(o, 32);
-    let (tx, rx) = mpsc::unbounded_channel();
-    let sub = c.clone();
-    tokio::spawn(async move {
-        loop {
-            match el.poll().await {
-                Ok(Event::Incoming(Incoming::ConnAck(_))) => {
-                    let _ = sub.try_subscribe("#", QoS::AtLeastOnce);
-                }
-                Ok(Event::Incoming(Incoming::Publish(p))) => {
-                    let v = serde_json::from_slice(&p.payload).unwrap_or(Value::Null);
-                    if tx.send((p.topic, v)).is_err() {
-                        return;
-                    }
-                }
-                Ok(_) => {}
-                Err(_) => tokio::time::sleep(Duration::from_millis(50)).await,
-            }
-        }
-    });
-    (c, rx)
+/// The test MQTT client of the demo broker on `port`, subscribed to everything.
+fn mqtt(port: u16) -> MqttClient {
+    MqttClient::subscribed(
+        std::net::SocketAddr::from(([127, 0, 0, 1], port)),
+        "browser-test",
+        &["#"],
+    )
 }
 
-async fn expect_mqtt(
-    rx: &mut mpsc::UnboundedReceiver<(String, Value)>,
-    what: &str,
-    pred: impl Fn(&str, &Value) -> bool,
-) -> Value {
-    let wait = async {
-        while let Some((t, v)) = rx.recv().await {
-            if pred(&t, &v) {
-                return v;
-            }
-        }
-        panic!("MQTT client stopped");
-    };
-    tokio::time::timeout(scaled(Duration::from_secs(10)), wait)
+/// The JSON of the next message for which `pred(topic, json)` holds.
+async fn expect_mqtt(c: &mut MqttClient, what: &str, pred: impl Fn(&str, &Value) -> bool) -> Value {
+    c.expect_msg(what, |m| pred(&m.topic, &m.json()))
         .await
-        .unwrap_or_else(|_| panic!("no {what} on MQTT"))
+        .json()
 }
 
 /// Evaluates `expr` in the page until it is `true`; fails after `within` (scaled) with `what`, the
@@ -331,7 +294,8 @@ fn attr(id: &str, name: &str) -> String {
 async fn the_island_view_follows_the_bench() {
     let (broker, http) = (free_port(), free_port());
     let gateway = Gateway::start(broker, http);
-    let (bus, mut rx) = mqtt(broker);
+    let mut rx = mqtt(broker);
+    let bus = rx.client.clone();
     let driver = Driver::start();
     let profile = tempfile::tempdir().unwrap();
     let c = browser(&driver, profile.path()).await;

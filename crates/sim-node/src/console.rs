@@ -274,12 +274,9 @@ pub fn view_line(v: &NodeView) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use ihex_proto::test_util::sc_id as id;
     use ihex_proto::Rgb;
     use ihex_sc_core::LedOutput;
-
-    fn id(raw: u16) -> NodeId {
-        NodeId::new_sc(raw).unwrap()
-    }
 
     #[test]
     fn parses_every_command() {

@@ -414,10 +414,7 @@ impl IslandDesc {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    fn id(raw: u16) -> NodeId {
-        NodeId::new_sc(raw).unwrap()
-    }
+    use ihex_proto::test_util::sc_id as id;
 
     fn invalid_at(text: &str) -> (usize, String) {
         match IslandDesc::parse(text) {

@@ -4,6 +4,7 @@
 
 use std::time::Duration;
 
+use ihex_proto::test_util::sc_id as id;
 use ihex_proto::{
     filter::gateway_filters, BootRole, LedCommand, Message, NodeId, Packet, Port, Rgb,
 };
@@ -44,10 +45,6 @@ impl Rng {
     fn below(&mut self, n: u64) -> u64 {
         self.next() % n
     }
-}
-
-fn id(raw: u16) -> NodeId {
-    NodeId::new_sc(raw).unwrap()
 }
 
 /// Checks the rules; returns how many mobile elements have power (so the run proves it got there).

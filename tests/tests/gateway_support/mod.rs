@@ -6,12 +6,11 @@
 use std::time::Duration;
 
 use ihex_proto::NodeId;
-use ihex_tests::broker::Mosquitto;
+use ihex_tests::{broker::Mosquitto, mqtt};
 use mc_gateway::{config::Options, CancellationToken, Config};
-use rumqttc::{AsyncClient, Event, Incoming, MqttOptions, QoS};
 use serde_json::Value;
 use sim_node::{link::Link, Island, IslandDesc, IslandHandle};
-use tokio::{sync::mpsc, task::JoinHandle};
+use tokio::task::JoinHandle;
 
 /// Generous deadline for one expected message (scaled in the VM by `IHEX_TEST_TIME_SCALE`).
 pub const WAIT: Duration = Duration::from_secs(10);
@@ -25,88 +24,42 @@ pub fn id(hex: &str) -> NodeId {
 }
 
 /// One MQTT message seen by the test client.
-#[derive(Clone, Debug)]
-pub struct Seen {
-    pub topic: String,
-    pub payload: Vec<u8>,
-    /// Delivered as a retained message (sent on subscribing), not live.
-    pub retain: bool,
-}
+pub use ihex_tests::mqtt::Message as Seen;
 
-impl Seen {
-    pub fn json(&self) -> Value {
-        serde_json::from_slice(&self.payload).unwrap_or(Value::Null)
-    }
-}
-
-/// A test MQTT client subscribed to `filter`; reconnects (and re-subscribes) on its own.
+/// The rig's recorder: the one MQTT test client ([`mqtt::Client`]) subscribed to the island's
+/// topics, with the messages it has seen so far in `log` (its ConnAcks, SubAcks and PubAcks left
+/// out).
 pub struct Client {
-    pub client: AsyncClient,
-    rx: mpsc::UnboundedReceiver<Seen>,
-    task: JoinHandle<()>,
-    /// Everything received so far, in order.
+    /// rumqttc's handle, to publish and subscribe.
+    pub client: rumqttc::AsyncClient,
+    inner: mqtt::Client,
+    /// Every message received so far, in order.
     pub log: Vec<Seen>,
+    /// How much of the inner client's log is in `log`.
+    synced: usize,
 }
 
 impl Client {
     pub fn connect(broker: std::net::SocketAddr, name: &str, filters: &[String]) -> Client {
-        let mut o = MqttOptions::new(name, broker.ip().to_string(), broker.port());
-        o.set_keep_alive(Duration::from_secs(5))
-            .set_max_packet_size(1 << 21, 1 << 21);
-        let (client, mut el) = AsyncClient::new(o, 64);
-        let (tx, rx) = mpsc::unbounded_channel();
-        let c = client.clone();
-        let filters = filters.to_vec();
-        let task = tokio::spawn(async move {
-            loop {
-                match el.poll().await {
-                    Ok(Event::Incoming(Incoming::ConnAck(_))) => {
-                        for f in &filters {
-                            let _ = c.try_subscribe(f.clone(), QoS::AtLeastOnce);
-                        }
-                    }
-                    Ok(Event::Incoming(Incoming::Publish(p))) => {
-                        let _ = tx.send(Seen {
-                            topic: p.topic,
-                            payload: p.payload.to_vec(),
-                            retain: p.retain,
-                        });
-                    }
-                    Ok(_) => {}
-                    Err(_) => tokio::time::sleep(Duration::from_millis(100)).await,
-                }
-            }
-        });
+        let inner = mqtt::Client::subscribed(broker, name, filters);
         Client {
-            client,
-            rx,
-            task,
+            client: inner.client.clone(),
+            inner,
             log: Vec::new(),
+            synced: 0,
         }
+    }
+
+    fn sync(&mut self) {
+        self.log.extend(self.inner.messages_since(self.synced));
+        self.synced = self.inner.log.len();
     }
 
     /// Waits for the first message (from now on) that `pred` accepts; panics with `what` on timeout.
     pub async fn expect(&mut self, what: &str, pred: impl Fn(&Seen) -> bool) -> Seen {
-        let deadline = tokio::time::Instant::now() + ihex_tests::time::scaled(WAIT);
-        loop {
-            match tokio::time::timeout_at(deadline, self.rx.recv()).await {
-                Ok(Some(m)) => {
-                    self.log.push(m.clone());
-                    if pred(&m) {
-                        return m;
-                    }
-                }
-                Ok(None) => panic!("test client stopped while waiting for {what}"),
-                Err(_) => panic!(
-                    "timed out waiting for {what}; seen:\n{}",
-                    self.log
-                        .iter()
-                        .map(|m| format!("  {} {}", m.topic, String::from_utf8_lossy(&m.payload)))
-                        .collect::<Vec<_>>()
-                        .join("\n")
-                ),
-            }
-        }
+        let m = self.inner.expect_msg(what, pred).await;
+        self.sync();
+        m
     }
 
     /// Waits for an event named `name` on `events` whose payload passes `pred`.
@@ -116,34 +69,20 @@ impl Client {
         name: &str,
         pred: impl Fn(&Value) -> bool,
     ) -> Value {
-        let what = format!("{name} on {events}");
-        self.expect(&what, |m| {
-            let v = m.json();
-            m.topic == events && v["event"] == name && pred(&v["payload"])
-        })
-        .await
-        .json()
+        let v = self.inner.expect_event(events, name, pred).await;
+        self.sync();
+        v
     }
 
     /// Everything received so far without waiting more.
     pub fn drain(&mut self) -> &[Seen] {
-        while let Ok(m) = self.rx.try_recv() {
-            self.log.push(m);
-        }
+        self.inner.drain();
+        self.sync();
         &self.log
     }
 
     pub async fn publish(&self, topic: &str, payload: impl Into<Vec<u8>>) {
-        self.client
-            .publish(topic, QoS::AtLeastOnce, false, payload.into())
-            .await
-            .expect("queue publish");
-    }
-}
-
-impl Drop for Client {
-    fn drop(&mut self) {
-        self.task.abort();
+        self.inner.publish(topic, payload).await;
     }
 }
 

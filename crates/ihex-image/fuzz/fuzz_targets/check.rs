@@ -7,8 +7,8 @@
 
 use ihex_image::board::F303RE;
 use ihex_image::{
-    check_signed, elf, test_key, verify_image, Board, FirmwareVersion, Header, Inspection,
-    Policy, HEADER_LEN,
+    check_signed, elf, test_key, verify_image, Board, FirmwareVersion, Header, Inspection, Policy,
+    HEADER_LEN,
 };
 use libfuzzer_sys::fuzz_target;
 
@@ -17,7 +17,12 @@ fuzz_target!(|input: &[u8]| {
         return;
     };
     if mode % 2 == 0 {
-        let mut policy = Policy::new(Board::NUCLEO_F303RE, &F303RE, 1, FirmwareVersion::new(1, 0, 0));
+        let mut policy = Policy::new(
+            Board::NUCLEO_F303RE,
+            &F303RE,
+            1,
+            FirmwareVersion::new(1, 0, 0),
+        );
         policy.allow_downgrade = mode & 2 != 0;
         if let Ok(h) = Header::parse(data) {
             assert_eq!(&h.encode()[..], &data[..HEADER_LEN]);

@@ -167,6 +167,7 @@ pub fn parse_layout(text: &str) -> Result<Layout, String> {
 mod tests {
     use super::*;
     use crate::config::Options;
+    use ihex_proto::test_util::id;
 
     fn web(
         http: Option<&str>,
@@ -180,10 +181,6 @@ mod tests {
             ..Options::default()
         };
         WebConfig::from_settings(&o.settings()?)
-    }
-
-    fn id(raw: u16) -> NodeId {
-        NodeId::new(raw).unwrap()
     }
 
     #[test]

@@ -5,9 +5,11 @@
 
 use std::time::Duration;
 
+use ihex_proto::test_util::port;
+pub use ihex_proto::test_util::sc_id as id;
 use ihex_proto::{
     filter::gateway_filters, AckResult, BootRole, BuzzerCommand, DockPartner, DockState,
-    FirmwareVersion, Kind, LedCommand, Message, NodeId, Packet, Port, PowerState, ResetReason, Rgb,
+    FirmwareVersion, Kind, LedCommand, Message, NodeId, Packet, PowerState, ResetReason, Rgb,
     StateParts, StateReport,
 };
 use ihex_sc_core::{BuzzerOutput, LedOutput};
@@ -28,15 +30,6 @@ fn scaled(d: Duration) -> Duration {
         .filter(|f| f.is_finite() && *f > 0.0)
         .unwrap_or(1.0);
     d.mul_f64(f)
-}
-
-/// A node ID from its raw value.
-pub fn id(raw: u16) -> NodeId {
-    NodeId::new_sc(raw).expect("valid SC id")
-}
-
-fn port(raw: u8) -> Port {
-    Port::new(raw).expect("valid port")
 }
 
 /// The island every scenario uses: two static hexagons (111 with 6 ports, 112 with 4 and a

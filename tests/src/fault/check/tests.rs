@@ -4,13 +4,10 @@ use ihex_proto::{LedCommand, Message, NodeId, Packet, Rgb};
 
 use super::*;
 use crate::fault::trace::{Params, Record};
+use crate::id;
 
 const EVENTS: &str = "t/EventsTopic";
 const AVAIL: &str = "t/ihex/gateway/availability";
-
-fn id(raw: u16) -> NodeId {
-    NodeId::new(raw).unwrap()
-}
 
 /// A trace under construction.
 #[derive(Default)]
