@@ -6,6 +6,7 @@
 //! The SocketCAN tests live behind the `vcan` feature and expect `IHEX_TEST_CAN` to name the
 //! interfaces they may use. `cargo xtask test` sets it up: natively when the host has vcan,
 //! otherwise inside a QEMU microVM (see `docs/testing.md`).
+#![forbid(unsafe_code)]
 #![warn(missing_docs)]
 
 pub mod bin;

@@ -1,5 +1,6 @@
 //! `cargo xtask`: the project's automation. `cargo xtask test` is THE test command: it runs every
 //! stage, streams their output, collects all failures and ends with `xtask: N passed, M failed`.
+#![forbid(unsafe_code)]
 
 mod bench;
 mod browser;

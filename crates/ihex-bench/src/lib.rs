@@ -10,6 +10,7 @@
 //! real gateway process over SocketCAN and Mosquitto; `islands`: 16 gateways with simulated
 //! islands on one Mosquitto; `callgrind`: the workload under valgrind),
 //! which use `anyhow` like the other tools; this library has no I/O and no error type.
+#![forbid(unsafe_code)]
 #![warn(missing_docs)]
 
 pub mod bus;

@@ -1,5 +1,6 @@
 //! `ihex-bench`: the benchmark programs `cargo xtask bench` runs (live over SocketCAN + Mosquitto,
 //! islands per broker, the callgrind workload) and the report it prints. See docs/benchmarks.md.
+#![forbid(unsafe_code)]
 
 use std::path::PathBuf;
 

@@ -7,6 +7,7 @@
 //! - [`api`] and [`mqtt`]: the gateway's JSON commands and events, and a short MQTT session.
 //!
 //! Both paths refuse reserved (`000`, `ffe`, `fff`), oversized and duplicate IDs before anything is sent.
+#![forbid(unsafe_code)]
 #![warn(missing_docs)]
 
 pub mod api;

@@ -1,5 +1,6 @@
 //! `ihex-provision`: give sub-controllers their node IDs (serial or CAN), watch the gateway's events,
 //! make signed firmware images and update nodes through the gateway (`fw`).
+#![forbid(unsafe_code)]
 
 mod fw;
 

@@ -14,7 +14,8 @@
 //! frames, drops, undecodable frames, faults, rate limits), `forget` (the `forget` command and
 //! renumbered boards), `readback` (asking nodes for their state and applying their answers),
 //! `inherited` (state documents an earlier run left retained for nodes this run does not hear),
-//! `output` (the queues the adapters drain, and what gives when they cannot keep up).
+//! `output` (the queues the adapters drain, each frame tagged with the concern that queued it,
+//! and what gives when they cannot keep up), `timer` (every timer in one table).
 
 pub(crate) mod diagnostics;
 mod forget;
@@ -697,7 +698,7 @@ impl Bridge {
         self.fw.poll_load()
     }
 
-    /// Runs the timers ([`timer::Timer`], in their order): firmware update rounds, frames never
+    /// Runs every timer of the timer table, in its order: firmware update rounds, frames never
     /// confirmed, command withdrawals and ack timeouts, read-back answers, inherited documents,
     /// the docking handshake, the health broadcast and lost nodes, the report of dropped
     /// publications. Each acts on what is due by `now`.

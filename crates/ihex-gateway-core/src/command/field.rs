@@ -122,7 +122,7 @@ impl<'a> Fields<'a> {
     }
 
     /// ``cmd: `field` must be EXPECTED; got VALUE``.
-    pub(crate) fn bad(&self, name: &str, expected: &str, got: &Json) -> CommandError {
+    pub(crate) fn bad(&self, name: &str, expected: &str, got: &Json<'_>) -> CommandError {
         self.invalid(format!(
             "`{}{name}` must be {expected}; got {}",
             self.prefix,

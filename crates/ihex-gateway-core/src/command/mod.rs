@@ -425,7 +425,7 @@ fn color_help() -> String {
 }
 
 /// `color`; `None` = the colour "off".
-fn color(f: &Fields<'_>, v: &Json) -> Result<Option<Rgb>, CommandError> {
+fn color(f: &Fields<'_>, v: &Json<'_>) -> Result<Option<Rgb>, CommandError> {
     let bad = || f.bad("color", &color_help(), v);
     match v {
         Json::String(s) => {
