@@ -1006,6 +1006,7 @@ impl Bridge {
                 StateReport::ImageHash(h) => e.image_hash = Some(h),
                 StateReport::UidLow(l) => low = Some(l),
                 StateReport::UidHigh(h) => high = Some(h),
+                StateReport::Protocol { version } => e.version = Some(version),
                 _ => {}
             }
         }
