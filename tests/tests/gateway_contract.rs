@@ -21,6 +21,11 @@ fn last_on<'a>(log: impl DoubleEndedIterator<Item = &'a Seen>, topic: &str) -> O
 async fn a_restarted_gateway_reads_the_island_back_and_runs_no_retained_command() {
     let mut rig = Rig::start("restart").await;
     let events = rig.events();
+    rig.client
+        .client
+        .subscribe("homeassistant/device/+/config", QoS::AtLeastOnce)
+        .await
+        .unwrap();
     // The built-in island docks 2 on 111 port 3 at start.
     rig.client
         .expect_event(&events, "new_connection", |p| p["n"]["id"] == "2")
@@ -98,9 +103,28 @@ async fn a_restarted_gateway_reads_the_island_back_and_runs_no_retained_command(
             })
             .await;
     }
-    // Firmware identity is read back too.
-    let firmware = last_on(client.log[before..].iter(), &s112).unwrap()["firmware"].clone();
-    assert!(firmware["version"].is_string(), "{firmware}");
+    let (major, minor) = ihex_proto::PROTOCOL_VERSION;
+    let protocol = format!("{major}.{minor}");
+    let firmware = sim_node::desc::DEFAULT_FIRMWARE.to_string();
+    // Firmware identity and the protocol version are read back too (issue 29: the version was
+    // null after a restart, until the node rebooted), and Home Assistant's device shows the
+    // firmware version (issue 33).
+    for topic in [&s111, &s112, &s2] {
+        let want = |d: &Value| d["version"] == protocol && d["firmware"]["version"] == firmware;
+        if last_on(client.log[before..].iter(), topic).is_some_and(|d| want(&d)) {
+            continue;
+        }
+        client
+            .expect("both versions read back", |m| {
+                m.topic == *topic && want(&m.json())
+            })
+            .await;
+    }
+    let ha_config = "homeassistant/device/ihex_restart_111/config";
+    let sw = |m: &Seen| m.topic == ha_config && m.json()["device"]["sw_version"] == firmware;
+    if !client.log[before..].iter().any(sw) {
+        client.expect("111's sw_version", sw).await;
+    }
     // A list answered now shows the same, and nothing announced the old docking as new.
     client
         .client

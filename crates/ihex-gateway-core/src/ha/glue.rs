@@ -125,6 +125,7 @@ mod tests {
             (3, BootRole::Mobile, 2),
         ] {
             b.handle_packet(Packet::report(id(n), boot(role, ports)), t0 + MS);
+            read_back_all(&mut b, t0 + MS);
             let o = drain(&mut b);
             out.ha.extend(o.ha);
             out.states.extend(o.states);
