@@ -6,11 +6,33 @@
 
 mod gateway_support;
 
-use gateway_support::{id, Gateway, Rig, Seen};
+use gateway_support::{id, Client, Gateway, Rig, Seen};
 use ihex_proto::Rgb;
 use ihex_sc_core::BuzzerOutput;
 use rumqttc::QoS;
 use serde_json::{json, Value};
+
+/// The state documents in `log` that show an online node with a field unknown (`null`): what a
+/// restarted gateway must never publish (issue 29) — every one of them was known before.
+fn half_known<'a>(log: impl Iterator<Item = &'a Seen>, root: &str) -> Vec<String> {
+    const FIELDS: [&str; 8] = [
+        "role", "ports", "version", "firmware", "uid", "led", "buzzer", "relay",
+    ];
+    log.filter(|m| m.topic.starts_with(root) && m.topic.ends_with("/state"))
+        .filter_map(|m| {
+            let d = m.json();
+            let unknown: Vec<&str> = FIELDS.into_iter().filter(|f| d[f].is_null()).collect();
+            (d["online"] == true && !unknown.is_empty()).then(|| {
+                format!(
+                    "{} ({} null): {}",
+                    m.topic,
+                    unknown.join(", "),
+                    String::from_utf8_lossy(&m.payload)
+                )
+            })
+        })
+        .collect()
+}
 
 /// The last message on `topic` in `log`, as JSON.
 fn last_on<'a>(log: impl DoubleEndedIterator<Item = &'a Seen>, topic: &str) -> Option<Value> {
@@ -21,6 +43,11 @@ fn last_on<'a>(log: impl DoubleEndedIterator<Item = &'a Seen>, topic: &str) -> O
 async fn a_restarted_gateway_reads_the_island_back_and_runs_no_retained_command() {
     let mut rig = Rig::start("restart").await;
     let events = rig.events();
+    rig.client
+        .client
+        .subscribe("homeassistant/device/+/config", QoS::AtLeastOnce)
+        .await
+        .unwrap();
     // The built-in island docks 2 on 111 port 3 at start.
     rig.client
         .expect_event(&events, "new_connection", |p| p["n"]["id"] == "2")
@@ -66,6 +93,8 @@ async fn a_restarted_gateway_reads_the_island_back_and_runs_no_retained_command(
         .await;
 
     let gateway = Gateway::start(addr, &iface, "restart");
+    // A dashboard starting during the restart window: what it reads must be true or absent.
+    let mut late = Client::connect(addr, "test-restart-late", &[format!("{root}/+/state")]);
     let rejected = client
         .expect_event(&events, "command_rejected", |p| p["request_id"] == "stale")
         .await;
@@ -98,9 +127,28 @@ async fn a_restarted_gateway_reads_the_island_back_and_runs_no_retained_command(
             })
             .await;
     }
-    // Firmware identity is read back too.
-    let firmware = last_on(client.log[before..].iter(), &s112).unwrap()["firmware"].clone();
-    assert!(firmware["version"].is_string(), "{firmware}");
+    let (major, minor) = ihex_proto::PROTOCOL_VERSION;
+    let protocol = format!("{major}.{minor}");
+    let firmware = sim_node::desc::DEFAULT_FIRMWARE.to_string();
+    // Firmware identity and the protocol version are read back too (issue 29: the version was
+    // null after a restart, until the node rebooted), and Home Assistant's device shows the
+    // firmware version (issue 33).
+    for topic in [&s111, &s112, &s2] {
+        let want = |d: &Value| d["version"] == protocol && d["firmware"]["version"] == firmware;
+        if last_on(client.log[before..].iter(), topic).is_some_and(|d| want(&d)) {
+            continue;
+        }
+        client
+            .expect("both versions read back", |m| {
+                m.topic == *topic && want(&m.json())
+            })
+            .await;
+    }
+    let ha_config = "homeassistant/device/ihex_restart_111/config";
+    let sw = |m: &Seen| m.topic == ha_config && m.json()["device"]["sw_version"] == firmware;
+    if !client.log[before..].iter().any(sw) {
+        client.expect("111's sw_version", sw).await;
+    }
     // A list answered now shows the same, and nothing announced the old docking as new.
     client
         .client
@@ -128,6 +176,14 @@ async fn a_restarted_gateway_reads_the_island_back_and_runs_no_retained_command(
         .filter(|m| m.topic == events && m.json()["event"] == "new_connection")
         .collect();
     assert!(false_news.is_empty(), "{false_news:?}");
+    // Nothing half-known was ever published by the restarted gateway, to a subscriber that was
+    // there or one that came during the window.
+    let wrong = half_known(client.drain()[before..].iter(), &root);
+    assert!(wrong.is_empty(), "{wrong:#?}");
+    late.expect("the late subscriber sees 111", |m| m.topic == s111)
+        .await;
+    let wrong = half_known(late.drain().iter(), &root);
+    assert!(wrong.is_empty(), "{wrong:#?}");
     // The retained command was never executed.
     let a = island.actuators(id("112")).await.unwrap();
     assert_eq!(a.buzzer, BuzzerOutput::Off);

@@ -370,6 +370,11 @@ pub struct DockFailed {
     pub port: u8,
     /// Why (`handshake timeout after 5000 ms`, `confirm refused: invalid_state`, …).
     pub reason: String,
+    /// The static element's relay as the gateway left it: `false` switched off (it was off
+    /// before the docking and nothing else is docked there), `true` left on (it was on before
+    /// the docking, or other elements are docked there), `null` not touched by the gateway.
+    #[serde(default)]
+    pub relay: Option<bool>,
 }
 
 /// Payload of `node_list`, the answer to the `list` command.

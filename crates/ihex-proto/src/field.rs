@@ -259,6 +259,14 @@ pub mod state_report {
     /// The `UidHigh` part: unique-ID bytes 7–11.
     pub const UID_HIGH: Field = 1..6;
 
+    /// The `Protocol` part: the protocol version the node speaks.
+    pub mod protocol {
+        /// Major version.
+        pub const MAJOR: usize = 1;
+        /// Minor version.
+        pub const MINOR: usize = 2;
+    }
+
     /// The `End` part, closing the reply to one query.
     pub mod end {
         /// Sequence number of the query answered.

@@ -73,5 +73,5 @@ pub const BITRATE: u32 = 500_000;
 /// Protocol version carried in [`Message::BootUp`]: bump the minor on additions, the major on any
 /// change an old peer would misread. 1.1 added state read-back (`StateQuery`, `StateReport`) and
 /// dock links (`DockLink`); 1.2 firmware transfer (`FwBegin`, `FwEnd`, `FwQuery`, `FwStatus`,
-/// `FwData`).
-pub const PROTOCOL_VERSION: (u8, u8) = (1, 2);
+/// `FwData`); 1.3 the `Protocol` part of the state read-back.
+pub const PROTOCOL_VERSION: (u8, u8) = (1, 3);

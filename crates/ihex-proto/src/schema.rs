@@ -698,7 +698,7 @@ static STATE_QUERY: [Signal; 5] = concat(&[
 /// `StateReport`: `part` selects the layout of bytes 1 to 7. Every part number has one: the known
 /// parts their fields (prefixed with the part's name, the UID bytes named as in `AssignSelect`),
 /// every other number the raw bytes of [`StateReport::Other`].
-static STATE_REPORT: [Signal; 68] = concat(&[
+static STATE_REPORT: [Signal; 72] = concat(&[
     &[Signal::byte(
         "part",
         state_report::PART,
@@ -906,6 +906,34 @@ static STATE_REPORT: [Signal; 68] = concat(&[
     )
     .when(&[StateReport::UID_HIGH])],
     &in_part(
+        [
+            Signal::byte(
+                "major",
+                state_report::protocol::MAJOR,
+                "protocol version the node speaks, major (as in its BootUp)",
+            ),
+            Signal::byte(
+                "minor",
+                state_report::protocol::MINOR,
+                "protocol version the node speaks, minor",
+            ),
+            // Five reserved bytes: a signal carries at most 32 bits.
+            Signal::reserved(
+                "reserved",
+                state_report::protocol::MINOR + 1,
+                STATE_REPORT_LEN - 1,
+            ),
+            Signal::reserved("reserved", STATE_REPORT_LEN - 1, STATE_REPORT_LEN),
+        ],
+        [
+            "protocol_major",
+            "protocol_minor",
+            "protocol_reserved",
+            "protocol_reserved_7",
+        ],
+        &[StateReport::PROTOCOL],
+    ),
+    &in_part(
         concat::<7>(&[
             &[Signal::byte(
                 "seq",
@@ -1042,6 +1070,7 @@ const PART_NAMES: &[(u8, &str)] = &[
     (StateReport::IMAGE_HASH, "image_hash"),
     (StateReport::UID_LOW, "uid_low"),
     (StateReport::UID_HIGH, "uid_high"),
+    (StateReport::PROTOCOL, "protocol"),
     (StateReport::END, "end"),
 ];
 
@@ -1130,7 +1159,7 @@ const fn state_groups(byte: usize) -> [Signal; 4] {
             "",
             byte,
             StateParts::IDENTITY,
-            "group identity: the firmware, image_hash, uid_low and uid_high parts",
+            "group identity: the firmware, image_hash, uid_low, uid_high and protocol parts",
         ),
         Signal::bits(
             "",

@@ -32,7 +32,7 @@ impl StateParts {
     pub const ACTUATORS: u8 = 1 << 0;
     /// One `Dock(port)` part per port that is closed, confirmed or linked.
     pub const DOCKING: u8 = 1 << 1;
-    /// Parts `Firmware`, `ImageHash`, `UidLow`, `UidHigh`.
+    /// Parts `Firmware`, `ImageHash`, `UidLow`, `UidHigh`, `Protocol`.
     pub const IDENTITY: u8 = 1 << 2;
     /// Every group this version defines.
     pub const ALL: StateParts = StateParts(Self::ACTUATORS | Self::DOCKING | Self::IDENTITY);
@@ -205,6 +205,12 @@ pub enum StateReport {
     UidLow([u8; 7]),
     /// `0x23`: unique-ID bytes 7–11 ([`crate::Uid::high`]).
     UidHigh([u8; 5]),
+    /// `0x24` (protocol 1.3): the protocol version the node speaks, as its `BootUp` announces it,
+    /// so that a gateway that missed the `BootUp` (it restarted) still knows it.
+    Protocol {
+        /// `(major, minor)`, as [`crate::PROTOCOL_VERSION`].
+        version: (u8, u8),
+    },
     /// `0xFF`: the reply to one query is complete.
     End {
         /// The query's sequence number.
@@ -240,6 +246,8 @@ impl StateReport {
     pub const UID_LOW: u8 = 0x22;
     /// Part number of [`StateReport::UidHigh`].
     pub const UID_HIGH: u8 = 0x23;
+    /// Part number of [`StateReport::Protocol`].
+    pub const PROTOCOL: u8 = 0x24;
     /// Part number of [`StateReport::End`].
     pub const END: u8 = 0xFF;
 
@@ -257,6 +265,7 @@ impl StateReport {
             StateReport::ImageHash(_) => Self::IMAGE_HASH,
             StateReport::UidLow(_) => Self::UID_LOW,
             StateReport::UidHigh(_) => Self::UID_HIGH,
+            StateReport::Protocol { .. } => Self::PROTOCOL,
             StateReport::End { .. } => Self::END,
             StateReport::Other { part, .. } => *part,
         }
@@ -272,6 +281,7 @@ impl StateReport {
                     | Self::IMAGE_HASH
                     | Self::UID_LOW
                     | Self::UID_HIGH
+                    | Self::PROTOCOL
                     | Self::END
         )
     }
@@ -329,6 +339,12 @@ impl StateReport {
             StateReport::ImageHash(h) => b[f::IMAGE_HASH].copy_from_slice(&h),
             StateReport::UidLow(u) => b[f::UID_LOW].copy_from_slice(&u),
             StateReport::UidHigh(u) => b[f::UID_HIGH].copy_from_slice(&u),
+            StateReport::Protocol {
+                version: (major, minor),
+            } => {
+                b[f::protocol::MAJOR] = major;
+                b[f::protocol::MINOR] = minor;
+            }
             StateReport::End { seq, parts, count } => {
                 b[f::end::SEQ] = seq;
                 b[f::end::PARTS] = parts.0;
@@ -417,6 +433,12 @@ impl StateReport {
                 let mut high = [0; 5];
                 high.copy_from_slice(&d[f::UID_HIGH]);
                 StateReport::UidHigh(high)
+            }
+            Self::PROTOCOL => {
+                reserved(kind, d, f::protocol::MINOR + 1)?;
+                StateReport::Protocol {
+                    version: (d[f::protocol::MAJOR], d[f::protocol::MINOR]),
+                }
             }
             Self::END => {
                 reserved(kind, d, f::end::COUNT + 1)?;

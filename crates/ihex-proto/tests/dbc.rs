@@ -222,13 +222,13 @@ fn can_dbc_reads_multiplexed_signals() {
     check_message(&dbc, &dbc.messages[0], &example, dbc::SC, &[dbc::GATEWAY]);
 
     // The state reports of the committed file: the dock parts as one range, the part numbers this
-    // version does not know (around 0x00-0x02, 0x10-0x17, 0x20-0x23 and 0xFF) as three.
+    // version does not know (around 0x00-0x02, 0x10-0x17, 0x20-0x24 and 0xFF) as three.
     let committed = std::fs::read_to_string(committed_path()).unwrap();
     for line in [
         " SG_ part M : 0|8@1+ (1,0) [0|255] \"\" Gateway\n",
         " SG_ dock_partner m16 : 16|16@1+ (1,0) [1|4095] \"\" Gateway\n",
         "SG_MUL_VAL_ 2449473536 dock_partner part 16-23;\n",
-        "SG_MUL_VAL_ 2449473536 data_1 part 3-15, 24-31, 36-254;\n",
+        "SG_MUL_VAL_ 2449473536 data_1 part 3-15, 24-31, 37-254;\n",
     ] {
         assert!(committed.contains(line), "{line}");
     }

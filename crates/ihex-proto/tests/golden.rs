@@ -1103,7 +1103,7 @@ fn docking_sequence_dump() {
             },
         ),
         0x0B00_0002,
-        &[0x01, 0x02, 0x01, 0x01, 0x00],
+        &[0x01, 0x03, 0x01, 0x01, 0x00],
     );
     golden(
         Packet::report(m, Message::Handshake { port: port(0) }),
@@ -1197,7 +1197,7 @@ fn assignment_sequence_dump() {
     golden(
         Packet::report(id, boot),
         0x0B00_0111,
-        &[0x01, 0x02, 0x00, 0x06, 0x00],
+        &[0x01, 0x03, 0x00, 0x06, 0x00],
     );
 }
 
@@ -1450,6 +1450,16 @@ fn state_report_parts() {
     rejected(id, &[0x23, 8, 9, 10, 11, 12, 1, 0], bad("reserved", 1));
     rejected(id, &[0x23, 8, 9, 10, 11, 12, 0, 1], bad("reserved", 1));
 
+    // 0x24 Protocol (1.3): the version a `BootUp` announces, for a gateway that missed it.
+    let protocol = |major, minor| StateReport::Protocol {
+        version: (major, minor),
+    };
+    golden(r(protocol(1, 3)), id, &[0x24, 1, 3, 0, 0, 0, 0, 0]);
+    golden(r(protocol(0, 0)), id, &[0x24, 0, 0, 0, 0, 0, 0, 0]);
+    golden(r(protocol(255, 255)), id, &[0x24, 255, 255, 0, 0, 0, 0, 0]);
+    rejected(id, &[0x24, 1, 3, 1, 0, 0, 0, 0], bad("reserved", 1));
+    rejected(id, &[0x24, 1, 3, 0, 0, 0, 0, 9], bad("reserved", 9));
+
     // 0xFF End.
     let end = |seq, parts, count| StateReport::End {
         seq,
@@ -1466,7 +1476,7 @@ fn state_report_parts() {
     rejected(id, &[0xFF, 0x31, 7, 8, 1, 0, 0, 0], bad("reserved", 1));
 
     // Unknown parts are kept whole: an older gateway survives a newer node.
-    for part in [0x03u8, 0x0F, 0x18, 0x1F, 0x24, 0x80, 0xFE] {
+    for part in [0x03u8, 0x0F, 0x18, 0x1F, 0x25, 0x2F, 0x80, 0xFE] {
         assert!(!StateReport::is_known_part(part));
         let other = StateReport::Other {
             part,
@@ -1476,7 +1486,7 @@ fn state_report_parts() {
         assert_eq!(other.part(), part);
     }
     // ... but an `Other` may not use a known number: its bytes would decode as that part.
-    for part in [0x00u8, 0x02, 0x10, 0x17, 0x20, 0x23, 0xFF] {
+    for part in [0x00u8, 0x02, 0x10, 0x17, 0x20, 0x23, 0x24, 0xFF] {
         assert!(StateReport::is_known_part(part));
         let m = Message::StateReport(StateReport::Other { part, data: [0; 7] });
         assert_eq!(m.validate(), Err(bad("part", part as u32)));
@@ -1492,9 +1502,10 @@ fn state_report_parts() {
             StateReport::IMAGE_HASH,
             StateReport::UID_LOW,
             StateReport::UID_HIGH,
+            StateReport::PROTOCOL,
             StateReport::END
         ],
-        [0x00, 0x01, 0x02, 0x10, 0x20, 0x21, 0x22, 0x23, 0xFF]
+        [0x00, 0x01, 0x02, 0x10, 0x20, 0x21, 0x22, 0x23, 0x24, 0xFF]
     );
 }
 
@@ -1572,7 +1583,7 @@ fn state_query_dump() {
     let uid = Uid([
         0x30, 0x00, 0x47, 0x00, 0x12, 0x51, 0x33, 0x39, 0x33, 0x38, 0x34, 0x37,
     ]);
-    let replies: [(StateReport, [u8; 8]); 9] = [
+    let replies: [(StateReport, [u8; 8]); 10] = [
         (
             StateReport::Led(LedCommand::Steady {
                 color: Rgb::new(255, 0, 0),
@@ -1629,12 +1640,16 @@ fn state_query_dump() {
             [0x23, 0x39, 0x33, 0x38, 0x34, 0x37, 0x00, 0x00],
         ),
         (
+            StateReport::Protocol { version: (1, 3) },
+            [0x24, 0x01, 0x03, 0x00, 0x00, 0x00, 0x00, 0x00],
+        ),
+        (
             StateReport::End {
                 seq: 0x31,
                 parts: StateParts::ALL,
-                count: 8,
+                count: 9,
             },
-            [0xFF, 0x31, 0x07, 0x08, 0x00, 0x00, 0x00, 0x00],
+            [0xFF, 0x31, 0x07, 0x09, 0x00, 0x00, 0x00, 0x00],
         ),
     ];
     for (i, (rep, data)) in replies.iter().enumerate() {
@@ -2133,7 +2148,7 @@ fn firmware_update_dump() {
             },
         ),
         0x0B00_0111,
-        &[0x01, 0x02, 0x00, 0x06, 0x02],
+        &[0x01, 0x03, 0x00, 0x06, 0x02],
     );
     golden(
         Packet::command(ALL, Message::HealthCheck { seq: 7 }),

@@ -249,8 +249,8 @@ fn mutated_reports_reach_every_part() {
             Err(_) => refused += 1,
         }
     }
-    // Led, Buzzer, Power, Dock, Firmware, ImageHash, UidLow, UidHigh, End and Other.
-    assert_eq!(parts.len(), 10, "parts reached: {parts:x?}");
+    // Led, Buzzer, Power, Dock, Firmware, ImageHash, UidLow, UidHigh, Protocol, End and Other.
+    assert_eq!(parts.len(), 11, "parts reached: {parts:x?}");
     assert!(refused > 0);
 }
 

@@ -94,9 +94,9 @@
 //! * docking (static role only): `Dock(port)` for every port that is closed, confirmed or linked,
 //!   with its link;
 //! * identity: `Firmware` (version, trial flag) and `ImageHash` from `Config::firmware`, `UidLow`,
-//!   `UidHigh` from `Config::uid`.
+//!   `UidHigh` from `Config::uid`, and `Protocol` (`PROTOCOL_VERSION`, as in the `BootUp`).
 //!
-//! A full reply is at most 16 frames, so it always fits the output queue. A query changes nothing.
+//! A full reply is at most 17 frames, so it always fits the output queue. A query changes nothing.
 //!
 //! # Signal loops and docking (static role)
 //!

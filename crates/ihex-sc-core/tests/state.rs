@@ -5,7 +5,7 @@ mod common;
 use common::*;
 use ihex_proto::{
     AckResult, BootRole, BuzzerCommand, DockPartner, DockState, Kind, LedCommand, Message, NodeId,
-    Packet, PowerState, Rgb, StateParts, StateReport, Uid,
+    Packet, PowerState, Rgb, StateParts, StateReport, Uid, PROTOCOL_VERSION,
 };
 use ihex_sc_core::{Millis, Node};
 
@@ -150,13 +150,16 @@ fn full_query_reports_every_part_in_order_then_end() {
             StateReport::ImageHash(FIRMWARE.image_hash),
             StateReport::UidLow(uid.low()),
             StateReport::UidHigh(uid.high()),
-            end(0x31, 0b111, 9),
+            StateReport::Protocol {
+                version: PROTOCOL_VERSION
+            },
+            end(0x31, 0b111, 10),
         ]
     );
     // A query changes nothing.
     n.actuators_changed();
     query(&mut n, 0x32, 0b111, t + 2);
-    assert_eq!(reports(&mut n).len(), 10);
+    assert_eq!(reports(&mut n).len(), 11);
     assert!(!n.actuators_changed());
 }
 
@@ -188,9 +191,9 @@ fn each_group_alone_and_nothing_at_all() {
 
     query(&mut n, 3, StateParts::IDENTITY, t);
     let r = reports(&mut n);
-    assert_eq!(r.len(), 5);
+    assert_eq!(r.len(), 6);
     assert!(matches!(r[0], StateReport::Firmware { .. }));
-    assert_eq!(r[4], end(3, 0b100, 4));
+    assert_eq!(r[5], end(3, 0b100, 5));
 
     // Nothing asked: just the closing report, so the gateway still knows the node heard it.
     query(&mut n, 4, 0, t);
@@ -200,11 +203,11 @@ fn each_group_alone_and_nothing_at_all() {
 #[test]
 fn groups_this_version_does_not_know_are_ignored() {
     let mut n = static_node();
-    // Bit 3 and up are not defined in 1.1: only the identity group is answered, and End says so.
+    // Bit 3 and up are not defined: only the identity group is answered, and End says so.
     query(&mut n, 9, 0xF8 | StateParts::IDENTITY, 10);
     let r = reports(&mut n);
-    assert_eq!(r.len(), 5);
-    assert_eq!(r[4], end(9, StateParts::IDENTITY, 4));
+    assert_eq!(r.len(), 6);
+    assert_eq!(r[5], end(9, StateParts::IDENTITY, 5));
     query(&mut n, 10, 0xF8, 10);
     assert_eq!(reports(&mut n), [end(10, 0, 0)]);
 }
@@ -231,7 +234,7 @@ fn broadcast_query_is_answered_and_unconfigured_node_stays_silent() {
         10,
     );
     let r = reports(&mut n);
-    assert_eq!(r.last(), Some(&end(7, 0b111, 7)));
+    assert_eq!(r.last(), Some(&end(7, 0b111, 8)));
 
     let mut fresh = Node::new(config(BootRole::Static, 6, None), Millis(0));
     feed(
@@ -338,14 +341,17 @@ fn identity_comes_from_the_config() {
             StateReport::ImageHash(FIRMWARE.image_hash),
             StateReport::UidLow([0xF0, 1, 2, 3, 4, 5, 6]),
             StateReport::UidHigh([7, 8, 9, 10, 0x0F]),
-            end(8, 0b100, 4),
+            StateReport::Protocol {
+                version: PROTOCOL_VERSION
+            },
+            end(8, 0b100, 5),
         ]
     );
 }
 
 #[test]
 fn largest_reply_fits_the_output_queue() {
-    // 8 ports, all docked and confirmed: 3 + 8 + 4 reports and End.
+    // 8 ports, all docked and confirmed: 3 + 8 + 5 reports and End.
     let mut n = Node::new(config(BootRole::Static, 8, Some(id())), Millis(0));
     drain(&mut n);
     let mut t = 0;
@@ -358,8 +364,8 @@ fn largest_reply_fits_the_output_queue() {
     drain(&mut n);
     query(&mut n, 1, 0xFF, t);
     let r = reports(&mut n);
-    assert_eq!(r.len(), 16);
-    assert_eq!(r[15], end(1, 0b111, 15));
+    assert_eq!(r.len(), 17);
+    assert_eq!(r[16], end(1, 0b111, 16));
     assert_eq!(n.dropped_outputs(), 0);
 }
 

@@ -22,6 +22,14 @@
 //!   the recovery when it vanished while the gateway's CAN interface was down or it was killed).
 //! - **availability**: around a fault that breaks the session, `offline` (the last will, or the
 //!   broker itself gone) and then `online`; `online` at every checkpoint; every fault recovered.
+//! - **knowledge kept**: no state document shows a field `null` that an earlier document of the
+//!   node showed known — a restart, a cut or a read-back never turns a known value into `null`.
+//!   What a node is (`role`, `ports`, `version`, `firmware`, `uid`) stays known for good; its
+//!   actuators (`led`, `buzzer`, `relay`) may be unknown again only after the node itself restarted
+//!   (`node_rebooted`, a power cycle, a mobile element without power) or was forgotten.
+//! - **no false fault**: no `unexpected_handshake` fault for a mobile element whose docking
+//!   completed (`new_connection` naming it) within the docking timeout after it: a handshake that
+//!   overtook its dock report is part of a normal docking.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::fmt;
@@ -45,6 +53,10 @@ pub enum Rule {
     Convergence,
     /// Availability went offline and back; every fault recovered.
     Availability,
+    /// No state document knows less of a node than an earlier one did.
+    KnowledgeKept,
+    /// No fault event for a docking that completed.
+    NoFalseFault,
 }
 
 impl fmt::Display for Rule {
@@ -55,6 +67,8 @@ impl fmt::Display for Rule {
             Rule::RetainedNeverRuns => "retained commands never run",
             Rule::Convergence => "retained state equals the truth",
             Rule::Availability => "availability offline and back",
+            Rule::KnowledgeKept => "no state document less known than before",
+            Rule::NoFalseFault => "no fault event for a docking that completed",
         })
     }
 }
@@ -543,6 +557,8 @@ pub fn check(trace: &Trace) -> Report {
     );
     check_availability(trace, &faults, &recovered, &mut report);
     check_checkpoints(trace, &mut report);
+    check_knowledge(trace, &mut report);
+    check_false_faults(trace, &mut report);
     report.violations.sort_by_key(|v| (v.at, v.rule));
     report
 }
@@ -1102,6 +1118,120 @@ fn links_of(
                 _ => None,
             })
             .collect()
+    }
+}
+
+/// Fields of a state document that say what a node is: once known, known for good.
+const IDENTITY_FIELDS: [&str; 5] = ["role", "ports", "version", "firmware", "uid"];
+/// Fields of a state document that say what a node's actuators do: unknown again only once the
+/// node restarted (it starts with everything off, and the gateway reads it back).
+const ACTUATOR_FIELDS: [&str; 3] = ["led", "buzzer", "relay"];
+
+/// The node a state topic (`…/<id>/state`) is about.
+fn state_topic_node(topic: &str) -> Option<&str> {
+    let rest = topic.strip_suffix("/state")?;
+    rest.rsplit('/').next()
+}
+
+/// The rule **knowledge kept**: every state document received is compared with what the earlier
+/// documents of its node showed known.
+fn check_knowledge(trace: &Trace, report: &mut Report) {
+    let mut known: BTreeMap<String, BTreeSet<&'static str>> = BTreeMap::new();
+    let forget_actuators = |known: &mut BTreeMap<String, BTreeSet<&'static str>>, id: &str| {
+        if let Some(k) = known.get_mut(id) {
+            k.retain(|f| !ACTUATOR_FIELDS.contains(f));
+        }
+    };
+    for r in &trace.records {
+        match &r.entry {
+            Entry::Received { topic, payload, .. } => {
+                if let Some(id) = state_topic_node(topic) {
+                    let Ok(doc) = serde_json::from_str::<serde_json::Value>(payload) else {
+                        // Emptied (the node was forgotten): it claims nothing any more.
+                        known.remove(id);
+                        continue;
+                    };
+                    let shown: BTreeSet<&'static str> = IDENTITY_FIELDS
+                        .iter()
+                        .chain(ACTUATOR_FIELDS.iter())
+                        .copied()
+                        .filter(|f| doc.get(f).is_some_and(|v| !v.is_null()))
+                        .collect();
+                    let before = known.entry(id.to_string()).or_default();
+                    let lost: Vec<&str> = before.difference(&shown).copied().collect();
+                    if !lost.is_empty() {
+                        report.violations.push(Violation {
+                            at: r.at,
+                            rule: Rule::KnowledgeKept,
+                            message: format!(
+                                "{id}: the state document shows {} null, known before: {payload}",
+                                lost.join(", ")
+                            ),
+                        });
+                    }
+                    *before = shown;
+                } else if let Ok(event) = serde_json::from_str::<serde_json::Value>(payload) {
+                    let node = event["payload"]["id"].as_str().unwrap_or_default();
+                    match event["event"].as_str() {
+                        Some("node_rebooted") => forget_actuators(&mut known, node),
+                        Some("node_forgotten") => {
+                            known.remove(node);
+                        }
+                        _ => {}
+                    }
+                }
+            }
+            Entry::FaultBegin {
+                what: Fault::NodeReset { node },
+                ..
+            } => forget_actuators(&mut known, node),
+            Entry::Truth(truth) | Entry::Checkpoint { truth, .. } => {
+                for e in truth.iter().filter(|e| !e.powered) {
+                    forget_actuators(&mut known, &e.id);
+                }
+            }
+            _ => {}
+        }
+    }
+}
+
+/// The rule **no false fault**: an `unexpected_handshake` fault of a mobile element whose
+/// `new_connection` follows within the docking timeout (plus slack) belonged to that docking.
+fn check_false_faults(trace: &Trace, report: &mut Report) {
+    let window = trace.params.dock_timeout_ms + trace.params.slack_ms;
+    let events: Vec<(Ms, serde_json::Value, &str)> = trace
+        .records
+        .iter()
+        .filter_map(|r| match &r.entry {
+            Entry::Received { topic, payload, .. } if topic.ends_with("EventsTopic") => {
+                serde_json::from_str(payload)
+                    .ok()
+                    .map(|v| (r.at, v, payload.as_str()))
+            }
+            _ => None,
+        })
+        .collect();
+    for (at, v, raw) in &events {
+        if v["event"] != "fault" || v["payload"]["code"] != "unexpected_handshake" {
+            continue;
+        }
+        let node = &v["payload"]["node"];
+        let docked = events.iter().find(|(t, e, _)| {
+            *t >= *at
+                && *t <= at + window
+                && e["event"] == "new_connection"
+                && e["payload"]["n"]["id"] == *node
+        });
+        if let Some((t, _, connection)) = docked {
+            report.violations.push(Violation {
+                at: *at,
+                rule: Rule::NoFalseFault,
+                message: format!(
+                    "a fault for a handshake whose docking completed {} ms later: {raw}, then {connection}",
+                    t - at
+                ),
+            });
+        }
     }
 }
 

@@ -389,6 +389,7 @@ impl Rig {
             lost_after: self.timing.lost_after,
             command_timeout_ms: self.timing.command_timeout_ms,
             slack_ms: self.timing.slack_ms,
+            dock_timeout_ms: self.timing.dock_timeout_ms,
         }
     }
 

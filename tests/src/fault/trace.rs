@@ -31,6 +31,13 @@ pub struct Params {
     /// Time the machine may add to any expectation (scheduling, emulation): answers may come this
     /// much after the command timeout, a checkpoint is taken within this much of its due time.
     pub slack_ms: u64,
+    /// The gateway's docking handshake timeout (traces written before it was recorded: 3000).
+    #[serde(default = "default_dock_timeout_ms")]
+    pub dock_timeout_ms: u64,
+}
+
+fn default_dock_timeout_ms() -> u64 {
+    3000
 }
 
 impl Default for Params {
@@ -40,6 +47,7 @@ impl Default for Params {
             lost_after: 3,
             command_timeout_ms: 1000,
             slack_ms: 1000,
+            dock_timeout_ms: default_dock_timeout_ms(),
         }
     }
 }

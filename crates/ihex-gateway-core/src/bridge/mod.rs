@@ -29,6 +29,7 @@ mod timer;
 #[cfg(test)]
 mod traffic;
 
+use std::collections::BTreeSet;
 use std::time::{Duration, Instant};
 
 use ihex_proto::{
@@ -163,6 +164,12 @@ pub struct Bridge {
     pub(crate) ha: Option<Ha>,
     readback: ReadBack,
     inherited: Inherited,
+    /// Until when a node heard but not yet read back has its state document (and Home Assistant
+    /// config) held back: the lost period from start. A restarted gateway publishes nothing
+    /// half-known; the documents an earlier run left retained stay meanwhile.
+    hold_until: Instant,
+    /// Nodes whose document is held back.
+    held: BTreeSet<NodeId>,
     /// The time of the last input (state documents taken later are built as of it).
     now: Instant,
     /// When the next `publications_dropped` may go out.
@@ -186,6 +193,8 @@ impl Bridge {
             ha: None,
             readback: ReadBack::new(config.command_timeout),
             inherited: Inherited::new(config.health_period, config.lost_after_misses, now),
+            hold_until: now + config.health_period * config.lost_after_misses.saturating_add(1),
+            held: BTreeSet::new(),
             fw: FwUpdates::new(config.fw.clone()),
             config,
             now,
@@ -633,7 +642,11 @@ impl Bridge {
         }
         let ids: Vec<NodeId> = self.registry.iter().map(|e| e.id).collect();
         for id in ids {
-            self.out.publish.push_state(id, true);
+            if self.holds(id, now) {
+                self.held.insert(id);
+            } else {
+                self.out.publish.push_state(id, true);
+            }
         }
         self.out.dirty.clear();
     }
@@ -974,6 +987,7 @@ impl Bridge {
                 StateReport::ImageHash(h) => e.image_hash = Some(h),
                 StateReport::UidLow(l) => low = Some(l),
                 StateReport::UidHigh(h) => high = Some(h),
+                StateReport::Protocol { version } => e.version = Some(version),
                 _ => {}
             }
         }
@@ -986,6 +1000,14 @@ impl Bridge {
             let steps = self.docking.reconcile(node, &docks, asked);
             self.apply(steps, now);
         }
+    }
+
+    /// True while `id`'s state document is held back: it is online, not read back yet (nor known
+    /// not to answer) and the lost period since start has not passed.
+    fn holds(&self, id: NodeId, now: Instant) -> bool {
+        now < self.hold_until
+            && self.registry.get(id).is_some_and(|e| e.online)
+            && !self.readback.settled(id)
     }
 
     /// Ends an input: frames the full transmit queue refused fail, and every node whose state may
@@ -1016,7 +1038,24 @@ impl Bridge {
         dirty.sort_unstable();
         dirty.dedup();
         for id in dirty.drain(..) {
-            self.out.publish.push_state(id, false);
+            if self.holds(id, now) {
+                self.held.insert(id);
+            } else {
+                self.out.publish.push_state(id, false);
+            }
+        }
+        // Read back since (or the hold is over): what was held goes out now.
+        if !self.held.is_empty() {
+            let ready: Vec<NodeId> = self
+                .held
+                .iter()
+                .copied()
+                .filter(|&id| !self.holds(id, now))
+                .collect();
+            for id in ready {
+                self.held.remove(&id);
+                self.out.publish.push_state(id, true);
+            }
         }
         // Kept, with its capacity, for the next input.
         self.out.dirty = dirty;
@@ -1443,6 +1482,7 @@ mod tests {
         for n in 1..=20u16 {
             b.handle_packet(Packet::report(id(n), reply(0, 0)), t0 + MS);
         }
+        read_back_all(&mut b, t0 + MS);
         for n in 0..(ANSWER_BACKLOG - 1) {
             assert!(b.wants_commands());
             let cmd =
@@ -1527,6 +1567,69 @@ mod tests {
         b.handle_send_failed(check.packet, "test", t0 + S);
         let out = drain(&mut b);
         assert_eq!(out.one("bus_error")["error"], "send_failed");
+    }
+
+    /// Issue 29: a restarted gateway publishes no half-known document: a node's state document
+    /// (and its Home Assistant config) waits for its read-back, or for the lost period from start
+    /// when none comes; a node read back is published at once.
+    #[test]
+    fn a_node_is_published_once_read_back_or_when_the_lost_period_ends() {
+        let t0 = Instant::now();
+        let ha = crate::ha::HaConfig {
+            topics: crate::topic::Topics::seed_on(None),
+            island: None,
+            configuration_url: None,
+            sw_version: "0.1.0".into(),
+        };
+        let mut b = Bridge::new(BridgeConfig::default(), t0).with_home_assistant(ha);
+        b.handle_timeout(t0);
+        b.handle_mqtt_connected(t0);
+        drain(&mut b);
+        b.handle_packet(Packet::report(id(0x111), reply(0, 0)), t0 + MS);
+        b.handle_packet(Packet::report(id(0x112), reply(0, 0)), t0 + MS);
+        let out = drain(&mut b);
+        assert_eq!(out.named("node_online").len(), 2, "events are not held");
+        assert!(out.states.is_empty(), "{:?}", out.states);
+        assert!(out.ha.is_empty(), "{:?}", out.ha);
+        // A reconnection meanwhile republishes only what may be published.
+        b.handle_mqtt_connected(t0 + 2 * MS);
+        assert!(drain(&mut b).states.is_empty());
+        // 111 answers: its document (and config) go out; 112 stays silent.
+        let q111 = out.queries.iter().find(|q| q.dest == id(0x111)).unwrap();
+        let Message::StateQuery { seq, parts } = q111.msg else {
+            unreachable!()
+        };
+        let end = StateReport::End {
+            seq,
+            parts,
+            count: 0,
+        };
+        b.handle_packet(
+            Packet::report(id(0x111), Message::StateReport(end)),
+            t0 + 3 * MS,
+        );
+        let out = drain(&mut b);
+        let ids: Vec<NodeId> = out.states.iter().map(|(n, _)| *n).collect();
+        assert_eq!(ids, [id(0x111)]);
+        assert!(!out.ha.is_empty());
+        // The lost period from start ends: 112's document goes out as it is known by then.
+        let lost_period =
+            BridgeConfig::default().health_period * (BridgeConfig::default().lost_after_misses + 1);
+        assert!(b.poll_timeout() <= t0 + lost_period);
+        for k in 1..4u32 {
+            b.handle_timeout(t0 + S * k);
+            for n in [0x111, 0x112] {
+                b.handle_packet(Packet::report(id(n), reply(k as u8, 0)), t0 + S * k);
+            }
+        }
+        assert!(drain(&mut b).states.iter().all(|(n, _)| *n != id(0x112)));
+        b.handle_timeout(t0 + lost_period);
+        let out = drain(&mut b);
+        assert!(
+            out.states.iter().any(|(n, _)| *n == id(0x112)),
+            "{:?}",
+            out.states
+        );
     }
 
     #[test]

@@ -20,13 +20,13 @@ use ihex_proto::{Message, NodeId, Packet, Seq, StateParts, StateReport};
 
 use super::output::{FrameFate, FrameOwner, Outputs};
 
-/// Nodes asked at the same time (each reply is up to 16 frames).
+/// Nodes asked at the same time (each reply is up to 17 frames).
 pub const MAX_QUERIES: usize = 4;
 /// Queries in a row without an answer after which a node is taken for one that cannot answer.
 pub const SILENT_LIMIT: u32 = 3;
 /// Replies in a row with a part missing after which the bridge stops asking until next time.
 pub const INCOMPLETE_LIMIT: u32 = 3;
-/// Most parts kept of one reply (a full reply has 15 and its `End`).
+/// Most parts kept of one reply (a full reply has 16 and its `End`).
 const MAX_PARTS: usize = 32;
 
 /// The protocol version that introduced read-back and dock links.
@@ -64,6 +64,8 @@ struct NodeQuery {
     incomplete: u32,
     /// It cannot answer (protocol 1.0): not asked until it boots with a newer protocol.
     unsupported: bool,
+    /// A complete reply came at least once.
+    read: bool,
 }
 
 /// Every node's read-back.
@@ -99,6 +101,14 @@ impl ReadBack {
             q.due = true;
             self.maybe_due = true;
         }
+    }
+
+    /// True once `id` was read back, or is known not to answer (protocol 1.0, silent) or gave up
+    /// after incomplete replies: nothing more will come of asking it for now.
+    pub(crate) fn settled(&self, id: NodeId) -> bool {
+        self.nodes
+            .get(&id)
+            .is_some_and(|q| q.read || q.unsupported || q.incomplete >= INCOMPLETE_LIMIT)
     }
 
     /// False for a node known not to understand read-back or dock links.
@@ -207,6 +217,7 @@ impl ReadBack {
             return None;
         }
         q.incomplete = 0;
+        q.read = true;
         self.replies += 1;
         Some(Reply {
             node: src,

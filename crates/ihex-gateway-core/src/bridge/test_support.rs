@@ -191,3 +191,27 @@ pub(crate) fn command(b: &mut Bridge, json: Value, now: Instant) -> Out {
     b.handle_command(json.to_string().as_bytes(), now);
     drain(b)
 }
+
+/// Hands out the waiting frames (confirmed) and answers every state query among them with an
+/// empty, complete reply, until none is left — without taking publications: the nodes are read
+/// back, so their state documents (held until then) are queued.
+pub(crate) fn read_back_all(b: &mut Bridge, now: Instant) {
+    loop {
+        let mut queries = Vec::new();
+        while let Some(t) = b.poll_transmit(now) {
+            let p = t.packet;
+            b.handle_transmitted(p, now);
+            if matches!(p.msg, Message::StateQuery { .. }) {
+                queries.push(p);
+            }
+        }
+        if queries.is_empty() {
+            return;
+        }
+        let out = Out {
+            queries,
+            ..Out::default()
+        };
+        answer_queries(b, &out, now);
+    }
+}

@@ -46,6 +46,9 @@ timers! {
     Health,
     /// The next report of dropped publications.
     DropReport,
+    /// The end of the lost period from start, until which the documents of nodes not read back
+    /// are held (released by `finish_input`, which every input ends with).
+    Hold,
 }
 
 /// The deadline of every [`Timer`], by [`Timer::VALUES`] index.
@@ -100,6 +103,7 @@ impl Bridge {
                 .publish
                 .has_unreported()
                 .then_some(self.next_drop_report),
+            Timer::Hold => (!self.held.is_empty()).then_some(self.hold_until),
         }
     }
 
@@ -166,6 +170,8 @@ impl Bridge {
                     }));
                 self.next_drop_report = now + DROP_REPORT_PERIOD;
             }
+            // What is due is released by `finish_input` after every timer has run.
+            Timer::Hold => {}
         }
     }
 }

@@ -92,11 +92,17 @@ pub(crate) fn apply(steps: Vec<Step>, parts: DockParts<'_>, now: Instant, out: &
                 out.mark_changed(c.n_1.id.0);
                 out.emit(Event::ConnectionRemoved(c));
             }
-            Step::Failed { node, port, reason } => {
+            Step::Failed {
+                node,
+                port,
+                reason,
+                relay,
+            } => {
                 out.emit(Event::DockFailed(DockFailed {
                     node: HexId(node),
                     port: port.get(),
                     reason,
+                    relay,
                 }));
             }
             Step::UnexpectedHandshake { node, port, why } => {
@@ -261,16 +267,72 @@ mod tests {
             .any(|p| p.dest == id(0x10) && matches!(p.msg, Message::PowerSet { on: false, .. })));
         assert_eq!(
             out.one("dock_failed"),
-            &json!({"node": "10", "port": 1, "reason": "handshake timeout after 5000 ms"})
+            &json!({"node": "10", "port": 1, "reason": "handshake timeout after 5000 ms",
+                    "relay": false})
         );
-        // A handshake now is unexpected: a fault, no connection.
+        // A handshake now is unexpected: no connection, and a fault once nothing claimed it in a
+        // quarter of the docking timeout (its report might still have come).
         b.handle_packet(
             Packet::report(id(2), Message::Handshake { port: port(0) }),
             deadline + MS,
         );
         let out = drain(&mut b);
+        assert!(out.named("fault").is_empty(), "{:?}", out.events);
+        assert!(out.named("new_connection").is_empty());
+        let window_end = deadline + MS + BridgeConfig::default().dock_timeout / 4;
+        assert!(b.poll_timeout() <= window_end);
+        b.handle_timeout(window_end - MS);
+        assert!(drain(&mut b).named("fault").is_empty());
+        b.handle_timeout(window_end);
+        let out = drain(&mut b);
         assert_eq!(out.one("fault")["code"], "unexpected_handshake");
         assert!(out.named("new_connection").is_empty());
+    }
+
+    /// Issue 29: a relay the user switched on before a docking stays on when the docking fails
+    /// (withdrawing the confirmation of its last port would switch it off), and `dock_failed`
+    /// says so.
+    #[test]
+    fn a_failed_docking_leaves_a_relay_the_user_switched_on_on() {
+        let (mut b, t0) = with_nodes(&[0x10]);
+        let sent = command(
+            &mut b,
+            json!({"cmd": "power", "node": "10", "on": true}),
+            t0,
+        )
+        .sent;
+        let m = sent[0].msg;
+        b.handle_packet(
+            Packet::report(id(0x10), ack(m.kind(), m.ack_seq().unwrap(), AckResult::Ok)),
+            t0,
+        );
+        b.handle_packet(
+            Packet::report(id(0x10), Message::DockDetected { port: port(1) }),
+            t0,
+        );
+        drain(&mut b);
+        let deadline = t0 + BridgeConfig::default().dock_timeout;
+        for k in 1..=4u32 {
+            b.handle_timeout(t0 + S * k);
+            b.handle_packet(Packet::report(id(0x10), reply(k as u8, 1)), t0 + S * k);
+        }
+        drain(&mut b);
+        b.handle_timeout(deadline);
+        let out = drain(&mut b);
+        let touched: Vec<_> = out
+            .sent
+            .iter()
+            .filter(|p| {
+                p.dest == id(0x10)
+                    && matches!(p.msg, Message::PowerSet { .. } | Message::DockRefuse { .. })
+            })
+            .collect();
+        assert!(touched.is_empty(), "{touched:?}");
+        assert_eq!(
+            out.one("dock_failed"),
+            &json!({"node": "10", "port": 1, "reason": "handshake timeout after 5000 ms",
+                    "relay": true})
+        );
     }
 
     #[test]

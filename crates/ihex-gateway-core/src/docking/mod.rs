@@ -15,7 +15,12 @@
 //! (the static element is sent `DockConfirm`, so the port powers and unpowers it like any docking,
 //! then the usual `new_connection` and `DockLink`). Otherwise the handshake is kept for a quarter
 //! of the docking timeout: a report of a new docking by a static element whose relay is on in that
-//! time is answered by it at once (the handshake overtook the report).
+//! time is answered by it at once (the handshake overtook the report). Only a handshake still
+//! unmatched when that window ends is an `unexpected_handshake` fault.
+//!
+//! A docking that fails (no handshake in time) leaves the static element's relay as it was before
+//! the docking: switched off when it was off and nothing else is docked there, left on when it was
+//! on (a `power` command) or other elements are docked there; `dock_failed` says which.
 
 pub(crate) mod glue;
 
@@ -89,6 +94,9 @@ pub enum Step {
         port: Port,
         /// Why.
         reason: String,
+        /// The relay as the failure left it: `Some(false)` switched off ([`Step::PowerOff`]),
+        /// `Some(true)` left on, `None` not touched by the gateway.
+        relay: Option<bool>,
     },
     /// A handshake nobody waited for: publish a `fault` (`unexpected_handshake`), record nothing.
     UnexpectedHandshake {
@@ -112,6 +120,9 @@ pub struct Pending {
     pub deadline: Instant,
     /// Sequence number of the `DockConfirm` sent, once sent.
     pub confirm_seq: Option<u8>,
+    /// The static element's relay was on before this docking (a `power` command, or other
+    /// elements docked there): a failure leaves it on.
+    pub relay_was_on: bool,
 }
 
 /// Docking state: at most one pending docking, a bounded FIFO of waiting reports, the connections,
@@ -121,12 +132,15 @@ pub struct Docking {
     timeout: Duration,
     queue_cap: usize,
     pending: Option<Pending>,
+    /// Reports waiting for their turn, and whether the relay was on when each came.
     queue: VecDeque<(NodeId, Port)>,
+    queued_relay_on: BTreeMap<(NodeId, Port), bool>,
     /// (static, its port) -> the mobile element and its port, and when it was recorded.
     connections: BTreeMap<(NodeId, Port), Record>,
     /// Handshakes that came with no docking pending and no free closed loop to adopt them: (the
-    /// mobile element, its port, when), oldest first, at most `queue_cap`.
-    unclaimed: VecDeque<(NodeId, Port, Instant)>,
+    /// mobile element, its port, when, why it could not be placed), oldest first, at most
+    /// `queue_cap`. One still here a quarter of the timeout later is a fault.
+    unclaimed: VecDeque<(NodeId, Port, Instant, &'static str)>,
 }
 
 /// A recorded connection, seen from its static element's port.
@@ -163,6 +177,7 @@ impl Docking {
             queue_cap,
             pending: None,
             queue: VecDeque::new(),
+            queued_relay_on: BTreeMap::new(),
             connections: BTreeMap::new(),
             unclaimed: VecDeque::new(),
         }
@@ -178,9 +193,14 @@ impl Docking {
         self.queue.iter()
     }
 
-    /// When the pending handshake is overdue.
+    /// When [`Docking::tick`] must run next: the pending handshake is overdue, or an unclaimed
+    /// handshake's window ends.
     pub fn deadline(&self) -> Option<Instant> {
-        self.pending.map(|p| p.deadline)
+        let unclaimed = self.unclaimed.front().map(|u| u.2 + self.timeout / 4);
+        match (self.pending.map(|p| p.deadline), unclaimed) {
+            (Some(a), Some(b)) => Some(a.min(b)),
+            (a, b) => a.or(b),
+        }
     }
 
     /// Remembers the sequence number of the confirm just sent to `node` for its `port`, if that is
@@ -229,7 +249,14 @@ impl Docking {
             .collect()
     }
 
-    fn start(&mut self, node: NodeId, port: Port, now: Instant, out: &mut Vec<Step>) {
+    fn start(
+        &mut self,
+        node: NodeId,
+        port: Port,
+        relay_was_on: bool,
+        now: Instant,
+        out: &mut Vec<Step>,
+    ) {
         // A new docking on a port that still has a recorded connection means the old element left
         // without a DockRemoved reaching us.
         if let Some(r) = self.connections.remove(&(node, port)) {
@@ -240,6 +267,7 @@ impl Docking {
             port,
             deadline: now + self.timeout,
             confirm_seq: None,
+            relay_was_on,
         });
         out.push(Step::Confirm { node, port });
     }
@@ -247,22 +275,28 @@ impl Docking {
     /// A handshake that overtook the report of the docking just started (the element got power
     /// before the confirm, from a relay already on) completes it at once.
     fn claim_unclaimed(&mut self, node: NodeId, port: Port, now: Instant, out: &mut Vec<Step>) {
-        self.drop_stale_unclaimed(now);
-        let Some(i) = self.unclaimed.iter().position(|&(m, _, _)| m != node) else {
+        self.expire_unclaimed(now, out);
+        let Some(i) = self.unclaimed.iter().position(|&(m, ..)| m != node) else {
             return;
         };
-        if let Some((m, mp, _)) = self.unclaimed.remove(i) {
+        if let Some((m, mp, ..)) = self.unclaimed.remove(i) {
             self.complete((node, port), (m, mp), false, now, out);
             self.next(now, out);
         }
     }
 
-    /// Forgets unclaimed handshakes older than a quarter of the docking timeout: the race with the
-    /// report lasts one debounce, and a stale one must not be given to a later docking.
-    fn drop_stale_unclaimed(&mut self, now: Instant) {
+    /// Ends the unclaimed handshakes older than a quarter of the docking timeout: the race with the
+    /// report lasts one debounce, and a stale one must not be given to a later docking. Each is
+    /// now an `unexpected_handshake` fault.
+    fn expire_unclaimed(&mut self, now: Instant, out: &mut Vec<Step>) {
         let keep = self.timeout / 4;
-        self.unclaimed
-            .retain(|&(_, _, at)| now.saturating_duration_since(at) < keep);
+        while let Some(&(node, port, at, why)) = self.unclaimed.front() {
+            if now.saturating_duration_since(at) < keep {
+                break;
+            }
+            self.unclaimed.pop_front();
+            out.push(Step::UnexpectedHandshake { node, port, why });
+        }
     }
 
     /// Records the docking of `mobile` on the static element's port `stat` and publishes it.
@@ -291,7 +325,8 @@ impl Docking {
     fn next(&mut self, now: Instant, out: &mut Vec<Step>) {
         self.pending = None;
         if let Some((node, port)) = self.queue.pop_front() {
-            self.start(node, port, now, out);
+            let relay_was_on = self.queued_relay_on.remove(&(node, port)).unwrap_or(false);
+            self.start(node, port, relay_was_on, now, out);
         }
     }
 
@@ -314,7 +349,7 @@ impl Docking {
         }
         match self.pending {
             None => {
-                self.start(node, port, now, &mut out);
+                self.start(node, port, relay_on, now, &mut out);
                 if relay_on {
                     self.claim_unclaimed(node, port, now, &mut out);
                 }
@@ -322,7 +357,10 @@ impl Docking {
             // Repeated report of what is already in progress or waiting: nothing new to do.
             Some(p) if p.node == node && p.port == port => {}
             Some(_) if self.queue.contains(&(node, port)) => {}
-            Some(_) if self.queue.len() < self.queue_cap => self.queue.push_back((node, port)),
+            Some(_) if self.queue.len() < self.queue_cap => {
+                self.queue.push_back((node, port));
+                self.queued_relay_on.insert((node, port), relay_on);
+            }
             Some(_) => out.push(Step::RefuseBusy { node, port }),
         }
         out
@@ -332,6 +370,7 @@ impl Docking {
     pub fn on_removed(&mut self, node: NodeId, port: Port, now: Instant) -> Vec<Step> {
         let mut out = Vec::new();
         self.queue.retain(|&q| q != (node, port));
+        self.queued_relay_on.remove(&(node, port));
         if let Some(r) = self.connections.remove(&(node, port)) {
             out.push(Step::Removed(conn((node, port), r.mobile)));
         }
@@ -341,6 +380,7 @@ impl Docking {
                     node,
                     port,
                     reason: "cancelled: the element was undocked before its handshake".into(),
+                    relay: None,
                 });
                 self.next(now, &mut out);
             }
@@ -404,21 +444,21 @@ impl Docking {
             // changed.
             [] if self.connections.values().any(|r| r.mobile == (node, port)) => {}
             _ => {
-                self.drop_stale_unclaimed(now);
-                self.unclaimed.retain(|&(m, _, _)| m != node);
+                // Not a fault yet: its static element's report may still come (the handshake
+                // overtook it). `expire_unclaimed` reports it if nothing claims it in time.
+                self.expire_unclaimed(now, out);
+                self.unclaimed.retain(|&(m, ..)| m != node);
                 if self.unclaimed.len() >= self.queue_cap {
-                    self.unclaimed.pop_front();
+                    if let Some((node, port, _, why)) = self.unclaimed.pop_front() {
+                        out.push(Step::UnexpectedHandshake { node, port, why });
+                    }
                 }
-                self.unclaimed.push_back((node, port, now));
-                out.push(Step::UnexpectedHandshake {
-                    node,
-                    port,
-                    why: if free.is_empty() {
-                        "no docking is pending and no closed signal loop is free for it"
-                    } else {
-                        "no docking is pending and several closed signal loops are free for it"
-                    },
-                });
+                let why = if free.is_empty() {
+                    "no docking is pending and no closed signal loop is free for it"
+                } else {
+                    "no docking is pending and several closed signal loops are free for it"
+                };
+                self.unclaimed.push_back((node, port, now, why));
             }
         }
     }
@@ -490,6 +530,7 @@ impl Docking {
                     node,
                     port: p.port,
                     reason,
+                    relay: None,
                 });
                 self.next(now, &mut out);
             }
@@ -606,12 +647,14 @@ impl Docking {
             out.push(Step::Removed(conn(s, m)));
         }
         self.queue.retain(|&(n, _)| n != node);
+        self.queued_relay_on.retain(|&(n, _), _| n != node);
         if let Some(p) = self.pending {
             if p.node == node {
                 out.push(Step::Failed {
                     node,
                     port: p.port,
                     reason: "cancelled: the element was forgotten".into(),
+                    relay: None,
                 });
                 self.next(now, &mut out);
             }
@@ -619,26 +662,34 @@ impl Docking {
         out
     }
 
-    /// Handshake timeout.
+    /// Handshake timeout, and the end of unclaimed handshakes' window.
     pub fn tick(&mut self, now: Instant) -> Vec<Step> {
         let mut out = Vec::new();
+        self.expire_unclaimed(now, &mut out);
         if let Some(p) = self.pending {
             if now >= p.deadline {
                 // The relay is the element's only one: switching it off would also cut the power of
-                // elements already docked on its other ports.
+                // elements already docked on its other ports. Withdrawing the confirmation of the
+                // last confirmed port switches it off too (the node's rule), so a relay that was
+                // on before this docking keeps the confirmation until the loop opens.
                 let others = self.connections.keys().any(|&(s, _)| s == p.node);
-                out.push(if others {
-                    Step::Withdraw {
+                let relay = if others {
+                    out.push(Step::Withdraw {
                         node: p.node,
                         port: p.port,
-                    }
+                    });
+                    true
+                } else if p.relay_was_on {
+                    true
                 } else {
-                    Step::PowerOff { node: p.node }
-                });
+                    out.push(Step::PowerOff { node: p.node });
+                    false
+                };
                 out.push(Step::Failed {
                     node: p.node,
                     port: p.port,
                     reason: format!("handshake timeout after {} ms", self.timeout.as_millis()),
+                    relay: Some(relay),
                 });
                 self.next(now, &mut out);
             }
@@ -736,7 +787,8 @@ mod tests {
                 Step::Failed {
                     node: id(1),
                     port: port(0),
-                    reason: "handshake timeout after 5000 ms".into()
+                    reason: "handshake timeout after 5000 ms".into(),
+                    relay: Some(false),
                 },
                 Step::Confirm {
                     node: id(2),
@@ -784,11 +836,17 @@ mod tests {
     fn unexpected_handshakes_record_nothing() {
         let t0 = Instant::now();
         let mut d = Docking::new(T, 4);
+        // Not a fault yet: its report may still come. A fault when a quarter of the timeout
+        // passed without one.
+        assert!(d.on_handshake(id(2), port(0), &[], t0).is_empty());
+        assert_eq!(d.deadline(), Some(t0 + T / 4));
+        assert!(d.tick(t0 + T / 4 - Duration::from_millis(1)).is_empty());
         assert!(matches!(
-            d.on_handshake(id(2), port(0), &[], t0)[..],
+            d.tick(t0 + T / 4)[..],
             [Step::UnexpectedHandshake { .. }]
         ));
-        // Kept for the docking timeout only: a report after that is a docking of its own.
+        assert_eq!(d.deadline(), None);
+        // Kept for that window only: a report after that is a docking of its own.
         d.on_detected(id(1), port(0), false, t0 + T);
         assert!(d.connections().is_empty());
         assert!(matches!(
@@ -829,10 +887,12 @@ mod tests {
         // The same handshake again (the element restarted on a port that stayed powered): no
         // change, no fault.
         assert!(d.on_handshake(id(2), port(0), &closed, t0 + T).is_empty());
-        // Two free loops: nobody can tell which, so a fault and nothing recorded.
+        // Two free loops: nobody can tell which, so nothing recorded, and a fault once no report
+        // claimed it.
         let two = [(id(0x112), port(0)), (id(0x112), port(1))];
+        assert!(d.on_handshake(id(4), port(0), &two, t0 + T).is_empty());
         assert!(matches!(
-            d.on_handshake(id(4), port(0), &two, t0 + T)[..],
+            d.tick(t0 + T + T / 4)[..],
             [Step::UnexpectedHandshake { .. }]
         ));
         assert_eq!(d.connections().len(), 2);
@@ -875,10 +935,8 @@ mod tests {
     fn a_handshake_that_overtook_the_dock_report_completes_the_docking_at_once() {
         let t0 = Instant::now();
         let mut d = Docking::new(T, 4);
-        assert!(matches!(
-            d.on_handshake(id(2), port(0), &[], t0)[..],
-            [Step::UnexpectedHandshake { .. }]
-        ));
+        // Issue 29: no fault for it, neither now nor later.
+        assert!(d.on_handshake(id(2), port(0), &[], t0).is_empty());
         let c = conn((id(0x111), port(3)), (id(2), port(0)));
         assert_eq!(
             d.on_detected(
@@ -896,6 +954,7 @@ mod tests {
             ]
         );
         assert_eq!(d.pending(), None);
+        assert!(d.tick(t0 + T / 4).is_empty(), "claimed: no fault");
         // Used once: the next report waits for its own handshake.
         d.on_detected(id(0x111), port(4), false, t0 + T);
         assert!(d.pending().is_some());
@@ -940,7 +999,8 @@ mod tests {
             vec![Step::Failed {
                 node: id(1),
                 port: port(5),
-                reason: "confirm refused: invalid_state".into()
+                reason: "confirm refused: invalid_state".into(),
+                relay: None,
             }]
         );
         assert_eq!(d.pending(), None);
@@ -994,7 +1054,8 @@ mod tests {
                 Step::Failed {
                     node: id(0x111),
                     port: port(4),
-                    reason: "cancelled: the element was forgotten".into()
+                    reason: "cancelled: the element was forgotten".into(),
+                    relay: None,
                 },
                 Step::Confirm {
                     node: id(0x112),

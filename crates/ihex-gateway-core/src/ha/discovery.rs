@@ -14,7 +14,7 @@ use super::command::TONES;
 use super::light::EFFECTS;
 use super::topic::{Entity, HaTopic};
 use super::HaConfig;
-use crate::event::{NodeState, Role, Version};
+use crate::event::{NodeState, Role};
 
 /// Manufacturer of every device.
 pub const MANUFACTURER: &str = "iHEX";
@@ -31,9 +31,10 @@ pub const RELAY_STATE: &str =
 /// The buzzer from the state document: on while its acknowledged mode is not `off`.
 pub const BUZZER_STATE: &str = "{{ 'None' if value_json.buzzer is none else \
      ('OFF' if value_json.buzzer.mode == 'off' else 'ON') }}";
-/// The version the node announced, from the state document.
+/// The firmware version the node runs (`major.minor.patch`), from the state document (not the
+/// protocol version, which is its `version`).
 pub const VERSION_STATE: &str =
-    "{{ 'None' if value_json.version is none else value_json.version }}";
+    "{{ 'None' if value_json.firmware is none else value_json.firmware.version }}";
 /// The event types of the docking entity.
 pub const DOCKING_EVENTS: [&str; 2] = ["docked", "undocked"];
 
@@ -140,8 +141,8 @@ pub struct Element {
     pub id: NodeId,
     /// Static or mobile, when known.
     pub role: Option<Role>,
-    /// Its protocol version as the state document shows it.
-    pub version: Option<Version>,
+    /// Its firmware version (`major.minor.patch`) as the state document shows it.
+    pub version: Option<String>,
     /// Its UID, when read.
     pub uid: Option<Uid>,
 }
@@ -152,7 +153,7 @@ impl Element {
         Element {
             id: state.id.0,
             role: state.role,
-            version: state.version,
+            version: state.firmware.as_ref().map(|f| f.version.clone()),
             uid,
         }
     }
@@ -161,7 +162,7 @@ impl Element {
     pub fn shows(&self, state: &NodeState, uid: Option<Uid>) -> bool {
         self.id == state.id.0
             && self.role == state.role
-            && self.version == state.version
+            && self.version.as_deref() == state.firmware.as_ref().map(|f| f.version.as_str())
             && self.uid == uid
     }
 }
@@ -188,7 +189,7 @@ pub fn element(cfg: &HaConfig, state: &Element) -> Value {
         model,
     );
     if let Some(version) = &state.version {
-        dev.insert("sw_version".into(), version.to_string().into());
+        dev.insert("sw_version".into(), version.clone().into());
     }
     if let Some(uid) = state.uid {
         dev.insert("serial_number".into(), uid.to_string().into());

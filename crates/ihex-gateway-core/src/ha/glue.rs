@@ -85,7 +85,9 @@ mod tests {
     use crate::ha::schema::check_device_config;
     use crate::ha::{HaConfig, HaTopic};
     use crate::topic::{Topic, Topics};
-    use ihex_proto::{AckResult, BootRole, Kind, LedCommand, Message, Packet, ResetReason, Rgb};
+    use ihex_proto::{
+        AckResult, BootRole, Kind, LedCommand, Message, Packet, ResetReason, Rgb, StateReport,
+    };
     use serde_json::{json, Value};
 
     fn config(island: Option<&str>) -> HaConfig {
@@ -123,6 +125,7 @@ mod tests {
             (3, BootRole::Mobile, 2),
         ] {
             b.handle_packet(Packet::report(id(n), boot(role, ports)), t0 + MS);
+            read_back_all(&mut b, t0 + MS);
             let o = drain(&mut b);
             out.ha.extend(o.ha);
             out.states.extend(o.states);
@@ -208,7 +211,8 @@ mod tests {
             configs[0].1["device"]["identifiers"][0]
         );
         assert_eq!(d111["device"]["model"], "static element");
-        assert_eq!(d111["device"]["sw_version"], "1.1");
+        // Its firmware version once read back (below), never the protocol version of its BootUp.
+        assert_eq!(d111["device"]["sw_version"], Value::Null);
         assert_eq!(d111["availability_mode"], "all");
         assert_eq!(
             d111["availability"][0]["topic"],
@@ -226,6 +230,60 @@ mod tests {
             d111["components"]["docking"]["state_topic"],
             "lab1/EventsTopic"
         );
+    }
+
+    /// A restarted gateway (a fresh bridge) hears a node only by its health replies: the read-back
+    /// gives the state document its protocol and firmware versions, and the device its
+    /// `sw_version`, the firmware version.
+    #[test]
+    fn a_restarted_gateway_reads_both_versions_back() {
+        let t0 = Instant::now();
+        let mut b = Bridge::new(BridgeConfig::default(), t0).with_home_assistant(config(None));
+        b.handle_timeout(t0);
+        b.handle_mqtt_connected(t0);
+        drain(&mut b);
+        b.handle_packet(Packet::report(id(0x111), reply(0, 0)), t0 + MS);
+        let out = drain(&mut b);
+        let q = out.queries.first().expect("111 is asked for its state");
+        let Message::StateQuery { seq, parts } = q.msg else {
+            unreachable!()
+        };
+        let fw = ihex_proto::FirmwareVersion::new(0, 1, 0);
+        let reports = [
+            StateReport::Firmware {
+                version: fw,
+                trial: false,
+            },
+            StateReport::Protocol { version: (1, 3) },
+            StateReport::End {
+                seq,
+                parts,
+                count: 2,
+            },
+        ];
+        for r in reports {
+            b.handle_packet(
+                Packet::report(id(0x111), Message::StateReport(r)),
+                t0 + 2 * MS,
+            );
+        }
+        let out = drain(&mut b);
+        let doc = &out
+            .states
+            .iter()
+            .rev()
+            .find(|(n, _)| *n == id(0x111))
+            .expect("111's document")
+            .1;
+        assert_eq!(doc["version"], "1.3", "{doc}");
+        assert_eq!(doc["firmware"]["version"], "0.1.0", "{doc}");
+        let config = out
+            .ha
+            .iter()
+            .rev()
+            .find(|(t, _)| *t == Topic::Ha(HaTopic::DeviceConfig(id(0x111))))
+            .expect("111's config again");
+        assert_eq!(config.1["device"]["sw_version"], "0.1.0");
     }
 
     #[test]
@@ -305,12 +363,21 @@ mod tests {
         assert_eq!(render(discovery::BUZZER_STATE, &doc3), "None");
         assert_eq!(render(discovery::ONLINE_STATE, &doc111), "ON");
         assert_eq!(render(discovery::ONLINE_AVAILABILITY, &doc111), "online");
-        assert_eq!(render(discovery::VERSION_STATE, &doc111), "1.1");
+        // The firmware sensor shows the firmware version, never the protocol version.
+        assert_eq!(
+            render(discovery::VERSION_STATE, &doc111),
+            "None",
+            "not read back"
+        );
+        let read_back = doc111.replace(
+            "\"firmware\":null",
+            r#""firmware":{"version":"0.1.0","trial":false,"image_hash":"00000000000000"}"#,
+        );
+        assert_ne!(read_back, doc111);
+        assert_eq!(render(discovery::VERSION_STATE, &read_back), "0.1.0");
         let offline = doc3.replace("\"online\":true", "\"online\":false");
         assert_eq!(render(discovery::ONLINE_STATE, &offline), "OFF");
         assert_eq!(render(discovery::ONLINE_AVAILABILITY, &offline), "offline");
-        let unknown = doc3.replace("\"version\":\"1.1\"", "\"version\":null");
-        assert_eq!(render(discovery::VERSION_STATE, &unknown), "None");
 
         // The docking entity: the demo's new_connection as both ends see it; nothing for others.
         let docked = out

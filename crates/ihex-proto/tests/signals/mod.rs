@@ -313,6 +313,7 @@ fn state_report(r: &StateReport) -> Vec<Expected> {
         StateReport::ImageHash(_) => Some("image_hash".into()),
         StateReport::UidLow(_) => Some("uid_low".into()),
         StateReport::UidHigh(_) => Some("uid_high".into()),
+        StateReport::Protocol { .. } => Some("protocol".into()),
         StateReport::End { .. } => Some("end".into()),
         StateReport::Other { .. } => None,
     };
@@ -397,6 +398,14 @@ fn state_report(r: &StateReport) -> Vec<Expected> {
             v.extend(uid(7, &u));
             v.push(n("uid_high_reserved", 0u8));
         }
+        StateReport::Protocol {
+            version: (major, minor),
+        } => v.extend([
+            n("protocol_major", major),
+            n("protocol_minor", minor),
+            n("protocol_reserved", 0u8),
+            n("protocol_reserved_7", 0u8),
+        ]),
         StateReport::End { seq, parts, count } => {
             v.push(n("end_seq", seq));
             v.extend(groups(

@@ -132,6 +132,7 @@ pub fn state_report() -> impl Strategy<Value = StateReport> {
         any::<[u8; 7]>().prop_map(StateReport::ImageHash),
         any::<[u8; 7]>().prop_map(StateReport::UidLow),
         any::<[u8; 5]>().prop_map(StateReport::UidHigh),
+        any::<(u8, u8)>().prop_map(|version| StateReport::Protocol { version }),
         any::<(u8, u8, u8)>().prop_map(|(seq, parts, count)| StateReport::End {
             seq,
             parts: StateParts(parts),

@@ -1,13 +1,15 @@
 //! State read-back: the reports answering a `StateQuery`, in the order the protocol fixes.
 
-use ihex_proto::{BootRole, DockState, Message, Port, PowerState, Seq, StateParts, StateReport};
+use ihex_proto::{
+    BootRole, DockState, Message, Port, PowerState, Seq, StateParts, StateReport, PROTOCOL_VERSION,
+};
 
 use super::Node;
 use crate::Millis;
 
 /// Most reports one reply carries before its `End`: LED, buzzer, power, a dock report per port
-/// and the four identity parts.
-const MAX_REPORTS: usize = 3 + Port::COUNT as usize + 4;
+/// and the five identity parts.
+const MAX_REPORTS: usize = 3 + Port::COUNT as usize + 5;
 
 impl Node {
     /// `StateQuery`: one report per part of the groups asked that this node knows, in ascending
@@ -71,6 +73,9 @@ impl Node {
             push(StateReport::ImageHash(fw.image_hash));
             push(StateReport::UidLow(self.config.uid.low()));
             push(StateReport::UidHigh(self.config.uid.high()));
+            push(StateReport::Protocol {
+                version: PROTOCOL_VERSION,
+            });
         }
         out
     }

@@ -276,14 +276,23 @@ fn state_read_back(s: &mut Suite) {
         has_frame(&outs, &report(StateReport::UidLow(uid.low())))
             && has_frame(&outs, &report(StateReport::UidHigh(uid.high()))),
     );
+    s.check(
+        "state reply reports the protocol version",
+        has_frame(
+            &outs,
+            &report(StateReport::Protocol {
+                version: ihex_proto::PROTOCOL_VERSION,
+            }),
+        ),
+    );
     let end = StateReport::End {
         seq: 5,
         parts: StateParts::ALL,
-        count: 8,
+        count: 9,
     };
     s.check(
-        "state reply closed by End counting 8 reports",
-        outs.len() == 9 && outs.last() == Some(&Output::Frame(report(end))),
+        "state reply closed by End counting 9 reports",
+        outs.len() == 10 && outs.last() == Some(&Output::Frame(report(end))),
     );
 }
 

@@ -744,6 +744,9 @@ pub async fn state_query(link: Link) {
             StateReport::ImageHash(hash),
             StateReport::UidLow(uid.low()),
             StateReport::UidHigh(uid.high()),
+            StateReport::Protocol {
+                version: ihex_proto::PROTOCOL_VERSION,
+            },
         ]
     };
     let mut want = vec![
@@ -774,14 +777,14 @@ pub async fn state_query(link: Link) {
     want.push(StateReport::End {
         seq: 0x40,
         parts: StateParts::ALL,
-        count: 8,
+        count: 9,
     });
     assert_eq!(state_reply(&mut gw, id(0x111), 0x40).await, want);
     assert_eq!(desc.statics[0].firmware.version, default_fw);
 
     let r112 = state_reply(&mut gw, id(0x112), 0x40).await;
     assert_eq!(
-        r112[3..7],
+        r112[3..8],
         identity(
             0x112,
             FirmwareVersion::new(2, 3, 4),
@@ -800,7 +803,7 @@ pub async fn state_query(link: Link) {
             ports: 6,
         })
     );
-    assert_eq!(r2.len(), 8, "a mobile has no dock parts: {r2:?}");
+    assert_eq!(r2.len(), 9, "a mobile has no dock parts: {r2:?}");
     gw.expect_none("a state report from a silent node", |p| {
         matches!(p.msg, Message::StateReport(_)) && (p.src == id(3) || !p.src.is_sc())
     })

@@ -23,6 +23,7 @@ impl T {
             lost_after: 3,
             command_timeout_ms: 1000,
             slack_ms: 500,
+            dock_timeout_ms: 3000,
         };
         t
     }
@@ -742,4 +743,94 @@ fn the_report_names_the_trace_around_a_violation() {
     let story = text.split("the island's story:").nth(1).unwrap_or_default();
     assert!(story.contains("1300 {\"event\":\"node_lost\""), "{text}");
     assert!(!story.contains("command_result"), "{text}");
+}
+
+/// A state document of 111 as the gateway publishes it, with `version` and `led` as given.
+fn state_111(version: &str, led: &str) -> String {
+    format!(
+        r#"{{"id":"111","online":true,"role":"static","ports":6,"version":{version},"firmware":{{"version":"0.1.0","trial":false,"image_hash":"00000000000000"}},"uid":"0123456789abcdef01234567","led":{led},"buzzer":{{"mode":"off"}},"relay":false,"loops":[],"connections":[],"reported":null,"last_seen_ms":0,"first_seen_ms":0}}"#
+    )
+}
+
+const STATE_111: &str = "t/ihex/node/111/state";
+const RED: &str = r##"{"mode":"steady","color":"#ff0000","brightness":255}"##;
+
+#[test]
+fn a_state_document_that_knows_less_than_before_is_found() {
+    let mut t = T::new();
+    t.received(100, STATE_111, &state_111("\"1.3\"", RED))
+        .fault(200, 1, Fault::GatewayKill { down_ms: 100 }, 600)
+        .received(300, AVAIL, "offline")
+        .received(600, AVAIL, "online");
+    t.trace.records.sort_by_key(|r| r.at);
+    // The restarted gateway's first document, before it read 111 back: half-known.
+    t.received(700, STATE_111, &state_111("null", "null"));
+    let r = t.check();
+    assert_eq!(rules(&r), [Rule::KnowledgeKept], "{r}");
+    assert!(
+        r.violations[0].message.contains("shows led, version null"),
+        "{r}"
+    );
+    // Known again afterwards is no second violation; the same fields known throughout are none.
+    t.received(800, STATE_111, &state_111("\"1.3\"", RED));
+    assert_eq!(rules(&t.check()), [Rule::KnowledgeKept]);
+}
+
+#[test]
+fn actuators_may_be_unknown_again_only_after_the_node_restarted() {
+    let rebooted = r#"{"event":"node_rebooted","payload":{"id":"111","reset":"power_on","version":"1.3","role":"static"}}"#;
+    let mut t = T::new();
+    t.received(100, STATE_111, &state_111("\"1.3\"", RED))
+        .received(200, EVENTS, rebooted)
+        .received(210, STATE_111, &state_111("\"1.3\"", "null"));
+    assert!(t.check().ok(), "{}", t.check());
+    // A power cycle the harness made counts the same; what a node is stays known even then.
+    let mut t = T::new();
+    t.received(100, STATE_111, &state_111("\"1.3\"", RED)).at(
+        200,
+        Entry::FaultBegin {
+            fault: 1,
+            what: Fault::NodeReset { node: "111".into() },
+        },
+    );
+    t.received(300, STATE_111, &state_111("\"1.3\"", "null"));
+    assert!(rules(&t.check()).iter().all(|r| *r != Rule::KnowledgeKept));
+    t.received(400, STATE_111, &state_111("null", "null"));
+    assert_eq!(
+        rules(&t.check())
+            .into_iter()
+            .filter(|r| *r == Rule::KnowledgeKept)
+            .count(),
+        1
+    );
+    // A forgotten node's emptied document, and its next one, claim nothing.
+    let mut t = T::new();
+    t.received(100, STATE_111, &state_111("\"1.3\"", RED))
+        .received(200, STATE_111, "")
+        .received(300, STATE_111, &state_111("null", "null"));
+    assert!(t.check().ok(), "{}", t.check());
+}
+
+#[test]
+fn a_fault_for_a_docking_that_completed_is_found() {
+    let fault = r#"{"event":"fault","payload":{"node":"3","code":"unexpected_handshake","arg":1,"detail":0,"message":"handshake from 3 (its port 1) ignored: no docking is pending","suppressed":0}}"#;
+    let connected = r#"{"event":"new_connection","payload":{"n":{"id":"3","port":1},"n-1":{"id":"112","port":2}}}"#;
+    let mut t = T::new();
+    t.received(1000, EVENTS, fault)
+        .received(1018, EVENTS, connected);
+    let r = t.check();
+    assert_eq!(rules(&r), [Rule::NoFalseFault], "{r}");
+    // A handshake that stayed unmatched past the docking timeout was a real fault.
+    let mut t = T::new();
+    t.received(1000, EVENTS, fault)
+        .received(9000, EVENTS, connected);
+    assert!(t.check().ok(), "{}", t.check());
+    // Another element's docking does not make it false.
+    let mut t = T::new();
+    t.received(1000, EVENTS, fault).received(
+        1018,
+        EVENTS,
+        &connected.replace(r#""id":"3""#, r#""id":"2""#),
+    );
+    assert!(t.check().ok(), "{}", t.check());
 }
