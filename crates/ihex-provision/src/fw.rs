@@ -10,6 +10,7 @@ use std::time::Duration;
 use anyhow::{bail, Context, Result};
 use clap::{Args, Subcommand};
 use ihex_gateway_core::fwupdate::{FwImage, NodeOutcome, UploadResult, MAX_UPLOAD};
+use ihex_image::sim::{sim_image, SimFirmware};
 use ihex_image::{
     load_public, pack, pack_elf, Board, FirmwareVersion, Inspection, PackOverrides, PublicKey,
     SigningKey,
@@ -32,6 +33,27 @@ pub enum FwCmd {
     /// Update nodes through the gateway (MQTT): upload the image, send `fw_update`, print
     /// progress and the report; exit 1 unless every node was updated.
     Update(UpdateArgs),
+    /// Make an image the simulated boards (sim-node, the demo gateway) accept: a simulated
+    /// firmware of that version, signed with the test key; with --reverts one that installs and
+    /// then fails its self-test, so the boards go back to their old image.
+    DemoImage(DemoImageArgs),
+}
+
+/// `fw demo-image`.
+#[derive(Args)]
+pub struct DemoImageArgs {
+    /// The version it claims, MAJOR.MINOR.PATCH (newer than the island's to be taken without --force).
+    #[arg(long)]
+    version: FirmwareVersion,
+    /// Make an image that does not confirm itself after the update (the boards revert it).
+    #[arg(long)]
+    reverts: bool,
+    /// Payload size in bytes (a real firmware is about 50 KiB; smaller transfers faster).
+    #[arg(long, default_value_t = 16 * 1024, value_parser = clap::value_parser!(u32).range(12..=(128 * 1024 - 512)))]
+    size: u32,
+    /// The image file to write (default: sim-fw-<version>.img, or sim-fw-<version>-reverts.img).
+    #[arg(long, short)]
+    out: Option<PathBuf>,
 }
 
 /// `fw update`.
@@ -124,7 +146,32 @@ pub fn run(cmd: FwCmd) -> Result<bool> {
         FwCmd::Pack(a) => pack_cmd(a).map(|()| true),
         FwCmd::Inspect(a) => inspect(a),
         FwCmd::Update(a) => crate::tokio_main(update(a)),
+        FwCmd::DemoImage(a) => demo_image(a).map(|()| true),
     }
+}
+
+/// `fw demo-image`: a simulated firmware signed with the test key, which is what every
+/// simulated board trusts.
+fn demo_image(a: DemoImageArgs) -> Result<()> {
+    let firmware = SimFirmware {
+        confirms: !a.reverts,
+    };
+    let key = SigningKey::test_key();
+    let image = sim_image(a.version, firmware, a.size as usize, &key)?;
+    let out = a.out.unwrap_or_else(|| {
+        let tail = if a.reverts { "-reverts" } else { "" };
+        PathBuf::from(format!("sim-fw-{}{tail}.img", a.version))
+    });
+    fs::write(&out, &image).with_context(|| format!("writing {}", out.display()))?;
+    let inspection = Inspection::of(&image, Some(&key.public()))?;
+    say!("{}", inspection.to_string().trim_end());
+    if a.reverts {
+        say!("simulated firmware that fails its self-test: the boards take it, then revert to their old image");
+    } else {
+        say!("simulated firmware: the simulated boards take it and confirm it");
+    }
+    say!("wrote {} ({} bytes)", out.display(), image.len());
+    Ok(())
 }
 
 /// How long the gateway has to show itself (its retained `online`) and to answer an upload.
@@ -154,7 +201,7 @@ async fn update(a: UpdateArgs) -> Result<bool> {
         }
         let image = FwImage::check(bytes.clone())
             .with_context(|| format!("{} is not an image to send", a.image.display()))?;
-        println!(
+        say!(
             "{name}: version {}, board {}, {} bytes",
             image.version(),
             image.header().board,
@@ -162,7 +209,7 @@ async fn update(a: UpdateArgs) -> Result<bool> {
         );
         Some(bytes)
     } else {
-        println!("{name}: no such local file; asking the gateway for its own copy (--fw-dir)");
+        say!("{name}: no such local file; asking the gateway for its own copy (--fw-dir)");
         None
     };
     let broker = a.broker.broker()?;
@@ -212,7 +259,7 @@ async fn drive(
                 answer.reason.as_deref().unwrap_or("no reason given")
             );
         }
-        println!(
+        say!(
             "uploaded: image {} version {} (signature {} by the gateway)",
             answer.image_id.as_deref().unwrap_or("?"),
             answer.version.as_deref().unwrap_or("?"),
@@ -238,10 +285,10 @@ async fn drive(
         }
         match event {
             GatewayEvent::FwProgress(p) if p.request_id.as_deref() == Some(&request_id) => {
-                println!("{:>4} {:<10} {:>3} %", p.node, p.phase, p.percent);
+                say!("{:>4} {:<10} {:>3} %", p.node, p.phase, p.percent);
             }
             GatewayEvent::FwReport(r) if r.request_id.as_deref() == Some(&request_id) => {
-                println!(
+                say!(
                     "image {} version {}: {} data frames in {:.1} s at a {} % bus share",
                     r.image_id,
                     r.version,
@@ -253,8 +300,8 @@ async fn drive(
                     let outcome = serde_json::to_value(n.outcome)?;
                     let outcome = outcome.as_str().unwrap_or("?");
                     match &n.reason {
-                        Some(why) => println!("{:>4} {outcome}: {why}", n.node),
-                        None => println!("{:>4} {outcome}", n.node),
+                        Some(why) => say!("{:>4} {outcome}: {why}", n.node),
+                        None => say!("{:>4} {outcome}", n.node),
                     }
                 }
                 let updated = r
@@ -262,7 +309,7 @@ async fn drive(
                     .iter()
                     .filter(|n| n.outcome == NodeOutcome::Updated)
                     .count();
-                println!("{updated} of {} nodes updated", r.nodes.len());
+                say!("{updated} of {} nodes updated", r.nodes.len());
                 return Ok(r.all_updated());
             }
             _ => {}
@@ -302,12 +349,12 @@ fn keygen(out: &Path) -> Result<()> {
     let public = with_suffix(out, "pub");
     let key = SigningKey::generate()?;
     key.save(&secret, &public)?;
-    println!("key ID {}", key.public().id());
-    println!(
+    say!("key ID {}", key.public().id());
+    say!(
         "secret key: {} (signs images: keep it off the bench, back it up)",
         secret.display()
     );
-    println!(
+    say!(
         "public key: {} (build the firmware with IHEX_FW_PUBKEY={0})",
         public.display()
     );
@@ -348,11 +395,11 @@ fn pack_cmd(a: PackArgs) -> Result<()> {
         PathBuf::from(format!("{name}-{}.img", inspection.header.version))
     });
     fs::write(&out, &image).with_context(|| format!("writing {}", out.display()))?;
-    print!("{inspection}");
+    say!("{}", inspection.to_string().trim_end());
     if key.public() == ihex_image::test_key::PUBLIC {
-        println!("signed with the TEST key: only boards built with the test key accept it");
+        say!("signed with the TEST key: only boards built with the test key accept it");
     }
-    println!("wrote {} ({} bytes)", out.display(), image.len());
+    say!("wrote {} ({} bytes)", out.display(), image.len());
     Ok(())
 }
 
@@ -364,7 +411,7 @@ fn inspect(a: InspectArgs) -> Result<bool> {
     };
     let image = fs::read(&a.image).with_context(|| format!("reading {}", a.image.display()))?;
     let inspection = Inspection::of(&image, key.as_ref())?;
-    print!("{inspection}");
+    say!("{}", inspection.to_string().trim_end());
     Ok(inspection.is_good())
 }
 

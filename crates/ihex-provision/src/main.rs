@@ -1,7 +1,15 @@
 //! `ihex-provision`: give sub-controllers their node IDs (serial or CAN), watch the gateway's events,
 //! make signed firmware images and update nodes through the gateway (`fw`).
 
+/// Prints a line on stdout like `println!`, but a reader that went away (`… | head`) does not
+/// panic the program: output stops, the work (an update under way) goes on to its end and its
+/// exit status.
+macro_rules! say {
+    ($($arg:tt)*) => { $crate::out::line(format_args!($($arg)*)) };
+}
+
 mod fw;
+mod out;
 
 use std::{path::PathBuf, process::ExitCode, time::Duration};
 
@@ -201,15 +209,15 @@ fn run_serial(a: SerialArgs) -> Result<()> {
         None => {
             let id = session.query_id()?;
             if id == NodeId::UNCONFIGURED {
-                println!("{}: no node ID yet (unconfigured)", a.port.display());
+                say!("{}: no node ID yet (unconfigured)", a.port.display());
             } else {
-                println!("{}: node ID {id}", a.port.display());
+                say!("{}: node ID {id}", a.port.display());
             }
         }
         Some(id) => {
             let before = session.query_id()?;
             session.set_id(id)?;
-            println!(
+            say!(
                 "{}: node ID {id} stored (was {})",
                 a.port.display(),
                 show(before)
@@ -246,7 +254,7 @@ async fn run_can(a: CanArgs) -> Result<()> {
     };
     let result = can::assign(&broker, &a.broker.topics(), &assignment).await?;
     let answer = ihex_gateway_core::event::Event::CommandResult(result);
-    println!("node {uid} assigned ID {new_id}: {}", answer.to_json());
+    say!("node {uid} assigned ID {new_id}: {}", answer.to_json());
     if let Some(reg) = registry.as_mut() {
         reg.record(
             new_id,
@@ -286,7 +294,7 @@ async fn run_wait(a: WaitArgs) -> Result<()> {
     while let Some(msg) = session.recv_until(deadline).await? {
         match Event::parse(&msg.payload) {
             Ok(e) if e.name == a.event && e.matches(&a.matches) => {
-                println!("{}", String::from_utf8_lossy(&msg.payload));
+                say!("{}", String::from_utf8_lossy(&msg.payload));
                 session.close().await;
                 return Ok(());
             }
