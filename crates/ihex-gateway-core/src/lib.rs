@@ -28,12 +28,14 @@
 //! assert_eq!(event.to_json(), r#"{"event":"command_rejected","payload":{"request_id":null,"reason":"unknown node 2; known: none yet"}}"#);
 //! ```
 //!
-//! Modules: [`bridge`] (the state machine, one submodule per concern), [`command`] (parsing and
-//! validation of JSON commands), [`event`] (the MQTT API's events and state documents), [`registry`]
-//! (what is known of each node), [`docking`] (the one-at-a-time docking sequence), [`throttle`]
-//! (rate limit of error events), [`error_frame`] (SocketCAN error frames), [`topic`] (topic names),
-//! [`ha`] (Home Assistant discovery and commands),
-//! [`fwupdate`] (the firmware-update sender: `fw_update`).
+//! Modules: [`bridge`] (the state machine: it routes each input, one submodule per concern of its
+//! own), [`command`] (parsing and validation of JSON commands, and the tracking of pending ones),
+//! [`event`] (the MQTT API's events and state documents), [`registry`] (what is known of each
+//! node), [`docking`] (the one-at-a-time docking sequence and its frames and events), [`throttle`]
+//! (rate limit of error events), [`error_frame`] (SocketCAN error frames), [`topic`] (logical
+//! topics and their names), [`ha`] (Home Assistant discovery and commands), [`fwupdate`] (the
+//! firmware-update sender, uploads and `fw_update`). A concept's folder holds its machine and the
+//! bridge's glue for it.
 #![forbid(unsafe_code)]
 #![warn(missing_docs)]
 
@@ -50,6 +52,7 @@ pub mod topic;
 
 pub use bridge::{
     Bridge, BridgeConfig, BusEvent, BusHealth, CommandCounters, Delivery, PayloadWriter,
-    Publication, PublicationCounters, Topic, Transmit,
+    Publication, PublicationCounters, Transmit,
 };
 pub use event::{Event, NodeState};
+pub use topic::Topic;

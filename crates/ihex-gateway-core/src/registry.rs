@@ -211,7 +211,7 @@ impl Registry {
     }
 
     /// Records that `id` was heard at `now` (registering it if new, reviving it if lost).
-    pub fn touch(&mut self, id: NodeId, now: Instant) -> Seen {
+    pub fn record_heard(&mut self, id: NodeId, now: Instant) -> Seen {
         match self.nodes.get_mut(&id) {
             None => {
                 self.nodes.insert(id, NodeEntry::new(id, now));
@@ -370,15 +370,18 @@ mod tests {
     }
 
     #[test]
-    fn touch_registers_and_revives() {
+    fn record_heard_registers_and_revives() {
         let t0 = Instant::now();
         let mut r = Registry::new();
-        assert_eq!(r.touch(id(5), t0), Seen::New);
-        assert_eq!(r.touch(id(5), t0), Seen::Known);
+        assert_eq!(r.record_heard(id(5), t0), Seen::New);
+        assert_eq!(r.record_heard(id(5), t0), Seen::Known);
         r.get_mut(id(5)).unwrap().replied = false;
         assert_eq!(r.close_round(1), vec![(id(5), 1)]);
         assert!(!r.get(id(5)).unwrap().online);
-        assert_eq!(r.touch(id(5), t0 + Duration::from_secs(1)), Seen::Back);
+        assert_eq!(
+            r.record_heard(id(5), t0 + Duration::from_secs(1)),
+            Seen::Back
+        );
         assert_eq!(r.get(id(5)).unwrap().misses, 0);
         assert_eq!(r.known_list(), "5");
     }
@@ -387,8 +390,8 @@ mod tests {
     fn misses_count_only_unanswered_rounds() {
         let t0 = Instant::now();
         let mut r = Registry::new();
-        r.touch(id(1), t0);
-        r.touch(id(2), t0);
+        r.record_heard(id(1), t0);
+        r.record_heard(id(2), t0);
         // Round 0 (nodes new this round): no misses.
         assert!(r.close_round(3).is_empty());
         // Round 1: node 1 answers, node 2 is silent.
@@ -411,7 +414,7 @@ mod tests {
     fn health_sets_role_relay_and_loops_and_state_changes_ignore_counters() {
         let t0 = Instant::now();
         let mut r = Registry::new();
-        r.touch(id(7), t0);
+        r.record_heard(id(7), t0);
         r.record_health(
             id(7),
             reply(0, HealthFlags::MOBILE | HealthFlags::RELAY, 10),

@@ -3,8 +3,19 @@
 
 use ihex_proto::NodeId;
 
-use crate::bridge::Topic;
-use crate::ha::HaTopics;
+use crate::ha::{HaTopic, HaTopics};
+
+/// Logical MQTT topics; the adapter maps them to names under the island prefix
+/// ([`Topics::resolve`]).
+#[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
+pub enum Topic {
+    /// `EventsTopic`: every JSON event.
+    Events,
+    /// The retained state document of one node.
+    NodeState(NodeId),
+    /// A Home Assistant topic (retained).
+    Ha(HaTopic),
+}
 
 /// Default command topic (the seed's name).
 pub const COMMANDS: &str = "CommandsTopic";

@@ -67,7 +67,7 @@ pub struct BusHealth {
 
 /// The rate limit and the counters.
 #[derive(Debug)]
-pub(super) struct Diagnostics {
+pub(crate) struct Diagnostics {
     throttle: Throttle,
     /// Frames dropped by the kernel and not reported yet (the rate limit sums them up).
     rx_dropped: u64,
@@ -117,7 +117,7 @@ fn suppressed(n: u32) -> Option<u32> {
 }
 
 impl Diagnostics {
-    pub(super) fn new() -> Self {
+    pub(crate) fn new() -> Self {
         Diagnostics {
             throttle: Throttle::new(ERROR_EVENT_WINDOW),
             rx_dropped: 0,
@@ -126,7 +126,7 @@ impl Diagnostics {
     }
 
     /// The counters; `bus_down` is filled in by the bridge.
-    pub(super) fn health(&self) -> BusHealth {
+    pub(crate) fn health(&self) -> BusHealth {
         self.health
     }
 
@@ -140,7 +140,7 @@ impl Diagnostics {
     }
 
     /// A node's `Fault` report.
-    pub(super) fn on_fault(
+    pub(crate) fn on_fault(
         &mut self,
         src: NodeId,
         code: FaultCode,
@@ -164,7 +164,7 @@ impl Diagnostics {
     }
 
     /// A handshake nobody waited for: the gateway's own `unexpected_handshake` fault.
-    pub(super) fn on_unexpected_handshake(
+    pub(crate) fn on_unexpected_handshake(
         &mut self,
         node: NodeId,
         port: Port,
@@ -187,7 +187,7 @@ impl Diagnostics {
     }
 
     /// A frame that passed the filters but is not a valid iHEX packet.
-    pub(super) fn on_undecodable(
+    pub(crate) fn on_undecodable(
         &mut self,
         raw_id: u32,
         data: &[u8],
@@ -212,7 +212,7 @@ impl Diagnostics {
     }
 
     /// A bus condition (error frame, bus-off, interface down/up, drops).
-    pub(super) fn on_bus_event(&mut self, event: BusEvent, now: Instant, out: &mut Outputs) {
+    pub(crate) fn on_bus_event(&mut self, event: BusEvent, now: Instant, out: &mut Outputs) {
         let (key, mut err) = match event {
             BusEvent::ErrorFrame { class, data } => {
                 self.health.error_frames += 1;
@@ -281,7 +281,7 @@ impl Diagnostics {
 
     /// Counts a frame that could not be sent (whoever reports it).
     /// A frame with `data_len` data bytes was received (`sent = false`) or handed over for sending.
-    pub(super) fn count_frame(&mut self, data_len: u8, sent: bool) {
+    pub(crate) fn count_frame(&mut self, data_len: u8, sent: bool) {
         if sent {
             self.health.frames_sent += 1;
         } else {
@@ -290,12 +290,12 @@ impl Diagnostics {
         self.health.frame_bits += u64::from(ihex_proto::bus::frame_bits(data_len));
     }
 
-    pub(super) fn count_send_failure(&mut self) {
+    pub(crate) fn count_send_failure(&mut self) {
         self.health.send_failures += 1;
     }
 
     /// A gateway frame that is not a user command (health check, docking) was not sent.
-    pub(super) fn on_send_failed(
+    pub(crate) fn on_send_failed(
         &mut self,
         packet: &Packet,
         reason: &str,

@@ -7,9 +7,10 @@ use std::time::Instant;
 
 use ihex_proto::{NodeId, Uid};
 
-use super::{Bridge, Publication, Topic};
+use super::{Bridge, Publication};
 use crate::command::CommandError;
 use crate::event::{CommandResult, Event, HexId, NodeForgotten, Outcome, Target};
+use crate::topic::Topic;
 
 impl Bridge {
     /// `forget` of `id`: refused for an unknown or online node, else done and answered `ok` at
@@ -75,7 +76,7 @@ impl Bridge {
             new_id: renumbered_to.map(HexId),
         }));
         // The other ends of its connections changed.
-        self.settle(now);
+        self.finish_input(now);
     }
 }
 
@@ -83,6 +84,7 @@ impl Bridge {
 mod tests {
     use super::super::test_support::*;
     use super::super::*;
+    use crate::topic::Topic;
     use ihex_proto::{AckResult, Message, Packet};
     use serde_json::json;
 

@@ -71,7 +71,7 @@ impl Health {
         now: Instant,
         out: &mut Outputs,
     ) -> Seen {
-        let seen = registry.touch(src, now);
+        let seen = registry.record_heard(src, now);
         if let Some(e) = registry.get_mut(src) {
             // Learn the role first, so that `node_online` can already tell it.
             match *msg {
@@ -105,7 +105,7 @@ impl Health {
             })),
             Seen::Known => {}
         }
-        out.touch(src);
+        out.mark_changed(src);
         match *msg {
             Message::BootUp { version, reset, .. } => {
                 let announced = self
@@ -174,7 +174,7 @@ impl Health {
                     missed,
                     last_seen_ms,
                 }));
-                out.touch(id);
+                out.mark_changed(id);
                 on_lost(id, out);
             }
         }

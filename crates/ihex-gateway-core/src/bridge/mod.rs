@@ -5,27 +5,25 @@
 //! (command validation, acknowledgement tracking, health and lost-node detection, the one-at-a-time
 //! docking sequence, bus diagnostics) is tested without a bus or a broker.
 //!
-//! This file only routes each input to the concern that owns it, one submodule each: `commands`
-//! (pending commands, sequence numbers, acks and timeouts), `health` (health checks, presence, lost
-//! detection), `diagnostics` (error frames, drops, undecodable frames, faults, rate limits), `dock`
-//! (the docking sequence's frames and events), `forget` (the `forget` command and renumbered
-//! boards), `home_assistant` (discovery and commands from Home Assistant, [`crate::ha`]),
-//! `readback` (asking nodes for their state and applying their answers), `inherited` (state
-//! documents an earlier run left retained for nodes this run does not hear), `output` (the queues
-//! the adapters drain, and what gives when they cannot keep up).
+//! This file only routes each input to the concern that owns it. A concept with a machine of its
+//! own keeps the bridge's glue beside it, in its folder: [`crate::command`] (`pending`: pending
+//! commands, sequence numbers, acks and timeouts), [`crate::docking`] (`glue`: the docking
+//! sequence's frames and events), [`crate::ha`] (`glue`: discovery and commands from Home
+//! Assistant), [`crate::fwupdate`] (`glue`: `fw_update` and uploads). The bridge's own concerns are
+//! submodules here: `health` (health checks, presence, lost detection), `diagnostics` (error
+//! frames, drops, undecodable frames, faults, rate limits), `forget` (the `forget` command and
+//! renumbered boards), `readback` (asking nodes for their state and applying their answers),
+//! `inherited` (state documents an earlier run left retained for nodes this run does not hear),
+//! `output` (the queues the adapters drain, and what gives when they cannot keep up).
 
-mod commands;
-mod diagnostics;
-mod dock;
+pub(crate) mod diagnostics;
 mod forget;
-mod fw;
 mod health;
-mod home_assistant;
 mod inherited;
-mod output;
-mod readback;
+pub(crate) mod output;
+pub(crate) mod readback;
 #[cfg(test)]
-mod test_support;
+pub(crate) mod test_support;
 
 use std::time::{Duration, Instant};
 
@@ -34,28 +32,27 @@ use ihex_proto::{
     StateReport, Uid,
 };
 
-pub use commands::CommandCounters;
+pub use crate::command::pending::CommandCounters;
+pub use crate::fwupdate::FwLoad;
 pub use diagnostics::{BusEvent, BusHealth, ERROR_EVENT_WINDOW};
-pub use fw::FwLoad;
 pub use output::{
-    PayloadWriter, Publication, PublicationCounters, Topic, Transmit, ANSWER_BACKLOG,
-    TRANSMIT_WINDOW,
+    PayloadWriter, Publication, PublicationCounters, Transmit, ANSWER_BACKLOG, TRANSMIT_WINDOW,
 };
 pub use readback::{INCOMPLETE_LIMIT, MAX_QUERIES, READ_BACK_VERSION, SILENT_LIMIT};
 
 use crate::command::json::Arena;
+use crate::command::pending::{Accepted, Pending};
 use crate::command::{self, Command, CommandError, FwNodes, Request};
+use crate::docking::glue::{self as dock, DockParts};
 use crate::docking::Docking;
 use crate::event::{
     CommandRejected, CommandResult, Connection, Event, HexId, NodeList, NodeState, Outcome,
     PublicationsDropped, Target,
 };
+use crate::fwupdate::FwUpdates;
 use crate::ha::Ha;
 use crate::registry::{millis, Registry, Seen};
-use commands::{Accepted, Commands};
 use diagnostics::Diagnostics;
-use dock::DockParts;
-use fw::FwUpdates;
 use health::Health;
 use inherited::Inherited;
 use output::{Next, Outputs};
@@ -150,15 +147,15 @@ impl Delivery {
 /// The gateway state machine.
 #[derive(Debug)]
 pub struct Bridge {
-    config: BridgeConfig,
-    out: Outputs,
-    registry: Registry,
+    pub(crate) config: BridgeConfig,
+    pub(crate) out: Outputs,
+    pub(crate) registry: Registry,
     docking: Docking,
-    commands: Commands,
+    pending: Pending,
     health: Health,
     diagnostics: Diagnostics,
     /// Home Assistant discovery, when enabled ([`Bridge::with_home_assistant`]).
-    ha: Option<Ha>,
+    pub(crate) ha: Option<Ha>,
     readback: ReadBack,
     inherited: Inherited,
     /// The time of the last input (state documents taken later are built as of it).
@@ -178,7 +175,7 @@ impl Bridge {
             out: Outputs::new(config.tx_queue, config.event_queue),
             registry: Registry::new(),
             docking: Docking::new(config.dock_timeout, Docking::DEFAULT_QUEUE),
-            commands: Commands::new(config.command_timeout),
+            pending: Pending::new(config.command_timeout),
             health: Health::new(config.health_period, config.lost_after_misses, now),
             diagnostics: Diagnostics::new(),
             ha: None,
@@ -237,7 +234,7 @@ impl Bridge {
 
     /// Commands in flight now, and how the finished ones ended.
     pub fn command_counters(&self) -> CommandCounters {
-        self.commands.counters()
+        self.pending.counters()
     }
 
     /// Publications taken and dropped since start, and what waits now.
@@ -278,7 +275,8 @@ impl Bridge {
         self.out.publish.answers_waiting() < ANSWER_BACKLOG
     }
 
-    fn advance(&mut self, now: Instant) {
+    /// Records the time of the input being handled (state documents taken later are built as of it).
+    fn set_now(&mut self, now: Instant) {
         self.now = now;
     }
 
@@ -293,7 +291,7 @@ impl Bridge {
     /// answer: `command_rejected` (invalid, retained, unknown node, …), `node_list`, or later one
     /// `command_result`.
     pub fn handle_delivered_command(&mut self, payload: &[u8], delivery: Delivery, now: Instant) {
-        self.advance(now);
+        self.set_now(now);
         if delivery.retained {
             let request_id = command::request_id(payload);
             return self.reject(request_id, CommandError::Retained);
@@ -306,7 +304,7 @@ impl Bridge {
 
     /// Carries out a valid command (from the JSON API or from Home Assistant) delivered as
     /// `delivery` says.
-    fn execute(&mut self, req: Request, delivery: Delivery, now: Instant) {
+    pub(crate) fn execute(&mut self, req: Request, delivery: Delivery, now: Instant) {
         let request_id = req.request_id;
         let expires = req.ttl.map(|ttl| delivery.received + ttl);
         if let (Some(expires), Some(ttl)) = (expires, req.ttl) {
@@ -334,7 +332,7 @@ impl Bridge {
                     }
                 }
                 let registry = &self.registry;
-                self.commands.send(
+                self.pending.send(
                     request_id,
                     target,
                     action,
@@ -352,7 +350,7 @@ impl Bridge {
                 if !force && self.registry.get(new_id).is_some_and(|e| e.online) {
                     return self.reject(request_id, CommandError::IdInUse(HexId(new_id)));
                 }
-                self.commands
+                self.pending
                     .send_assign(request_id, uid, new_id, acc, &mut self.out)
             }
             Command::Forget { id } => {
@@ -363,7 +361,7 @@ impl Bridge {
         if let Err((request_id, error)) = sent {
             self.reject(request_id, error);
         }
-        self.settle(now);
+        self.finish_input(now);
     }
 
     /// A command whose ttl ended before the bridge got it: `expired`, never queued.
@@ -382,7 +380,7 @@ impl Bridge {
             Command::List | Command::FwUpdate { .. } => Target::All,
         };
         let waited = millis(now.saturating_duration_since(delivery.received));
-        self.commands.count_expired();
+        self.pending.count_expired();
         self.out.emit(Event::CommandResult(CommandResult {
             request_id,
             cmd: cmd.name().into(),
@@ -402,7 +400,7 @@ impl Bridge {
     /// A valid iHEX packet arrived on the bus (including the echo of one of our own frames, which
     /// confirms it was sent).
     pub fn handle_packet(&mut self, packet: Packet, now: Instant) {
-        self.advance(now);
+        self.set_now(now);
         if packet.src == NodeId::GATEWAY {
             return self.handle_transmitted(packet, now);
         }
@@ -425,7 +423,7 @@ impl Bridge {
             {
                 self.on_assign_reply(seq, result, new_id, uid_tail, now);
             }
-            self.settle(now);
+            self.finish_input(now);
             return;
         }
         let seen = self
@@ -491,21 +489,21 @@ impl Bridge {
             // Command kinds never come addressed to the gateway (the decoder checks addresses).
             _ => tracing::debug!(?packet, "ignoring unexpected packet"),
         }
-        self.settle(now);
+        self.finish_input(now);
     }
 
     /// A frame arrived that passed the filters but is not a valid iHEX packet.
     pub fn handle_undecodable(&mut self, raw_id: u32, data: &[u8], err: DecodeError, now: Instant) {
         let len = u8::try_from(data.len()).unwrap_or(u8::MAX);
         self.diagnostics.count_frame(len, false);
-        self.advance(now);
+        self.set_now(now);
         self.diagnostics
             .on_undecodable(raw_id, data, err, now, &mut self.out);
     }
 
     /// A bus condition (error frame, bus-off, interface down/up, drops).
     pub fn handle_bus_event(&mut self, event: BusEvent, now: Instant) {
-        self.advance(now);
+        self.set_now(now);
         match event {
             BusEvent::BusOff => {
                 self.health.on_bus_down();
@@ -520,7 +518,7 @@ impl Bridge {
                 // nobody can tell any more.
                 for p in self.out.transmit.clear_in_flight() {
                     let why = "the CAN interface went down before confirming it was sent";
-                    self.commands.on_unconfirmed(&p, why, now, &mut self.out);
+                    self.pending.on_unconfirmed(&p, why, now, &mut self.out);
                 }
             }
             BusEvent::Recovered => {
@@ -536,45 +534,45 @@ impl Bridge {
             _ => {}
         }
         self.diagnostics.on_bus_event(event, now, &mut self.out);
-        self.settle(now);
+        self.finish_input(now);
     }
 
     /// The adapter confirms that a frame from [`Bridge::poll_transmit`] went on the bus: its echo
     /// arrived (SocketCAN with `CAN_RAW_RECV_OWN_MSGS`), or, on a link that cannot tell, it was
     /// written. [`Bridge::handle_packet`] calls this for frames from the gateway's own address.
     pub fn handle_transmitted(&mut self, packet: Packet, now: Instant) {
-        self.advance(now);
-        if !self.out.transmit.settle(&packet) {
+        self.set_now(now);
+        if !self.out.transmit.release(&packet) {
             tracing::debug!(
                 ?packet,
                 "echo of a frame not waiting for one (late, or another gateway's)"
             );
         }
-        self.commands.on_transmitted(&packet, now);
+        self.pending.on_transmitted(&packet, now);
         if let Message::StateQuery { .. } = packet.msg {
             self.readback.on_transmitted(packet.dest, now);
         }
-        self.settle(now);
+        self.finish_input(now);
     }
 
     /// The adapter did not write a frame because its [`Transmit::not_after`] had passed: its
     /// command ends `expired` or `failed`, and the frame is never sent.
     pub fn handle_withdrawn(&mut self, packet: Packet, now: Instant) {
-        self.advance(now);
-        self.out.transmit.settle(&packet);
+        self.set_now(now);
+        self.out.transmit.release(&packet);
         if let Message::StateQuery { .. } = packet.msg {
             self.readback.on_not_sent(packet.dest);
         }
-        self.commands.on_withdrawn(&packet, now, &mut self.out);
-        self.settle(now);
+        self.pending.on_withdrawn(&packet, now, &mut self.out);
+        self.finish_input(now);
     }
 
     /// A frame from [`Bridge::poll_transmit`] could not be transmitted.
     pub fn handle_send_failed(&mut self, packet: Packet, reason: &str, now: Instant) {
-        self.advance(now);
-        self.out.transmit.settle(&packet);
+        self.set_now(now);
+        self.out.transmit.release(&packet);
         self.send_failed(packet, reason, now);
-        self.settle(now);
+        self.finish_input(now);
     }
 
     fn send_failed(&mut self, packet: Packet, reason: &str, now: Instant) {
@@ -583,7 +581,7 @@ impl Bridge {
             self.readback.on_not_sent(packet.dest);
         }
         if let Message::DockConfirm { seq, .. } = packet.msg {
-            self.commands.on_send_failed(&packet, reason, &mut self.out);
+            self.pending.on_send_failed(&packet, reason, &mut self.out);
             let steps = self
                 .docking
                 .on_confirm_failed(packet.dest, seq, reason, now);
@@ -591,7 +589,7 @@ impl Bridge {
                 self.apply(steps, now);
                 return;
             }
-        } else if self.commands.on_send_failed(&packet, reason, &mut self.out) {
+        } else if self.pending.on_send_failed(&packet, reason, &mut self.out) {
             return;
         }
         self.diagnostics
@@ -601,7 +599,7 @@ impl Bridge {
     /// The MQTT session is (re)established: queue the retained node states again (a restarted broker
     /// may have lost them), and with Home Assistant discovery every config and light state.
     pub fn handle_mqtt_connected(&mut self, now: Instant) {
-        self.advance(now);
+        self.set_now(now);
         if let Some(ha) = &self.ha {
             self.out.publish.push_kept(Publication::Ha(ha.gateway()));
         }
@@ -616,11 +614,11 @@ impl Bridge {
     /// state topics (an earlier run's, or this run's own). One that says `online` for a node this
     /// run does not hear within the lost period is republished offline (see [`Bridge::poll_timeout`]).
     pub fn handle_retained_state(&mut self, id: NodeId, payload: &[u8], now: Instant) {
-        self.advance(now);
+        self.set_now(now);
         let known = self.registry.get(id).is_some();
         self.inherited.on_retained(id, payload, known);
         self.republish_inherited(now);
-        self.settle(now);
+        self.finish_input(now);
     }
 
     /// Republishes, offline, the inherited documents of nodes not heard in time.
@@ -638,26 +636,26 @@ impl Bridge {
     /// The image file of an `fw_update` ([`Bridge::poll_fw_load`]) was read (`Ok`), or could not
     /// be (`Err`: why, for the `command_result`). A good image starts the update.
     pub fn handle_fw_image(&mut self, load: FwLoad, bytes: Result<Vec<u8>, String>, now: Instant) {
-        self.advance(now);
+        self.set_now(now);
         self.fw.on_image(load, bytes, now, &mut self.out);
-        self.settle(now);
+        self.finish_input(now);
     }
 
     /// An image uploaded over MQTT under `name` (the last level of its topic; `retained`: the
     /// broker delivered it as retained). It is checked and kept for `fw_update`, and answered
     /// with `fw_upload` (`stored`, or `rejected` with the reason).
     pub fn handle_fw_upload(&mut self, name: &str, bytes: Vec<u8>, retained: bool, now: Instant) {
-        self.advance(now);
+        self.set_now(now);
         self.fw.on_upload(name, bytes, retained, &mut self.out);
-        self.settle(now);
+        self.finish_input(now);
     }
 
     /// Stops a running firmware update (the gateway is shutting down): its nodes are told to drop
     /// the transfer and `fw_report` says `failed` with `reason` for every node not done yet.
     pub fn cancel_fw_update(&mut self, reason: &str, now: Instant) {
-        self.advance(now);
+        self.set_now(now);
         self.fw.cancel(reason, now, &mut self.out);
-        self.settle(now);
+        self.finish_input(now);
     }
 
     /// True while a firmware update is loading or running.
@@ -674,7 +672,7 @@ impl Bridge {
     /// Advances timers: withdrawals, ack and docking timeouts, frames never confirmed, the health
     /// broadcast and lost nodes, the report of dropped publications, a firmware update's rounds.
     pub fn handle_timeout(&mut self, now: Instant) {
-        self.advance(now);
+        self.set_now(now);
         self.fw.tick(now, &mut self.out);
         if let Some(cutoff) = now.checked_sub(TRANSMIT_CONFIRM_TIMEOUT) {
             for p in self.out.transmit.expire_in_flight(cutoff) {
@@ -684,10 +682,10 @@ impl Bridge {
                     TRANSMIT_CONFIRM_TIMEOUT.as_millis()
                 );
                 let why = "the CAN interface did not confirm sending it";
-                self.commands.on_unconfirmed(&p, why, now, &mut self.out);
+                self.pending.on_unconfirmed(&p, why, now, &mut self.out);
             }
         }
-        self.commands.expire(now, &mut self.out);
+        self.pending.expire(now, &mut self.out);
         self.readback.expire(now);
         self.republish_inherited(now);
         let steps = self.docking.tick(now);
@@ -696,7 +694,7 @@ impl Bridge {
         let Bridge {
             registry,
             docking,
-            commands,
+            pending,
             health,
             diagnostics,
             readback,
@@ -707,7 +705,7 @@ impl Bridge {
             readback.on_lost(id);
             let steps = docking.on_lost(id);
             let parts = DockParts {
-                commands: &mut *commands,
+                pending: &mut *pending,
                 docking: &mut *docking,
                 diagnostics: &mut *diagnostics,
                 readback: &*readback,
@@ -725,7 +723,7 @@ impl Bridge {
                 }));
             self.next_drop_report = now + DROP_REPORT_PERIOD;
         }
-        self.settle(now);
+        self.finish_input(now);
     }
 
     /// When [`Bridge::handle_timeout`] must run next.
@@ -736,7 +734,7 @@ impl Bridge {
                 next = next.min(d);
             }
         };
-        at(self.commands.next_deadline());
+        at(self.pending.next_deadline());
         at(self.readback.next_deadline());
         at(self.docking.deadline());
         at(self.inherited.next_deadline());
@@ -762,7 +760,7 @@ impl Bridge {
     /// else waits, within the update's bus share, and only while fewer than [`FW_WINDOW`] frames
     /// are out: the rest of the window is always free for a command that comes meanwhile.
     pub fn poll_transmit(&mut self, now: Instant) -> Option<Transmit> {
-        self.advance(now);
+        self.set_now(now);
         loop {
             if self.out.transmit.queued() == 0 && self.out.transmit.in_flight() < FW_WINDOW {
                 if let Some(p) = self.fw.poll_transmit() {
@@ -771,16 +769,16 @@ impl Bridge {
             }
             match self.out.transmit.pop(now)? {
                 Ok(t) => {
-                    self.commands.on_handed(&t.packet, now);
+                    self.pending.on_handed(&t.packet, now);
                     self.diagnostics
                         .count_frame(Message::len_of(t.packet.msg.kind()), true);
                     return Some(t);
                 }
                 Err(late) => {
                     // Its command's deadline passed: answering it withdraws the frame.
-                    self.commands.expire(now, &mut self.out);
+                    self.pending.expire(now, &mut self.out);
                     self.out.transmit.withdraw(&late);
-                    self.settle(now);
+                    self.finish_input(now);
                 }
             }
         }
@@ -861,9 +859,9 @@ impl Bridge {
         );
     }
 
-    fn reject(&mut self, request_id: Option<String>, error: CommandError) {
+    pub(crate) fn reject(&mut self, request_id: Option<String>, error: CommandError) {
         tracing::info!(%error, "command rejected");
-        self.commands.count_rejected();
+        self.pending.count_rejected();
         self.out.emit(Event::CommandRejected(CommandRejected {
             request_id,
             reason: error.to_string(),
@@ -871,7 +869,7 @@ impl Bridge {
     }
 
     fn on_ack(&mut self, src: NodeId, kind: Kind, seq: u8, result: AckResult, now: Instant) {
-        self.commands.on_ack(
+        self.pending.on_ack(
             src,
             kind,
             seq,
@@ -891,7 +889,7 @@ impl Bridge {
     /// Carries out docking steps.
     fn apply(&mut self, steps: Vec<crate::docking::Step>, now: Instant) {
         let parts = DockParts {
-            commands: &mut self.commands,
+            pending: &mut self.pending,
             docking: &mut self.docking,
             diagnostics: &mut self.diagnostics,
             readback: &self.readback,
@@ -908,7 +906,7 @@ impl Bridge {
         now: Instant,
     ) {
         if let Some(uid) =
-            self.commands
+            self.pending
                 .on_assign_reply(seq, result, new_id, uid_tail, &mut self.out)
         {
             // The board announces its new ID with a BootUp without restarting.
@@ -1015,7 +1013,7 @@ impl Bridge {
             e.uid = Some(Uid::from_low_high(l, h));
         }
         let is_static = e.role == Some(BootRole::Static);
-        self.out.touch(node);
+        self.out.mark_changed(node);
         if parts.contains(StateParts::DOCKING) && is_static {
             let steps = self.docking.reconcile(node, &docks, asked);
             self.apply(steps, now);
@@ -1024,7 +1022,7 @@ impl Bridge {
 
     /// Ends an input: frames the full transmit queue refused fail, and every node whose state may
     /// have changed gets its (coalesced) state document queued.
-    fn settle(&mut self, now: Instant) {
+    fn finish_input(&mut self, now: Instant) {
         loop {
             let refused = self.out.transmit.take_refused();
             if refused.is_empty() {

@@ -22,7 +22,8 @@ use bytes::{Bytes, BytesMut};
 use ihex_proto::{NodeId, Packet};
 
 use crate::event::{self, Event, NodeState};
-use crate::ha::{HaPublication, HaTopic};
+use crate::ha::HaPublication;
+use crate::topic::Topic;
 
 /// Frames handed to the adapter and not yet confirmed sent or failed: the most that can still
 /// reach the bus after their command was answered (a CAN controller and the kernel's queue keep
@@ -31,18 +32,6 @@ pub const TRANSMIT_WINDOW: usize = 8;
 
 /// Answers waiting for the adapter beyond which [`super::Bridge::wants_commands`] says no.
 pub const ANSWER_BACKLOG: usize = 256;
-
-/// Logical MQTT topics; the adapter maps them to names under the island prefix
-/// ([`crate::topic::Topics::resolve`]).
-#[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
-pub enum Topic {
-    /// `EventsTopic`: every JSON event.
-    Events,
-    /// The retained state document of one node.
-    NodeState(NodeId),
-    /// A Home Assistant topic (retained).
-    Ha(HaTopic),
-}
 
 /// One message for MQTT, as a Rust value: an event, or a node's retained state document.
 #[derive(Clone, PartialEq, Debug)]
@@ -149,7 +138,7 @@ pub struct PublicationCounters {
 
 /// The next publication in order: an event, a publication that is kept whatever the load, or a
 /// node whose state document is to be built now.
-pub(super) enum Next {
+pub(crate) enum Next {
     Event(Event),
     Kept(Publication),
     State { id: NodeId, forced: bool },
@@ -158,7 +147,7 @@ pub(super) enum Next {
 /// The publication queues: answers, coalesced state documents, other events; taken in the order
 /// they were first queued.
 #[derive(Debug)]
-pub(super) struct PublishQueue {
+pub(crate) struct PublishQueue {
     stamp: u64,
     answers: VecDeque<(u64, Event)>,
     /// Home Assistant's retained configs and light states, and emptied retained topics: as few as
@@ -196,7 +185,7 @@ fn is_answer(e: &Event) -> bool {
 }
 
 impl PublishQueue {
-    pub(super) fn new(event_cap: usize) -> Self {
+    pub(crate) fn new(event_cap: usize) -> Self {
         PublishQueue {
             stamp: 0,
             answers: VecDeque::new(),
@@ -215,7 +204,7 @@ impl PublishQueue {
         self.stamp
     }
 
-    pub(super) fn push_event(&mut self, event: Event) {
+    pub(crate) fn push_event(&mut self, event: Event) {
         let stamp = self.next_stamp();
         if is_answer(&event) {
             self.answers.push_back((stamp, event));
@@ -242,13 +231,13 @@ impl PublishQueue {
     }
 
     /// Queues a publication that is never dropped, after everything queued before it.
-    pub(super) fn push_kept(&mut self, publication: Publication) {
+    pub(crate) fn push_kept(&mut self, publication: Publication) {
         let stamp = self.next_stamp();
         self.kept.push_back((stamp, publication));
     }
 
     /// Queues publications that follow the one just taken, ahead of everything else.
-    pub(super) fn push_kept_next(
+    pub(crate) fn push_kept_next(
         &mut self,
         publications: impl DoubleEndedIterator<Item = Publication>,
     ) {
@@ -258,7 +247,7 @@ impl PublishQueue {
     }
 
     /// Queues `id`'s state document (built when taken); `forced` publishes it even if unchanged.
-    pub(super) fn push_state(&mut self, id: NodeId, forced: bool) {
+    pub(crate) fn push_state(&mut self, id: NodeId, forced: bool) {
         let flags = &mut self.queued[usize::from(id.get())];
         let was = *flags;
         *flags |= QUEUED | if forced { FORCED } else { 0 };
@@ -268,7 +257,7 @@ impl PublishQueue {
         }
     }
 
-    pub(super) fn pop(&mut self) -> Option<Next> {
+    pub(crate) fn pop(&mut self) -> Option<Next> {
         let head = |q: &VecDeque<(u64, Event)>| q.front().map_or(u64::MAX, |(s, _)| *s);
         let a = head(&self.answers);
         let e = head(&self.events);
@@ -295,22 +284,22 @@ impl PublishQueue {
         Some(Next::Event(event))
     }
 
-    pub(super) fn count_state(&mut self) {
+    pub(crate) fn count_state(&mut self) {
         self.counters.states += 1;
     }
 
-    pub(super) fn waiting(&self) -> bool {
+    pub(crate) fn waiting(&self) -> bool {
         !(self.answers.is_empty()
             && self.kept.is_empty()
             && self.events.is_empty()
             && self.states.is_empty())
     }
 
-    pub(super) fn answers_waiting(&self) -> usize {
+    pub(crate) fn answers_waiting(&self) -> usize {
         self.answers.len()
     }
 
-    pub(super) fn counters(&self) -> PublicationCounters {
+    pub(crate) fn counters(&self) -> PublicationCounters {
         PublicationCounters {
             answers_waiting: self.answers.len(),
             events_waiting: self.events.len(),
@@ -320,12 +309,12 @@ impl PublishQueue {
     }
 
     /// True when drops wait to be reported.
-    pub(super) fn has_unreported(&self) -> bool {
+    pub(crate) fn has_unreported(&self) -> bool {
         !self.unreported.is_empty()
     }
 
     /// The drops since the last report, by name, and their sum; clears them.
-    pub(super) fn take_unreported(&mut self) -> (u64, BTreeMap<String, u64>) {
+    pub(crate) fn take_unreported(&mut self) -> (u64, BTreeMap<String, u64>) {
         let by_name = std::mem::take(&mut self.unreported);
         let n = by_name.values().sum();
         (
@@ -337,7 +326,7 @@ impl PublishQueue {
         )
     }
 
-    pub(super) fn total_dropped(&self) -> u64 {
+    pub(crate) fn total_dropped(&self) -> u64 {
         self.counters.dropped
     }
 }
@@ -351,7 +340,7 @@ struct Queued {
 
 /// Frames not yet handed to the adapter, and those handed and not yet confirmed.
 #[derive(Debug)]
-pub(super) struct TransmitQueue {
+pub(crate) struct TransmitQueue {
     queue: VecDeque<Queued>,
     cap: usize,
     /// Handed to the adapter at the given time, waiting for its echo or failure.
@@ -361,7 +350,7 @@ pub(super) struct TransmitQueue {
 }
 
 impl TransmitQueue {
-    pub(super) fn new(cap: usize) -> Self {
+    pub(crate) fn new(cap: usize) -> Self {
         TransmitQueue {
             queue: VecDeque::new(),
             cap: cap.max(1),
@@ -371,7 +360,7 @@ impl TransmitQueue {
     }
 
     /// Queues a frame; when the queue is full it is refused (the bridge then fails it).
-    pub(super) fn push(&mut self, packet: Packet, not_after: Option<Instant>) {
+    pub(crate) fn push(&mut self, packet: Packet, not_after: Option<Instant>) {
         if self.queue.len() >= self.cap {
             self.refused.push(packet);
         } else {
@@ -380,17 +369,17 @@ impl TransmitQueue {
     }
 
     /// The capacity of the queue.
-    pub(super) fn cap(&self) -> usize {
+    pub(crate) fn cap(&self) -> usize {
         self.cap
     }
 
-    pub(super) fn take_refused(&mut self) -> Vec<Packet> {
+    pub(crate) fn take_refused(&mut self) -> Vec<Packet> {
         std::mem::take(&mut self.refused)
     }
 
     /// The next frame, if the window has room; `Err` with the frame when its deadline passed (it
     /// stays queued for the caller to withdraw).
-    pub(super) fn pop(&mut self, now: Instant) -> Option<Result<Transmit, Packet>> {
+    pub(crate) fn pop(&mut self, now: Instant) -> Option<Result<Transmit, Packet>> {
         if self.in_flight.len() >= TRANSMIT_WINDOW {
             return None;
         }
@@ -407,7 +396,7 @@ impl TransmitQueue {
     }
 
     /// Removes a queued frame equal to `packet`; true if there was one.
-    pub(super) fn withdraw(&mut self, packet: &Packet) -> bool {
+    pub(crate) fn withdraw(&mut self, packet: &Packet) -> bool {
         match self.queue.iter().position(|q| q.packet == *packet) {
             Some(i) => {
                 self.queue.remove(i);
@@ -418,7 +407,7 @@ impl TransmitQueue {
     }
 
     /// Frames ahead of `packet` in the queue (all of them if it is not queued).
-    pub(super) fn ahead_of(&self, packet: &Packet) -> usize {
+    pub(crate) fn ahead_of(&self, packet: &Packet) -> usize {
         self.queue
             .iter()
             .position(|q| q.packet == *packet)
@@ -427,7 +416,7 @@ impl TransmitQueue {
 
     /// The frame's fate is known (echoed, failed): its place in the window is free. True if it was
     /// in the window.
-    pub(super) fn settle(&mut self, packet: &Packet) -> bool {
+    pub(crate) fn release(&mut self, packet: &Packet) -> bool {
         match self.in_flight.iter().position(|(p, _)| p == packet) {
             Some(i) => {
                 self.in_flight.swap_remove(i);
@@ -438,7 +427,7 @@ impl TransmitQueue {
     }
 
     /// Frames in the window handed out at or before `cutoff`: removed and returned.
-    pub(super) fn expire_in_flight(&mut self, cutoff: Instant) -> Vec<Packet> {
+    pub(crate) fn expire_in_flight(&mut self, cutoff: Instant) -> Vec<Packet> {
         let mut gone = Vec::new();
         self.in_flight.retain(|&(p, t)| {
             let keep = t > cutoff;
@@ -451,46 +440,46 @@ impl TransmitQueue {
     }
 
     /// Every frame in the window: removed and returned (the interface went down).
-    pub(super) fn clear_in_flight(&mut self) -> Vec<Packet> {
+    pub(crate) fn clear_in_flight(&mut self) -> Vec<Packet> {
         self.in_flight.drain(..).map(|(p, _)| p).collect()
     }
 
     /// When the oldest frame in the window was handed out.
-    pub(super) fn oldest_in_flight(&self) -> Option<Instant> {
+    pub(crate) fn oldest_in_flight(&self) -> Option<Instant> {
         self.in_flight.iter().map(|&(_, t)| t).min()
     }
 
     /// The earliest deadline of a queued frame.
-    pub(super) fn next_not_after(&self) -> Option<Instant> {
+    pub(crate) fn next_not_after(&self) -> Option<Instant> {
         self.queue.iter().filter_map(|q| q.not_after).min()
     }
 
-    pub(super) fn queued(&self) -> usize {
+    pub(crate) fn queued(&self) -> usize {
         self.queue.len()
     }
 
-    pub(super) fn in_flight(&self) -> usize {
+    pub(crate) fn in_flight(&self) -> usize {
         self.in_flight.len()
     }
 }
 
 /// The bridge's output queues, filled by every concern and drained by the adapters.
 #[derive(Debug)]
-pub(super) struct Outputs {
+pub(crate) struct Outputs {
     /// Frames to transmit.
-    pub(super) transmit: TransmitQueue,
+    pub(crate) transmit: TransmitQueue,
     /// Publications.
-    pub(super) publish: PublishQueue,
+    pub(crate) publish: PublishQueue,
     /// Nodes whose state document may have changed since it was last published, in any order and
-    /// possibly repeated (nearly every frame touches its node: a set would allocate a tree node
+    /// possibly repeated (nearly every frame marks its node: a set would allocate a tree node
     /// per input; the bridge sorts and dedups once per input instead).
-    pub(super) dirty: Vec<NodeId>,
+    pub(crate) dirty: Vec<NodeId>,
     /// Nodes whose real state the bridge is no longer sure of (a command to them timed out).
-    pub(super) unsure: BTreeSet<NodeId>,
+    pub(crate) unsure: BTreeSet<NodeId>,
 }
 
 impl Outputs {
-    pub(super) fn new(tx_queue: usize, event_queue: usize) -> Self {
+    pub(crate) fn new(tx_queue: usize, event_queue: usize) -> Self {
         Outputs {
             transmit: TransmitQueue::new(tx_queue),
             publish: PublishQueue::new(event_queue),
@@ -500,23 +489,23 @@ impl Outputs {
     }
 
     /// Queues a frame without a deadline.
-    pub(super) fn send(&mut self, packet: Packet) {
+    pub(crate) fn send(&mut self, packet: Packet) {
         self.transmit.push(packet, None);
     }
 
     /// Queues a command's frame that must not be written after `not_after`.
-    pub(super) fn send_until(&mut self, packet: Packet, not_after: Instant) {
+    pub(crate) fn send_until(&mut self, packet: Packet, not_after: Instant) {
         self.transmit.push(packet, Some(not_after));
     }
 
     /// Queues an event.
-    pub(super) fn emit(&mut self, event: Event) {
+    pub(crate) fn emit(&mut self, event: Event) {
         tracing::debug!(event = event.name(), "event");
         self.publish.push_event(event);
     }
 
     /// Marks a node's state document for publication (if it changed) at the end of the input.
-    pub(super) fn touch(&mut self, id: NodeId) {
+    pub(crate) fn mark_changed(&mut self, id: NodeId) {
         self.dirty.push(id);
     }
 }
@@ -637,8 +626,8 @@ mod tests {
             assert!(matches!(t.pop(t0), Some(Ok(_))));
         }
         assert!(t.pop(t0).is_none(), "the window is full");
-        assert!(t.settle(&frame(0)));
-        assert!(!t.settle(&frame(0)), "settled once");
+        assert!(t.release(&frame(0)));
+        assert!(!t.release(&frame(0)), "released once");
         assert_eq!(
             t.pop(t0).unwrap().unwrap().packet,
             frame(TRANSMIT_WINDOW as u8)

@@ -34,15 +34,15 @@ pub const READ_BACK_VERSION: (u8, u8) = (1, 1);
 
 /// A complete reply.
 #[derive(Debug)]
-pub(super) struct Reply {
+pub(crate) struct Reply {
     /// Who answered.
-    pub(super) node: NodeId,
+    pub(crate) node: NodeId,
     /// The groups answered.
-    pub(super) parts: StateParts,
+    pub(crate) parts: StateParts,
     /// The parts, in the order they came (without `End`).
-    pub(super) reports: Vec<StateReport>,
+    pub(crate) reports: Vec<StateReport>,
     /// When the question was sent: anything the bridge learnt after it is newer than the reply.
-    pub(super) asked: Instant,
+    pub(crate) asked: Instant,
 }
 
 #[derive(Debug)]
@@ -68,7 +68,7 @@ struct NodeQuery {
 
 /// Every node's read-back.
 #[derive(Debug)]
-pub(super) struct ReadBack {
+pub(crate) struct ReadBack {
     timeout: Duration,
     seq: Seq,
     nodes: BTreeMap<NodeId, NodeQuery>,
@@ -82,7 +82,7 @@ pub(super) struct ReadBack {
 
 impl ReadBack {
     /// `timeout`: how long a reply may take before the question counts as unanswered.
-    pub(super) fn new(timeout: Duration) -> Self {
+    pub(crate) fn new(timeout: Duration) -> Self {
         ReadBack {
             timeout,
             seq: 0,
@@ -93,7 +93,7 @@ impl ReadBack {
     }
 
     /// The bridge is unsure of `id`: ask it (unless it cannot answer).
-    pub(super) fn want(&mut self, id: NodeId) {
+    pub(crate) fn want(&mut self, id: NodeId) {
         let q = self.nodes.entry(id).or_default();
         if !q.unsupported {
             q.due = true;
@@ -102,12 +102,12 @@ impl ReadBack {
     }
 
     /// False for a node known not to understand read-back or dock links.
-    pub(super) fn supports(&self, id: NodeId) -> bool {
+    pub(crate) fn supports(&self, id: NodeId) -> bool {
         !self.nodes.get(&id).is_some_and(|q| q.unsupported)
     }
 
     /// `id` booted announcing protocol `version`: asked if it can answer, never otherwise.
-    pub(super) fn on_boot(&mut self, id: NodeId, version: (u8, u8)) {
+    pub(crate) fn on_boot(&mut self, id: NodeId, version: (u8, u8)) {
         let q = self.nodes.entry(id).or_default();
         q.asking = None;
         q.silent = 0;
@@ -118,7 +118,7 @@ impl ReadBack {
     }
 
     /// `id` was lost: a question in flight is void; it is asked again when it is back.
-    pub(super) fn on_lost(&mut self, id: NodeId) {
+    pub(crate) fn on_lost(&mut self, id: NodeId) {
         if let Some(q) = self.nodes.get_mut(&id) {
             if q.asking.take().is_some() {
                 q.due = !q.unsupported;
@@ -129,7 +129,7 @@ impl ReadBack {
 
     /// The query to `id` never went out (the transmit queue was full, the write failed): not the
     /// node's silence; it is asked again.
-    pub(super) fn on_not_sent(&mut self, id: NodeId) {
+    pub(crate) fn on_not_sent(&mut self, id: NodeId) {
         if let Some(q) = self.nodes.get_mut(&id) {
             if q.asking.take().is_some() {
                 q.due = !q.unsupported;
@@ -139,7 +139,7 @@ impl ReadBack {
     }
 
     /// The question to `id` is on the bus: the node has the whole timeout from now to answer.
-    pub(super) fn on_transmitted(&mut self, id: NodeId, now: Instant) {
+    pub(crate) fn on_transmitted(&mut self, id: NodeId, now: Instant) {
         if let Some(a) = self.nodes.get_mut(&id).and_then(|q| q.asking.as_mut()) {
             if !a.sent {
                 a.sent = true;
@@ -150,7 +150,7 @@ impl ReadBack {
 
     /// Our own bus went away: the questions in flight are void, not unanswered (the silence is
     /// ours); they are asked again when it is back.
-    pub(super) fn on_bus_down(&mut self) {
+    pub(crate) fn on_bus_down(&mut self) {
         for q in self.nodes.values_mut() {
             if q.asking.take().is_some() {
                 q.due = !q.unsupported;
@@ -160,7 +160,7 @@ impl ReadBack {
     }
 
     /// `id` refused a frame of a read-back kind as unknown (`BadFrame`): it speaks protocol 1.0.
-    pub(super) fn on_unknown_kind(&mut self, id: NodeId) {
+    pub(crate) fn on_unknown_kind(&mut self, id: NodeId) {
         let q = self.nodes.entry(id).or_default();
         if !q.unsupported {
             tracing::info!(node = %id, "node does not know state read-back (protocol 1.0?): its state documents show what it acknowledged and reports");
@@ -171,7 +171,7 @@ impl ReadBack {
     }
 
     /// A part of a reply from `src`; the complete reply when this was its `End`.
-    pub(super) fn on_report(&mut self, src: NodeId, report: StateReport) -> Option<Reply> {
+    pub(crate) fn on_report(&mut self, src: NodeId, report: StateReport) -> Option<Reply> {
         let q = self.nodes.get_mut(&src)?;
         let asking = q.asking.as_mut()?;
         let StateReport::End { seq, parts, count } = report else {
@@ -207,7 +207,7 @@ impl ReadBack {
 
     /// Questions without an answer in time count as silence; asked again, up to the limit. One the
     /// bus never confirmed is only asked again.
-    pub(super) fn expire(&mut self, now: Instant) {
+    pub(crate) fn expire(&mut self, now: Instant) {
         for (id, q) in &mut self.nodes {
             if let Some(a) = q.asking.take_if(|a| a.deadline <= now) {
                 if !a.sent {
@@ -230,7 +230,7 @@ impl ReadBack {
 
     /// Sends the questions that are due to nodes that are `online`, at most [`MAX_QUERIES`] at
     /// once.
-    pub(super) fn poll(
+    pub(crate) fn poll(
         &mut self,
         online: impl Fn(NodeId) -> bool,
         now: Instant,
@@ -275,7 +275,7 @@ impl ReadBack {
     }
 
     /// When the earliest question in flight counts as unanswered.
-    pub(super) fn next_deadline(&self) -> Option<Instant> {
+    pub(crate) fn next_deadline(&self) -> Option<Instant> {
         self.nodes
             .values()
             .filter_map(|q| q.asking.as_ref().map(|a| a.deadline))
@@ -283,14 +283,14 @@ impl ReadBack {
     }
 
     /// True while a question is due or in flight for `id`.
-    pub(super) fn pending(&self, id: NodeId) -> bool {
+    pub(crate) fn pending(&self, id: NodeId) -> bool {
         self.nodes
             .get(&id)
             .is_some_and(|q| q.due || q.asking.is_some())
     }
 
     /// Complete replies applied since start.
-    pub(super) fn replies(&self) -> u64 {
+    pub(crate) fn replies(&self) -> u64 {
         self.replies
     }
 }

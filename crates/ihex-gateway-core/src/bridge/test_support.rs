@@ -7,39 +7,40 @@ use ihex_proto::{
 };
 use serde_json::Value;
 
-use super::{Bridge, BridgeConfig, Publication, Topic};
+use super::{Bridge, BridgeConfig, Publication};
+use crate::topic::Topic;
 
-pub(super) fn id(raw: u16) -> NodeId {
+pub(crate) fn id(raw: u16) -> NodeId {
     NodeId::new(raw).unwrap()
 }
-pub(super) fn port(raw: u8) -> Port {
+pub(crate) fn port(raw: u8) -> Port {
     Port::new(raw).unwrap()
 }
-pub(super) const MS: Duration = Duration::from_millis(1);
-pub(super) const S: Duration = Duration::from_secs(1);
+pub(crate) const MS: Duration = Duration::from_millis(1);
+pub(crate) const S: Duration = Duration::from_secs(1);
 
 /// What one call made the bridge do.
 #[derive(Default, Debug)]
-pub(super) struct Out {
+pub(crate) struct Out {
     /// Frames sent, state queries aside.
-    pub(super) sent: Vec<Packet>,
+    pub(crate) sent: Vec<Packet>,
     /// State queries sent.
-    pub(super) queries: Vec<Packet>,
-    pub(super) events: Vec<Value>,
-    pub(super) raw_events: Vec<String>,
-    pub(super) states: Vec<(NodeId, Value)>,
+    pub(crate) queries: Vec<Packet>,
+    pub(crate) events: Vec<Value>,
+    pub(crate) raw_events: Vec<String>,
+    pub(crate) states: Vec<(NodeId, Value)>,
     /// Home Assistant configs and light states, with their topics.
-    pub(super) ha: Vec<(Topic, Value)>,
+    pub(crate) ha: Vec<(Topic, Value)>,
     /// Retained topics emptied.
-    pub(super) cleared: Vec<Topic>,
+    pub(crate) cleared: Vec<Topic>,
 }
 
 impl Out {
-    pub(super) fn named(&self, name: &str) -> Vec<&Value> {
+    pub(crate) fn named(&self, name: &str) -> Vec<&Value> {
         self.events.iter().filter(|e| e["event"] == name).collect()
     }
     /// The events named `name` as published, byte for byte.
-    pub(super) fn raw_named(&self, name: &str) -> Vec<&str> {
+    pub(crate) fn raw_named(&self, name: &str) -> Vec<&str> {
         self.events
             .iter()
             .zip(&self.raw_events)
@@ -47,7 +48,7 @@ impl Out {
             .map(|(_, raw)| raw.as_str())
             .collect()
     }
-    pub(super) fn one(&self, name: &str) -> &Value {
+    pub(crate) fn one(&self, name: &str) -> &Value {
         let v = self.named(name);
         assert_eq!(v.len(), 1, "expected one {name} in {:#?}", self.events);
         &v[0]["payload"]
@@ -56,12 +57,12 @@ impl Out {
 
 /// Drains every output as a healthy adapter does: every frame is written and confirmed on the bus
 /// at once (at the time of the last input), publications are serialised once (`to_json`).
-pub(super) fn drain(b: &mut Bridge) -> Out {
+pub(crate) fn drain(b: &mut Bridge) -> Out {
     drain_with(b, true)
 }
 
 /// [`drain`], but the frames are handed out and left unconfirmed (the window fills).
-pub(super) fn drain_unconfirmed(b: &mut Bridge) -> Out {
+pub(crate) fn drain_unconfirmed(b: &mut Bridge) -> Out {
     drain_with(b, false)
 }
 
@@ -107,7 +108,7 @@ fn drain_with(b: &mut Bridge, confirm: bool) -> Out {
     out
 }
 
-pub(super) fn reply(seq: u8, flags: u8) -> Message {
+pub(crate) fn reply(seq: u8, flags: u8) -> Message {
     Message::HealthReply(HealthReply {
         seq,
         flags: HealthFlags(flags),
@@ -118,7 +119,7 @@ pub(super) fn reply(seq: u8, flags: u8) -> Message {
     })
 }
 
-pub(super) fn ack(kind: Kind, seq: u8, result: AckResult) -> Message {
+pub(crate) fn ack(kind: Kind, seq: u8, result: AckResult) -> Message {
     Message::Ack {
         kind,
         seq,
@@ -129,7 +130,7 @@ pub(super) fn ack(kind: Kind, seq: u8, result: AckResult) -> Message {
 
 /// Answers every state query in `out` at `now` with an empty, complete reply (a node with nothing
 /// to report beyond what the bridge knows).
-pub(super) fn answer_queries(b: &mut Bridge, out: &Out, now: Instant) {
+pub(crate) fn answer_queries(b: &mut Bridge, out: &Out, now: Instant) {
     for q in &out.queries {
         let Message::StateQuery { seq, parts } = q.msg else {
             continue;
@@ -145,7 +146,7 @@ pub(super) fn answer_queries(b: &mut Bridge, out: &Out, now: Instant) {
 
 /// A bridge at `t0` whose first health check went out and was answered by `nodes` (and their
 /// state queries by empty replies).
-pub(super) fn with_nodes(nodes: &[u16]) -> (Bridge, Instant) {
+pub(crate) fn with_nodes(nodes: &[u16]) -> (Bridge, Instant) {
     let t0 = Instant::now();
     let mut b = Bridge::new(BridgeConfig::default(), t0);
     b.handle_timeout(t0);
@@ -171,7 +172,7 @@ pub(super) fn with_nodes(nodes: &[u16]) -> (Bridge, Instant) {
     (b, t0)
 }
 
-pub(super) fn command(b: &mut Bridge, json: Value, now: Instant) -> Out {
+pub(crate) fn command(b: &mut Bridge, json: Value, now: Instant) -> Out {
     b.handle_command(json.to_string().as_bytes(), now);
     drain(b)
 }

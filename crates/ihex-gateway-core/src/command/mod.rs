@@ -7,6 +7,7 @@
 
 pub(crate) mod field;
 pub mod json;
+pub(crate) mod pending;
 
 use std::time::Duration;
 

@@ -21,6 +21,7 @@
 //! remembers the latest `now` for [`FwSender::poll_transmit`].
 
 mod bucket;
+mod glue;
 mod image;
 mod report;
 #[cfg(test)]
@@ -33,6 +34,8 @@ use std::time::{Duration, Instant};
 use ihex_proto::{FwAction, FwPhase, FwStatus, Message, NodeId, Packet};
 
 pub use bucket::BitBucket;
+pub use glue::FwLoad;
+pub(crate) use glue::FwUpdates;
 pub use image::{FwImage, FwImageError};
 pub use report::{FwProgress, FwReport, NodeOutcome, NodeReport};
 pub use upload::{FwUpload, UploadResult, Uploads, MAX_UPLOAD, UPLOADS_KEPT};

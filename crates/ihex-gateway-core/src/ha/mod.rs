@@ -13,6 +13,7 @@
 
 pub mod command;
 pub mod discovery;
+mod glue;
 pub mod light;
 pub mod schema;
 pub mod topic;

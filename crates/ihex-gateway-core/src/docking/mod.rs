@@ -17,6 +17,8 @@
 //! of the docking timeout: a report of a new docking by a static element whose relay is on in that
 //! time is answered by it at once (the handshake overtook the report).
 
+pub(crate) mod glue;
+
 use std::collections::{BTreeMap, VecDeque};
 use std::time::{Duration, Instant};
 

@@ -9,7 +9,7 @@
 //! result is `expired` (the ttl) or `failed` (the timeout). Once the adapter confirmed the frame on
 //! the bus, the node has `command_timeout` to acknowledge it; without an ack the result is
 //! `timeout` (the node may or may not have acted: an ack can be lost). A frame handed to the
-//! adapter but never confirmed (no echo within [`super::TRANSMIT_CONFIRM_TIMEOUT`], or the
+//! adapter but never confirmed (no echo within [`crate::bridge::TRANSMIT_CONFIRM_TIMEOUT`], or the
 //! interface went down) also ends `timeout`, with a reason saying it may still reach the bus.
 //!
 //! Frames the bridge sends on its own and that nodes acknowledge (docking confirms, refusals, relay
@@ -24,8 +24,8 @@ use std::time::{Duration, Instant};
 
 use ihex_proto::{AckResult, Kind, Message, NodeId, Packet, Seq, Uid};
 
-use super::output::Outputs;
-use super::TRANSMIT_CONFIRM_TIMEOUT;
+use crate::bridge::output::Outputs;
+use crate::bridge::TRANSMIT_CONFIRM_TIMEOUT;
 use crate::command::{CommandError, NodeAction};
 use crate::event::{CommandResult, Event, HexId, Outcome, Refusal, Target};
 use crate::registry::{millis, Registry};
@@ -170,7 +170,7 @@ struct Slot {
 /// longer the command's is stale, skipped when it reaches the top and purged when stale entries
 /// outnumber live ones, so the heap's top is always the earliest live deadline.
 #[derive(Debug, Default)]
-struct Pending {
+struct PendingTable {
     index: FxHashMap<Packed, u32>,
     slots: Vec<Slot>,
     deadlines: BinaryHeap<Reverse<(Instant, Packed, u64)>>,
@@ -179,7 +179,7 @@ struct Pending {
     next_stamp: u64,
 }
 
-impl Pending {
+impl PendingTable {
     fn insert(&mut self, key: PendingKey, p: PendingCommand) {
         let key = Packed::new(key);
         let stamp = self.push_deadline(p.deadline, key);
@@ -197,7 +197,7 @@ impl Pending {
                 self.taken.entry(key.stream()).or_default()[word] |= bit;
             }
         }
-        self.settle();
+        self.drop_stale();
     }
 
     fn remove(&mut self, key: &PendingKey) -> Option<PendingCommand> {
@@ -219,7 +219,7 @@ impl Pending {
             self.slots.shrink_to(self.slots.len() * 2);
             self.index.shrink_to(self.slots.len() * 2);
         }
-        self.settle();
+        self.drop_stale();
         Some(slot.command)
     }
 
@@ -233,7 +233,7 @@ impl Pending {
     }
 
     /// Mutable access for progress (acks of a broadcast, the frame's fate); the deadline changes
-    /// only through [`Pending::set_deadline`].
+    /// only through [`PendingTable::set_deadline`].
     fn get_mut(&mut self, key: &PendingKey) -> Option<&mut PendingCommand> {
         let i = *self.index.get(&Packed::new(*key))?;
         self.slots.get_mut(i as usize).map(|s| &mut s.command)
@@ -249,7 +249,7 @@ impl Pending {
             slot.stamp = stamp;
             slot.command.deadline = deadline;
         }
-        self.settle();
+        self.drop_stale();
     }
 
     /// Pushes `key`'s new deadline; the returned stamp makes it the live one.
@@ -266,7 +266,7 @@ impl Pending {
     }
 
     /// Drops stale entries from the heap's top, and all of them once they outnumber the live ones.
-    fn settle(&mut self) {
+    fn drop_stale(&mut self) {
         if self.deadlines.len() > 2 * self.slots.len() + 64 {
             let mut heap = std::mem::take(&mut self.deadlines);
             heap.retain(|e| self.live(e));
@@ -311,7 +311,7 @@ impl Pending {
                 keys.extend(key.key());
             }
         }
-        self.settle();
+        self.drop_stale();
         keys
     }
 }
@@ -323,30 +323,30 @@ fn seq_bit(seq: Seq) -> (usize, u64) {
 
 /// When and how a command reached the bridge.
 #[derive(Clone, Copy, Debug)]
-pub(super) struct Accepted {
+pub(crate) struct Accepted {
     /// Accepted now.
-    pub(super) now: Instant,
+    pub(crate) now: Instant,
     /// Its ttl ends then, if it has one.
-    pub(super) expires: Option<Instant>,
+    pub(crate) expires: Option<Instant>,
 }
 
 /// Sequence numbers and the commands waiting for their answer.
 #[derive(Debug)]
-pub(super) struct Commands {
+pub(crate) struct Pending {
     timeout: Duration,
     /// Keyed by (destination, command kind, seq); broadcasts use [`NodeId::BROADCAST`].
-    pending: Pending,
+    pending: PendingTable,
     next_seq: Seq,
     counters: CommandCounters,
     /// Commands (not internal frames) pending.
     commands_pending: usize,
 }
 
-impl Commands {
-    pub(super) fn new(timeout: Duration) -> Self {
-        Commands {
+impl Pending {
+    pub(crate) fn new(timeout: Duration) -> Self {
+        Pending {
             timeout,
-            pending: Pending::default(),
+            pending: PendingTable::default(),
             next_seq: 0,
             counters: CommandCounters::default(),
             commands_pending: 0,
@@ -354,7 +354,7 @@ impl Commands {
     }
 
     /// The counters, with the number in flight as of now.
-    pub(super) fn counters(&self) -> CommandCounters {
+    pub(crate) fn counters(&self) -> CommandCounters {
         CommandCounters {
             in_flight: self.commands_pending,
             ..self.counters
@@ -362,17 +362,17 @@ impl Commands {
     }
 
     /// Counts a command answered with `command_rejected`.
-    pub(super) fn count_rejected(&mut self) {
+    pub(crate) fn count_rejected(&mut self) {
         self.counters.rejected += 1;
     }
 
     /// Counts a command answered `expired` before it was queued.
-    pub(super) fn count_expired(&mut self) {
+    pub(crate) fn count_expired(&mut self) {
         self.counters.expired += 1;
     }
 
     /// The earliest command deadline.
-    pub(super) fn next_deadline(&self) -> Option<Instant> {
+    pub(crate) fn next_deadline(&self) -> Option<Instant> {
         self.pending.next_deadline()
     }
 
@@ -414,7 +414,7 @@ impl Commands {
 
     /// Sends `action` to `target` and waits for its answer; `expected` are the nodes online now
     /// (the ones a broadcast waits for).
-    pub(super) fn send(
+    pub(crate) fn send(
         &mut self,
         request_id: Option<String>,
         target: Target,
@@ -464,7 +464,7 @@ impl Commands {
     }
 
     /// Sends `AssignSelect` + `AssignCommit` for the board `uid` and waits for its `AssignReply`.
-    pub(super) fn send_assign(
+    pub(crate) fn send_assign(
         &mut self,
         request_id: Option<String>,
         uid: Uid,
@@ -518,7 +518,7 @@ impl Commands {
 
     /// Queues an acknowledged frame of the bridge's own to `dest`, built by `msg` from a free
     /// sequence number (returned); `None`, and nothing sent, when every number is in use.
-    pub(super) fn send_internal(
+    pub(crate) fn send_internal(
         &mut self,
         dest: NodeId,
         kind: Kind,
@@ -552,7 +552,7 @@ impl Commands {
     /// An `Ack` from `src`. Ends the command it answers; for a frame of the bridge's own, frees its
     /// sequence number and returns true (the caller routes the ack, e.g. to the docking sequence).
     #[allow(clippy::too_many_arguments)]
-    pub(super) fn on_ack(
+    pub(crate) fn on_ack(
         &mut self,
         src: NodeId,
         kind: Kind,
@@ -621,7 +621,7 @@ impl Commands {
 
     /// An `AssignReply` (from the board's new ID, or from an unconfigured board). Returns the
     /// board's UID when it confirmed its new ID: the gateway now knows which board `new_id` is.
-    pub(super) fn on_assign_reply(
+    pub(crate) fn on_assign_reply(
         &mut self,
         seq: Seq,
         result: AckResult,
@@ -670,7 +670,7 @@ impl Commands {
     }
 
     /// `packet` left the bridge's queue for the adapter.
-    pub(super) fn on_handed(&mut self, packet: &Packet, now: Instant) {
+    pub(crate) fn on_handed(&mut self, packet: &Packet, now: Instant) {
         if matches!(packet.msg, Message::AssignSelect { .. }) {
             return;
         }
@@ -682,7 +682,7 @@ impl Commands {
     }
 
     /// The adapter confirmed `packet` on the bus: the node has `command_timeout` from now to answer.
-    pub(super) fn on_transmitted(&mut self, packet: &Packet, now: Instant) {
+    pub(crate) fn on_transmitted(&mut self, packet: &Packet, now: Instant) {
         if matches!(packet.msg, Message::AssignSelect { .. }) {
             return;
         }
@@ -700,7 +700,7 @@ impl Commands {
 
     /// The adapter can no longer tell whether `packet` reaches the bus (`why`); a command past its
     /// deadline ends now.
-    pub(super) fn on_unconfirmed(
+    pub(crate) fn on_unconfirmed(
         &mut self,
         packet: &Packet,
         why: &'static str,
@@ -733,7 +733,7 @@ impl Commands {
 
     /// `packet` could not be sent: if it carried a command, that command ends `failed` (returns
     /// true); otherwise the caller reports it (a frame of the bridge's own frees its number).
-    pub(super) fn on_send_failed(
+    pub(crate) fn on_send_failed(
         &mut self,
         packet: &Packet,
         reason: &str,
@@ -755,7 +755,7 @@ impl Commands {
     }
 
     /// The adapter did not write `packet` because its `not_after` had passed.
-    pub(super) fn on_withdrawn(&mut self, packet: &Packet, now: Instant, out: &mut Outputs) {
+    pub(crate) fn on_withdrawn(&mut self, packet: &Packet, now: Instant, out: &mut Outputs) {
         let Some(key) = self.carrier(packet) else {
             return;
         };
@@ -766,7 +766,7 @@ impl Commands {
 
     /// Ends every command whose deadline passed: a frame still queued is withdrawn (`expired` or
     /// `failed`), a frame on the bus without an answer is a `timeout`.
-    pub(super) fn expire(&mut self, now: Instant, out: &mut Outputs) {
+    pub(crate) fn expire(&mut self, now: Instant, out: &mut Outputs) {
         for k in self.pending.overdue(now) {
             let Some(p) = self.pending.get(&k) else {
                 continue;
@@ -999,14 +999,16 @@ fn apply_action_state(
             }
             NodeAction::Identify(_) => return,
         }
-        out.touch(node);
+        out.mark_changed(node);
     }
 }
 
 #[cfg(test)]
 mod tests {
-    use super::super::test_support::*;
-    use super::super::*;
+    use std::time::{Duration, Instant};
+
+    use crate::bridge::test_support::*;
+    use crate::bridge::*;
     use ihex_proto::{
         AckResult, BootRole, Kind, LedCommand, Message, NodeId, Packet, ResetReason, Rgb,
     };
@@ -1605,7 +1607,7 @@ mod pending_tests {
     fn deadlines_come_out_earliest_first_and_moved_ones_only_once() {
         let t0 = Instant::now();
         let ms = Duration::from_millis;
-        let mut p = Pending::default();
+        let mut p = PendingTable::default();
         for (i, at) in [30u64, 10, 20, 40].into_iter().enumerate() {
             let (k, c) = entry(2, i as u8, t0 + ms(at));
             p.insert(k, c);
@@ -1631,7 +1633,7 @@ mod pending_tests {
     #[test]
     fn moving_deadlines_does_not_grow_the_heap_without_bound() {
         let t0 = Instant::now();
-        let mut p = Pending::default();
+        let mut p = PendingTable::default();
         for seq in 0..4 {
             let (k, c) = entry(3, seq, t0);
             p.insert(k, c);
@@ -1654,7 +1656,7 @@ mod pending_tests {
     #[test]
     fn removing_from_the_middle_keeps_every_other_command_found() {
         let t0 = Instant::now();
-        let mut p = Pending::default();
+        let mut p = PendingTable::default();
         let id = NodeId::new(5).unwrap();
         let key = |seq| (id, Kind::PowerSet, seq);
         for seq in 0..=255u8 {
@@ -1697,7 +1699,7 @@ mod pending_tests {
     #[test]
     fn taken_seqs_follow_inserts_and_removals() {
         let t0 = Instant::now();
-        let mut p = Pending::default();
+        let mut p = PendingTable::default();
         let id = NodeId::new(4).unwrap();
         for seq in [0u8, 63, 64, 255] {
             let (k, c) = entry(4, seq, t0);

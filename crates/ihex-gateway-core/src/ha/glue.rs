@@ -6,8 +6,8 @@ use std::time::Instant;
 
 use ihex_proto::NodeId;
 
-use super::{Bridge, Delivery, Publication};
-use crate::ha::{Ha, HaConfig};
+use super::{Ha, HaConfig};
+use crate::bridge::{Bridge, Delivery, Publication};
 
 /// Home Assistant's birth message (and the payload its status topic holds while it runs).
 pub const HA_ONLINE: &[u8] = b"online";
@@ -59,7 +59,7 @@ impl Bridge {
 
     /// Publishes `id`'s config and light state if they changed (something outside its state
     /// document did, such as its UID).
-    pub(super) fn refresh_ha(&mut self, id: NodeId, now: Instant) {
+    pub(crate) fn refresh_ha(&mut self, id: NodeId, now: Instant) {
         // The very document the state topic carries (`node_state`), so the two never disagree.
         let Some(doc) = self.node_state(id, now) else {
             return;
@@ -77,13 +77,14 @@ impl Bridge {
 #[cfg(test)]
 mod tests {
     use std::collections::BTreeSet;
+    use std::time::Instant;
 
-    use super::super::test_support::*;
-    use super::super::*;
+    use crate::bridge::test_support::*;
+    use crate::bridge::*;
     use crate::ha::discovery::{self, docking_template};
     use crate::ha::schema::check_device_config;
     use crate::ha::{HaConfig, HaTopic};
-    use crate::topic::Topics;
+    use crate::topic::{Topic, Topics};
     use ihex_proto::{AckResult, BootRole, Kind, LedCommand, Message, Packet, ResetReason, Rgb};
     use serde_json::{json, Value};
 

@@ -10,29 +10,29 @@ use std::time::Instant;
 
 use ihex_proto::{DockPartner, DockRefuseReason, Kind, Message, NodeId, Port};
 
-use super::commands::Commands;
-use super::diagnostics::Diagnostics;
-use super::output::Outputs;
-use super::readback::ReadBack;
-use crate::docking::{Docking, Step};
+use super::{Docking, Step};
+use crate::bridge::diagnostics::Diagnostics;
+use crate::bridge::output::Outputs;
+use crate::bridge::readback::ReadBack;
+use crate::command::pending::Pending;
 use crate::event::{DockFailed, Event, HexId};
 
 /// What the docking steps need besides the outputs.
-pub(super) struct DockParts<'a> {
+pub(crate) struct DockParts<'a> {
     /// Sequence numbers for the frames.
-    pub(super) commands: &'a mut Commands,
+    pub(crate) pending: &'a mut Pending,
     /// The sequence itself (told which confirm was sent).
-    pub(super) docking: &'a mut Docking,
+    pub(crate) docking: &'a mut Docking,
     /// The rate limit of the `unexpected_handshake` fault.
-    pub(super) diagnostics: &'a mut Diagnostics,
+    pub(crate) diagnostics: &'a mut Diagnostics,
     /// Which nodes understand dock links.
-    pub(super) readback: &'a ReadBack,
+    pub(crate) readback: &'a ReadBack,
 }
 
 /// Carries out the docking sequence's steps.
-pub(super) fn apply(steps: Vec<Step>, parts: DockParts<'_>, now: Instant, out: &mut Outputs) {
+pub(crate) fn apply(steps: Vec<Step>, parts: DockParts<'_>, now: Instant, out: &mut Outputs) {
     let DockParts {
-        commands,
+        pending,
         docking,
         diagnostics,
         readback,
@@ -43,54 +43,46 @@ pub(super) fn apply(steps: Vec<Step>, parts: DockParts<'_>, now: Instant, out: &
                 let msg = |seq| Message::DockConfirm { seq, port };
                 // Without a free sequence number the confirm is not sent; the docking then ends
                 // with its handshake timeout.
-                if let Some(seq) = commands.send_internal(node, Kind::DockConfirm, msg, now, out) {
+                if let Some(seq) = pending.send_internal(node, Kind::DockConfirm, msg, now, out) {
                     docking.confirm_sent(node, port, seq);
                 }
             }
             Step::Adopt { node, port } => {
                 let msg = |seq| Message::DockConfirm { seq, port };
-                commands.send_internal(node, Kind::DockConfirm, msg, now, out);
+                pending.send_internal(node, Kind::DockConfirm, msg, now, out);
             }
             Step::RefuseBusy { node, port } => {
-                send_dock_refuse(commands, out, node, port, DockRefuseReason::Busy, now)
+                send_dock_refuse(pending, out, node, port, DockRefuseReason::Busy, now)
             }
             Step::Withdraw { node, port } => {
-                send_dock_refuse(commands, out, node, port, DockRefuseReason::NotAllowed, now)
+                send_dock_refuse(pending, out, node, port, DockRefuseReason::NotAllowed, now)
             }
             Step::PowerOff { node } => {
                 let msg = |seq| Message::PowerSet { seq, on: false };
-                commands.send_internal(node, Kind::PowerSet, msg, now, out);
+                pending.send_internal(node, Kind::PowerSet, msg, now, out);
             }
             Step::Connected(c) => {
-                out.touch(c.n.id.0);
-                out.touch(c.n_1.id.0);
+                out.mark_changed(c.n.id.0);
+                out.mark_changed(c.n_1.id.0);
                 out.emit(Event::NewConnection(c));
                 if let (Some(port), Some(mport)) = (Port::new(c.n_1.port), Port::new(c.n.port)) {
                     let partner = DockPartner {
                         node: c.n.id.0,
                         port: mport,
                     };
-                    send_dock_link(
-                        commands,
-                        readback,
-                        out,
-                        c.n_1.id.0,
-                        port,
-                        Some(partner),
-                        now,
-                    );
+                    send_dock_link(pending, readback, out, c.n_1.id.0, port, Some(partner), now);
                 }
             }
             Step::Restored(c) => {
-                out.touch(c.n.id.0);
-                out.touch(c.n_1.id.0);
+                out.mark_changed(c.n.id.0);
+                out.mark_changed(c.n_1.id.0);
             }
             Step::Unlink { node, port } => {
-                send_dock_link(commands, readback, out, node, port, None, now);
+                send_dock_link(pending, readback, out, node, port, None, now);
             }
             Step::Removed(c) => {
-                out.touch(c.n.id.0);
-                out.touch(c.n_1.id.0);
+                out.mark_changed(c.n.id.0);
+                out.mark_changed(c.n_1.id.0);
                 out.emit(Event::ConnectionRemoved(c));
             }
             Step::Failed { node, port, reason } => {
@@ -109,7 +101,7 @@ pub(super) fn apply(steps: Vec<Step>, parts: DockParts<'_>, now: Instant, out: &
 
 /// Tells static `node` which mobile element is docked on its `port` (`None`: none any more).
 fn send_dock_link(
-    commands: &mut Commands,
+    pending: &mut Pending,
     readback: &ReadBack,
     out: &mut Outputs,
     node: NodeId,
@@ -119,13 +111,13 @@ fn send_dock_link(
 ) {
     if readback.supports(node) {
         let msg = |seq| Message::DockLink { seq, port, partner };
-        commands.send_internal(node, Kind::DockLink, msg, now, out);
+        pending.send_internal(node, Kind::DockLink, msg, now, out);
     }
 }
 
 /// Tells static `node` not to power (or to stop powering) its dock `port`.
 fn send_dock_refuse(
-    commands: &mut Commands,
+    pending: &mut Pending,
     out: &mut Outputs,
     node: NodeId,
     port: Port,
@@ -133,13 +125,14 @@ fn send_dock_refuse(
     now: Instant,
 ) {
     let msg = |seq| Message::DockRefuse { seq, port, reason };
-    commands.send_internal(node, Kind::DockRefuse, msg, now, out);
+    pending.send_internal(node, Kind::DockRefuse, msg, now, out);
 }
 
 #[cfg(test)]
 mod tests {
-    use super::super::test_support::*;
-    use super::super::*;
+    use crate::bridge::test_support::*;
+    use crate::bridge::*;
+    use crate::docking::Docking;
     use ihex_proto::{
         AckResult, BootRole, DockRefuseReason, HealthFlags, Kind, Message, Packet, ResetReason,
     };

@@ -9,12 +9,12 @@ use std::time::Instant;
 
 use ihex_proto::{FwStatus, NodeId, Packet};
 
-use super::output::Outputs;
+use super::{FwConfig, FwImage, FwSender, Uploads};
+use crate::bridge::output::Outputs;
 use crate::event::{CommandResult, Event, Outcome, Target};
-use crate::fwupdate::{FwConfig, FwImage, FwSender, Uploads};
 
 /// An `fw_update` waiting for its image: the adapter reads `image` from the firmware directory
-/// and hands the bytes (or why it could not) to [`super::Bridge::handle_fw_image`].
+/// and hands the bytes (or why it could not) to [`crate::Bridge::handle_fw_image`].
 #[derive(Clone, PartialEq, Eq, Debug)]
 pub struct FwLoad {
     /// The command's `request_id`.
@@ -29,7 +29,7 @@ pub struct FwLoad {
 
 /// The update state of the bridge.
 #[derive(Debug)]
-pub(super) struct FwUpdates {
+pub(crate) struct FwUpdates {
     config: FwConfig,
     loads: VecDeque<FwLoad>,
     /// A load was handed to the adapter and not answered yet.
@@ -39,7 +39,7 @@ pub(super) struct FwUpdates {
 }
 
 impl FwUpdates {
-    pub(super) fn new(config: FwConfig) -> Self {
+    pub(crate) fn new(config: FwConfig) -> Self {
         FwUpdates {
             config,
             loads: VecDeque::new(),
@@ -50,13 +50,13 @@ impl FwUpdates {
     }
 
     /// An update is loading or running: a second one is refused.
-    pub(super) fn busy(&self) -> bool {
+    pub(crate) fn busy(&self) -> bool {
         self.loading || !self.loads.is_empty() || self.sender.is_some()
     }
 
     /// An `fw_update`: starts at once with the uploaded image of that name, else asks the
     /// adapter for the file.
-    pub(super) fn request(&mut self, load: FwLoad, now: Instant, out: &mut Outputs) {
+    pub(crate) fn request(&mut self, load: FwLoad, now: Instant, out: &mut Outputs) {
         match self.uploads.get(&load.image) {
             Some(image) => {
                 let image = Ok(image.bytes().to_vec());
@@ -68,7 +68,7 @@ impl FwUpdates {
     }
 
     /// An image uploaded over MQTT: checked, kept when good, answered either way.
-    pub(super) fn on_upload(
+    pub(crate) fn on_upload(
         &mut self,
         name: &str,
         bytes: Vec<u8>,
@@ -87,7 +87,7 @@ impl FwUpdates {
         out.emit(Event::FwUpload(Box::new(answer)));
     }
 
-    pub(super) fn poll_load(&mut self) -> Option<FwLoad> {
+    pub(crate) fn poll_load(&mut self) -> Option<FwLoad> {
         let load = self.loads.pop_front()?;
         self.loading = true;
         Some(load)
@@ -95,7 +95,7 @@ impl FwUpdates {
 
     /// The image file arrived (or not): start the update, or answer why not. Either way the
     /// command gets its one `command_result`.
-    pub(super) fn on_image(
+    pub(crate) fn on_image(
         &mut self,
         load: FwLoad,
         bytes: Result<Vec<u8>, String>,
@@ -144,21 +144,21 @@ impl FwUpdates {
         self.drain(out);
     }
 
-    pub(super) fn on_status(&mut self, src: NodeId, st: FwStatus, now: Instant, out: &mut Outputs) {
+    pub(crate) fn on_status(&mut self, src: NodeId, st: FwStatus, now: Instant, out: &mut Outputs) {
         if let Some(s) = self.sender.as_mut() {
             s.handle_status(src, st, now);
         }
         self.drain(out);
     }
 
-    pub(super) fn on_boot_up(&mut self, src: NodeId, now: Instant, out: &mut Outputs) {
+    pub(crate) fn on_boot_up(&mut self, src: NodeId, now: Instant, out: &mut Outputs) {
         if let Some(s) = self.sender.as_mut() {
             s.handle_boot_up(src, now);
         }
         self.drain(out);
     }
 
-    pub(super) fn on_bus(&mut self, down: bool, now: Instant, out: &mut Outputs) {
+    pub(crate) fn on_bus(&mut self, down: bool, now: Instant, out: &mut Outputs) {
         if let Some(s) = self.sender.as_mut() {
             if down {
                 s.handle_bus_down(now);
@@ -169,25 +169,25 @@ impl FwUpdates {
         self.drain(out);
     }
 
-    pub(super) fn tick(&mut self, now: Instant, out: &mut Outputs) {
+    pub(crate) fn tick(&mut self, now: Instant, out: &mut Outputs) {
         if let Some(s) = self.sender.as_mut() {
             s.handle_timeout(now);
         }
         self.drain(out);
     }
 
-    pub(super) fn cancel(&mut self, reason: &str, now: Instant, out: &mut Outputs) {
+    pub(crate) fn cancel(&mut self, reason: &str, now: Instant, out: &mut Outputs) {
         if let Some(s) = self.sender.as_mut() {
             s.cancel(reason, now);
         }
         self.drain(out);
     }
 
-    pub(super) fn deadline(&self) -> Option<Instant> {
+    pub(crate) fn deadline(&self) -> Option<Instant> {
         self.sender.as_ref().and_then(FwSender::poll_timeout)
     }
 
-    pub(super) fn poll_transmit(&mut self) -> Option<Packet> {
+    pub(crate) fn poll_transmit(&mut self) -> Option<Packet> {
         let s = self.sender.as_mut()?;
         let p = s.poll_transmit();
         if s.is_done() && s.poll_event().is_none() {
@@ -217,8 +217,8 @@ mod tests {
     use ihex_proto::{FirmwareVersion, FwPhase, FwRefusal, Message, Packet};
     use serde_json::json;
 
-    use super::super::test_support::{command, drain, id, with_nodes};
     use super::*;
+    use crate::bridge::test_support::{command, drain, id, with_nodes};
 
     fn image_bytes() -> Vec<u8> {
         let key = SigningKey::from_text(ihex_image::test_key::SECRET_TEXT).unwrap();
