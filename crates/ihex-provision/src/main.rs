@@ -86,7 +86,7 @@ pub(crate) struct BrokerArgs {
     password: Option<String>,
     /// The gateway's island name: every topic is then prefixed `ISLAND/`.
     #[arg(long, env = "IHEX_ISLAND")]
-    island: Option<String>,
+    pub(crate) island: Option<String>,
     /// Commands topic (before the island prefix).
     #[arg(long, default_value = "CommandsTopic")]
     commands_topic: String,
@@ -106,8 +106,13 @@ impl BrokerArgs {
     }
 
     fn topics(&self) -> Topics {
+        self.topics_of(self.island.as_deref())
+    }
+
+    /// The topics of `island` (another island than --island, on the same broker).
+    fn topics_of(&self, island: Option<&str>) -> Topics {
         Topics::new(
-            self.island.as_deref(),
+            island,
             &self.commands_topic,
             &self.events_topic,
             &self.node_state_root,
