@@ -462,8 +462,8 @@ impl Job<'_> {
                     for n in &r.nodes {
                         let o = outcome_name(n.outcome);
                         match &n.reason {
-                            Some(why) => say!("{:>4} {o}: {why}", n.node),
-                            None => say!("{:>4} {o}", n.node),
+                            Some(why) => say!("{:>4} {o}: {why}", n.node.to_string()),
+                            None => say!("{:>4} {o}", n.node.to_string()),
                         }
                         out.insert(n.node.0, (n.outcome, n.reason.clone()));
                     }
