@@ -653,6 +653,9 @@ impl Bridge {
     pub fn handle_fw_image(&mut self, load: FwLoad, bytes: Result<Vec<u8>, String>, now: Instant) {
         self.set_now(now);
         self.fw.on_image(load, bytes, now, &mut self.out);
+        let docked = self.docking.connections();
+        self.fw
+            .set_docked(docked.iter().map(|c| (c.n_1.id.0, c.n.id.0)));
         self.finish_input(now);
     }
 

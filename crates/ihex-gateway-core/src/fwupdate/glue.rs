@@ -144,6 +144,14 @@ impl FwUpdates {
         self.drain(out);
     }
 
+    /// The island's dockings, `(static element, mobile element)`, for the update just started
+    /// (see [`FwSender::set_docked`]).
+    pub(crate) fn set_docked(&mut self, docked: impl IntoIterator<Item = (NodeId, NodeId)>) {
+        if let Some(s) = self.sender.as_mut() {
+            s.set_docked(docked);
+        }
+    }
+
     pub(crate) fn on_status(&mut self, src: NodeId, st: FwStatus, now: Instant, out: &mut Outputs) {
         if let Some(s) = self.sender.as_mut() {
             s.handle_status(src, st, now);

@@ -12,6 +12,9 @@
 //! queue has drained and every node asked has answered (or the reply time is up: a miss), the
 //! next round starts. A node's first answer after the header says it misses the whole image,
 //! so the first data round is one broadcast of the image; later rounds resend only the gaps.
+//! Amid a round's data, the nodes are asked for their progress after every twentieth of it
+//! (their answers move only `fw_progress`). A static element whose docked mobile elements are
+//! in the same update installs only once they have their outcome ([`FwSender::set_docked`]).
 //! After the commit, each node is followed alone: `rebooting`, its `BootUp`, then queries until
 //! its new image has confirmed itself (`idle`: `updated`) or was put back (`reverted`).
 //!
@@ -42,6 +45,13 @@ pub use upload::{FwUpload, UploadResult, Uploads, MAX_UPLOAD, UPLOADS_KEPT};
 
 use crate::event::{Event, HexId};
 
+/// Progress queries per round of data (one after each twentieth of it), so that every node's
+/// `fw_progress` moves in steps of at most 5 %. Their answers update only the progress: what
+/// to resend is decided from the answer to the query that ends the round.
+const PROBES: usize = 20;
+/// Fewer data frames in a round than this: no progress queries.
+const PROBE_MIN_FRAMES: usize = 2 * PROBES;
+
 /// Default bus share of an update, %.
 pub const DEFAULT_BUS_SHARE: u8 = 50;
 /// The iHEX bus bitrate.
@@ -68,8 +78,6 @@ pub struct FwConfig {
     pub confirm_timeout: Duration,
     /// Period of the queries to a node on trial.
     pub confirm_poll: Duration,
-    /// Shortest interval between two `fw_progress` events of a node in the same phase.
-    pub progress_interval: Duration,
     /// The lab's public key: an image uploaded over MQTT must be signed with it. `None`: the
     /// gateway checks everything of an upload but its signature (the nodes check that).
     pub trusted_key: Option<ihex_image::PublicKey>,
@@ -86,7 +94,6 @@ impl Default for FwConfig {
             reboot_timeout: Duration::from_secs(30),
             confirm_timeout: Duration::from_secs(90),
             confirm_poll: Duration::from_secs(1),
-            progress_interval: Duration::from_secs(1),
             trusted_key: None,
         }
     }
@@ -124,6 +131,10 @@ struct NodeTx {
     outcome: Option<(NodeOutcome, Option<String>, Instant)>,
     /// Last progress published: phase name, percent, when.
     progress: Option<(&'static str, u8, Instant)>,
+    /// Progress queries amid this round's data not answered yet (see [`PROBES`]).
+    probes: u32,
+    /// What it answered to the last of them (`None`: none this round).
+    probed: Option<FwStatus>,
 }
 
 impl NodeTx {
@@ -138,6 +149,8 @@ impl NodeTx {
             erasing_since: None,
             outcome: None,
             progress: None,
+            probes: 0,
+            probed: None,
         }
     }
 }
@@ -160,6 +173,8 @@ pub struct FwSender {
     frames_sent: u64,
     events: VecDeque<Event>,
     finished: bool,
+    /// Mobile element → the static element whose relay powers it (docked on it).
+    powered_by: BTreeMap<NodeId, NodeId>,
 }
 
 impl FwSender {
@@ -188,9 +203,25 @@ impl FwSender {
             frames_sent: 0,
             events: VecDeque::new(),
             finished: false,
+            powered_by: BTreeMap::new(),
         };
         s.advance(now);
         s
+    }
+
+    /// The island's dockings, `(static element, mobile element)`: a static element of the update
+    /// is told to install (and so to restart) only once every mobile element of the update docked
+    /// on it has its outcome, so that none of them loses power in the middle of its own update
+    /// where the static element's relay cannot be held through its restart.
+    pub fn set_docked(&mut self, docked: impl IntoIterator<Item = (NodeId, NodeId)>) {
+        self.powered_by = docked.into_iter().map(|(s, m)| (m, s)).collect();
+    }
+
+    /// True while a mobile element of the update docked on `id` has no outcome yet.
+    fn powers_one_in_update(&self, id: NodeId) -> bool {
+        self.powered_by
+            .iter()
+            .any(|(m, s)| *s == id && self.nodes.get(m).is_some_and(|n| n.stage != Stage::Done))
     }
 
     /// The image being sent.
@@ -224,8 +255,19 @@ impl FwSender {
         let Some(n) = self.nodes.get_mut(&src) else {
             return;
         };
+        if n.stage == Stage::Transfer
+            && n.probes > 0
+            && matches!(st.phase, FwPhase::Header | FwPhase::Receiving)
+        {
+            // The answer to a progress query amid the data (nodes answer in order).
+            n.probes -= 1;
+            n.probed = Some(st);
+            self.progress(src, now);
+            return;
+        }
         n.awaiting = false;
         n.misses = 0;
+        n.probed = None;
         match (n.stage, st.phase) {
             (Stage::Done, _) => return,
             (_, FwPhase::Refused) => {
@@ -518,11 +560,19 @@ impl FwSender {
         for (&id, n) in self.nodes.iter_mut() {
             if n.stage == Stage::Transfer && n.awaiting {
                 n.awaiting = false;
-                n.misses += 1;
-                if n.misses > max {
-                    lost.push(id);
+                if let Some(st) = n.probed {
+                    // It answered during the round, so it is there: its last answer, taken
+                    // for the lost one, is the freshest it said.
+                    n.status = Some(st);
+                } else {
+                    n.misses += 1;
+                    if n.misses > max {
+                        lost.push(id);
+                    }
                 }
             }
+            n.probes = 0;
+            n.probed = None;
         }
         for id in lost {
             let why = Some("no answer during the transfer".to_string());
@@ -546,6 +596,8 @@ impl FwSender {
         // Nodes that did not answer the last round, asked before any data (see the module doc).
         let mut asked_first = Vec::new();
         let mut queries = Vec::new();
+        // Nodes sent data this round: asked for their progress amid it.
+        let mut probed = Vec::new();
         // frame index → the nodes missing it
         let mut wanted: BTreeMap<u16, Vec<NodeId>> = BTreeMap::new();
         for (&id, n) in self.nodes.iter_mut() {
@@ -578,10 +630,13 @@ impl FwSender {
                         wanted.entry(i as u16).or_default().push(id);
                     }
                     queries.push(id);
+                    probed.push(id);
                 }
                 Some(_) => queries.push(id),
             }
         }
+        // A static element powering a mobile element still being updated waits, complete.
+        commits.retain(|&id| !self.powers_one_in_update(id));
         for &id in &begins {
             self.queue.push_back(Packet::command(
                 id,
@@ -594,7 +649,9 @@ impl FwSender {
         }
         let query = |id| Packet::command(id, Message::FwQuery { image_id });
         self.queue.extend(asked_first.iter().map(|&id| query(id)));
-        for (index, who) in wanted {
+        let total = wanted.len();
+        let every = (total >= PROBE_MIN_FRAMES).then(|| total.div_ceil(PROBES));
+        for (k, (index, who)) in wanted.into_iter().enumerate() {
             let dest = match who.as_slice() {
                 [one] => *one,
                 _ => NodeId::BROADCAST,
@@ -602,6 +659,14 @@ impl FwSender {
             let data = self.image.frame(index);
             self.queue
                 .push_back(Packet::command(dest, Message::FwData { index, data }));
+            if every.is_some_and(|e| (k + 1) % e == 0 && k + 1 < total) {
+                for &id in &probed {
+                    self.queue.push_back(query(id));
+                    if let Some(n) = self.nodes.get_mut(&id) {
+                        n.probes += 1;
+                    }
+                }
+            }
         }
         for &id in &commits {
             self.queue.push_back(Packet::command(
@@ -644,14 +709,13 @@ impl FwSender {
         }
     }
 
-    /// Publishes a node's progress when its phase changed, or its percent did and the last
-    /// event is older than the progress interval.
+    /// Publishes a node's progress when its phase or its percent changed.
     fn progress(&mut self, id: NodeId, now: Instant) {
         let frames = self.image.frames();
         let Some(n) = self.nodes.get_mut(&id) else {
             return;
         };
-        let (phase, percent): (&'static str, u8) = match (n.stage, n.status) {
+        let (phase, percent): (&'static str, u8) = match (n.stage, n.probed.or(n.status)) {
             (Stage::Done, _) => return,
             (Stage::Transfer, None) => ("begin", 0),
             (Stage::Transfer, Some(st)) => {
@@ -672,9 +736,8 @@ impl FwSender {
         };
         let due = match n.progress {
             None => true,
-            Some((p, pc, at)) => {
-                p != phase || (pc != percent && now >= at + self.config.progress_interval)
-            }
+            // Each answer moves it by at most 5 % (see [`PROBES`]): every change is shown.
+            Some((p, pc, _)) => p != phase || pc != percent,
         };
         if due {
             n.progress = Some((phase, percent, now));
