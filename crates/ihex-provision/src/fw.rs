@@ -372,6 +372,8 @@ impl Job<'_> {
         };
         let mut out = Vec::new();
         for id in named {
+            // Hook for leases (issue 28): an element leased to someone else is to be skipped
+            // here, with the lease named as the reason. Leases do not exist yet.
             let current = elements.get(&id).and_then(|e| e.firmware.clone());
             match (self.version, current) {
                 (Some(want), Some((have, false))) if have == want && !self.a.force => {
