@@ -12,9 +12,8 @@
 //! queue has drained and every node asked has answered (or the reply time is up: a miss), the
 //! next round starts. A node's first answer after the header says it misses the whole image,
 //! so the first data round is one broadcast of the image; later rounds resend only the gaps.
-//! Amid a round's data, the nodes are asked for their progress after every twentieth of it
-//! (their answers move only `fw_progress`). A static element whose docked mobile elements are
-//! in the same update installs only once they have their outcome ([`FwSender::set_docked`]).
+//! A static element whose docked mobile elements are in the same update installs only once
+//! they have their outcome ([`FwSender::set_docked`]).
 //! After the commit, each node is followed alone: `rebooting`, its `BootUp`, then queries until
 //! its new image has confirmed itself (`idle`: `updated`) or was put back (`reverted`).
 //!
@@ -45,13 +44,6 @@ pub use upload::{FwUpload, UploadResult, Uploads, MAX_UPLOAD, UPLOADS_KEPT};
 
 use crate::event::{Event, HexId};
 
-/// Progress queries per round of data (one after each twentieth of it), so that every node's
-/// `fw_progress` moves in steps of at most 5 %. Their answers update only the progress: what
-/// to resend is decided from the answer to the query that ends the round.
-const PROBES: usize = 20;
-/// Fewer data frames in a round than this: no progress queries.
-const PROBE_MIN_FRAMES: usize = 2 * PROBES;
-
 /// Default bus share of an update, %.
 pub const DEFAULT_BUS_SHARE: u8 = 50;
 /// The iHEX bus bitrate.
@@ -78,6 +70,8 @@ pub struct FwConfig {
     pub confirm_timeout: Duration,
     /// Period of the queries to a node on trial.
     pub confirm_poll: Duration,
+    /// Shortest interval between two `fw_progress` events of a node in the same phase.
+    pub progress_interval: Duration,
     /// The lab's public key: an image uploaded over MQTT must be signed with it. `None`: the
     /// gateway checks everything of an upload but its signature (the nodes check that).
     pub trusted_key: Option<ihex_image::PublicKey>,
@@ -94,6 +88,7 @@ impl Default for FwConfig {
             reboot_timeout: Duration::from_secs(30),
             confirm_timeout: Duration::from_secs(90),
             confirm_poll: Duration::from_secs(1),
+            progress_interval: Duration::from_secs(1),
             trusted_key: None,
         }
     }
@@ -131,10 +126,6 @@ struct NodeTx {
     outcome: Option<(NodeOutcome, Option<String>, Instant)>,
     /// Last progress published: phase name, percent, when.
     progress: Option<(&'static str, u8, Instant)>,
-    /// Progress queries amid this round's data not answered yet (see [`PROBES`]).
-    probes: u32,
-    /// What it answered to the last of them (`None`: none this round).
-    probed: Option<FwStatus>,
 }
 
 impl NodeTx {
@@ -149,8 +140,6 @@ impl NodeTx {
             erasing_since: None,
             outcome: None,
             progress: None,
-            probes: 0,
-            probed: None,
         }
     }
 }
@@ -255,19 +244,8 @@ impl FwSender {
         let Some(n) = self.nodes.get_mut(&src) else {
             return;
         };
-        if n.stage == Stage::Transfer
-            && n.probes > 0
-            && matches!(st.phase, FwPhase::Header | FwPhase::Receiving)
-        {
-            // The answer to a progress query amid the data (nodes answer in order).
-            n.probes -= 1;
-            n.probed = Some(st);
-            self.progress(src, now);
-            return;
-        }
         n.awaiting = false;
         n.misses = 0;
-        n.probed = None;
         match (n.stage, st.phase) {
             (Stage::Done, _) => return,
             (_, FwPhase::Refused) => {
@@ -560,19 +538,11 @@ impl FwSender {
         for (&id, n) in self.nodes.iter_mut() {
             if n.stage == Stage::Transfer && n.awaiting {
                 n.awaiting = false;
-                if let Some(st) = n.probed {
-                    // It answered during the round, so it is there: its last answer, taken
-                    // for the lost one, is the freshest it said.
-                    n.status = Some(st);
-                } else {
-                    n.misses += 1;
-                    if n.misses > max {
-                        lost.push(id);
-                    }
+                n.misses += 1;
+                if n.misses > max {
+                    lost.push(id);
                 }
             }
-            n.probes = 0;
-            n.probed = None;
         }
         for id in lost {
             let why = Some("no answer during the transfer".to_string());
@@ -596,8 +566,6 @@ impl FwSender {
         // Nodes that did not answer the last round, asked before any data (see the module doc).
         let mut asked_first = Vec::new();
         let mut queries = Vec::new();
-        // Nodes sent data this round: asked for their progress amid it.
-        let mut probed = Vec::new();
         // frame index → the nodes missing it
         let mut wanted: BTreeMap<u16, Vec<NodeId>> = BTreeMap::new();
         for (&id, n) in self.nodes.iter_mut() {
@@ -630,7 +598,6 @@ impl FwSender {
                         wanted.entry(i as u16).or_default().push(id);
                     }
                     queries.push(id);
-                    probed.push(id);
                 }
                 Some(_) => queries.push(id),
             }
@@ -649,9 +616,7 @@ impl FwSender {
         }
         let query = |id| Packet::command(id, Message::FwQuery { image_id });
         self.queue.extend(asked_first.iter().map(|&id| query(id)));
-        let total = wanted.len();
-        let every = (total >= PROBE_MIN_FRAMES).then(|| total.div_ceil(PROBES));
-        for (k, (index, who)) in wanted.into_iter().enumerate() {
+        for (index, who) in wanted {
             let dest = match who.as_slice() {
                 [one] => *one,
                 _ => NodeId::BROADCAST,
@@ -659,14 +624,6 @@ impl FwSender {
             let data = self.image.frame(index);
             self.queue
                 .push_back(Packet::command(dest, Message::FwData { index, data }));
-            if every.is_some_and(|e| (k + 1) % e == 0 && k + 1 < total) {
-                for &id in &probed {
-                    self.queue.push_back(query(id));
-                    if let Some(n) = self.nodes.get_mut(&id) {
-                        n.probes += 1;
-                    }
-                }
-            }
         }
         for &id in &commits {
             self.queue.push_back(Packet::command(
@@ -709,13 +666,14 @@ impl FwSender {
         }
     }
 
-    /// Publishes a node's progress when its phase or its percent changed.
+    /// Publishes a node's progress when its phase changed, or its percent did and the last
+    /// event is older than the progress interval.
     fn progress(&mut self, id: NodeId, now: Instant) {
         let frames = self.image.frames();
         let Some(n) = self.nodes.get_mut(&id) else {
             return;
         };
-        let (phase, percent): (&'static str, u8) = match (n.stage, n.probed.or(n.status)) {
+        let (phase, percent): (&'static str, u8) = match (n.stage, n.status) {
             (Stage::Done, _) => return,
             (Stage::Transfer, None) => ("begin", 0),
             (Stage::Transfer, Some(st)) => {
@@ -736,8 +694,9 @@ impl FwSender {
         };
         let due = match n.progress {
             None => true,
-            // Each answer moves it by at most 5 % (see [`PROBES`]): every change is shown.
-            Some((p, pc, _)) => p != phase || pc != percent,
+            Some((p, pc, at)) => {
+                p != phase || (pc != percent && now >= at + self.config.progress_interval)
+            }
         };
         if due {
             n.progress = Some((phase, percent, now));

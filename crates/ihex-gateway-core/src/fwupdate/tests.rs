@@ -627,25 +627,3 @@ fn a_static_element_installs_only_after_the_mobile_elements_docked_on_it() {
     // The image went out once all the same.
     assert_eq!(r.report.frames_sent, u64::from(frames));
 }
-
-#[test]
-fn progress_moves_in_steps_of_at_most_five_percent() {
-    let img = image(6000);
-    let frames = img.frames();
-    let models = vec![Model::new(0x101, frames, Quirks::default())];
-    let r = run(models, img, FwConfig::default());
-    assert!(r.report.all_updated(), "{:?}", outcomes(&r.report));
-    let percents: Vec<u8> = r
-        .progress
-        .iter()
-        .filter(|p| matches!(p.phase.as_str(), "receiving" | "complete"))
-        .map(|p| p.percent)
-        .collect();
-    assert!(percents.len() >= 20, "{percents:?}");
-    assert_eq!(percents.last(), Some(&100));
-    for w in percents.windows(2) {
-        assert!(w[1] >= w[0] && w[1] - w[0] <= 5, "{percents:?}");
-    }
-    // The progress queries cost no data: the image went out once.
-    assert_eq!(r.report.frames_sent, u64::from(frames));
-}
