@@ -579,7 +579,7 @@ fn plan(
         });
     }
     // The statics that power docked elements go after the others (their restart would cut them).
-    let split = rest.iter().position(|id| powers(id)).unwrap_or(rest.len());
+    let split = rest.iter().position(powers).unwrap_or(rest.len());
     let last: Vec<NodeId> = rest.drain(split..).collect();
     if !rest.is_empty() {
         waves.push(Wave {
