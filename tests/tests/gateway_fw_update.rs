@@ -8,6 +8,13 @@
 //!    updated, the CLI exits 0 and every node reports the new version. During the transfer a
 //!    command to a node under update and a docking complete (their latency belongs to
 //!    `cargo xtask bench`, not here).
+//!
+//! And a rollout on a small island with docked mobile elements (`a_rollout_never_strands_a_docked_element`):
+//! images made by `ihex-provision fw demo-image`; "update all" ends with every element `updated`
+//! and every mobile element powered, docked and online; the same command again skips every
+//! element (resume); a reverting image with `--canary 1` stops after the canary; a reverting image
+//! on a static element leaves its docked mobile element powered and docked; piped output is
+//! plain progress lines.
 #![cfg(feature = "vcan")]
 
 mod gateway_support;
@@ -50,6 +57,16 @@ fn provision_update(
     island: &str,
     image: &std::path::Path,
 ) -> tokio::task::JoinHandle<std::process::Output> {
+    provision_update_with(broker, island, image, &["--nodes", "all"])
+}
+
+/// `ihex-provision fw update IMAGE ARGS…`, as [`provision_update`].
+fn provision_update_with(
+    broker: std::net::SocketAddr,
+    island: &str,
+    image: &std::path::Path,
+    extra: &[&str],
+) -> tokio::task::JoinHandle<std::process::Output> {
     let bin =
         ihex_tests::bin::workspace_binary("ihex-provision", ihex_tests::bin::PROVISION_BIN_ENV)
             .unwrap_or_else(|e| panic!("{e}"));
@@ -57,7 +74,8 @@ fn provision_update(
     let child = tokio::process::Command::new(bin)
         .args(["fw", "update"])
         .arg(image)
-        .args(["--nodes", "all", "--timeout-secs", &timeout])
+        .args(extra)
+        .args(["--timeout-secs", &timeout])
         .args(["--broker", &broker.to_string(), "--island", island])
         .stdout(std::process::Stdio::piped())
         .stderr(std::process::Stdio::piped())
@@ -74,6 +92,7 @@ fn provision_update(
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn an_island_is_updated_with_one_command() {
+    let _alone = ONE_AT_A_TIME.lock().await;
     let broker = Mosquitto::start().expect("start mosquitto");
     let addr = broker.addr();
     let iface = ihex_tests::can::lease();
@@ -258,4 +277,197 @@ async fn an_island_is_updated_with_one_command() {
     island.shutdown().await;
     drop(broker);
     let _ = std::fs::remove_dir_all(&work);
+}
+
+/// The two tests run one after the other: each paces its island to the emulated CPU alone, and
+/// side by side they starve each other's nodes (counted lost, left out of `nodes: all`).
+static ONE_AT_A_TIME: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
+
+/// `ihex-provision fw demo-image` into `dir`; returns the image's path.
+fn demo_image(dir: &std::path::Path, version: &str, reverts: bool) -> std::path::PathBuf {
+    let bin =
+        ihex_tests::bin::workspace_binary("ihex-provision", ihex_tests::bin::PROVISION_BIN_ENV)
+            .unwrap_or_else(|e| panic!("{e}"));
+    let out = dir.join(format!("demo-{version}.img"));
+    let mut cmd = std::process::Command::new(bin);
+    cmd.args([
+        "fw",
+        "demo-image",
+        "--version",
+        version,
+        "--size",
+        "4096",
+        "--out",
+    ])
+    .arg(&out);
+    if reverts {
+        cmd.arg("--reverts");
+    }
+    let done = cmd.output().expect("run ihex-provision fw demo-image");
+    assert!(done.status.success(), "{done:?}");
+    out
+}
+
+/// Runs the CLI to its end; returns (success, stdout).
+async fn finish(cli: tokio::task::JoinHandle<std::process::Output>, what: &str) -> (bool, String) {
+    let out = ihex_tests::within_or_panic(ihex_tests::time::scaled(UPDATE_WAIT), what, cli)
+        .await
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
+    eprintln!("{what}:\n{stdout}{}", String::from_utf8_lossy(&out.stderr));
+    (out.status.success(), stdout)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_rollout_never_strands_a_docked_element() {
+    let _alone = ONE_AT_A_TIME.lock().await;
+    let broker = Mosquitto::start().expect("start mosquitto");
+    let addr = broker.addr();
+    let iface = ihex_tests::can::lease();
+    let lab = std::env::temp_dir().join(format!("ihex-rollout-{}", std::process::id()));
+    std::fs::create_dir_all(&lab).unwrap();
+    let name = "roll";
+    let slowdown = ihex_tests::time::scaled(Duration::from_secs(1)).as_secs_f64();
+    let bus_share = (50.0 / slowdown).clamp(5.0, 50.0) as u8;
+    let gateway = Gateway::start_with(addr, &iface, name, move |o| {
+        o.fw_bus_share = Some(bus_share);
+        o.health_period_ms =
+            Some(ihex_tests::time::scaled(Duration::from_secs(1)).as_millis() as u64);
+    });
+    let mut client = Client::connect(addr, "test-rollout", &[format!("{name}/#")]);
+    let avail = gateway.config.topics.availability.clone();
+    client
+        .expect("gateway online", |m| {
+            m.topic == avail && m.payload == b"online"
+        })
+        .await;
+    // Two static elements, each powering a docked mobile element, and one free static element.
+    let desc = IslandDesc::parse(
+        r#"
+[[static]]
+id = "101"
+[[static]]
+id = "102"
+[[static]]
+id = "103"
+[[mobile]]
+id = "2"
+dock = { static = "101", port = 3 }
+[[mobile]]
+id = "3"
+dock = { static = "102", port = 1 }
+"#,
+    )
+    .expect("island");
+    let island = Island::start(&desc, Link::socketcan(iface.clone())).expect("start island");
+    let events = gateway.events();
+    let all = ["101", "102", "103", "2", "3"];
+    // Both dockings announced and every element's firmware read back, in whatever order.
+    let mut missing: std::collections::BTreeSet<String> = all
+        .iter()
+        .map(|n| format!("state {n}"))
+        .chain(["docked 2".into(), "docked 3".into()])
+        .collect();
+    while !missing.is_empty() {
+        let m = client
+            .expect("the dockings and every element's firmware", |_| true)
+            .await;
+        let v = m.json();
+        if m.topic == events && v["event"] == "new_connection" {
+            missing.remove(&format!(
+                "docked {}",
+                v["payload"]["n"]["id"].as_str().unwrap_or("")
+            ));
+        } else if m.topic.ends_with("/state") && v["online"] == true && v["firmware"].is_object() {
+            missing.remove(&format!("state {}", v["id"].as_str().unwrap_or("")));
+        }
+    }
+    let good = demo_image(&lab, "9.0.1", false);
+    let v901 = FirmwareVersion::new(9, 0, 1);
+    let docked_and_powered = |island: &sim_node::IslandHandle| {
+        let island = island.clone();
+        async move {
+            for (m, s) in [("2", "101"), ("3", "102")] {
+                let v = island.view(id(m)).await.unwrap();
+                assert!(v.powered, "{m} has power");
+                assert_eq!(v.docked.map(|(st, _)| st), Some(id(s)), "{m} still docked");
+            }
+        }
+    };
+
+    // "Update all": mobiles first, the statics powering them last; every element updated.
+    let cli = provision_update_with(addr, name, &good, &["--nodes", "all"]);
+    let (ok, stdout) = finish(cli, "update all").await;
+    assert!(ok, "{stdout}");
+    assert!(stdout.contains("5 of 5 nodes updated"), "{stdout}");
+    // Piped: plain progress lines.
+    assert!(stdout.contains(" receiving "), "{stdout}");
+    let wave_of = |n: &str| {
+        stdout
+            .lines()
+            .position(|l| l.starts_with("-- ") && l.contains(n))
+            .unwrap_or_else(|| panic!("{n} in no wave: {stdout}"))
+    };
+    assert!(wave_of("2,3") < wave_of(": 101,102"), "{stdout}");
+    for n in all {
+        assert_eq!(
+            island.view(id(n)).await.unwrap().firmware.version,
+            v901,
+            "{n}"
+        );
+    }
+    docked_and_powered(&island).await;
+
+    // The same command again: everything is on 9.0.1 already (resume retries only the rest).
+    // The trial flag of the state documents clears once the element has confirmed.
+    let mut unconfirmed: std::collections::BTreeSet<&str> = all.into_iter().collect();
+    while !unconfirmed.is_empty() {
+        let m = client
+            .expect("every element confirmed in its state", |_| true)
+            .await;
+        let v = m.json();
+        if m.topic.ends_with("/state")
+            && v["firmware"]["version"] == "9.0.1"
+            && v["firmware"]["trial"] == false
+        {
+            unconfirmed.remove(v["id"].as_str().unwrap_or(""));
+        }
+    }
+    let cli = provision_update_with(addr, name, &good, &["--nodes", "all"]);
+    let (ok, stdout) = finish(cli, "update all again").await;
+    assert!(ok, "{stdout}");
+    assert!(stdout.contains("nothing to update"), "{stdout}");
+    assert_eq!(
+        stdout.matches("already runs 9.0.1: skipped").count(),
+        5,
+        "{stdout}"
+    );
+
+    // A reverting image with a canary: the canary reverts, nothing else is touched.
+    let bad = demo_image(&lab, "9.0.2", true);
+    let cli = provision_update_with(addr, name, &bad, &["--nodes", "all", "--canary", "1"]);
+    let (ok, stdout) = finish(cli, "canary").await;
+    assert!(!ok, "{stdout}");
+    assert!(stdout.contains("2 reverted"), "{stdout}");
+    assert!(stdout.contains("stopping: the canary wave"), "{stdout}");
+    for n in ["101", "102", "103", "3"] {
+        assert_eq!(
+            island.view(id(n)).await.unwrap().firmware.version,
+            v901,
+            "{n}"
+        );
+    }
+
+    // The reverting image on a static element with a docked mobile: two restarts of 101, and 2
+    // keeps its power and its docking throughout.
+    let cli = provision_update_with(addr, name, &bad, &["--nodes", "101"]);
+    let (ok, stdout) = finish(cli, "reverting static").await;
+    assert!(!ok, "{stdout}");
+    assert!(stdout.contains(" 101 reverted"), "{stdout}");
+    docked_and_powered(&island).await;
+
+    gateway.shutdown().await;
+    island.shutdown().await;
+    drop(broker);
+    let _ = std::fs::remove_dir_all(&lab);
 }

@@ -55,6 +55,8 @@ pub mod test_key;
 #[cfg(feature = "std")]
 pub mod elf;
 #[cfg(feature = "std")]
+pub mod sim;
+#[cfg(feature = "std")]
 mod tool;
 
 pub use board::{Board, Layout, Region};

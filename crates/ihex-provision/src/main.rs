@@ -2,7 +2,15 @@
 //! make signed firmware images and update nodes through the gateway (`fw`).
 #![forbid(unsafe_code)]
 
+/// Prints a line on stdout like `println!`, but a reader that went away (`… | head`) does not
+/// panic the program: output stops, the work (an update under way) goes on to its end and its
+/// exit status.
+macro_rules! say {
+    ($($arg:tt)*) => { $crate::out::line(format_args!($($arg)*)) };
+}
+
 mod fw;
+mod out;
 
 use std::{path::PathBuf, process::ExitCode, time::Duration};
 
@@ -79,7 +87,7 @@ pub(crate) struct BrokerArgs {
     password: Option<String>,
     /// The gateway's island name: every topic is then prefixed `ISLAND/`.
     #[arg(long, env = "IHEX_ISLAND")]
-    island: Option<String>,
+    pub(crate) island: Option<String>,
     /// Commands topic (before the island prefix).
     #[arg(long, default_value = "CommandsTopic")]
     commands_topic: String,
@@ -99,8 +107,13 @@ impl BrokerArgs {
     }
 
     fn topics(&self) -> Topics {
+        self.topics_of(self.island.as_deref())
+    }
+
+    /// The topics of `island` (another island than --island, on the same broker).
+    fn topics_of(&self, island: Option<&str>) -> Topics {
         Topics::new(
-            self.island.as_deref(),
+            island,
             &self.commands_topic,
             &self.events_topic,
             &self.node_state_root,
@@ -202,15 +215,15 @@ fn run_serial(a: SerialArgs) -> Result<()> {
         None => {
             let id = session.query_id()?;
             if id == NodeId::UNCONFIGURED {
-                println!("{}: no node ID yet (unconfigured)", a.port.display());
+                say!("{}: no node ID yet (unconfigured)", a.port.display());
             } else {
-                println!("{}: node ID {id}", a.port.display());
+                say!("{}: node ID {id}", a.port.display());
             }
         }
         Some(id) => {
             let before = session.query_id()?;
             session.set_id(id)?;
-            println!(
+            say!(
                 "{}: node ID {id} stored (was {})",
                 a.port.display(),
                 show(before)
@@ -247,7 +260,7 @@ async fn run_can(a: CanArgs) -> Result<()> {
     };
     let result = can::assign(&broker, &a.broker.topics(), &assignment).await?;
     let answer = ihex_gateway_core::event::Event::CommandResult(result);
-    println!("node {uid} assigned ID {new_id}: {}", answer.to_json());
+    say!("node {uid} assigned ID {new_id}: {}", answer.to_json());
     if let Some(reg) = registry.as_mut() {
         reg.record(
             new_id,
@@ -287,7 +300,7 @@ async fn run_wait(a: WaitArgs) -> Result<()> {
     while let Some(msg) = session.recv_until(deadline).await? {
         match Event::parse(&msg.payload) {
             Ok(e) if e.name == a.event && e.matches(&a.matches) => {
-                println!("{}", String::from_utf8_lossy(&msg.payload));
+                say!("{}", String::from_utf8_lossy(&msg.payload));
                 session.close().await;
                 return Ok(());
             }

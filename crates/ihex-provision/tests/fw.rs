@@ -179,3 +179,55 @@ fn update_checks_the_image_and_needs_a_gateway() {
     assert!(!out.status.success());
     assert!(text(&out).contains("MQTT"), "{}", text(&out));
 }
+
+#[test]
+fn demo_image_is_a_simulated_firmware_signed_with_the_test_key() {
+    use ihex_image::sim::SimFirmware;
+    let d = Dir::new("demo");
+    for (reverts, file) in [(false, "good.img"), (true, "bad.img")] {
+        let path = d.path(file);
+        let mut args = vec!["fw", "demo-image", "--version", "0.2.0", "--size", "4000"];
+        args.extend(["--out", &path]);
+        if reverts {
+            args.push("--reverts");
+        }
+        let out = tool(&args);
+        assert!(out.status.success(), "{}", text(&out));
+        let image = fs::read(d.path(file)).unwrap();
+        let check =
+            ihex_image::Inspection::of(&image, Some(&ihex_image::test_key::PUBLIC)).unwrap();
+        assert!(check.is_good(), "{check}");
+        assert_eq!(check.header.board, ihex_image::Board::SIM);
+        assert_eq!(check.header.version.to_string(), "0.2.0");
+        // What the simulated board reads from the payload to decide whether it confirms.
+        let payload = &image[ihex_image::HEADER_BLOCK..];
+        assert_eq!(
+            SimFirmware::parse(payload),
+            Some(SimFirmware { confirms: !reverts })
+        );
+    }
+}
+
+#[test]
+fn a_closed_pipe_ends_the_output_not_the_program() {
+    use std::process::Stdio;
+    let d = Dir::new("pipe");
+    let mut child = Command::new(env!("CARGO_BIN_EXE_ihex-provision"))
+        .args([
+            "fw",
+            "demo-image",
+            "--version",
+            "1.0.0",
+            "--out",
+            &d.path("x.img"),
+        ])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("runs");
+    // The reader goes away before the first line, as `| head -0` would.
+    drop(child.stdout.take());
+    let out = child.wait_with_output().unwrap();
+    assert!(out.status.success(), "{:?} {}", out.status, text(&out));
+    assert!(fs::metadata(d.path("x.img")).is_ok(), "the work was done");
+}

@@ -114,7 +114,11 @@
 //! * `DockLink` for a confirmed port → the node remembers which mobile element (and its port) the
 //!   gateway found docked there and reports it in `Dock(port)`, so a restarted gateway can rebuild
 //!   the island's dockings. The link goes when the port opens, when its confirmation is withdrawn
-//!   (`DockRefuse`) and at reset (links live in RAM only).
+//!   (`DockRefuse`) and at a power cut. Across a reset the node asks for itself (an update's swap
+//!   or revert) the adapter keeps the relay, the confirmed ports and their links ([`Retained`],
+//!   [`Node::retained`], [`Node::restore`]): the docked mobile element keeps its power, and a
+//!   restored port reports no new `DockDetected` — only `DockRemoved` if its loop is not closed
+//!   [`DEBOUNCE_MS`] after the restore.
 //!
 //! The relay is the element's one power relay: it stays on while any confirmed port is docked and
 //! goes off when the last one opens. An open port that was never confirmed does not touch it (so a
@@ -200,8 +204,8 @@ mod time;
 
 pub use actuator::{Actuators, BuzzerOutput, LedOutput};
 pub use node::{
-    Config, FirmwareIdentity, FlashError, Node, Output, UpdateConfig, CHUNK_LEN, DEBOUNCE_MS,
-    HANDSHAKE_SETTLE_MS, IDENTIFY_BUZZER, IDENTIFY_LED, MAX_IMAGE_LEN, RESET_DELAY_MS,
+    Config, FirmwareIdentity, FlashError, Node, Output, Retained, UpdateConfig, CHUNK_LEN,
+    DEBOUNCE_MS, HANDSHAKE_SETTLE_MS, IDENTIFY_BUZZER, IDENTIFY_LED, MAX_IMAGE_LEN, RESET_DELAY_MS,
     TRIAL_CONFIRM_MS, UART_IDLE_RESET_MS,
 };
 pub use queue::OUTPUT_QUEUE_LEN;

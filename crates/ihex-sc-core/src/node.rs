@@ -59,6 +59,22 @@ pub struct FirmwareIdentity {
     pub trial: bool,
 }
 
+/// What a static element keeps of its docks across a reset it asked for itself (an update's swap
+/// or revert): the relay, the confirmed ports and their links. The adapter saves it when the node
+/// asks for [`Output::Reset`] (the firmware in RTC backup registers, which survive a system reset
+/// but not a power cut; the simulator in its board) and hands it back with [`Node::restore`] after
+/// that reset only, so a docked mobile element keeps its power and its docking through the update.
+#[derive(Clone, Copy, PartialEq, Eq, Debug, Default)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct Retained {
+    /// The relay was on.
+    pub relay: bool,
+    /// Ports the gateway had confirmed (bit n = port n).
+    pub confirmed: u8,
+    /// The mobile element linked to each confirmed port.
+    pub links: [Option<DockPartner>; Port::COUNT as usize],
+}
+
 /// How a node is built and what it remembers across resets.
 #[derive(Clone, Copy, PartialEq, Eq, Debug)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
@@ -167,6 +183,9 @@ pub struct Node {
     shown: Option<Actuators>,
     /// Firmware update and trial boot.
     update: update::Update,
+    /// After [`Node::restore`]: when every restored port must have debounced closed (else it is
+    /// withdrawn: the mobile element left during the reset).
+    restore_check_at: Option<Millis>,
 }
 
 impl Node {
@@ -202,11 +221,48 @@ impl Node {
             bus_off_count: 0,
             shown: None,
             update: update::Update::new(config.firmware.trial, now),
+            restore_check_at: None,
         };
         if node.config.node_id.is_some() {
             node.announce(now);
         }
         node
+    }
+
+    /// What to keep across a reset the node asks for ([`Retained`]); all off for a mobile element.
+    pub fn retained(&self) -> Retained {
+        Retained {
+            relay: self.relay,
+            confirmed: self.confirmed,
+            links: self.links,
+        }
+    }
+
+    /// Takes back what the node kept across the reset it asked for (call right after
+    /// [`Node::new`] and the first loop levels, and only after a software reset: a power cut
+    /// loses it). The relay is on again at once; a restored port is confirmed without a new
+    /// `DockDetected`, and is withdrawn (`DockRemoved`, relay off if it was the last) unless its
+    /// loop has debounced closed by [`DEBOUNCE_MS`] after the restore. Ignored by a node
+    /// without a relay.
+    pub fn restore(&mut self, retained: Retained, now: Millis) {
+        self.advance(now);
+        if !self.has_relay() {
+            return;
+        }
+        let mask = if self.config.ports >= 8 {
+            u8::MAX
+        } else {
+            (1u8 << self.config.ports) - 1
+        };
+        self.relay = retained.relay;
+        self.confirmed = retained.confirmed & mask;
+        for (i, link) in retained.links.iter().enumerate() {
+            self.links[i] = link.filter(|_| self.confirmed & (1 << i) != 0);
+        }
+        if self.confirmed != 0 {
+            // One tick past the debounce, so a loop reported closed at `now` has counted.
+            self.restore_check_at = Some(now.add_ms(DEBOUNCE_MS + 1));
+        }
     }
 
     /// The node ID in force, `None` while unconfigured.
@@ -311,6 +367,7 @@ impl Node {
                 self.identify_until,
                 self.buzzer_end,
                 self.handshake_at,
+                self.restore_check_at,
                 self.update.deadline(),
             ])
             .flatten()
@@ -421,12 +478,24 @@ impl Node {
         if self.identify_until.is_some_and(|t| now >= t) {
             self.identify_until = None;
         }
+        if self.restore_check_at.is_some_and(|t| now >= t) {
+            self.restore_check_at = None;
+            for i in 0..self.config.ports {
+                let Some(port) = Port::new(i) else { continue };
+                if self.confirmed & port.mask() != 0 && !self.loops[i as usize].closed() {
+                    self.withdraw(port);
+                    self.report(Message::DockRemoved { port });
+                }
+            }
+        }
         self.advance_update(now);
     }
 
     /// A debounced loop level changed.
     fn on_loop_change(&mut self, port: Port, closed: bool) {
         match self.config.role {
+            // A port restored confirmed across a reset is still docked: nothing new to report.
+            BootRole::Static if closed && self.confirmed & port.mask() != 0 => {}
             BootRole::Static if closed => self.report(Message::DockDetected { port }),
             BootRole::Static => {
                 // Power goes off before the report is even queued.

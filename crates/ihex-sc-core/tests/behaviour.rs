@@ -6,7 +6,7 @@ use common::*;
 use ihex_proto::{
     uart::{UartError, UartReply, UartRequest},
     AckResult, BootRole, BuzzerCommand, FaultCode, HealthFlags, Kind, LedCommand, Message, NodeId,
-    Packet, Rgb, PROTOCOL_VERSION,
+    Packet, ResetReason, Rgb, PROTOCOL_VERSION,
 };
 use ihex_sc_core::{
     BuzzerOutput, LedOutput, Millis, Node, Output, DEBOUNCE_MS, HANDSHAKE_SETTLE_MS,
@@ -1211,4 +1211,78 @@ fn node_is_small_enough_for_the_firmware() {
         std::mem::size_of::<Output>()
     );
     assert!(size <= 3072, "Node grew to {size} bytes");
+}
+
+/// A confirmed, linked dock on port 3 of a fresh static node (relay on), outputs drained.
+fn docked_static() -> (Node, u64) {
+    let mut n = static_node();
+    let t = settle_loop(&mut n, 3, true, 0);
+    cmd(
+        &mut n,
+        Message::DockConfirm {
+            seq: 1,
+            port: port(3),
+        },
+        t,
+    );
+    let partner = ihex_proto::DockPartner {
+        node: NodeId::new_sc(0x2).unwrap(),
+        port: port(0),
+    };
+    cmd(
+        &mut n,
+        Message::DockLink {
+            seq: 2,
+            port: port(3),
+            partner: Some(partner),
+        },
+        t,
+    );
+    drain(&mut n);
+    assert!(n.actuators().relay);
+    (n, t)
+}
+
+#[test]
+fn a_software_reset_keeps_the_relay_and_the_docking_when_the_adapter_restores_them() {
+    let (old, t) = docked_static();
+    let kept = old.retained();
+    let mut c = config(BootRole::Static, 6, Some(id()));
+    c.reset = ResetReason::Software;
+    let mut n = Node::new(c, Millis(t));
+    n.handle_loop_level(port(3), true, Millis(t));
+    n.restore(kept, Millis(t));
+    assert!(n.actuators().relay, "the relay is on from the first output");
+    n.tick(Millis(t + 500));
+    let m = msgs(&mut n);
+    assert!(
+        !m.iter().any(|m| matches!(
+            m,
+            Message::DockDetected { .. } | Message::DockRemoved { .. }
+        )),
+        "a restored dock is neither detected again nor removed: {m:?}"
+    );
+    assert!(n.actuators().relay);
+    assert_eq!(n.retained(), kept, "the link survives too");
+}
+
+#[test]
+fn a_restored_port_whose_mobile_left_during_the_reset_is_withdrawn() {
+    let (old, t) = docked_static();
+    let mut n = Node::new(config(BootRole::Static, 6, Some(id())), Millis(t));
+    n.restore(old.retained(), Millis(t));
+    drain(&mut n);
+    n.tick(Millis(t + ihex_sc_core::DEBOUNCE_MS + 1));
+    assert_eq!(msgs(&mut n), vec![Message::DockRemoved { port: port(3) }]);
+    assert!(!n.actuators().relay);
+}
+
+#[test]
+fn without_a_restore_a_reset_drops_the_relay_and_detects_the_dock_again() {
+    let (_old, t) = docked_static();
+    let mut n = Node::new(config(BootRole::Static, 6, Some(id())), Millis(t));
+    drain(&mut n);
+    settle_loop(&mut n, 3, true, t);
+    assert!(!n.actuators().relay);
+    assert_eq!(msgs(&mut n), vec![Message::DockDetected { port: port(3) }]);
 }

@@ -19,7 +19,9 @@ use std::collections::BTreeMap;
 
 use embedded_can::Frame as EmbeddedFrame;
 use ihex_proto::{filter::sc_filters, BootRole, FirmwareVersion, NodeId, Port, ResetReason, Uid};
-use ihex_sc_core::{Actuators, BuzzerOutput, Config, FirmwareIdentity, Millis, Node, Output};
+use ihex_sc_core::{
+    Actuators, BuzzerOutput, Config, FirmwareIdentity, Millis, Node, Output, Retained,
+};
 use socketcan::CanFrame;
 use tokio::{
     sync::{broadcast, mpsc, oneshot},
@@ -338,6 +340,9 @@ struct Element {
     firmware: FirmwareIdentity,
     /// Why it starts next time (a reset the node asked for is a software reset).
     next_reset: ResetReason,
+    /// What its backup registers hold across the reset it asked for (relay, confirmed docks):
+    /// restored at the next boot if that is the software reset, lost with a power cut.
+    retained: Option<Retained>,
 }
 
 type Received = (NodeId, u64, CanFrame);
@@ -395,6 +400,7 @@ impl Island {
                 board,
                 firmware: s.firmware,
                 next_reset: ResetReason::PowerOn,
+                retained: None,
             });
         }
         for m in &desc.mobiles {
@@ -413,6 +419,7 @@ impl Island {
                 board,
                 firmware: m.firmware,
                 next_reset: ResetReason::PowerOn,
+                retained: None,
             });
             if let Some((s, p)) = m.dock {
                 if let Some(st) = island.elements.get_mut(&s) {
@@ -622,12 +629,14 @@ impl Island {
             .map_err(|err| IslandError::Boot(name, err))?;
         tx.set_filters(&sc_filters(e.stored_id))?;
         e.firmware = booted.firmware;
+        let reset = std::mem::replace(&mut e.next_reset, ResetReason::PowerOn);
+        let retained = e.retained.take().filter(|_| reset == ResetReason::Software);
         let config = Config {
             role: e.role,
             ports: e.ports,
             uid: e.uid,
             node_id: e.stored_id,
-            reset: std::mem::replace(&mut e.next_reset, ResetReason::PowerOn),
+            reset,
             firmware: booted.firmware,
             update: booted.update,
         };
@@ -641,6 +650,12 @@ impl Island {
                 node.handle_loop_level(port, closed, now);
             }
         }
+        // The bootloader drove the relay from the backup registers before the swap, so the
+        // docked mobile element never lost its power (docs/firmware.md, "Reset and the relay").
+        if let Some(r) = retained {
+            node.restore(r, now);
+        }
+        let actuators = node.actuators();
         let frames = self.frames_tx.clone();
         let reader = tokio::spawn(async move {
             loop {
@@ -662,7 +677,7 @@ impl Island {
             tx,
             reader,
             epoch,
-            actuators: Actuators::default(),
+            actuators,
             buzzer_done_at: None,
             tec: 0,
         });
@@ -750,12 +765,14 @@ impl Island {
     }
 
     /// The node asked for a reset (to swap an update in, or to revert one on trial): it starts
-    /// again through its bootloader, as after a software reset. Its relay drops meanwhile.
+    /// again through its bootloader, as after a software reset. Its relay and confirmed docks are
+    /// kept across it ([`Retained`]), as the firmware keeps them in its backup registers.
     fn reset(&mut self, name: NodeId) {
         let Some(e) = self.elements.get_mut(&name) else {
             return;
         };
         e.next_reset = ResetReason::Software;
+        e.retained = e.live.as_ref().map(|l| l.node.retained());
         tracing::info!(node = %name, "reset");
         self.power_off(name);
         let now = self.now();

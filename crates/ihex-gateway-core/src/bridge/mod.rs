@@ -33,8 +33,8 @@ use std::collections::BTreeSet;
 use std::time::{Duration, Instant};
 
 use ihex_proto::{
-    AckResult, BootRole, DecodeError, FaultCode, Kind, Message, NodeId, Packet, Port, StateParts,
-    StateReport, Uid,
+    AckResult, BootRole, DecodeError, FaultCode, FwPhase, Kind, Message, NodeId, Packet, Port,
+    StateParts, StateReport, Uid,
 };
 
 pub use crate::command::pending::CommandCounters;
@@ -453,7 +453,22 @@ impl Bridge {
             }
             // Handled by `on_heard`.
             Message::HealthReply(_) => {}
-            Message::FwStatus(st) => self.fw.on_status(src, st, now, &mut self.out),
+            Message::FwStatus(st) => {
+                // Any status tells whether the image it runs is on trial: a confirmation clears
+                // the flag in its state document at once, not at the next read-back.
+                let trial = match st.phase {
+                    FwPhase::Trial => Some(true),
+                    FwPhase::Idle | FwPhase::Reverted => Some(false),
+                    _ => None,
+                };
+                if let (Some(trial), Some(fw)) = (
+                    trial,
+                    self.registry.get_mut(src).and_then(|e| e.firmware.as_mut()),
+                ) {
+                    fw.1 = trial;
+                }
+                self.fw.on_status(src, st, now, &mut self.out)
+            }
             Message::Ack {
                 kind, seq, result, ..
             } => self.on_ack(src, kind, seq, result, now),
@@ -679,6 +694,9 @@ impl Bridge {
     pub fn handle_fw_image(&mut self, load: FwLoad, bytes: Result<Vec<u8>, String>, now: Instant) {
         self.set_now(now);
         self.fw.on_image(load, bytes, now, &mut self.out);
+        let docked = self.docking.connections();
+        self.fw
+            .set_docked(docked.iter().map(|c| (c.n_1.id.0, c.n.id.0)));
         self.finish_input(now);
     }
 

@@ -145,6 +145,14 @@ impl FwUpdates {
         self.drain(out);
     }
 
+    /// The island's dockings, `(static element, mobile element)`, for the update just started
+    /// (see [`FwSender::set_docked`]).
+    pub(crate) fn set_docked(&mut self, docked: impl IntoIterator<Item = (NodeId, NodeId)>) {
+        if let Some(s) = self.sender.as_mut() {
+            s.set_docked(docked);
+        }
+    }
+
     pub(crate) fn on_status(&mut self, src: NodeId, st: FwStatus, now: Instant, out: &mut Outputs) {
         if let Some(s) = self.sender.as_mut() {
             s.handle_status(src, st, now);
@@ -237,6 +245,63 @@ mod tests {
             &key,
         )
         .unwrap()
+    }
+
+    /// The `firmware` of `id`'s last published state document.
+    fn firmware_shown(
+        out: &crate::bridge::test_support::Out,
+        raw: u16,
+    ) -> Option<serde_json::Value> {
+        out.states
+            .iter()
+            .rev()
+            .find(|(n, _)| *n == id(raw))
+            .map(|(_, doc)| doc["firmware"].clone())
+    }
+
+    #[test]
+    fn a_confirmation_clears_trial_in_the_state_document() {
+        use ihex_proto::{BootRole, ResetReason, StateReport};
+        let (mut b, t0) = with_nodes(&[0x111]);
+        let t = t0 + crate::bridge::test_support::S;
+        let version = FirmwareVersion::new(1, 3, 0);
+        let boot = Message::BootUp {
+            version: ihex_proto::PROTOCOL_VERSION,
+            role: BootRole::Static,
+            ports: 6,
+            reset: ResetReason::Software,
+        };
+        b.handle_packet(Packet::report(id(0x111), boot), t);
+        let out = drain(&mut b);
+        // Its read-back after the restart: the new image, on trial.
+        for q in &out.queries {
+            let Message::StateQuery { seq, parts } = q.msg else {
+                continue;
+            };
+            let fw = StateReport::Firmware {
+                version,
+                trial: true,
+            };
+            b.handle_packet(Packet::report(id(0x111), Message::StateReport(fw)), t);
+            let end = StateReport::End {
+                seq,
+                parts,
+                count: 1,
+            };
+            b.handle_packet(Packet::report(id(0x111), Message::StateReport(end)), t);
+        }
+        let out = drain(&mut b);
+        assert_eq!(
+            firmware_shown(&out, 0x111).expect("a state document")["trial"],
+            true
+        );
+        // It confirms: its next status says idle.
+        let idle = FwStatus::phase(FwPhase::Idle, FwRefusal::None);
+        b.handle_packet(Packet::report(id(0x111), Message::FwStatus(idle)), t);
+        let out = drain(&mut b);
+        let shown = firmware_shown(&out, 0x111).expect("the document is republished");
+        assert_eq!(shown["trial"], false);
+        assert_eq!(shown["version"], "1.3.0");
     }
 
     #[test]

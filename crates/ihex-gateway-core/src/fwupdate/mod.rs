@@ -12,6 +12,8 @@
 //! queue has drained and every node asked has answered (or the reply time is up: a miss), the
 //! next round starts. A node's first answer after the header says it misses the whole image,
 //! so the first data round is one broadcast of the image; later rounds resend only the gaps.
+//! A static element whose docked mobile elements are in the same update installs only once
+//! they have their outcome ([`FwSender::set_docked`]).
 //! After the commit, each node is followed alone: `rebooting`, its `BootUp`, then queries until
 //! its new image has confirmed itself (`idle`: `updated`) or was put back (`reverted`).
 //!
@@ -160,6 +162,8 @@ pub struct FwSender {
     frames_sent: u64,
     events: VecDeque<Event>,
     finished: bool,
+    /// Mobile element → the static element whose relay powers it (docked on it).
+    powered_by: BTreeMap<NodeId, NodeId>,
 }
 
 impl FwSender {
@@ -188,9 +192,25 @@ impl FwSender {
             frames_sent: 0,
             events: VecDeque::new(),
             finished: false,
+            powered_by: BTreeMap::new(),
         };
         s.advance(now);
         s
+    }
+
+    /// The island's dockings, `(static element, mobile element)`: a static element of the update
+    /// is told to install (and so to restart) only once every mobile element of the update docked
+    /// on it has its outcome, so that none of them loses power in the middle of its own update
+    /// where the static element's relay cannot be held through its restart.
+    pub fn set_docked(&mut self, docked: impl IntoIterator<Item = (NodeId, NodeId)>) {
+        self.powered_by = docked.into_iter().map(|(s, m)| (m, s)).collect();
+    }
+
+    /// True while a mobile element of the update docked on `id` has no outcome yet.
+    fn powers_one_in_update(&self, id: NodeId) -> bool {
+        self.powered_by
+            .iter()
+            .any(|(m, s)| *s == id && self.nodes.get(m).is_some_and(|n| n.stage != Stage::Done))
     }
 
     /// The image being sent.
@@ -585,6 +605,8 @@ impl FwSender {
                 Some(_) => queries.push(id),
             }
         }
+        // A static element powering a mobile element still being updated waits, complete.
+        commits.retain(|&id| !self.powers_one_in_update(id));
         for &id in &begins {
             self.queue.push_back(Packet::command(
                 id,

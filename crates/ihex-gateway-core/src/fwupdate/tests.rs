@@ -248,10 +248,21 @@ struct Run {
     t0: Instant,
 }
 
-fn run(mut models: Vec<Model>, image: FwImage, config: FwConfig) -> Run {
+fn run(models: Vec<Model>, image: FwImage, config: FwConfig) -> Run {
+    run_docked(models, image, config, &[])
+}
+
+/// [`run`] on an island with these dockings, `(static element, mobile element)`.
+fn run_docked(
+    mut models: Vec<Model>,
+    image: FwImage,
+    config: FwConfig,
+    docked: &[(u16, u16)],
+) -> Run {
     let t0 = Instant::now();
     let ids: Vec<NodeId> = models.iter().map(|m| m.id).collect();
     let mut s = FwSender::new(image, ids, false, Some("r1".into()), config, t0);
+    s.set_docked(docked.iter().map(|&(st, m)| (nid(st), nid(m))));
     let mut now = t0;
     let mut sent = Vec::new();
     let mut progress = Vec::new();
@@ -583,4 +594,36 @@ fn a_bad_image_is_refused_before_anything_is_sent() {
     assert!(e.to_string().contains("truncated"), "{e}");
     let e = FwImage::check(b"not an image".to_vec()).unwrap_err();
     assert!(e.to_string().starts_with("bad image"), "{e}");
+}
+
+#[test]
+fn a_static_element_installs_only_after_the_mobile_elements_docked_on_it() {
+    let img = image(3000);
+    let frames = img.frames();
+    let models = [0x101, 0x102, 2]
+        .into_iter()
+        .map(|id| Model::new(id, frames, Quirks::default()))
+        .collect();
+    // 2 is docked on 101; 102 powers nothing.
+    let r = run_docked(models, img, FwConfig::default(), &[(0x101, 2)]);
+    assert!(r.report.all_updated(), "{:?}", outcomes(&r.report));
+    let done = |raw| {
+        r.report
+            .nodes
+            .iter()
+            .find(|n| n.node.0 == nid(raw))
+            .map(|n| n.duration_ms)
+            .unwrap()
+    };
+    // 101 restarts only once 2 has its outcome: at least a restart later.
+    assert!(
+        done(0x101) >= done(2) + REBOOT.as_millis() as u64,
+        "101 at {} ms, 2 at {} ms",
+        done(0x101),
+        done(2)
+    );
+    // A static element powering nothing does not wait.
+    assert!(done(0x102) < done(0x101), "{:?}", outcomes(&r.report));
+    // The image went out once all the same.
+    assert_eq!(r.report.frames_sent, u64::from(frames));
 }

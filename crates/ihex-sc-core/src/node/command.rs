@@ -158,7 +158,7 @@ impl Node {
     }
 
     /// Only a static element with dock ports has a dock relay.
-    fn has_relay(&self) -> bool {
+    pub(super) fn has_relay(&self) -> bool {
         self.config.role == BootRole::Static && self.config.ports > 0
     }
 

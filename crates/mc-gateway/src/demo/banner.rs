@@ -213,6 +213,19 @@ pub fn banner(
             );
         }
     }
+    // The island prefix of the topics (the firmware upload topic always has one name), for
+    // ihex-provision's --island.
+    let island = topics
+        .fw_upload
+        .strip_suffix(ihex_gateway_core::topic::FW_UPLOAD)
+        .and_then(|p| p.strip_suffix('/'))
+        .map_or_else(String::new, |i| format!(" --island {i}"));
+    let _ = writeln!(
+        t,
+        "Update every element's firmware with a demo image (docs/firmware-update.md):\n  \
+         ihex-provision fw demo-image --version 0.2.0 && \
+         ihex-provision fw update sim-fw-0.2.0.img --broker {host}:{port}{island}"
+    );
     let _ = writeln!(
         t,
         "Mistakes on '{sim}' are answered on '{events}' (sim_rejected, sim_result)."
@@ -251,6 +264,10 @@ mod tests {
         let text = banner(&topics, "127.0.0.1", 1884, &desc, None, None, None);
         assert!(!text.contains("browser"), "{text}");
         assert!(text.contains("No JSON log file"), "{text}");
+        assert!(
+            text.contains("ihex-provision fw demo-image --version 0.2.0 && ihex-provision fw update sim-fw-0.2.0.img --broker 127.0.0.1:1884 --island lab"),
+            "{text}"
+        );
         let text = banner(
             &topics,
             "127.0.0.1",

@@ -840,6 +840,9 @@ pub async fn firmware_update(link: Link) {
     use sim_node::board::{sim_image, SimFirmware};
 
     let (mut gw, island) = start(&link, ISLAND).await;
+    // 2 docked and confirmed on 111: 111's relay powers it through the whole update.
+    dock_and_confirm(&mut gw, &island, 0x40).await;
+    let mut power = island.subscribe();
     let new_version = FirmwareVersion::new(9, 0, 1);
     let img = sim_image(
         new_version,
@@ -973,6 +976,23 @@ pub async fn firmware_update(link: Link) {
         island.view(id(0x111)).await.unwrap().firmware.version,
         new_version
     );
+    // 111's relay held through its reset (the bootloader keeps it), so 2 never lost power, and
+    // 111 neither forgot nor re-announced the docking.
+    while let Ok(ev) = power.try_recv() {
+        assert!(
+            !matches!(ev, IslandEvent::Power { node, on: false } if node == id(2)),
+            "2 lost power during 111's update"
+        );
+    }
+    assert!(island.view(id(2)).await.unwrap().powered);
+    assert!(island.actuators(id(0x111)).await.unwrap().relay);
+    gw.expect_none("a docking reported again", |p| {
+        matches!(
+            p.msg,
+            Message::DockDetected { .. } | Message::DockRemoved { .. }
+        )
+    })
+    .await;
     // Another element still runs what it was flashed with.
     gw.send(id(0x112), ask(0x53)).await;
     let r = state_reply(&mut gw, id(0x112), 0x53).await;
