@@ -10,6 +10,7 @@ mod cpio;
 mod dbc;
 mod fuzz;
 mod fwsize;
+mod ignored_test;
 mod lint;
 mod prometheus;
 mod setup;
