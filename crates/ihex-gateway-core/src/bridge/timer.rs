@@ -46,6 +46,8 @@ timers! {
     Health,
     /// The next report of dropped publications.
     DropReport,
+    /// The earliest end of a lease.
+    Leases,
 }
 
 /// The deadline of every [`Timer`], by [`Timer::VALUES`] index.
@@ -95,6 +97,7 @@ impl Bridge {
             Timer::Inherited => self.inherited.next_deadline(),
             Timer::Docking => self.docking.deadline(),
             Timer::Health => Some(self.health.next_deadline()),
+            Timer::Leases => self.lease_table.next_deadline(),
             Timer::DropReport => self
                 .out
                 .publish
@@ -122,6 +125,7 @@ impl Bridge {
                 }
             }
             Timer::Commands => self.pending.expire(now, &mut self.out),
+            Timer::Leases => self.expire_leases(now),
             Timer::ReadBack => self.readback.expire(now),
             Timer::Inherited => self.republish_inherited(now),
             Timer::Docking => {

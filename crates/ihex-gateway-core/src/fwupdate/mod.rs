@@ -160,6 +160,8 @@ pub struct FwSender {
     frames_sent: u64,
     events: VecDeque<Event>,
     finished: bool,
+    /// Elements left out because a lease holds them, with the reason: in the report as `skipped`.
+    skipped: Vec<(NodeId, String)>,
 }
 
 impl FwSender {
@@ -188,9 +190,17 @@ impl FwSender {
             frames_sent: 0,
             events: VecDeque::new(),
             finished: false,
+            skipped: Vec::new(),
         };
         s.advance(now);
         s
+    }
+
+    /// Names elements the update leaves out (a lease holds them): its report lists each as
+    /// `skipped` with the reason.
+    pub fn with_skipped(mut self, skipped: Vec<(NodeId, String)>) -> Self {
+        self.skipped = skipped;
+        self
     }
 
     /// The image being sent.
@@ -696,7 +706,7 @@ impl FwSender {
         let ms = |t: Instant| {
             u64::try_from(t.saturating_duration_since(started).as_millis()).unwrap_or(u64::MAX)
         };
-        let nodes = self
+        let mut nodes: Vec<NodeReport> = self
             .nodes
             .iter()
             .map(|(&id, n)| {
@@ -712,6 +722,13 @@ impl FwSender {
                 }
             })
             .collect();
+        nodes.extend(self.skipped.iter().map(|(id, why)| NodeReport {
+            node: HexId(*id),
+            outcome: NodeOutcome::Skipped,
+            reason: Some(why.clone()),
+            duration_ms: 0,
+        }));
+        nodes.sort_by_key(|n| n.node);
         let report = FwReport {
             request_id: self.request_id.clone(),
             image_id: format!("{:08x}", self.image.image_id()),
