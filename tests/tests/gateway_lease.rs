@@ -17,7 +17,7 @@ async fn a_lease_keeps_a_second_client_out_until_it_ends() {
     let events = rig.events();
     let commands = rig.gateway.commands();
     let leases_topic = rig.gateway.config.topics.leases.clone();
-    let mut other = Client::connect(rig.addr, "test-lease-other", &[events.clone()]);
+    let mut other = Client::connect(rig.addr, "test-lease-other", std::slice::from_ref(&events));
     // Long enough that the other client's command surely arrives before the end, even emulated.
     let secs = ihex_tests::time::scaled(Duration::from_secs(3))
         .as_secs()
@@ -151,7 +151,11 @@ async fn a_gateway_restart_ends_the_leases_and_says_so() {
         rig.client.expect("node_online of 111", online_111).await;
     }
     // A client arriving now reads the retained document: no lease.
-    let mut late = Client::connect(rig.addr, "test-lrestart-late", &[leases_topic.clone()]);
+    let mut late = Client::connect(
+        rig.addr,
+        "test-lrestart-late",
+        std::slice::from_ref(&leases_topic),
+    );
     let doc = late
         .expect("the retained leases document", |m| m.topic == leases_topic)
         .await;
