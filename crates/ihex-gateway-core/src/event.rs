@@ -453,6 +453,12 @@ pub enum Event {
     FwReport(Box<crate::fwupdate::FwReport>),
     /// An image uploaded over MQTT was stored, or rejected.
     FwUpload(Box<crate::fwupdate::FwUpload>),
+    /// Answer to `lease` and `renew`: the lease and its token.
+    LeaseGranted(Box<crate::lease::LeaseGranted>),
+    /// A lease ended: released, broken (both answers) or expired.
+    LeaseEnded(Box<crate::lease::LeaseEnded>),
+    /// The gateway started: leases of an earlier run ended with it.
+    LeasesReset(crate::lease::LeasesReset),
 }
 
 impl Event {
@@ -477,6 +483,9 @@ impl Event {
             Event::FwProgress(_) => "fw_progress",
             Event::FwReport(_) => "fw_report",
             Event::FwUpload(_) => "fw_upload",
+            Event::LeaseGranted(_) => "lease_granted",
+            Event::LeaseEnded(_) => "lease_ended",
+            Event::LeasesReset(_) => "leases_reset",
         }
     }
 

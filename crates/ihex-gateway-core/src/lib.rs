@@ -34,7 +34,8 @@
 //! node), [`docking`] (the one-at-a-time docking sequence and its frames and events), [`throttle`]
 //! (rate limit of error events), [`error_frame`] (SocketCAN error frames), [`topic`] (logical
 //! topics and their names), [`ha`] (Home Assistant discovery and commands), [`fwupdate`] (the
-//! firmware-update sender, uploads and `fw_update`). A concept's folder holds its machine and the
+//! firmware-update sender, uploads and `fw_update`), [`lease`] (who holds which elements, and the
+//! refusal of everyone else's commands to them). A concept's folder holds its machine and the
 //! bridge's glue for it.
 #![forbid(unsafe_code)]
 #![warn(missing_docs)]
@@ -46,6 +47,7 @@ pub mod error_frame;
 pub mod event;
 pub mod fwupdate;
 pub mod ha;
+pub mod lease;
 pub mod registry;
 pub mod throttle;
 pub mod topic;

@@ -15,6 +15,8 @@ pub enum Topic {
     NodeState(NodeId),
     /// A Home Assistant topic (retained).
     Ha(HaTopic),
+    /// The retained leases document of the island.
+    Leases,
 }
 
 /// Default command topic (the seed's name).
@@ -27,6 +29,8 @@ pub const AVAILABILITY: &str = "ihex/gateway/availability";
 pub const NODE_STATE_ROOT: &str = "ihex/node";
 /// Topic of the simulated island's control commands (demo mode only).
 pub const SIM: &str = "ihex/sim";
+/// Default topic of the retained leases document (under the island prefix like every topic).
+pub const LEASES: &str = "ihex/leases";
 /// Root of the firmware upload topics `<root>/<name>`: signed images handed to the gateway.
 pub const FW_UPLOAD: &str = "ihex/fw/upload";
 
@@ -45,6 +49,8 @@ pub struct Topics {
     pub sim: String,
     /// Root of the subscribed `<root>/<name>`: firmware images uploaded for `fw_update`.
     pub fw_upload: String,
+    /// Published retained: the leases held now.
+    pub leases: String,
     /// Home Assistant's topics (discovery, status) and the gateway's own for it; Home Assistant's
     /// defaults until [`Topics::with_ha`].
     pub ha: HaTopics,
@@ -70,6 +76,7 @@ impl Topics {
             node_state_root: p(node_state_root),
             sim: p(SIM),
             fw_upload: p(FW_UPLOAD),
+            leases: p(LEASES),
             ha: HaTopics::defaults(island),
         }
     }
@@ -130,6 +137,7 @@ impl Topics {
             Topic::Events => self.events.clone(),
             Topic::NodeState(id) => self.node_state(id),
             Topic::Ha(t) => self.ha.resolve(t),
+            Topic::Leases => self.leases.clone(),
         }
     }
 }

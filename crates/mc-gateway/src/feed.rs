@@ -81,7 +81,8 @@ impl Feed {
             Publication::State(s) => Kind::State(s.id.0),
             // Home Assistant's topics are not the page's; a forgotten node's emptied state document
             // reaches it as the `node_forgotten` event.
-            Publication::Ha(_) | Publication::Cleared(_) => return,
+            // The page learns of leases from the `lease_*` events.
+            Publication::Ha(_) | Publication::Cleared(_) | Publication::Leases(_) => return,
         };
         let p = Arc::new(Published {
             seq: self.seq.fetch_add(1, Ordering::Relaxed) + 1,

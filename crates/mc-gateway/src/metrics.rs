@@ -88,6 +88,8 @@ pub enum FwOutcome {
     Unreachable,
     /// `failed`.
     Failed,
+    /// `skipped` (a lease holds the element).
+    Skipped,
 }
 
 /// The label value of each variant: its word as the MQTT API writes it.
@@ -125,6 +127,7 @@ label_words!(FwOutcome {
     Reverted => "reverted",
     Unreachable => "unreachable",
     Failed => "failed",
+    Skipped => "skipped",
 });
 
 #[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
@@ -181,12 +184,13 @@ const RESULTS: [CommandResult; 6] = [
     CommandResult::Expired,
     CommandResult::Rejected,
 ];
-const FW_OUTCOMES: [FwOutcome; 5] = [
+const FW_OUTCOMES: [FwOutcome; 6] = [
     FwOutcome::Updated,
     FwOutcome::Refused,
     FwOutcome::Reverted,
     FwOutcome::Unreachable,
     FwOutcome::Failed,
+    FwOutcome::Skipped,
 ];
 
 impl Default for Counted {
@@ -323,6 +327,7 @@ fn fw_outcome(o: NodeOutcome) -> FwOutcome {
         NodeOutcome::Reverted => FwOutcome::Reverted,
         NodeOutcome::Unreachable => FwOutcome::Unreachable,
         NodeOutcome::Failed => FwOutcome::Failed,
+        NodeOutcome::Skipped => FwOutcome::Skipped,
     }
 }
 

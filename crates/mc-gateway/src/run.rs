@@ -201,7 +201,10 @@ impl Gateway {
             "gateway running"
         );
 
-        let mut bridge = Bridge::new(config.bridge.clone(), Instant::now());
+        let started = Instant::now();
+        let mut bridge = Bridge::new(config.bridge.clone(), started);
+        // Leases show their end as a time of day: the core has no clock of its own.
+        bridge.handle_wall_clock(std::time::SystemTime::now(), started);
         if let Some(ha) = &config.ha {
             info!(
                 discovery = %ha.topics.ha.discovery_prefix,
@@ -480,6 +483,7 @@ fn outbound(
             debug!(topic = ?h.topic(), payload = %json(), "Home Assistant published")
         }
         Publication::Cleared(t) => info!(topic = ?t, "retained topic cleared"),
+        Publication::Leases(_) => info!(payload = %json(), "leases published"),
     }
     if let Some(feed) = feed {
         feed.publish(&publication, &json());

@@ -597,7 +597,12 @@ fn cmd_and_node(s: &Sent) -> Option<(String, String)> {
         Command::Node { target, action } => Some((action.name().to_string(), target.to_string())),
         Command::Assign { new_id, .. } => Some(("assign".into(), new_id.to_string())),
         Command::Forget { id } => Some(("forget".into(), id.to_string())),
-        Command::List | Command::FwUpdate { .. } => None,
+        Command::List
+        | Command::FwUpdate { .. }
+        | Command::Lease { .. }
+        | Command::Renew { .. }
+        | Command::Release
+        | Command::BreakLease { .. } => None,
     }
 }
 

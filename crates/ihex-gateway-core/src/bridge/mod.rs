@@ -177,6 +177,12 @@ pub struct Bridge {
     fw: FwUpdates,
     /// Where each JSON command's tree is parsed (reused from one command to the next).
     arena: Arena,
+    /// The leases held now.
+    pub(crate) lease_table: crate::lease::LeaseTable,
+    /// The time of day, as the adapter told it (for leases' ends).
+    pub(crate) clock: crate::lease::WallClock,
+    /// `leases_reset` was published (at this run's first MQTT connection).
+    pub(crate) leases_announced: bool,
 }
 
 impl Bridge {
@@ -200,6 +206,9 @@ impl Bridge {
             now,
             next_drop_report: now,
             arena: Arena::default(),
+            lease_table: crate::lease::LeaseTable::new(),
+            clock: crate::lease::WallClock::default(),
+            leases_announced: false,
         }
     }
 
@@ -290,7 +299,7 @@ impl Bridge {
     }
 
     /// Records the time of the input being handled (state documents taken later are built as of it).
-    fn set_now(&mut self, now: Instant) {
+    pub(crate) fn set_now(&mut self, now: Instant) {
         self.now = now;
     }
 
@@ -326,6 +335,9 @@ impl Bridge {
                 return self.expired_on_arrival(request_id, &req.command, ttl, delivery, now);
             }
         }
+        if let Some(error) = self.lease_refusal(&req.command, req.lease.as_deref(), now) {
+            return self.reject(request_id, error);
+        }
         let acc = Accepted { now, expires };
         let sent = match req.command {
             Command::List => {
@@ -359,7 +371,17 @@ impl Bridge {
                 image,
                 nodes,
                 force,
-            } => return self.request_fw_update(request_id, image, nodes, force),
+            } => {
+                let token = req.lease.as_deref();
+                return self.request_fw_update(request_id, image, nodes, force, token);
+            }
+            cmd @ (Command::Lease { .. }
+            | Command::Renew { .. }
+            | Command::Release
+            | Command::BreakLease { .. }) => {
+                self.lease_command(request_id, cmd, req.lease, now);
+                Ok(())
+            }
             Command::Assign { uid, new_id, force } => {
                 if !force && self.registry.get(new_id).is_some_and(|e| e.online) {
                     return self.reject(request_id, CommandError::IdInUse(HexId(new_id)));
@@ -391,7 +413,12 @@ impl Bridge {
             Command::Node { target, .. } => *target,
             Command::Assign { new_id, .. } => Target::Node(*new_id),
             Command::Forget { id } => Target::Node(*id),
-            Command::List | Command::FwUpdate { .. } => Target::All,
+            Command::List
+            | Command::FwUpdate { .. }
+            | Command::Lease { .. }
+            | Command::Renew { .. }
+            | Command::Release
+            | Command::BreakLease { .. } => Target::All,
         };
         let waited = millis(now.saturating_duration_since(delivery.received));
         self.pending.count_expired();
@@ -664,6 +691,7 @@ impl Bridge {
             }
         }
         self.out.dirty.clear();
+        self.leases_on_connected(now);
     }
 
     /// A retained state document of `id` the broker delivered when the adapter subscribed to the
@@ -821,6 +849,7 @@ impl Bridge {
         image: String,
         nodes: FwNodes,
         force: bool,
+        lease: Option<&str>,
     ) {
         if self.fw.busy() {
             return self.reject(request_id, CommandError::FwBusy);
@@ -846,12 +875,26 @@ impl Bridge {
             }
         };
         let now = self.now;
+        let skipped = self.lease_skips(&nodes, lease, now);
+        let nodes: Vec<NodeId> = nodes
+            .into_iter()
+            .filter(|id| !skipped.iter().any(|(s, _)| s == id))
+            .collect();
+        if nodes.is_empty() {
+            let reasons: Vec<&str> = skipped.iter().map(|(_, why)| why.as_str()).collect();
+            let error = CommandError::Invalid {
+                cmd: "fw_update",
+                message: format!("every element is leased: {}", reasons.join("; ")),
+            };
+            return self.reject(request_id, error);
+        }
         self.fw.request(
             FwLoad {
                 request_id,
                 image,
                 nodes,
                 force,
+                skipped,
             },
             now,
             &mut self.out,

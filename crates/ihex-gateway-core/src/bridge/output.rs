@@ -42,6 +42,8 @@ pub enum Publication {
     State(NodeState),
     /// A Home Assistant discovery config or light state for [`Topic::Ha`] (retained).
     Ha(HaPublication),
+    /// The leases document for [`Topic::Leases`] (retained).
+    Leases(crate::lease::LeasesDocument),
     /// An empty retained message: the broker drops what the topic held (a forgotten node's state
     /// document, Home Assistant device and light state).
     Cleared(Topic),
@@ -54,6 +56,7 @@ impl Publication {
             Publication::Event(_) => Topic::Events,
             Publication::State(s) => Topic::NodeState(s.id.0),
             Publication::Ha(h) => Topic::Ha(h.topic()),
+            Publication::Leases(_) => Topic::Leases,
             Publication::Cleared(t) => *t,
         }
     }
@@ -70,6 +73,7 @@ impl Publication {
             Publication::Event(e) => event::write_json(e, out),
             Publication::State(s) => event::write_json(s, out),
             Publication::Ha(h) => h.write_payload(out),
+            Publication::Leases(l) => event::write_json(l, out),
             Publication::Cleared(_) => {}
         }
     }
@@ -213,6 +217,8 @@ fn is_answer(e: &Event) -> bool {
             | Event::PublicationsDropped(_)
             | Event::FwUpload(_)
             | Event::FwReport(_)
+            | Event::LeaseGranted(_)
+            | Event::LeaseEnded(_)
     )
 }
 

@@ -33,6 +33,8 @@ pub(crate) struct Out {
     pub(crate) ha: Vec<(Topic, Value)>,
     /// Retained topics emptied.
     pub(crate) cleared: Vec<Topic>,
+    /// Leases documents published.
+    pub(crate) leases: Vec<Value>,
 }
 
 impl Out {
@@ -102,6 +104,11 @@ fn drain_with(b: &mut Bridge, confirm: bool) -> Out {
             Publication::Cleared(t) => {
                 assert!(p.retain() && payload.is_empty(), "{t:?}");
                 out.cleared.push(t);
+            }
+            Publication::Leases(_) => {
+                assert!(p.retain(), "the leases document is retained");
+                assert_eq!(p.topic(), Topic::Leases);
+                out.leases.push(serde_json::from_str(&payload).unwrap());
             }
         }
     }

@@ -49,6 +49,8 @@ timers! {
     /// The end of the lost period from start, until which the documents of nodes not read back
     /// are held (released by `finish_input`, which every input ends with).
     Hold,
+    /// The earliest end of a lease.
+    Leases,
 }
 
 /// The deadline of every [`Timer`], by [`Timer::VALUES`] index.
@@ -98,6 +100,7 @@ impl Bridge {
             Timer::Inherited => self.inherited.next_deadline(),
             Timer::Docking => self.docking.deadline(),
             Timer::Health => Some(self.health.next_deadline()),
+            Timer::Leases => self.lease_table.next_deadline(),
             Timer::DropReport => self
                 .out
                 .publish
@@ -126,6 +129,7 @@ impl Bridge {
                 }
             }
             Timer::Commands => self.pending.expire(now, &mut self.out),
+            Timer::Leases => self.expire_leases(now),
             Timer::ReadBack => self.readback.expire(now),
             Timer::Inherited => self.republish_inherited(now),
             Timer::Docking => {

@@ -18,7 +18,7 @@ pub(crate) struct Fields<'a> {
 }
 
 /// Fields every command may have: `cmd`, then those listed as accepted besides its own.
-pub(super) const COMMON: [&str; 3] = ["cmd", "request_id", "ttl_ms"];
+pub(super) const COMMON: [&str; 4] = ["cmd", "request_id", "ttl_ms", "lease"];
 
 /// `ttl_ms` of `cmd`'s object (already checked for repeats by [`Fields::new`]).
 pub(super) fn ttl(
@@ -38,6 +38,20 @@ pub(super) fn ttl(
     Ok(ms
         .and_then(|ms| u64::try_from(ms).ok())
         .map(Duration::from_millis))
+}
+
+/// `lease` of `cmd`'s object: the token of a lease its sender holds.
+pub(super) fn lease(
+    cmd: &'static str,
+    members: &[(&str, Json<'_>)],
+) -> Result<Option<String>, CommandError> {
+    let f = Fields {
+        cmd,
+        prefix: "",
+        members,
+    };
+    let expected = "the token of a lease, as `lease_granted` answered it";
+    Ok(f.str("lease", expected)?.map(str::to_owned))
 }
 
 /// What a duration field accepts.

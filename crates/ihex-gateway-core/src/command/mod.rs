@@ -14,11 +14,13 @@ use std::time::Duration;
 use ihex_proto::{BuzzerCommand, LedCommand, Message, NodeId, Rgb, Seq, Uid};
 
 use crate::event::{HexId, Target};
+use crate::lease::{Scope, MAX_LEASE_S, MAX_NOTE_CHARS, MAX_OWNER_CHARS};
 use field::{ms_expected, Fields};
 use json::{Arena, Json, Quote};
 
 /// Every command name, for error messages.
-pub const COMMAND_NAMES: &str = "led, buzzer, power, identify, assign, forget, list, fw_update";
+pub const COMMAND_NAMES: &str =
+    "led, buzzer, power, identify, assign, forget, list, fw_update, lease, renew, release, break_lease";
 
 /// Default buzzer tone when a command gives none, in Hz.
 pub const DEFAULT_FREQ_HZ: u16 = 2000;
@@ -103,6 +105,9 @@ pub enum CommandError {
     /// `fw_update` while another update is loading or running.
     #[error("fw_update: an update is running; wait for its fw_report")]
     FwBusy,
+    /// A lease refuses the command, or a lease command was refused.
+    #[error(transparent)]
+    Lease(#[from] crate::lease::LeaseError),
     /// `fw_update` to `"all"` with no node online.
     #[error("fw_update: no node is online")]
     FwNoNodes,
@@ -188,6 +193,31 @@ pub enum Command {
         /// Let the nodes take an older version than theirs.
         force: bool,
     },
+    /// `lease`: hold elements (or the island) so that only commands with the token reach them.
+    Lease {
+        /// Who holds it.
+        owner: String,
+        /// Why, shown to whoever it keeps out.
+        note: Option<String>,
+        /// What it covers.
+        scope: crate::lease::Scope,
+        /// How long from now.
+        ttl: Duration,
+    },
+    /// `renew`: the lease whose token the command carries lasts `ttl` from now.
+    Renew {
+        /// How long from now.
+        ttl: Duration,
+    },
+    /// `release`: end the lease whose token the command carries.
+    Release,
+    /// `break_lease`: end someone else's lease (an administrative privilege).
+    BreakLease {
+        /// The lease's public id.
+        id: u32,
+        /// Why, published with the `lease_ended` event.
+        reason: String,
+    },
 }
 
 /// The nodes of an `fw_update`.
@@ -208,6 +238,10 @@ impl Command {
             Command::Forget { .. } => "forget",
             Command::List => "list",
             Command::FwUpdate { .. } => "fw_update",
+            Command::Lease { .. } => "lease",
+            Command::Renew { .. } => "renew",
+            Command::Release => "release",
+            Command::BreakLease { .. } => "break_lease",
         }
     }
 }
@@ -221,6 +255,9 @@ pub struct Request {
     pub ttl: Option<Duration>,
     /// What to do.
     pub command: Command,
+    /// `lease`: the token of a lease the sender holds (needed by commands to leased elements,
+    /// and by `renew` and `release`).
+    pub lease: Option<String>,
 }
 
 /// A rejected command: the reason, and the request id if it could be read.
@@ -321,13 +358,21 @@ pub fn parse_in(payload: &[u8], max_bytes: usize, arena: &mut Arena) -> Result<R
     };
     let ttl = command.and_then(|c| {
         let ttl = field::ttl(c.name(), members)?;
-        Ok((c, ttl))
+        let lease = field::lease(c.name(), members)?;
+        if lease.is_none() && matches!(c, Command::Renew { .. } | Command::Release) {
+            return Err(CommandError::Invalid {
+                cmd: c.name(),
+                message: "missing `lease`: the token `lease_granted` answered".into(),
+            });
+        }
+        Ok((c, ttl, lease))
     });
     match ttl {
-        Ok((command, ttl)) => Ok(Request {
+        Ok((command, ttl, lease)) => Ok(Request {
             request_id,
             ttl,
             command,
+            lease,
         }),
         Err(error) => Err(reject(request_id, error)),
     }
@@ -379,10 +424,76 @@ fn command(cmd: &str, members: &[(&str, Json<'_>)]) -> Result<Command, CommandEr
             FW_UPDATE_FIELDS,
             "",
         )?),
+        "lease" => lease(&Fields::new("lease", "", members, LEASE_FIELDS, "")?),
+        "renew" => {
+            let f = Fields::new("renew", "", members, &["seconds"], "")?;
+            Ok(Command::Renew {
+                ttl: lease_seconds(&f)?,
+            })
+        }
+        "release" => {
+            Fields::new("release", "", members, &[], "")?;
+            Ok(Command::Release)
+        }
+        "break_lease" => {
+            let f = Fields::new("break_lease", "", members, &["id", "reason"], "")?;
+            let id = f.int("id", 1, i64::from(u32::MAX))?;
+            let id = f.required("id", id, "the lease's id from the leases document")?;
+            let reason = f.required(
+                "reason",
+                f.str("reason", "text")?,
+                "why it is broken (text)",
+            )?;
+            if reason.trim().is_empty() || reason.chars().count() > MAX_NOTE_CHARS {
+                let expected = format!("1 to {MAX_NOTE_CHARS} characters saying why");
+                return Err(f.bad("reason", &expected, &Json::String(reason)));
+            }
+            Ok(Command::BreakLease {
+                id: u32::try_from(id).unwrap_or(u32::MAX),
+                reason: reason.to_owned(),
+            })
+        }
         _ => Err(CommandError::UnknownCmd(
             Quote(&Json::String(cmd)).to_string(),
         )),
     }
+}
+
+/// Fields of `lease` besides the common ones.
+const LEASE_FIELDS: &[&str] = &["owner", "note", "nodes", "seconds"];
+
+/// `seconds` of `lease` and `renew`: required, 1 to [`MAX_LEASE_S`].
+fn lease_seconds(f: &Fields<'_>) -> Result<Duration, CommandError> {
+    let s = f.int("seconds", 1, i64::from(MAX_LEASE_S))?;
+    let expected = format!("an integer 1 to {MAX_LEASE_S}, the lease's time to live");
+    let s = f.required("seconds", s, &expected)?;
+    Ok(Duration::from_secs(u64::try_from(s).unwrap_or(1)))
+}
+
+fn lease(f: &Fields<'_>) -> Result<Command, CommandError> {
+    let owner_expected = format!("a name of 1 to {MAX_OWNER_CHARS} printable characters");
+    let owner = f.required("owner", f.str("owner", &owner_expected)?, &owner_expected)?;
+    let n = owner.chars().count();
+    if owner.trim().is_empty() || n > MAX_OWNER_CHARS || owner.chars().any(char::is_control) {
+        return Err(f.bad("owner", &owner_expected, &Json::String(owner)));
+    }
+    let note_expected = format!("text of at most {MAX_NOTE_CHARS} characters");
+    let note = f.str("note", &note_expected)?;
+    if let Some(n) = note {
+        if n.chars().count() > MAX_NOTE_CHARS || n.chars().any(char::is_control) {
+            return Err(f.bad("note", &note_expected, &Json::String(n)));
+        }
+    }
+    let scope = match node_list(f, "nodes")? {
+        FwNodes::All => Scope::Island,
+        FwNodes::List(ids) => Scope::Nodes(ids),
+    };
+    Ok(Command::Lease {
+        owner: owner.to_owned(),
+        note: note.map(str::to_owned),
+        scope,
+        ttl: lease_seconds(f)?,
+    })
 }
 
 /// `node`: one node, or `"all"`.
@@ -580,25 +691,28 @@ fn fw_update(f: &Fields<'_>) -> Result<Command, CommandError> {
     if !is_image_name(image) {
         return Err(f.bad("image", FW_IMAGE, &Json::String(image)));
     }
-    let text = f.required("nodes", f.str("nodes", FW_NODES)?, FW_NODES)?;
-    let bad = || f.bad("nodes", FW_NODES, &Json::String(text));
-    let nodes = if text == "all" {
-        FwNodes::All
-    } else {
-        let mut ids = Vec::new();
-        for part in text.split(',').map(str::trim) {
-            match part.parse::<NodeId>() {
-                Ok(id) if id.is_sc() && !ids.contains(&id) => ids.push(id),
-                _ => return Err(bad()),
-            }
-        }
-        FwNodes::List(ids)
-    };
     Ok(Command::FwUpdate {
         image: image.to_string(),
-        nodes,
+        nodes: node_list(f, "nodes")?,
         force: f.bool("force")?.unwrap_or(false),
     })
+}
+
+/// `"all"` or node ids separated by commas (`fw_update`'s and `lease`'s `nodes`).
+fn node_list(f: &Fields<'_>, name: &str) -> Result<FwNodes, CommandError> {
+    let text = f.required(name, f.str(name, FW_NODES)?, FW_NODES)?;
+    let bad = || f.bad(name, FW_NODES, &Json::String(text));
+    if text == "all" {
+        return Ok(FwNodes::All);
+    }
+    let mut ids = Vec::new();
+    for part in text.split(',').map(str::trim) {
+        match part.parse::<NodeId>() {
+            Ok(id) if id.is_sc() && !ids.contains(&id) => ids.push(id),
+            _ => return Err(bad()),
+        }
+    }
+    Ok(FwNodes::List(ids))
 }
 
 #[cfg(test)]

@@ -25,6 +25,8 @@ pub struct FwLoad {
     pub nodes: Vec<NodeId>,
     /// Allow a downgrade.
     pub force: bool,
+    /// Nodes left out because a lease holds them, with the reason (reported as `skipped`).
+    pub skipped: Vec<(NodeId, String)>,
 }
 
 /// The update state of the bridge.
@@ -118,14 +120,17 @@ impl FwUpdates {
                     nodes = load.nodes.len(),
                     "firmware update starts"
                 );
-                self.sender = Some(FwSender::new(
-                    image,
-                    load.nodes.iter().copied(),
-                    load.force,
-                    load.request_id.clone(),
-                    self.config.clone(),
-                    now,
-                ));
+                self.sender = Some(
+                    FwSender::new(
+                        image,
+                        load.nodes.iter().copied(),
+                        load.force,
+                        load.request_id.clone(),
+                        self.config.clone(),
+                        now,
+                    )
+                    .with_skipped(load.skipped.clone()),
+                );
                 (Outcome::Ok, None)
             }
         };

@@ -164,6 +164,8 @@ pub struct FwSender {
     finished: bool,
     /// Mobile element → the static element whose relay powers it (docked on it).
     powered_by: BTreeMap<NodeId, NodeId>,
+    /// Elements left out because a lease holds them, with the reason: in the report as `skipped`.
+    skipped: Vec<(NodeId, String)>,
 }
 
 impl FwSender {
@@ -193,6 +195,7 @@ impl FwSender {
             events: VecDeque::new(),
             finished: false,
             powered_by: BTreeMap::new(),
+            skipped: Vec::new(),
         };
         s.advance(now);
         s
@@ -211,6 +214,13 @@ impl FwSender {
         self.powered_by
             .iter()
             .any(|(m, s)| *s == id && self.nodes.get(m).is_some_and(|n| n.stage != Stage::Done))
+    }
+
+    /// Names elements the update leaves out (a lease holds them): its report lists each as
+    /// `skipped` with the reason.
+    pub fn with_skipped(mut self, skipped: Vec<(NodeId, String)>) -> Self {
+        self.skipped = skipped;
+        self
     }
 
     /// The image being sent.
@@ -718,7 +728,7 @@ impl FwSender {
         let ms = |t: Instant| {
             u64::try_from(t.saturating_duration_since(started).as_millis()).unwrap_or(u64::MAX)
         };
-        let nodes = self
+        let mut nodes: Vec<NodeReport> = self
             .nodes
             .iter()
             .map(|(&id, n)| {
@@ -734,6 +744,13 @@ impl FwSender {
                 }
             })
             .collect();
+        nodes.extend(self.skipped.iter().map(|(id, why)| NodeReport {
+            node: HexId(*id),
+            outcome: NodeOutcome::Skipped,
+            reason: Some(why.clone()),
+            duration_ms: 0,
+        }));
+        nodes.sort_by_key(|n| n.node);
         let report = FwReport {
             request_id: self.request_id.clone(),
             image_id: format!("{:08x}", self.image.image_id()),

@@ -18,6 +18,8 @@ pub enum NodeOutcome {
     Unreachable,
     /// The update was stopped before this node was done (see `reason`).
     Failed,
+    /// A lease holds the node and the command did not carry its token: not updated (see `reason`).
+    Skipped,
 }
 
 /// Payload of `fw_progress`: where one node is.

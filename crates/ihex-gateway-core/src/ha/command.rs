@@ -90,8 +90,10 @@ pub fn parse(
     .map_err(reject)?;
     Ok(Request {
         request_id: Some(REQUEST_ID.to_owned()),
-        // Home Assistant's commands carry no time limit.
+        // Home Assistant's commands carry no time limit, and no lease token: a leased element
+        // refuses them.
         ttl: None,
+        lease: None,
         command: Command::Node {
             target: Target::Node(id),
             action,
