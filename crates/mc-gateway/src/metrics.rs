@@ -75,21 +75,14 @@ pub enum CommandResult {
     Rejected,
 }
 
-/// How one node's firmware update ended (`fw_report`'s per-node `outcome`).
+/// How one node's firmware update ended (`fw_report`'s per-node `outcome`), as a label value.
 #[derive(Clone, Copy, Debug, Hash, PartialEq, Eq)]
-pub enum FwOutcome {
-    /// `updated`.
-    Updated,
-    /// `refused`.
-    Refused,
-    /// `reverted`.
-    Reverted,
-    /// `unreachable`.
-    Unreachable,
-    /// `failed`.
-    Failed,
-    /// `skipped` (a lease holds the element).
-    Skipped,
+pub struct FwOutcome(pub NodeOutcome);
+
+impl EncodeLabelValue for FwOutcome {
+    fn encode(&self, encoder: &mut LabelValueEncoder) -> Result<(), std::fmt::Error> {
+        std::fmt::Write::write_str(encoder, self.0.as_str())
+    }
 }
 
 /// The label value of each variant: its word as the MQTT API writes it.
@@ -120,14 +113,6 @@ label_words!(CommandResult {
     Failed => "failed",
     Expired => "expired",
     Rejected => "rejected",
-});
-label_words!(FwOutcome {
-    Updated => "updated",
-    Refused => "refused",
-    Reverted => "reverted",
-    Unreachable => "unreachable",
-    Failed => "failed",
-    Skipped => "skipped",
 });
 
 #[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
@@ -184,14 +169,6 @@ const RESULTS: [CommandResult; 6] = [
     CommandResult::Expired,
     CommandResult::Rejected,
 ];
-const FW_OUTCOMES: [FwOutcome; 6] = [
-    FwOutcome::Updated,
-    FwOutcome::Refused,
-    FwOutcome::Reverted,
-    FwOutcome::Unreachable,
-    FwOutcome::Failed,
-    FwOutcome::Skipped,
-];
 
 impl Default for Counted {
     fn default() -> Self {
@@ -208,8 +185,10 @@ impl Default for Counted {
             }
             let _ = c.round_trip.get_or_create(&InterfaceLabels { interface });
         }
-        for outcome in FW_OUTCOMES {
-            let _ = c.fw_nodes.get_or_create(&FwLabels { outcome });
+        for outcome in NodeOutcome::ALL {
+            let _ = c.fw_nodes.get_or_create(&FwLabels {
+                outcome: FwOutcome(outcome),
+            });
         }
         c
     }
@@ -279,7 +258,7 @@ impl CommandMeter {
                     self.counted
                         .fw_nodes
                         .get_or_create(&FwLabels {
-                            outcome: fw_outcome(n.outcome),
+                            outcome: FwOutcome(n.outcome),
                         })
                         .inc();
                 }
@@ -317,17 +296,6 @@ fn outcome(o: ihex_gateway_core::event::Outcome) -> CommandResult {
         Outcome::Timeout => CommandResult::Timeout,
         Outcome::Failed => CommandResult::Failed,
         Outcome::Expired => CommandResult::Expired,
-    }
-}
-
-fn fw_outcome(o: NodeOutcome) -> FwOutcome {
-    match o {
-        NodeOutcome::Updated => FwOutcome::Updated,
-        NodeOutcome::Refused => FwOutcome::Refused,
-        NodeOutcome::Reverted => FwOutcome::Reverted,
-        NodeOutcome::Unreachable => FwOutcome::Unreachable,
-        NodeOutcome::Failed => FwOutcome::Failed,
-        NodeOutcome::Skipped => FwOutcome::Skipped,
     }
 }
 

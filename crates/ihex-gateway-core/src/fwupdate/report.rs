@@ -5,7 +5,7 @@ use serde::{Deserialize, Serialize};
 use crate::event::HexId;
 
 /// How one node's update ended.
-#[derive(Clone, Copy, PartialEq, Eq, Debug, Serialize, Deserialize)]
+#[derive(Clone, Copy, PartialEq, Eq, Hash, Debug, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum NodeOutcome {
     /// The new image runs and confirmed itself.
@@ -20,6 +20,30 @@ pub enum NodeOutcome {
     Failed,
     /// A lease holds the node and the command did not carry its token: not updated (see `reason`).
     Skipped,
+}
+
+impl NodeOutcome {
+    /// Every outcome (for tallies that show each from the start, such as metrics).
+    pub const ALL: [NodeOutcome; 6] = [
+        NodeOutcome::Updated,
+        NodeOutcome::Refused,
+        NodeOutcome::Reverted,
+        NodeOutcome::Unreachable,
+        NodeOutcome::Failed,
+        NodeOutcome::Skipped,
+    ];
+
+    /// The word `fw_report` writes for it.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            NodeOutcome::Updated => "updated",
+            NodeOutcome::Refused => "refused",
+            NodeOutcome::Reverted => "reverted",
+            NodeOutcome::Unreachable => "unreachable",
+            NodeOutcome::Failed => "failed",
+            NodeOutcome::Skipped => "skipped",
+        }
+    }
 }
 
 /// Payload of `fw_progress`: where one node is.
@@ -72,5 +96,21 @@ impl FwReport {
     /// True when every node ended `updated`.
     pub fn all_updated(&self) -> bool {
         self.nodes.iter().all(|n| n.outcome == NodeOutcome::Updated)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::NodeOutcome;
+
+    #[test]
+    fn every_outcome_is_listed_once_under_the_word_the_report_writes() {
+        for (i, o) in NodeOutcome::ALL.into_iter().enumerate() {
+            assert_eq!(
+                serde_json::to_string(&o).unwrap(),
+                format!("\"{}\"", o.as_str())
+            );
+            assert!(!NodeOutcome::ALL[..i].contains(&o), "{o:?} twice");
+        }
     }
 }
