@@ -221,7 +221,7 @@ async fn a_healthy_island_passes() {
     assert!(
         v.found.contains("111 (firmware 0.4.2, ")
             && v.found
-                .contains("protocol 1.2, uid 300047001251333933383437"),
+                .contains("protocol 1.3, uid 300047001251333933383437"),
         "{}",
         v.found
     );

@@ -54,7 +54,7 @@ pub enum Interface {
     Web,
     /// Home Assistant's command topics.
     Ha,
-    /// An answer whose command the meter no longer knew (see [`PENDING_MAX`]).
+    /// An answer whose command the meter no longer knew (it keeps at most `PENDING_MAX` commands waiting).
     Unknown,
 }
 

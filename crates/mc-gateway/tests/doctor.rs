@@ -359,10 +359,15 @@ fn answers(src: u16, minor: u8) -> Vec<Packet> {
         }));
         out.push(r(StateReport::UidLow([0x30, 0, 0x47, 0, 0x12, 0x51, 0x33])));
         out.push(r(StateReport::UidHigh([0x39, 0x33, 0x38, 0x34, 0x37])));
+        if minor >= 3 {
+            out.push(r(StateReport::Protocol {
+                version: (1, minor),
+            }));
+        }
         out.push(r(StateReport::End {
             seq: 0xD0,
             parts: StateParts(StateParts::IDENTITY),
-            count: 3,
+            count: if minor >= 3 { 4 } else { 3 },
         }));
     }
     if minor >= 2 {
@@ -390,13 +395,13 @@ fn island_of(packets: &[Packet]) -> island::Facts {
 
 #[test]
 fn island_current_nodes_pass_with_versions_and_uids() {
-    let f = island_of(&[answers(0x111, 2), answers(0x2, 2)].concat());
+    let f = island_of(&[answers(0x111, 3), answers(0x2, 3)].concat());
     let v = island::check(&f, LISTEN);
     assert_eq!(v.status, Status::Pass, "{v:?}");
     assert!(v.found.starts_with("2 node(s) answered"), "{}", v.found);
     assert!(
         v.found
-            .contains("111 (firmware 0.3.1, protocol 1.2, uid 300047001251333933383437)"),
+            .contains("111 (firmware 0.3.1, protocol 1.3, uid 300047001251333933383437)"),
         "{}",
         v.found
     );
@@ -404,15 +409,24 @@ fn island_current_nodes_pass_with_versions_and_uids() {
 
 #[test]
 fn island_old_protocol_fails_and_names_the_node() {
-    let f = island_of(&[answers(0x111, 2), answers(0x112, 1), answers(0x113, 0)].concat());
+    let f = island_of(
+        &[
+            answers(0x111, 3),
+            answers(0x114, 2),
+            answers(0x112, 1),
+            answers(0x113, 0),
+        ]
+        .concat(),
+    );
     let v = island::check(&f, LISTEN);
     assert_eq!(v.status, Status::Fail, "{v:?}");
     let action = v.action.unwrap();
+    assert!(action.contains("114 (1.2"), "{action}");
     assert!(action.contains("112 (1.1"), "{action}");
     assert!(action.contains("113 (1.0"), "{action}");
     assert!(!action.contains("111"), "{action}");
     // A BootUp gives the exact version.
-    let mut f = island_of(&answers(0x111, 2));
+    let mut f = island_of(&answers(0x111, 3));
     f.observe(&Packet::report(
         id(0x111),
         Message::BootUp {
@@ -430,7 +444,7 @@ fn island_silence_fails_and_unconfigured_boards_are_listed() {
     let v = island::check(&island::Facts::default(), LISTEN);
     assert_eq!(v.status, Status::Fail);
     assert!(v.found.starts_with("no node answered"));
-    let mut f = island_of(&answers(0x111, 2));
+    let mut f = island_of(&answers(0x111, 3));
     f.observe(&Packet::report(
         NodeId::UNCONFIGURED,
         Message::AssignReply {

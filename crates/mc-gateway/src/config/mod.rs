@@ -425,6 +425,16 @@ impl Origins {
 
 /// A command-line or environment value clap could not read, as a [`ConfigError::At`] naming the
 /// flag or the variable and what the value must be; `None` for any other clap error (`--help`).
+/// Parses `args` with `cmd`; a bad value is the error in words ([`ConfigError`]), while `--help`,
+/// `--version` and other usage errors end the process the way clap does.
+pub(crate) fn matches(
+    cmd: clap::Command,
+    args: &[std::ffi::OsString],
+) -> Result<clap::ArgMatches, ConfigError> {
+    cmd.try_get_matches_from(args)
+        .or_else(|e| value_error(&e, args).map_or_else(|| e.exit(), Err))
+}
+
 fn value_error(e: &clap::Error, args: &[std::ffi::OsString]) -> Option<ConfigError> {
     use clap::error::{ContextKind, ContextValue, ErrorKind};
     if !matches!(
@@ -475,19 +485,18 @@ impl Config {
         args: impl IntoIterator<Item = std::ffi::OsString>,
     ) -> Result<Config, ConfigError> {
         let args: Vec<_> = args.into_iter().collect();
-        let m = match command().try_get_matches_from(&args) {
-            Ok(m) => m,
-            Err(e) => match value_error(&e, &args) {
-                Some(err) => return Err(err),
-                None => e.exit(),
-            },
-        };
-        let cli = Options::from_matches(&m);
+        Config::from_matches(&matches(command(), &args)?)
+    }
+
+    /// Resolves a parsed command line (with its environment) over its `--config` file, recording
+    /// where each value came from; errors name it.
+    pub(crate) fn from_matches(m: &clap::ArgMatches) -> Result<Config, ConfigError> {
+        let cli = Options::from_matches(m);
         let file = match &cli.config {
             Some(path) => Options::load(path)?,
             None => Options::default(),
         };
-        let origins = Origins::new(&m, &file, cli.config.as_deref());
+        let origins = Origins::new(m, &file, cli.config.as_deref());
         let mut config = Config::resolve(cli, file).map_err(|e| e.located(&origins))?;
         config.origins = origins;
         Ok(config)

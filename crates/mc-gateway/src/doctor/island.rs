@@ -1,7 +1,8 @@
 //! The island: which nodes answer the doctor's health check, their firmware and protocol
 //! versions and unique IDs, boards without a node ID, and nodes on an older protocol.
 //!
-//! The protocol version travels only in `BootUp` (after a reset); otherwise it shows in what a node
+//! The protocol version travels in `BootUp` (after a reset) and, from 1.3 on, in the identity
+//! group's `Protocol` part of a state reply; a node on an older protocol shows it in what it
 //! understands: every version answers `HealthCheck`, 1.1 added `StateQuery` (answered with the
 //! firmware version and UID), 1.2 `FwQuery`. The doctor asks all three and reads the version from
 //! the answers ([`Node::protocol`]).
@@ -24,6 +25,8 @@ pub struct Node {
     pub errors: Option<(u8, u8, bool)>,
     /// Announced its protocol version in a `BootUp`.
     pub boot_version: Option<(u8, u8)>,
+    /// Reported its protocol version in a state reply's `Protocol` part (1.3 and later).
+    pub reported_version: Option<(u8, u8)>,
     /// Closed a state reply (`StateReport::End`): speaks 1.1 or later.
     pub state_readback: bool,
     /// Answered a firmware-status query: speaks 1.2 or later.
@@ -39,7 +42,7 @@ pub struct Node {
 /// A protocol version as far as the doctor can tell.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
 pub enum Protocol {
-    /// Announced in a `BootUp`.
+    /// Announced in a `BootUp` or reported in a state reply.
     Exactly(u8, u8),
     /// The newest version whose messages it answered (it may be newer still).
     AtLeast(u8, u8),
@@ -65,9 +68,9 @@ impl fmt::Display for Protocol {
 }
 
 impl Node {
-    /// Its protocol version: announced, else the newest whose query it answered.
+    /// Its protocol version: announced or reported, else the newest whose query it answered.
     pub fn protocol(&self) -> Protocol {
-        match self.boot_version {
+        match self.boot_version.or(self.reported_version) {
             Some((a, b)) => Protocol::Exactly(a, b),
             None if self.fw_status => Protocol::AtLeast(1, 2),
             None if self.state_readback => Protocol::AtLeast(1, 1),
@@ -121,6 +124,7 @@ impl Facts {
                 StateReport::Firmware { version, .. } => node.firmware = Some(*version),
                 StateReport::UidLow(b) => node.uid_low = Some(*b),
                 StateReport::UidHigh(b) => node.uid_high = Some(*b),
+                StateReport::Protocol { version } => node.reported_version = Some(*version),
                 _ => {}
             },
             _ => {}

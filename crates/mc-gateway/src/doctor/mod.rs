@@ -304,13 +304,14 @@ pub fn command_line() -> clap::Command {
         .disable_help_subcommand(true)
 }
 
-/// Parses the process's command line and environment (reading `--config` files). `--help`,
-/// `--version` and malformed arguments end the process the way clap does.
+/// Parses the process's command line and environment (reading `--config` files); a bad value is
+/// an error naming where it was given. `--help`, `--version` and malformed arguments end the
+/// process the way clap does.
 pub fn invocation() -> Result<Invocation, ConfigError> {
-    let m = command_line().get_matches();
+    let args: Vec<_> = std::env::args_os().collect();
+    let m = config::matches(command_line(), &args)?;
     let Some(("doctor", sub)) = m.subcommand() else {
-        return Config::from_cli(Options::from_matches(&m))
-            .map(|c| Invocation::Gateway(Box::new(c)));
+        return Config::from_matches(&m).map(|c| Invocation::Gateway(Box::new(c)));
     };
     // Options given before `doctor` count too; those after it win.
     let mut cli = Options::from_matches(sub).or(Options::from_matches(&m));
