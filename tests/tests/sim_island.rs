@@ -130,9 +130,10 @@ async fn nodes_hear_the_bus_again_after_the_interface_goes_down_and_up() {
         },
     )
     .await;
+    // The identity group: Firmware, ImageHash, UidLow, UidHigh, Protocol, then End.
     assert_eq!(
         scenario::state_reply(&mut gw, id(0x112), 0x50).await.len(),
-        5
+        6
     );
     scenario::dock_and_confirm(&mut gw, &island, 30).await;
     island.shutdown().await;
