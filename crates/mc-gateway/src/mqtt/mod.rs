@@ -475,6 +475,7 @@ async fn sleep_until(deadline: Option<tokio::time::Instant>) {
 
 #[cfg(test)]
 mod tests {
+    use super::session::tests::publication;
     use super::*;
     use crate::config::{Broker, MqttConfig};
     use rumqttc::Incoming;
@@ -499,14 +500,6 @@ mod tests {
             broker: "127.0.0.1:1".into(),
             stats: Arc::default(),
             ack_timeout: Duration::from_secs(5),
-        }
-    }
-
-    fn publication(n: u8) -> Outbound {
-        Outbound {
-            topic: "EventsTopic".into(),
-            payload: vec![n].into(),
-            retain: false,
         }
     }
 

@@ -50,7 +50,8 @@ fn state(id: &str, retain: bool) -> Publish {
     p
 }
 
-fn publication(n: u8) -> Outbound {
+/// A publication whose payload is `n` (also for the socket tests in `mqtt`).
+pub(crate) fn publication(n: u8) -> Outbound {
     Outbound {
         topic: "EventsTopic".into(),
         payload: vec![n].into(),
