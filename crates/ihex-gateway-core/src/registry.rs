@@ -352,11 +352,8 @@ impl Registry {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use ihex_proto::test_util::id;
     use std::time::Duration;
-
-    fn id(raw: u16) -> NodeId {
-        NodeId::new(raw).unwrap()
-    }
 
     fn reply(seq: u8, flags: u8, uptime_s: u32) -> HealthReply {
         HealthReply {

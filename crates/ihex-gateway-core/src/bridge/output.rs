@@ -570,6 +570,7 @@ impl Outputs {
 mod tests {
     use super::*;
     use crate::event::{BusError, CommandRejected};
+    use ihex_proto::test_util::id;
 
     fn bus_error(n: u64) -> Event {
         Event::BusError(Box::new(BusError {
@@ -584,10 +585,6 @@ mod tests {
             request_id: Some(n.to_string()),
             reason: "x".into(),
         })
-    }
-
-    fn id(raw: u16) -> NodeId {
-        NodeId::new(raw).unwrap()
     }
 
     #[test]

@@ -2,20 +2,13 @@
 
 use std::time::{Duration, Instant};
 
-use ihex_proto::{
-    AckResult, HealthFlags, HealthReply, Kind, Message, NodeId, Packet, Port, StateReport,
-};
+use ihex_proto::{AckResult, HealthFlags, HealthReply, Kind, Message, NodeId, Packet, StateReport};
 use serde_json::Value;
 
 use super::{Bridge, BridgeConfig, Publication};
 use crate::topic::Topic;
 
-pub(crate) fn id(raw: u16) -> NodeId {
-    NodeId::new(raw).unwrap()
-}
-pub(crate) fn port(raw: u8) -> Port {
-    Port::new(raw).unwrap()
-}
+pub(crate) use ihex_proto::test_util::{id, port};
 pub(crate) const MS: Duration = Duration::from_millis(1);
 pub(crate) const S: Duration = Duration::from_secs(1);
 

@@ -701,13 +701,8 @@ impl Docking {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use ihex_proto::test_util::{id, port};
 
-    fn id(raw: u16) -> NodeId {
-        NodeId::new(raw).unwrap()
-    }
-    fn port(raw: u8) -> Port {
-        Port::new(raw).unwrap()
-    }
     const T: Duration = Duration::from_secs(5);
 
     #[test]

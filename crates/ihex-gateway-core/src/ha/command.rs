@@ -298,10 +298,7 @@ fn siren(text: &str) -> Result<BuzzerCommand, CommandError> {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    fn id(raw: u16) -> NodeId {
-        NodeId::new(raw).unwrap()
-    }
+    use ihex_proto::test_util::id;
 
     fn topics() -> HaTopics {
         HaTopics::defaults(Some("lab"))

@@ -185,10 +185,7 @@ fn slug(text: &str) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    fn id(raw: u16) -> NodeId {
-        NodeId::new(raw).unwrap()
-    }
+    use ihex_proto::test_util::id;
 
     #[test]
     fn names_without_island() {
