@@ -1,5 +1,5 @@
-//! The doctor's one session on the CAN interface (the adapter for [`traffic`](super::traffic) and
-//! [`island`](super::island)): it broadcasts a `HealthCheck`, a `StateQuery` for the identity
+//! The doctor's one session on the CAN interface (the adapter for [`traffic`] and
+//! [`island`]): it broadcasts a `HealthCheck`, a `StateQuery` for the identity
 //! group and an `FwQuery`, and takes in every frame and error frame for the listening time. None
 //! of the three changes a node's state, so it is safe while the gateway runs.
 

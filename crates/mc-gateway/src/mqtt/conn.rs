@@ -4,7 +4,7 @@
 //! rumqttc 0.25's event loop takes one request per `poll()` and flushes after each
 //! (bytebeamio/rumqtt#810): on a busy island that is a system call, a wake-up of the broker and a
 //! TCP segment per publication, and it was most of what a bridged frame cost. This module keeps
-//! rumqttc's sans-IO parts — [`MqttState`] (packet ids, the in-flight window, acks, keep-alive
+//! rumqttc's sans-IO parts — `rumqttc::MqttState` (packet ids, the in-flight window, acks, keep-alive
 //! pings) and its MQTT 3.1.1 codec — and does the I/O itself: [`Connection::publish`] and friends
 //! only encode into a write buffer, and [`Connection::poll`] writes whatever is buffered, reads
 //! whatever arrived, and returns the next incoming packet. `poll` is cancel-safe (all its state lives

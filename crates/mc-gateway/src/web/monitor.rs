@@ -2,7 +2,7 @@
 //! `GET /metrics` (Prometheus text, [`crate::metrics`]), `GET /healthz` (liveness: the core task
 //! answers) and `GET /readyz` (readiness: connected to the broker and the bus up). Each asks the
 //! core task for a view, as the island view does; a core that does not answer within
-//! [`VIEW_TIMEOUT`] makes all three answer `503`.
+//! `VIEW_TIMEOUT` makes all three answer `503`.
 
 use std::sync::{atomic::Ordering, Arc};
 
