@@ -48,6 +48,9 @@ use crate::event::{Event, HexId};
 pub const DEFAULT_BUS_SHARE: u8 = 50;
 /// The iHEX bus bitrate.
 pub const BUS_BITRATE: u32 = 500_000;
+/// `fw_progress` is published at least at every multiple of this many percent of a node's
+/// transfer.
+pub const PROGRESS_STEP: u8 = 5;
 
 /// Tunables of an update.
 #[derive(Clone, Debug)]
@@ -126,6 +129,12 @@ struct NodeTx {
     outcome: Option<(NodeOutcome, Option<String>, Instant)>,
     /// Last progress published: phase name, percent, when.
     progress: Option<(&'static str, u8, Instant)>,
+    /// The frames planned for it in this round (its first missing run), `start..end`.
+    planned: Option<(u32, u32)>,
+    /// Data frames of `planned` that went out (to it or broadcast) since its last status: its
+    /// progress between two statuses, without asking it (a query per node per step would cost
+    /// the bus what the update needs).
+    sent_since_status: u32,
 }
 
 impl NodeTx {
@@ -140,6 +149,8 @@ impl NodeTx {
             erasing_since: None,
             outcome: None,
             progress: None,
+            planned: None,
+            sent_since_status: 0,
         }
     }
 }
@@ -257,6 +268,8 @@ impl FwSender {
         };
         n.awaiting = false;
         n.misses = 0;
+        n.planned = None;
+        n.sent_since_status = 0;
         match (n.stage, st.phase) {
             (Stage::Done, _) => return,
             (_, FwPhase::Refused) => {
@@ -414,13 +427,35 @@ impl FwSender {
             return None;
         }
         self.queue.pop_front();
-        if matches!(p.msg, Message::FwData { .. }) {
+        if let Message::FwData { index, .. } = p.msg {
             self.frames_sent += 1;
+            self.count_delivered(p.dest, u32::from(index));
         }
         if self.queue.is_empty() && self.round_deadline.is_none() {
             self.round_deadline = Some(self.now + self.config.reply_timeout);
         }
         Some(p)
+    }
+
+    /// Counts a data frame towards the progress of the nodes it was planned for.
+    fn count_delivered(&mut self, dest: NodeId, index: u32) {
+        let now = self.now;
+        let reached: Vec<NodeId> = self
+            .nodes
+            .iter_mut()
+            .filter(|(id, n)| {
+                n.stage == Stage::Transfer
+                    && (dest == NodeId::BROADCAST || dest == **id)
+                    && n.planned.is_some_and(|(a, b)| (a..b).contains(&index))
+            })
+            .map(|(id, n)| {
+                n.sent_since_status += 1;
+                *id
+            })
+            .collect();
+        for id in reached {
+            self.progress(id, now);
+        }
     }
 
     fn tick(&mut self, now: Instant) {
@@ -606,6 +641,8 @@ impl FwSender {
                     ..
                 }) if run > 0 && !hold => {
                     let end = (u32::from(first_missing) + u32::from(run)).min(frames);
+                    n.planned = Some((u32::from(first_missing), end));
+                    n.sent_since_status = 0;
                     for i in u32::from(first_missing)..end {
                         // `frames` ≤ 65 536 (FW_MAX_LEN), so every index fits.
                         wanted.entry(i as u16).or_default().push(id);
@@ -692,8 +729,12 @@ impl FwSender {
             (Stage::Transfer, Some(st)) => {
                 let percent = match st.phase {
                     FwPhase::Receiving => {
-                        let have = frames.saturating_sub(u32::from(st.missing));
-                        u8::try_from(have * 100 / frames.max(1)).unwrap_or(100)
+                        // What it said it has, plus what went out to it since; below 100 until
+                        // it says it is complete (a frame it lost shows at its next status).
+                        let have =
+                            frames.saturating_sub(u32::from(st.missing)) + n.sent_since_status;
+                        let have = have.min(frames.saturating_sub(1));
+                        u8::try_from(have * 100 / frames.max(1)).unwrap_or(99)
                     }
                     FwPhase::Complete => 100,
                     _ => 0,
@@ -705,10 +746,14 @@ impl FwSender {
             (Stage::Rebooting, _) => ("rebooting", 100),
             (Stage::Confirming, _) => ("confirming", 100),
         };
+        // Every step of `PROGRESS_STEP` is published (the granularity); smaller changes
+        // at most once per progress interval.
         let due = match n.progress {
             None => true,
             Some((p, pc, at)) => {
-                p != phase || (pc != percent && now >= at + self.config.progress_interval)
+                p != phase
+                    || pc / PROGRESS_STEP != percent / PROGRESS_STEP
+                    || (pc != percent && now >= at + self.config.progress_interval)
             }
         };
         if due {

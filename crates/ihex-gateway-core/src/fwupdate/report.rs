@@ -56,7 +56,8 @@ pub struct FwProgress {
     /// `begin`, a transfer phase the node reported (`header`, `erasing`, `receiving`,
     /// `complete`, `verifying`, `rebooting`), or `confirming` (the new image on trial).
     pub phase: String,
-    /// Share of the image the node holds, 0–100.
+    /// Share of the image the node holds, 0–100: what it last said it has plus the frames sent
+    /// to it since (a frame it lost shows at its next answer). Published at every 5 % step.
     pub percent: u8,
 }
 

@@ -244,6 +244,8 @@ struct Run {
     progress: Vec<FwProgress>,
     /// (when, bits) of every frame the sender handed out.
     sent: Vec<(Instant, u32)>,
+    /// Every packet the sender handed out, in order.
+    packets: Vec<Packet>,
     models: Vec<Model>,
     t0: Instant,
 }
@@ -265,12 +267,14 @@ fn run_docked(
     s.set_docked(docked.iter().map(|&(st, m)| (nid(st), nid(m))));
     let mut now = t0;
     let mut sent = Vec::new();
+    let mut packets = Vec::new();
     let mut progress = Vec::new();
     let mut replies: VecDeque<(NodeId, Message)> = VecDeque::new();
     for _ in 0..600_000 {
         let mut out = Vec::new();
         while let Some(p) = s.poll_transmit() {
             sent.push((now, cost(&p)));
+            packets.push(p);
             for m in models.iter_mut() {
                 m.on_packet(&p, now, &mut out);
             }
@@ -294,6 +298,7 @@ fn run_docked(
                         report: *report,
                         progress,
                         sent,
+                        packets,
                         models,
                         t0,
                     }
@@ -354,6 +359,51 @@ fn happy_path_to_many_nodes_sends_the_image_once() {
         .progress
         .iter()
         .all(|p| p.request_id.as_deref() == Some("r1")));
+}
+
+/// Each node's transfer is published in steps of at most `PROGRESS_STEP` % from 0 to 100,
+/// derived from the frames sent: no query more than the rounds need.
+#[test]
+fn progress_moves_in_small_steps_without_extra_queries() {
+    let img = image(20_000);
+    let frames = img.frames();
+    let models = (0x101..0x115)
+        .map(|id| Model::new(id, frames, Quirks::default()))
+        .collect();
+    let r = run(models, img, FwConfig::default());
+    assert!(r.report.all_updated(), "{:?}", outcomes(&r.report));
+    for raw in 0x101..0x115 {
+        let percents: Vec<u8> = r
+            .progress
+            .iter()
+            .filter(|p| p.node.0 == nid(raw))
+            .filter(|p| matches!(p.phase.as_str(), "receiving" | "complete"))
+            .map(|p| p.percent)
+            .collect();
+        assert!(
+            percents.len() >= 100 / usize::from(PROGRESS_STEP),
+            "{percents:?}"
+        );
+        assert_eq!(percents.last(), Some(&100));
+        for w in percents.windows(2) {
+            assert!(
+                w[1] >= w[0] && w[1] - w[0] <= PROGRESS_STEP,
+                "{raw:x}: a step from {} to {}: {percents:?}",
+                w[0],
+                w[1]
+            );
+        }
+    }
+    // No query went out while the image's data was broadcast: the progress came from the frames.
+    let data_at = |i: &Packet| matches!(i.msg, Message::FwData { index, .. } if u32::from(index) >= HEADER_FRAMES);
+    let first = r.packets.iter().position(data_at).unwrap();
+    let last = r.packets.iter().rposition(data_at).unwrap();
+    let during = r.packets[first..last]
+        .iter()
+        .filter(|p| matches!(p.msg, Message::FwQuery { .. }))
+        .count();
+    assert_eq!(during, 0);
+    assert_eq!(r.report.frames_sent, u64::from(frames));
 }
 
 #[test]
