@@ -451,6 +451,8 @@ pub enum Event {
     FwProgress(crate::fwupdate::FwProgress),
     /// A firmware update ended: every node's outcome.
     FwReport(Box<crate::fwupdate::FwReport>),
+    /// A node confirmed the new image after the update had given it another outcome.
+    FwCorrection(Box<crate::fwupdate::FwCorrection>),
     /// An image uploaded over MQTT was stored, or rejected.
     FwUpload(Box<crate::fwupdate::FwUpload>),
     /// Answer to `lease` and `renew`: the lease and its token.
@@ -482,6 +484,7 @@ impl Event {
             Event::SimRejected(_) => "sim_rejected",
             Event::FwProgress(_) => "fw_progress",
             Event::FwReport(_) => "fw_report",
+            Event::FwCorrection(_) => "fw_correction",
             Event::FwUpload(_) => "fw_upload",
             Event::LeaseGranted(_) => "lease_granted",
             Event::LeaseEnded(_) => "lease_ended",

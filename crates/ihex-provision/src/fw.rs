@@ -450,6 +450,15 @@ impl Job<'_> {
                 GatewayEvent::FwProgress(p) if p.request_id.as_deref() == Some(&request_id) => {
                     progress.show(&p.node.to_string(), &p.phase, p.percent);
                 }
+                GatewayEvent::FwCorrection(c) if c.request_id.as_deref() == Some(&request_id) => {
+                    say!(
+                        "{:>4} {} (was {}): {}",
+                        c.node.to_string(),
+                        outcome_name(c.outcome),
+                        outcome_name(c.was),
+                        c.reason
+                    );
+                }
                 GatewayEvent::FwReport(r) if r.request_id.as_deref() == Some(&request_id) => {
                     progress.finish();
                     say!(

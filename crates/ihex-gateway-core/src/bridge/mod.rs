@@ -1030,6 +1030,7 @@ impl Bridge {
         let older = |acked: Option<Instant>| acked.is_none_or(|t| t < asked);
         let acked = e.acked_at;
         let mut docks = Vec::new();
+        let mut firmware = None;
         let (mut low, mut high) = (None, None);
         for r in reports {
             match r {
@@ -1044,7 +1045,10 @@ impl Bridge {
                     e.ports = Some(p.ports);
                 }
                 StateReport::Dock { port, state } => docks.push((port, state)),
-                StateReport::Firmware { version, trial } => e.firmware = Some((version, trial)),
+                StateReport::Firmware { version, trial } => {
+                    e.firmware = Some((version, trial));
+                    firmware = Some((version, trial));
+                }
                 StateReport::ImageHash(h) => e.image_hash = Some(h),
                 StateReport::UidLow(l) => low = Some(l),
                 StateReport::UidHigh(h) => high = Some(h),
@@ -1057,6 +1061,10 @@ impl Bridge {
         }
         let is_static = e.role == Some(BootRole::Static);
         self.out.mark_changed(node);
+        if let Some((version, trial)) = firmware {
+            self.fw
+                .on_firmware(node, version, trial, now, &mut self.out);
+        }
         if parts.contains(StateParts::DOCKING) && is_static {
             let steps = self.docking.reconcile(node, &docks, asked);
             self.apply(steps, now);

@@ -217,6 +217,7 @@ fn is_answer(e: &Event) -> bool {
             | Event::PublicationsDropped(_)
             | Event::FwUpload(_)
             | Event::FwReport(_)
+            | Event::FwCorrection(_)
             | Event::LeaseGranted(_)
             | Event::LeaseEnded(_)
     )

@@ -37,8 +37,14 @@ pub(crate) struct FwUpdates {
     /// A load was handed to the adapter and not answered yet.
     loading: bool,
     sender: Option<FwSender>,
+    /// The last finished update, kept for [`LATE_WINDOW`] after its report: a node it gave up
+    /// that reports the new image confirmed gets an `fw_correction`.
+    last: Option<(FwSender, Instant)>,
     uploads: Uploads,
 }
+
+/// How long after its report an update still corrects a late confirmation.
+pub const LATE_WINDOW: std::time::Duration = std::time::Duration::from_secs(600);
 
 impl FwUpdates {
     pub(crate) fn new(config: FwConfig) -> Self {
@@ -47,6 +53,7 @@ impl FwUpdates {
             loads: VecDeque::new(),
             loading: false,
             sender: None,
+            last: None,
             uploads: Uploads::default(),
         }
     }
@@ -165,6 +172,31 @@ impl FwUpdates {
         self.drain(out);
     }
 
+    /// A node's state report named its firmware: see [`FwSender::handle_firmware`].
+    pub(crate) fn on_firmware(
+        &mut self,
+        src: NodeId,
+        version: ihex_proto::FirmwareVersion,
+        trial: bool,
+        now: Instant,
+        out: &mut Outputs,
+    ) {
+        if let Some(s) = self.sender.as_mut() {
+            s.handle_firmware(src, version, trial, now);
+        }
+        if let Some((s, until)) = self.last.as_mut() {
+            if now < *until {
+                s.handle_firmware(src, version, trial, now);
+                while let Some(e) = s.poll_event() {
+                    out.emit(e);
+                }
+            } else {
+                self.last = None;
+            }
+        }
+        self.drain(out);
+    }
+
     pub(crate) fn on_boot_up(&mut self, src: NodeId, now: Instant, out: &mut Outputs) {
         if let Some(s) = self.sender.as_mut() {
             s.handle_boot_up(src, now);
@@ -206,7 +238,7 @@ impl FwUpdates {
         let s = self.sender.as_mut()?;
         let p = s.poll_transmit();
         if s.is_done() && s.poll_event().is_none() {
-            self.sender = None;
+            self.retire();
         }
         p
     }
@@ -221,7 +253,15 @@ impl FwUpdates {
             out.emit(e);
         }
         if s.is_done() {
-            self.sender = None;
+            self.retire();
+        }
+    }
+
+    /// The finished sender stays for late confirmations.
+    fn retire(&mut self) {
+        if let Some(s) = self.sender.take() {
+            let until = s.finished_at().unwrap_or(s.started_at()) + LATE_WINDOW;
+            self.last = Some((s, until));
         }
     }
 }

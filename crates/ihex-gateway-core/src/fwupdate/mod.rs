@@ -39,7 +39,7 @@ pub use bucket::BitBucket;
 pub use glue::FwLoad;
 pub(crate) use glue::FwUpdates;
 pub use image::{FwImage, FwImageError};
-pub use report::{FwProgress, FwReport, NodeOutcome, NodeReport};
+pub use report::{FwCorrection, FwProgress, FwReport, NodeOutcome, NodeReport};
 pub use upload::{FwUpload, UploadResult, Uploads, MAX_UPLOAD, UPLOADS_KEPT};
 
 use crate::event::{Event, HexId};
@@ -48,6 +48,9 @@ use crate::event::{Event, HexId};
 pub const DEFAULT_BUS_SHARE: u8 = 50;
 /// The iHEX bus bitrate.
 pub const BUS_BITRATE: u32 = 500_000;
+/// How many times an element that lost its power mid-update (its static element restarted) is
+/// begun again before its outcome is `lost_power`.
+pub const POWER_RETRIES: u32 = 2;
 /// `fw_progress` is published at least at every multiple of this many percent of a node's
 /// transfer.
 pub const PROGRESS_STEP: u8 = 5;
@@ -131,6 +134,16 @@ struct NodeTx {
     progress: Option<(&'static str, u8, Instant)>,
     /// The frames planned for it in this round (its first missing run), `start..end`.
     planned: Option<(u32, u32)>,
+    /// The static element whose restart cut its power in the middle of its update: it gets time
+    /// to come back, and its outcome names the cause.
+    power_cut_by: Option<NodeId>,
+    /// Times it was begun again after losing power.
+    power_retries: u32,
+    /// After a power cut: no unanswered request counts as a miss before this (its host restarts,
+    /// then it starts and docks again).
+    grace_until: Option<Instant>,
+    /// It was sent a commit: an image it later reports confirmed came from this update.
+    committed: bool,
     /// Data frames of `planned` that went out (to it or broadcast) since its last status: its
     /// progress between two statuses, without asking it (a query per node per step would cost
     /// the bus what the update needs).
@@ -151,6 +164,10 @@ impl NodeTx {
             progress: None,
             planned: None,
             sent_since_status: 0,
+            power_cut_by: None,
+            power_retries: 0,
+            grace_until: None,
+            committed: false,
         }
     }
 }
@@ -220,6 +237,96 @@ impl FwSender {
         self.powered_by = docked.into_iter().map(|(s, m)| (m, s)).collect();
     }
 
+    /// `host` restarted (into its new image, or because it lost power itself): every mobile
+    /// element of the update docked on it and not done lost its power with it. Each gets the time
+    /// a restart takes to come back, and its outcome will say why if it does not.
+    fn host_restarted(&mut self, host: NodeId, now: Instant) {
+        let (reboot, confirm) = (self.config.reboot_timeout, self.config.confirm_timeout);
+        let mobiles: Vec<NodeId> = self
+            .powered_by
+            .iter()
+            .filter(|(_, s)| **s == host)
+            .map(|(m, _)| *m)
+            .collect();
+        for m in mobiles {
+            let Some(n) = self.nodes.get_mut(&m) else {
+                continue;
+            };
+            if n.stage == Stage::Done {
+                continue;
+            }
+            tracing::info!(node = %m, %host, "the element powering it restarted");
+            n.power_cut_by = Some(host);
+            n.misses = 0;
+            n.grace_until = Some(now + reboot);
+            if let Some(d) = n.due.as_mut() {
+                *d = (*d).max(now + reboot);
+            }
+            if let Some(g) = n.give_up.as_mut() {
+                *g = (*g).max(now + confirm);
+            }
+            // In the transfer its RAM is gone: begin again, without waiting for its boot-up
+            // (a mobile element re-docks before it may say anything).
+            if n.stage == Stage::Transfer {
+                n.status = None;
+                n.awaiting = false;
+                n.erasing_since = None;
+            }
+        }
+    }
+
+    /// A node's state report names the firmware it runs (`trial`: not confirmed yet). The new
+    /// version, confirmed, ends a node still being followed as `updated`; for a node already
+    /// given up (`unreachable`, `lost_power`) it corrects its outcome and says so
+    /// (`fw_correction`).
+    pub fn handle_firmware(
+        &mut self,
+        src: NodeId,
+        version: ihex_proto::FirmwareVersion,
+        trial: bool,
+        now: Instant,
+    ) {
+        self.tick(now);
+        if trial || version != self.image.version() {
+            return;
+        }
+        let Some(n) = self.nodes.get_mut(&src) else {
+            return;
+        };
+        if !n.committed {
+            return;
+        }
+        match (n.stage, n.outcome.as_ref().map(|o| o.0)) {
+            (Stage::Committing | Stage::Rebooting | Stage::Confirming, _) => {
+                self.finish_node(src, NodeOutcome::Updated, None, now);
+            }
+            (Stage::Done, Some(was @ (NodeOutcome::Unreachable | NodeOutcome::LostPower))) => {
+                let why = n
+                    .outcome
+                    .as_ref()
+                    .and_then(|o| o.1.clone())
+                    .unwrap_or_default();
+                n.outcome = Some((NodeOutcome::Updated, None, now));
+                tracing::info!(node = %src, ?was, "a node reported the new image confirmed after all");
+                self.events
+                    .push_back(Event::FwCorrection(Box::new(FwCorrection {
+                        request_id: self.request_id.clone(),
+                        image_id: format!("{:08x}", self.image.image_id()),
+                        version: self.image.version().to_string(),
+                        node: HexId(src),
+                        was,
+                        outcome: NodeOutcome::Updated,
+                        reason: format!(
+                            "reported {version} confirmed after it was given `{}` ({why})",
+                            was.as_str()
+                        ),
+                    })));
+            }
+            _ => {}
+        }
+        self.advance(now);
+    }
+
     /// True while a mobile element of the update docked on `id` has no outcome yet.
     fn powers_one_in_update(&self, id: NodeId) -> bool {
         self.powered_by
@@ -232,6 +339,16 @@ impl FwSender {
     pub fn with_skipped(mut self, skipped: Vec<(NodeId, String)>) -> Self {
         self.skipped = skipped;
         self
+    }
+
+    /// When the update started.
+    pub fn started_at(&self) -> Instant {
+        self.started
+    }
+
+    /// When its report was emitted.
+    pub fn finished_at(&self) -> Option<Instant> {
+        self.finished.then_some(self.now)
     }
 
     /// The image being sent.
@@ -282,6 +399,7 @@ impl FwSender {
             }
             (Stage::Transfer, FwPhase::Verifying | FwPhase::Rebooting) => {
                 // A commit from an earlier round was taken after all.
+                n.committed = true;
                 n.stage = Stage::Committing;
                 n.status = Some(st);
                 self.on_commit_status(src, st, now);
@@ -291,6 +409,20 @@ impl FwSender {
             (Stage::Confirming, FwPhase::Trial) => {}
             (Stage::Confirming, FwPhase::Idle) => {
                 self.finish_node(src, NodeOutcome::Updated, None, now)
+            }
+            // Its power was cut while the new image was on trial: that reset put the old image
+            // back, through no fault of the image. Begin it again.
+            (Stage::Confirming, FwPhase::Reverted)
+                if n.power_cut_by.is_some() && n.power_retries < POWER_RETRIES =>
+            {
+                tracing::info!(node = %src, host = ?n.power_cut_by, "lost power on trial: updating it again");
+                n.power_retries += 1;
+                n.power_cut_by = None;
+                n.stage = Stage::Transfer;
+                n.status = None;
+                n.due = None;
+                n.give_up = None;
+                n.committed = false;
             }
             (Stage::Confirming, FwPhase::Reverted) => {
                 let reason = Some("the new image did not confirm itself".to_string());
@@ -305,6 +437,7 @@ impl FwSender {
     /// A node announced a (re)start.
     pub fn handle_boot_up(&mut self, src: NodeId, now: Instant) {
         self.tick(now);
+        self.host_restarted(src, now);
         let confirm_poll = self.config.confirm_poll;
         let confirm_timeout = self.config.confirm_timeout;
         let Some(n) = self.nodes.get_mut(&src) else {
@@ -502,7 +635,9 @@ impl FwSender {
             }
             match n.stage {
                 Stage::Committing => {
-                    n.misses += 1;
+                    if n.grace_until.is_none_or(|g| now >= g) {
+                        n.misses += 1;
+                    }
                     if n.misses > max {
                         lost.push((id, "no answer to the commit"));
                         continue;
@@ -542,6 +677,7 @@ impl FwSender {
             FwPhase::Rebooting => {
                 n.stage = Stage::Rebooting;
                 n.due = Some(now + reboot);
+                self.host_restarted(src, now);
             }
             // The commit was lost: send it again.
             FwPhase::Complete => {
@@ -586,6 +722,9 @@ impl FwSender {
         for (&id, n) in self.nodes.iter_mut() {
             if n.stage == Stage::Transfer && n.awaiting {
                 n.awaiting = false;
+                if n.grace_until.is_some_and(|g| now < g) {
+                    continue;
+                }
                 n.misses += 1;
                 if n.misses > max {
                     lost.push(id);
@@ -693,6 +832,7 @@ impl FwSender {
         }
         for id in &commits {
             if let Some(n) = self.nodes.get_mut(id) {
+                n.committed = true;
                 n.stage = Stage::Committing;
                 n.misses = 0;
                 n.due = Some(now + reboot);
@@ -708,6 +848,13 @@ impl FwSender {
             if n.stage == Stage::Done {
                 return;
             }
+            let (outcome, why) = match (outcome, n.power_cut_by) {
+                (NodeOutcome::Unreachable | NodeOutcome::Reverted, Some(host)) => (
+                    NodeOutcome::LostPower,
+                    Some(format!("lost power when {host} restarted")),
+                ),
+                _ => (outcome, why),
+            };
             tracing::info!(node = %id, ?outcome, reason = ?why, "firmware update of a node ended");
             n.stage = Stage::Done;
             n.awaiting = false;

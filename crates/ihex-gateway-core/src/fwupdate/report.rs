@@ -20,17 +20,22 @@ pub enum NodeOutcome {
     Failed,
     /// A lease holds the node and the command did not carry its token: not updated (see `reason`).
     Skipped,
+    /// The element lost its power in the middle of its update because the static element
+    /// powering it restarted (`reason` names it), and did not finish after being retried: not a
+    /// fault of the image. It runs its old image, or the new one unconfirmed until it reverts.
+    LostPower,
 }
 
 impl NodeOutcome {
     /// Every outcome (for tallies that show each from the start, such as metrics).
-    pub const ALL: [NodeOutcome; 6] = [
+    pub const ALL: [NodeOutcome; 7] = [
         NodeOutcome::Updated,
         NodeOutcome::Refused,
         NodeOutcome::Reverted,
         NodeOutcome::Unreachable,
         NodeOutcome::Failed,
         NodeOutcome::Skipped,
+        NodeOutcome::LostPower,
     ];
 
     /// The word `fw_report` writes for it.
@@ -42,6 +47,7 @@ impl NodeOutcome {
             NodeOutcome::Unreachable => "unreachable",
             NodeOutcome::Failed => "failed",
             NodeOutcome::Skipped => "skipped",
+            NodeOutcome::LostPower => "lost_power",
         }
     }
 }
@@ -91,6 +97,27 @@ pub struct FwReport {
     pub bus_share: u8,
     /// Per node, by ID.
     pub nodes: Vec<NodeReport>,
+}
+
+/// Payload of `fw_correction`: a node reported in with the new image confirmed after the update
+/// had given it another outcome (during the update, before its report; or after it). The report
+/// is not contradicted silently: this event says which line changed.
+#[derive(Clone, PartialEq, Eq, Debug, Serialize, Deserialize)]
+pub struct FwCorrection {
+    /// The `fw_update` command's `request_id`.
+    pub request_id: Option<String>,
+    /// The image's ID (8 hex digits).
+    pub image_id: String,
+    /// The image's firmware version.
+    pub version: String,
+    /// The node.
+    pub node: HexId,
+    /// The outcome it was given (`unreachable`, `lost_power`).
+    pub was: NodeOutcome,
+    /// Its outcome now (`updated`).
+    pub outcome: NodeOutcome,
+    /// What showed it.
+    pub reason: String,
 }
 
 impl FwReport {

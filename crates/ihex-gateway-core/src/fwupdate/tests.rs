@@ -148,7 +148,10 @@ impl Model {
         let mut say = |m: &Model| out.push((m.id, Message::FwStatus(m.status())));
         match p.msg {
             Message::FwBegin { .. } => {
-                if matches!(self.phase, NPhase::Idle | NPhase::Refused(_)) {
+                if matches!(
+                    self.phase,
+                    NPhase::Idle | NPhase::Refused(_) | NPhase::Reverted
+                ) {
                     self.have.iter_mut().for_each(|h| *h = false);
                     self.phase = NPhase::Header;
                 }
@@ -255,14 +258,34 @@ fn run(models: Vec<Model>, image: FwImage, config: FwConfig) -> Run {
 }
 
 /// [`run`] on an island with these dockings, `(static element, mobile element)`.
-fn run_docked(
+fn run_docked(models: Vec<Model>, image: FwImage, config: FwConfig, docked: &[(u16, u16)]) -> Run {
+    run_full(models, image, config, docked, None)
+}
+
+/// A static element that restarts on its own (it is not in the update) each time its docked
+/// mobile element starts a new image on trial, `times` times: the mobile element loses power
+/// with it, and its trial image is reverted by that reset.
+#[derive(Clone, Copy)]
+struct HostCut {
+    host: u16,
+    mobile: u16,
+    times: u32,
+}
+
+fn run_full(
     mut models: Vec<Model>,
     image: FwImage,
     config: FwConfig,
     docked: &[(u16, u16)],
+    mut cut: Option<HostCut>,
 ) -> Run {
     let t0 = Instant::now();
-    let ids: Vec<NodeId> = models.iter().map(|m| m.id).collect();
+    let hosts: Vec<NodeId> = cut.iter().map(|c| nid(c.host)).collect();
+    let ids: Vec<NodeId> = models
+        .iter()
+        .map(|m| m.id)
+        .filter(|id| !hosts.contains(id))
+        .collect();
     let mut s = FwSender::new(image, ids, false, Some("r1".into()), config, t0);
     s.set_docked(docked.iter().map(|&(st, m)| (nid(st), nid(m))));
     let mut now = t0;
@@ -281,6 +304,21 @@ fn run_docked(
         }
         for m in models.iter_mut() {
             m.tick(now, &mut out);
+        }
+        if let Some(c) = cut.as_mut().filter(|c| c.times > 0) {
+            let on_trial = models
+                .iter()
+                .any(|m| m.id == nid(c.mobile) && matches!(m.phase, NPhase::Trial(_)));
+            if on_trial {
+                c.times -= 1;
+                // The host restarts (it says so), the mobile element starts again unconfirmed:
+                // the bootloader puts its old image back.
+                out.push((nid(c.host), boot_up()));
+                let m = models.iter_mut().find(|m| m.id == nid(c.mobile)).unwrap();
+                m.boots += 1;
+                m.phase = NPhase::Reverted;
+                out.push((m.id, boot_up()));
+            }
         }
         replies.extend(out);
         while let Some((src, msg)) = replies.pop_front() {
@@ -310,6 +348,124 @@ fn run_docked(
         s.handle_timeout(now);
     }
     panic!("the update did not end within 600 s of virtual time");
+}
+
+/// The first time a mobile element loses power on trial because its static element restarted, it
+/// is begun again and ends `updated`; a power cut is never blamed on the image.
+#[test]
+fn a_mobile_element_that_lost_power_is_retried_and_updated() {
+    let img = image(2000);
+    let frames = img.frames();
+    let models = [0x101, 2]
+        .into_iter()
+        .map(|id| Model::new(id, frames, Quirks::default()))
+        .collect();
+    let cut = HostCut {
+        host: 0x101,
+        mobile: 2,
+        times: 1,
+    };
+    let r = run_full(models, img, FwConfig::default(), &[(0x101, 2)], Some(cut));
+    assert_eq!(outcomes(&r.report), vec![(2, NodeOutcome::Updated, None)]);
+    // Trial, revert by the power cut, trial again.
+    assert_eq!(r.models[1].boots, 3);
+    assert_eq!(r.models[1].phase, NPhase::Confirmed);
+}
+
+/// A mobile element whose power is cut at every try ends `lost_power`, naming its host, after
+/// the retries: not `reverted`.
+#[test]
+fn a_mobile_element_that_keeps_losing_power_ends_lost_power() {
+    let img = image(2000);
+    let frames = img.frames();
+    let models = [0x101, 2]
+        .into_iter()
+        .map(|id| Model::new(id, frames, Quirks::default()))
+        .collect();
+    let cut = HostCut {
+        host: 0x101,
+        mobile: 2,
+        times: u32::MAX,
+    };
+    let r = run_full(models, img, FwConfig::default(), &[(0x101, 2)], Some(cut));
+    assert_eq!(
+        outcomes(&r.report),
+        vec![(
+            2,
+            NodeOutcome::LostPower,
+            Some("lost power when 101 restarted".into())
+        )]
+    );
+    assert_eq!(r.models[1].boots, 2 * (POWER_RETRIES + 1));
+}
+
+/// A node given up as `unreachable` that then reports the new image confirmed: the outcome is
+/// corrected and an `fw_correction` says so; the other firmware reports change nothing.
+#[test]
+fn a_late_confirmation_is_a_correction_event() {
+    let img = image(1000);
+    let version = img.version();
+    let t0 = Instant::now();
+    let config = FwConfig {
+        reboot_timeout: Duration::from_secs(2),
+        ..FwConfig::default()
+    };
+    let mut s = FwSender::new(
+        img.clone(),
+        [nid(0x191)],
+        false,
+        Some("r9".into()),
+        config,
+        t0,
+    );
+    let mut model = Model::new(0x191, img.frames(), Quirks::default());
+    let mut now = t0;
+    let mut report = None;
+    // Drive it to `rebooting`, then the node stays silent: `unreachable`.
+    for _ in 0..60_000 {
+        let mut out = Vec::new();
+        while let Some(p) = s.poll_transmit() {
+            model.on_packet(&p, now, &mut out);
+        }
+        if !matches!(model.phase, NPhase::Rebooting(_)) {
+            model.tick(now, &mut out);
+        }
+        for (src, msg) in out {
+            if let Message::FwStatus(st) = msg {
+                s.handle_status(src, st, now);
+            }
+        }
+        while let Some(e) = s.poll_event() {
+            if let Event::FwReport(r) = e {
+                report = Some(r);
+            }
+        }
+        if report.is_some() {
+            break;
+        }
+        now += STEP;
+        s.handle_timeout(now);
+    }
+    let report = report.expect("a report");
+    assert_eq!(report.nodes[0].outcome, NodeOutcome::Unreachable);
+    let older = ihex_proto::FirmwareVersion::new(1, 2, 0);
+    s.handle_firmware(nid(0x191), older, false, now);
+    s.handle_firmware(nid(0x191), version, true, now);
+    assert!(
+        s.poll_event().is_none(),
+        "neither the old nor a trial image corrects"
+    );
+    s.handle_firmware(nid(0x191), version, false, now);
+    let Some(Event::FwCorrection(c)) = s.poll_event() else {
+        panic!("a correction");
+    };
+    assert_eq!(c.node.0, nid(0x191));
+    assert_eq!(c.was, NodeOutcome::Unreachable);
+    assert_eq!(c.outcome, NodeOutcome::Updated);
+    assert_eq!(c.request_id.as_deref(), Some("r9"));
+    // Once.
+    s.handle_firmware(nid(0x191), version, false, now);
+    assert!(s.poll_event().is_none());
 }
 
 fn outcomes(r: &FwReport) -> Vec<(u16, NodeOutcome, Option<String>)> {
