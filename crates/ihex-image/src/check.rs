@@ -140,8 +140,9 @@ impl Default for Hasher {
     }
 }
 
-/// What the first [`HEADER_BLOCK`] bytes of a good image hash to: the signed header followed by
-/// zero padding.
+/// What the first [`HEADER_BLOCK`] bytes of a good format-1 image hash to: the signed header
+/// followed by zero padding. (A format-2 image's block is checked in two parts: the signed bytes
+/// against [`Hasher::digest`] of them, the notes area with [`Header::check_notes`].)
 pub fn header_block_digest(signed: &[u8; SIGNED_LEN]) -> Digest {
     let mut h = Hasher::new();
     h.update(signed);
@@ -154,11 +155,7 @@ pub fn header_block_digest(signed: &[u8; SIGNED_LEN]) -> Digest {
 pub fn verify_image(image: &[u8], key: &PublicKey, policy: &Policy) -> Result<Header, ImageError> {
     let header = check_signed(image, key, policy)?;
     check_len(&header, u32::try_from(image.len()).unwrap_or(u32::MAX))?;
-    if let Some(i) = image[SIGNED_LEN..HEADER_BLOCK].iter().position(|&b| b != 0) {
-        return Err(ImageError::Reserved {
-            offset: (SIGNED_LEN + i) as u16,
-        });
-    }
+    header.check_notes(&image[SIGNED_LEN..HEADER_BLOCK])?;
     header.check_payload(&Hasher::digest(&image[HEADER_BLOCK..]))?;
     Ok(header)
 }

@@ -1,11 +1,11 @@
 //! The 128-byte image header, its field offsets, and the firmware's own identity record ([`FwInfo`]).
 //!
-//! Multi-byte integers are little-endian. Format 1:
+//! Multi-byte integers are little-endian. Format 1 (format 2 differs only where noted):
 //!
 //! | offset | bytes | field | rule |
 //! |-------:|------:|-------|------|
 //! | 0  | 4  | `magic` | `b"iHXI"` |
-//! | 4  | 1  | `format` | [`FORMAT`] (1) |
+//! | 4  | 1  | `format` | 1, or 2 ([`FORMAT`]) for an image with release notes |
 //! | 5  | 1  | reserved | 0 |
 //! | 6  | 2  | `board` | [`Board`] the image is built for |
 //! | 8  | 1  | `protocol_major` | CAN protocol the firmware speaks |
@@ -17,10 +17,15 @@
 //! | 20 | 4  | `load_addr` | where the payload runs: the slot start + [`HEADER_BLOCK`] |
 //! | 24 | 8  | `key_id` | [`KeyId`] of the signing key |
 //! | 32 | 64 | `payload_hash` | SHA-512 of the payload |
-//! | 96 | 32 | reserved | 0 |
+//! | 96 | 32 | reserved (format 1) / `notes_hash` (format 2) | 0 / the first 32 bytes of the SHA-512 of the notes area |
 //!
 //! Every reserved byte must be zero, so that a later format can give them a meaning an old node
 //! refuses instead of misreading.
+//!
+//! **Release notes** (format 2): UTF-8 text in the notes area, bytes [`field::NOTES`] of the header
+//! block (after the signature, [`NOTES_LEN`] bytes, zero-padded), which is all zero in format 1. The
+//! signed `notes_hash` authenticates them, so the notes a tool shows are the lab's. An image without
+//! notes is written as format 1, which every node reads.
 
 use core::fmt;
 
@@ -41,8 +46,13 @@ pub const SIGNED_LEN: usize = HEADER_LEN + SIGNATURE_LEN;
 pub const HEADER_BLOCK: usize = 512;
 /// `magic`: the first bytes of every image.
 pub const MAGIC: [u8; 4] = *b"iHXI";
-/// The header format this crate writes and accepts.
-pub const FORMAT: u8 = 1;
+/// The newest header format this crate writes and accepts (2: with release notes). An image
+/// without release notes is written as format 1, which older nodes accept too.
+pub const FORMAT: u8 = 2;
+/// The first header format (no release notes), still read and written.
+pub const FORMAT_1: u8 = 1;
+/// Size of the release notes area (after the signature, up to the end of the header block).
+pub const NOTES_LEN: usize = HEADER_BLOCK - SIGNED_LEN;
 
 /// Byte offsets of the header fields (the table in the module docs).
 pub mod field {
@@ -72,6 +82,12 @@ pub mod field {
     pub const PAYLOAD_HASH: Range<usize> = 32..96;
     /// Reserved bytes, zero in format 1.
     pub const RESERVED: [Range<usize>; 3] = [5..6, 13..14, 96..128];
+    /// Reserved bytes, zero in format 2.
+    pub const RESERVED_2: [Range<usize>; 2] = [5..6, 13..14];
+    /// `notes_hash` (format 2): the first 32 bytes of the SHA-512 of [`NOTES`].
+    pub const NOTES_HASH: Range<usize> = 96..128;
+    /// The release notes area of the header block (zero in format 1).
+    pub const NOTES: Range<usize> = super::SIGNED_LEN..super::HEADER_BLOCK;
     /// The signature, after the header.
     pub const SIGNATURE: Range<usize> = super::HEADER_LEN..super::SIGNED_LEN;
 }
@@ -128,6 +144,32 @@ pub struct Header {
     pub key_id: KeyId,
     /// SHA-512 of the payload.
     pub payload_hash: Digest,
+    /// Format 2: the first 32 bytes of the SHA-512 of the release notes area ([`notes_hash`]).
+    /// `None`: format 1, no notes.
+    pub notes_hash: Option<[u8; 32]>,
+}
+
+/// The `notes_hash` of a notes area ([`NOTES_LEN`] bytes).
+pub fn notes_hash(area: &[u8]) -> [u8; 32] {
+    crate::Hasher::digest(area).prefix::<32>()
+}
+
+/// The release notes area for `notes` (UTF-8, zero-padded); `None` when they do not fit.
+pub fn notes_area(notes: &str) -> Option<[u8; NOTES_LEN]> {
+    let b = notes.as_bytes();
+    if b.len() > NOTES_LEN || b.contains(&0) {
+        return None;
+    }
+    let mut area = [0u8; NOTES_LEN];
+    area[..b.len()].copy_from_slice(b);
+    Some(area)
+}
+
+/// The release notes in a notes area: the text up to the first zero byte; `None` if that is not
+/// UTF-8.
+pub fn notes_text(area: &[u8]) -> Option<&str> {
+    let end = area.iter().position(|&b| b == 0).unwrap_or(area.len());
+    core::str::from_utf8(&area[..end]).ok()
 }
 
 impl Header {
@@ -135,7 +177,11 @@ impl Header {
     pub fn encode(&self) -> [u8; HEADER_LEN] {
         let mut b = [0u8; HEADER_LEN];
         b[field::MAGIC].copy_from_slice(&MAGIC);
-        b[field::FORMAT] = FORMAT;
+        b[field::FORMAT] = FORMAT_1;
+        if let Some(h) = self.notes_hash {
+            b[field::FORMAT] = FORMAT;
+            b[field::NOTES_HASH].copy_from_slice(&h);
+        }
         b[field::BOARD].copy_from_slice(&self.board.0.to_le_bytes());
         b[field::PROTOCOL_MAJOR] = self.protocol.0;
         b[field::PROTOCOL_MINOR] = self.protocol.1;
@@ -162,10 +208,13 @@ impl Header {
         if b[field::MAGIC] != MAGIC {
             return Err(ImageError::BadMagic);
         }
-        if b[field::FORMAT] != FORMAT {
-            return Err(ImageError::UnsupportedFormat(b[field::FORMAT]));
-        }
-        for r in field::RESERVED {
+        let format = b[field::FORMAT];
+        let reserved: &[core::ops::Range<usize>] = match format {
+            FORMAT_1 => &field::RESERVED,
+            FORMAT => &field::RESERVED_2,
+            other => return Err(ImageError::UnsupportedFormat(other)),
+        };
+        for r in reserved.iter().cloned() {
             if let Some(i) = b[r.clone()].iter().position(|&x| x != 0) {
                 return Err(ImageError::Reserved {
                     offset: (r.start + i) as u16,
@@ -192,6 +241,11 @@ impl Header {
             load_addr: u32::from_le_bytes([b[20], b[21], b[22], b[23]]),
             key_id: KeyId(key_id),
             payload_hash: Digest(hash),
+            notes_hash: (format == FORMAT).then(|| {
+                let mut h = [0u8; 32];
+                h.copy_from_slice(&b[field::NOTES_HASH]);
+                h
+            }),
         })
     }
 
@@ -205,6 +259,21 @@ impl Header {
     /// Length of the whole image file: header block plus payload.
     pub const fn image_len(&self) -> u32 {
         HEADER_BLOCK as u32 + self.payload_len
+    }
+
+    /// Checks the header block's notes area (bytes [`field::NOTES`]): zero in format 1, hashing to
+    /// `notes_hash` in format 2.
+    pub fn check_notes(&self, area: &[u8]) -> Result<(), ImageError> {
+        match self.notes_hash {
+            None => match area.iter().position(|&x| x != 0) {
+                Some(i) => Err(ImageError::Reserved {
+                    offset: (SIGNED_LEN + i) as u16,
+                }),
+                None => Ok(()),
+            },
+            Some(h) if notes_hash(area) == h => Ok(()),
+            Some(_) => Err(ImageError::Corrupted),
+        }
     }
 
     /// Compares a digest of the payload (as re-read from flash) with `payload_hash`.

@@ -7,7 +7,7 @@
 //! |-----------------|------:|---------|
 //! | `0`             | 128   | [`Header`]: magic, format, board, protocol, version, payload length, load address, key ID, payload SHA-512 |
 //! | `128`           | 64    | ed25519 signature over bytes `0..128` |
-//! | `192`           | 320   | zero |
+//! | `192`           | 320   | zero; in format 2, the release notes (UTF-8, zero-padded), authenticated by the header's `notes_hash` |
 //! | [`HEADER_BLOCK`] (512) | `payload_len` | the payload: the firmware as a flat binary, linked to run at `load_address` = slot start + 512 |
 //!
 //! The signature covers the header, and the header holds the payload's SHA-512, so one signature
@@ -62,11 +62,17 @@ mod tool;
 pub use board::{Board, Layout, Region};
 pub use check::{check_len, check_signed, header_block_digest, verify_image, Hasher, Policy};
 pub use error::{ImageError, KeyTextError};
-pub use header::{Digest, FwInfo, Header, FORMAT, HEADER_BLOCK, HEADER_LEN, MAGIC, SIGNED_LEN};
+pub use header::{
+    notes_area, notes_hash, notes_text, Digest, FwInfo, Header, FORMAT, FORMAT_1, HEADER_BLOCK,
+    HEADER_LEN, MAGIC, NOTES_LEN, SIGNED_LEN,
+};
 pub use key::{KeyId, PublicKey, SIGNATURE_LEN};
 
 /// The firmware version type (the protocol's: `StateReport::Firmware` carries it).
 pub use ihex_proto::FirmwareVersion;
 
 #[cfg(feature = "std")]
-pub use tool::{load_public, pack, pack_elf, Inspection, PackOverrides, SigningKey, ToolError};
+pub use tool::{
+    load_public, pack, pack_elf, pack_elf_with_notes, pack_with_notes, Inspection, PackOverrides,
+    SigningKey, ToolError,
+};

@@ -3,7 +3,7 @@
 //! Here, beside the image format, so that the simulator and the lab's tools (`ihex-provision fw
 //! demo-image`) make the same payload.
 
-use crate::{pack, Board, FirmwareVersion, SigningKey, ToolError};
+use crate::{pack_with_notes, Board, FirmwareVersion, SigningKey, ToolError};
 use ihex_proto::PROTOCOL_VERSION;
 
 /// What a simulated image's payload says about the simulated firmware.
@@ -55,11 +55,23 @@ pub fn sim_image(
     payload_len: usize,
     key: &SigningKey,
 ) -> Result<Vec<u8>, ToolError> {
-    pack(
+    sim_image_with_notes(version, firmware, payload_len, "", key)
+}
+
+/// [`sim_image`] carrying release notes (header format 2 when `notes` is not empty).
+pub fn sim_image_with_notes(
+    version: FirmwareVersion,
+    firmware: SimFirmware,
+    payload_len: usize,
+    notes: &str,
+    key: &SigningKey,
+) -> Result<Vec<u8>, ToolError> {
+    pack_with_notes(
         Board::SIM,
         PROTOCOL_VERSION,
         version,
         &firmware.payload(version, payload_len),
+        notes,
         key,
     )
 }

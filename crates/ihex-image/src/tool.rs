@@ -51,6 +51,9 @@ pub enum ToolError {
         /// The largest payload.
         max: u32,
     },
+    /// Release notes that do not fit the header block's notes area.
+    #[error("release notes of {0} bytes: at most {max} bytes of text without NUL", max = crate::NOTES_LEN)]
+    NotesSize(usize),
     /// The firmware ELF cannot be flattened.
     #[error("ELF: {0}")]
     Elf(#[from] crate::elf::ElfError),
@@ -202,6 +205,20 @@ pub fn pack(
     payload: &[u8],
     key: &SigningKey,
 ) -> Result<Vec<u8>, ToolError> {
+    pack_with_notes(board, protocol, version, payload, "", key)
+}
+
+/// [`pack`] with release notes: a non-empty `notes` makes a format-2 image carrying them
+/// ([`crate::header`]); empty notes, a format-1 image.
+pub fn pack_with_notes(
+    board: Board,
+    protocol: (u8, u8),
+    version: FirmwareVersion,
+    payload: &[u8],
+    notes: &str,
+    key: &SigningKey,
+) -> Result<Vec<u8>, ToolError> {
+    let area = crate::notes_area(notes).ok_or(ToolError::NotesSize(notes.len()))?;
     let layout = board.layout().ok_or(ToolError::UnknownBoard(board))?;
     let max = layout.max_payload_len();
     if payload.is_empty() || payload.len() > max as usize {
@@ -219,12 +236,13 @@ pub fn pack(
         load_addr: layout.app_start(),
         key_id: key.public().id(),
         payload_hash: Hasher::digest(payload),
+        notes_hash: (!notes.is_empty()).then(|| crate::notes_hash(&area)),
     };
     let bytes = header.encode();
     let mut image = Vec::with_capacity(HEADER_BLOCK + payload.len());
     image.extend_from_slice(&bytes);
     image.extend_from_slice(&key.sign(&bytes));
-    image.resize(HEADER_BLOCK, 0);
+    image.extend_from_slice(&area);
     image.extend_from_slice(payload);
     Ok(image)
 }
@@ -246,6 +264,16 @@ pub struct PackOverrides {
 pub fn pack_elf(
     elf: &[u8],
     overrides: PackOverrides,
+    key: &SigningKey,
+) -> Result<Vec<u8>, ToolError> {
+    pack_elf_with_notes(elf, overrides, "", key)
+}
+
+/// [`pack_elf`] with release notes (see [`pack_with_notes`]).
+pub fn pack_elf_with_notes(
+    elf: &[u8],
+    overrides: PackOverrides,
+    notes: &str,
     key: &SigningKey,
 ) -> Result<Vec<u8>, ToolError> {
     let info = crate::elf::fw_info(elf)?;
@@ -274,7 +302,7 @@ pub fn pack_elf(
     .0;
     let layout = board.layout().ok_or(ToolError::UnknownBoard(board))?;
     let flat = crate::elf::flatten(elf, layout.app_start(), layout.max_payload_len())?;
-    pack(board, protocol, version, &flat.bytes, key)
+    pack_with_notes(board, protocol, version, &flat.bytes, notes, key)
 }
 
 /// `major.minor`, for messages.
@@ -295,8 +323,10 @@ pub struct Inspection {
     pub header: Header,
     /// The file's length against the header's.
     pub length: Result<(), ImageError>,
-    /// The padding after the signature is zero.
+    /// The notes area after the signature is zero (format 1) or hashes to `notes_hash` (format 2).
     pub padding_ok: bool,
+    /// The release notes (format 2, when they check out and are UTF-8).
+    pub notes: Option<String>,
     /// The payload hashes to `payload_hash` (false when the file is too short to tell).
     pub payload_ok: bool,
     /// The signature checked with the given key; `None` when no key was given.
@@ -308,9 +338,12 @@ impl Inspection {
     pub fn of(image: &[u8], key: Option<&PublicKey>) -> Result<Inspection, ToolError> {
         let header = Header::parse(image).map_err(ToolError::Image)?;
         let length = check_len(&header, u32::try_from(image.len()).unwrap_or(u32::MAX));
-        let padding_ok = image
-            .get(SIGNED_LEN..HEADER_BLOCK)
-            .is_some_and(|p| p.iter().all(|&b| b == 0));
+        let area = image.get(SIGNED_LEN..HEADER_BLOCK);
+        let padding_ok = area.is_some_and(|p| header.check_notes(p).is_ok());
+        let notes = area
+            .filter(|_| padding_ok && header.notes_hash.is_some())
+            .and_then(crate::notes_text)
+            .map(str::to_owned);
         let payload_ok = image
             .get(HEADER_BLOCK..HEADER_BLOCK + header.payload_len as usize)
             .is_some_and(|p| header.check_payload(&Hasher::digest(p)).is_ok());
@@ -331,6 +364,7 @@ impl Inspection {
             header,
             length,
             padding_ok,
+            notes,
             payload_ok,
             signature,
         })
@@ -365,7 +399,10 @@ impl fmt::Display for Inspection {
             Ok(()) => writeln!(f, "length        ok")?,
             Err(e) => writeln!(f, "length        BAD: {e}")?,
         }
-        writeln!(f, "padding       {}", ok(self.padding_ok))?;
+        writeln!(f, "notes area    {}", ok(self.padding_ok))?;
+        if let Some(n) = &self.notes {
+            writeln!(f, "release notes {}", n.replace('\n', "\n              "))?;
+        }
         writeln!(f, "payload hash  {}", ok(self.payload_ok))?;
         match &self.signature {
             None => writeln!(f, "signature     not checked (give the public key)"),

@@ -18,6 +18,7 @@ fn header_bytes() {
         load_addr: 0x0800_7200,
         key_id: KeyId([0xA0, 0xA1, 0xA2, 0xA3, 0xA4, 0xA5, 0xA6, 0xA7]),
         payload_hash: Digest([0x55; 64]),
+        notes_hash: None,
     };
     let b = h.encode();
     assert_eq!(

@@ -214,10 +214,10 @@ fn malformed_headers() {
     b[0] = b'x';
     assert_eq!(verify_image(&b, &k, &policy()), Err(ImageError::BadMagic));
     let mut b = good.clone();
-    b[4] = 2;
+    b[4] = 3;
     assert_eq!(
         verify_image(&b, &k, &policy()),
-        Err(ImageError::UnsupportedFormat(2))
+        Err(ImageError::UnsupportedFormat(3))
     );
     let mut b = good.clone();
     b[100] = 1;

@@ -10,10 +10,10 @@ use std::time::Duration;
 use anyhow::{bail, Context, Result};
 use clap::{Args, Subcommand};
 use ihex_gateway_core::fwupdate::{FwImage, NodeOutcome, UploadResult, MAX_UPLOAD};
-use ihex_image::sim::{sim_image, SimFirmware};
+use ihex_image::sim::{sim_image_with_notes, SimFirmware};
 use ihex_image::{
-    load_public, pack, pack_elf, Board, FirmwareVersion, Inspection, PackOverrides, PublicKey,
-    SigningKey,
+    load_public, pack_elf_with_notes, pack_with_notes, Board, FirmwareVersion, Inspection,
+    PackOverrides, PublicKey, SigningKey,
 };
 use std::collections::BTreeMap;
 
@@ -59,6 +59,9 @@ pub struct DemoImageArgs {
     /// The image file to write (default: sim-fw-<version>.img, or sim-fw-<version>-reverts.img).
     #[arg(long, short)]
     out: Option<PathBuf>,
+    /// Release notes the image carries (at most 320 bytes; shown before an update).
+    #[arg(long, default_value = "")]
+    notes: String,
 }
 
 /// `fw update`.
@@ -134,6 +137,14 @@ pub struct PackArgs {
     /// The CAN protocol version MAJOR.MINOR; from the ELF's IHEX_FW_INFO when it has one.
     #[arg(long, value_parser = parse_protocol)]
     protocol: Option<(u8, u8)>,
+    /// Release notes the image carries (at most 320 bytes of UTF-8; `fw update` and the island
+    /// view show them before the update). An image with notes needs nodes that read header
+    /// format 2.
+    #[arg(long, conflicts_with = "notes_file")]
+    notes: Option<String>,
+    /// Release notes from a file (see --notes).
+    #[arg(long)]
+    notes_file: Option<PathBuf>,
 }
 
 /// `fw inspect`.
@@ -173,7 +184,7 @@ fn demo_image(a: DemoImageArgs) -> Result<()> {
         confirms: !a.reverts,
     };
     let key = SigningKey::test_key();
-    let image = sim_image(a.version, firmware, a.size as usize, &key)?;
+    let image = sim_image_with_notes(a.version, firmware, a.size as usize, &a.notes, &key)?;
     let out = a.out.unwrap_or_else(|| {
         let tail = if a.reverts { "-reverts" } else { "" };
         PathBuf::from(format!("sim-fw-{}{tail}.img", a.version))
@@ -223,6 +234,12 @@ async fn update(a: UpdateArgs) -> Result<bool> {
             image.header().board,
             image.len()
         );
+        if let Some(notes) = image.notes() {
+            say!("release notes:");
+            for line in notes.lines() {
+                say!("  {line}");
+            }
+        }
         (Some(bytes), Some(image.version().to_string()))
     } else {
         say!("{name}: no such local file; asking the gateway for its own copy (--fw-dir)");
@@ -706,13 +723,21 @@ fn pack_cmd(a: PackArgs) -> Result<()> {
         protocol: a.protocol,
         version: a.version,
     };
+    let notes = match (&a.notes, &a.notes_file) {
+        (Some(n), _) => n.clone(),
+        (None, Some(p)) => {
+            fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?
+        }
+        (None, None) => String::new(),
+    };
+    let notes = notes.trim_end();
     let image = if a.raw {
         let (Some(board), Some(protocol), Some(version)) = (a.board, a.protocol, a.version) else {
             bail!("--raw needs --board, --version and --protocol");
         };
-        pack(board, protocol, version, &input, &key)?
+        pack_with_notes(board, protocol, version, &input, notes, &key)?
     } else {
-        pack_elf(&input, overrides, &key)?
+        pack_elf_with_notes(&input, overrides, notes, &key)?
     };
     let inspection = Inspection::of(&image, Some(&key.public()))?;
     let out = a.out.unwrap_or_else(|| {

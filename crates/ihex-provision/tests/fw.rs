@@ -208,6 +208,63 @@ fn demo_image_is_a_simulated_firmware_signed_with_the_test_key() {
     }
 }
 
+/// Release notes given to `pack` travel in the image (format 2) and `inspect` shows them; `fw
+/// update` shows them before it connects (here: to no broker).
+#[test]
+fn release_notes_are_packed_and_shown() {
+    let d = Dir::new("notes");
+    fs::write(d.path("app.bin"), [7u8; 100]).unwrap();
+    let img = d.path("app.img");
+    let packed = tool(&[
+        "fw",
+        "pack",
+        "--raw",
+        &d.path("app.bin"),
+        "--board",
+        "sim",
+        "--version",
+        "1.0.0",
+        "--protocol",
+        "1.2",
+        "--test-key",
+        "--notes",
+        "first line\nsecond line",
+        "-o",
+        &img,
+    ]);
+    assert!(packed.status.success(), "{}", text(&packed));
+    assert_eq!(fs::read(&img).unwrap()[4], 2, "format 2");
+    let out = tool(&["fw", "inspect", &img, "--test-key"]);
+    assert!(out.status.success(), "{}", text(&out));
+    assert!(
+        text(&out).contains("release notes first line"),
+        "{}",
+        text(&out)
+    );
+    let out = tool(&["fw", "update", &img, "--broker", "127.0.0.1:1"]);
+    let t = text(&out);
+    assert!(
+        t.contains("release notes:\n  first line\n  second line"),
+        "{t}"
+    );
+    // The demo image takes them too.
+    let demo = d.path("demo.img");
+    let out = tool(&[
+        "fw",
+        "demo-image",
+        "--version",
+        "0.2.0",
+        "--notes",
+        "demo notes",
+        "--out",
+        &demo,
+    ]);
+    assert!(out.status.success(), "{}", text(&out));
+    let image = fs::read(&demo).unwrap();
+    let check = ihex_image::Inspection::of(&image, Some(&ihex_image::test_key::PUBLIC)).unwrap();
+    assert_eq!(check.notes.as_deref(), Some("demo notes"));
+}
+
 #[test]
 fn a_closed_pipe_ends_the_output_not_the_program() {
     use std::process::Stdio;

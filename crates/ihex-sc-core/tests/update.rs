@@ -790,3 +790,39 @@ fn update_config_is_the_common_one() {
     assert_eq!(UPDATE.layout.app_start(), 0x0800_7200);
     assert!(image(NEWER, 10).bytes.len() > HEADER_BLOCK);
 }
+
+/// An image with release notes (header format 2) installs; notes changed in flash are found on
+/// the commit like any corruption.
+#[test]
+fn an_image_with_release_notes_installs_and_its_notes_are_checked() {
+    let payload: Vec<u8> = (0..3000).map(|i| (i * 37 % 251) as u8).collect();
+    let bytes = ihex_image::pack_with_notes(
+        Board::NUCLEO_F303RE,
+        PROTOCOL_VERSION,
+        NEWER,
+        &payload,
+        "release notes of the new image",
+        &SigningKey::test_key(),
+    )
+    .unwrap();
+    assert_eq!(bytes[4], 2, "format 2");
+    let id = ihex_image::Header::parse(&bytes).unwrap().image_id();
+    let img = Image { bytes, id };
+    let mut n = node();
+    let mut f = Flash::new();
+    transfer(&mut n, &mut f, &img);
+    let seen = commit(&mut n, &mut f, &img, 40);
+    assert_eq!(seen.last(), Some(&st(FwPhase::Rebooting, FwRefusal::None)));
+    assert!(f.marked);
+    // A flipped byte in the notes as written: corrupted, nothing marked.
+    let mut n = node();
+    let mut f = Flash::new();
+    f.corrupt_at = Some(ihex_image::SIGNED_LEN + 3);
+    transfer(&mut n, &mut f, &img);
+    let seen = commit(&mut n, &mut f, &img, 40);
+    assert_eq!(
+        seen.last(),
+        Some(&st(FwPhase::Refused, FwRefusal::Corrupted))
+    );
+    assert!(!f.marked);
+}

@@ -666,6 +666,7 @@ mod tests {
             request_id: None,
             image_id: "00000000".into(),
             version: "1.0.0".into(),
+            notes: None,
             duration_ms: 1,
             frames_sent: 1,
             bus_share: 50,

@@ -41,15 +41,19 @@ impl FwImage {
             })?;
         let header = Header::parse(&bytes).map_err(FwImageError::Image)?;
         check_len(&header, len).map_err(FwImageError::Image)?;
-        if let Some(i) = bytes[SIGNED_LEN..HEADER_BLOCK].iter().position(|&b| b != 0) {
-            return Err(FwImageError::Image(ImageError::Reserved {
-                offset: (SIGNED_LEN + i) as u16,
-            }));
-        }
+        header
+            .check_notes(&bytes[SIGNED_LEN..HEADER_BLOCK])
+            .map_err(FwImageError::Image)?;
         header
             .check_payload(&Hasher::digest(&bytes[HEADER_BLOCK..]))
             .map_err(FwImageError::Image)?;
         Ok(FwImage { bytes, header })
+    }
+
+    /// The release notes the image carries (header format 2), checked against the signed header.
+    pub fn notes(&self) -> Option<&str> {
+        self.header.notes_hash?;
+        ihex_image::notes_text(&self.bytes[SIGNED_LEN..HEADER_BLOCK]).filter(|n| !n.is_empty())
     }
 
     /// The signed header.

@@ -947,6 +947,7 @@ impl FwSender {
             request_id: self.request_id.clone(),
             image_id: format!("{:08x}", self.image.image_id()),
             version: self.image.version().to_string(),
+            notes: self.image.notes().map(str::to_owned),
             duration_ms: ms(now),
             frames_sent: self.frames_sent,
             bus_share: self.config.bus_share,

@@ -89,6 +89,9 @@ pub struct FwReport {
     pub image_id: String,
     /// The image's firmware version.
     pub version: String,
+    /// The release notes the image carries (header format 2), `null` without.
+    #[serde(default)]
+    pub notes: Option<String>,
     /// From start to the last outcome, ms.
     pub duration_ms: u64,
     /// Data frames sent (every node, resends included).

@@ -833,3 +833,31 @@ fn a_static_element_installs_only_after_the_mobile_elements_docked_on_it() {
     // The image went out once all the same.
     assert_eq!(r.report.frames_sent, u64::from(frames));
 }
+
+/// The release notes an image carries (header format 2) are in its report; an image without
+/// them (format 1) has none.
+#[test]
+fn the_report_carries_the_release_notes() {
+    let key = SigningKey::from_text(ihex_image::test_key::SECRET_TEXT).unwrap();
+    let v = FirmwareVersion::new(1, 3, 0);
+    let bytes = ihex_image::pack_with_notes(
+        Board::SIM,
+        ihex_proto::PROTOCOL_VERSION,
+        v,
+        &[9; 700],
+        "faster docking",
+        &key,
+    )
+    .unwrap();
+    let img = FwImage::check(bytes).unwrap();
+    assert_eq!(img.notes(), Some("faster docking"));
+    let frames = img.frames();
+    let r = run(
+        vec![Model::new(0x1a1, frames, Quirks::default())],
+        img,
+        FwConfig::default(),
+    );
+    assert!(r.report.all_updated());
+    assert_eq!(r.report.notes.as_deref(), Some("faster docking"));
+    assert_eq!(image(700).notes(), None);
+}

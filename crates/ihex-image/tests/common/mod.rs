@@ -57,5 +57,6 @@ pub fn header_for(payload: &[u8]) -> Header {
         load_addr: F303RE.app_start(),
         key_id: key().public().id(),
         payload_hash: Hasher::digest(payload),
+        notes_hash: None,
     }
 }

@@ -4,8 +4,8 @@
 
 use ihex_image::board::Layout;
 use ihex_image::{
-    check_len, check_signed, header_block_digest, Board, Digest, Header, ImageError, Policy,
-    PublicKey, HEADER_BLOCK, SIGNED_LEN,
+    check_len, check_signed, header_block_digest, Board, Digest, Hasher, Header, ImageError,
+    Policy, PublicKey, HEADER_BLOCK, NOTES_LEN, SIGNED_LEN,
 };
 use ihex_proto::{FwAction, FwPhase, FwRefusal, FwStatus, Message, FW_DATA_LEN, PROTOCOL_VERSION};
 
@@ -124,8 +124,10 @@ enum Phase {
 /// What the verification waits for.
 #[derive(Clone, Copy, PartialEq, Eq, Debug)]
 enum Step {
-    /// The hash of the header block as written.
+    /// The hash of the header block as written (format 2: of its signed part).
     HeaderBlock,
+    /// Format 2: the hash of the release notes area as written.
+    Notes,
     /// The hash of the payload as written.
     Payload,
     /// `MarkUpdated` carried out.
@@ -512,11 +514,14 @@ impl Node {
         match (action, s.phase) {
             (FwAction::Commit, Phase::Complete) => {
                 s.phase = Phase::Verifying(Step::HeaderBlock);
+                // A format-2 header block holds release notes the node never had in RAM: the
+                // signed part and the notes are checked apart.
+                let notes = s.header.is_some_and(|h| h.notes_hash.is_some());
                 let st = s.status();
                 self.send_status(st);
                 self.queue.push(Output::HashDfu {
                     offset: 0,
-                    len: HEADER_BLOCK as u32,
+                    len: if notes { SIGNED_LEN } else { HEADER_BLOCK } as u32,
                 });
             }
             (FwAction::Abort, phase) if phase != Phase::Rebooting => {
@@ -592,7 +597,25 @@ impl Node {
             return;
         };
         match step {
-            Step::HeaderBlock if digest == header_block_digest(&s.signed) => {
+            Step::HeaderBlock
+                if header.notes_hash.is_some() && digest == Hasher::digest(&s.signed) =>
+            {
+                s.phase = Phase::Verifying(Step::Notes);
+                self.queue.push(Output::HashDfu {
+                    offset: SIGNED_LEN as u32,
+                    len: NOTES_LEN as u32,
+                });
+            }
+            Step::Notes if header.notes_hash == Some(digest.prefix::<32>()) => {
+                s.phase = Phase::Verifying(Step::Payload);
+                self.queue.push(Output::HashDfu {
+                    offset: HEADER_BLOCK as u32,
+                    len: header.payload_len,
+                });
+            }
+            Step::HeaderBlock
+                if header.notes_hash.is_none() && digest == header_block_digest(&s.signed) =>
+            {
                 s.phase = Phase::Verifying(Step::Payload);
                 self.queue.push(Output::HashDfu {
                     offset: HEADER_BLOCK as u32,
