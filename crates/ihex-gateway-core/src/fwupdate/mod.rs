@@ -287,13 +287,22 @@ impl FwSender {
         now: Instant,
     ) {
         self.tick(now);
-        if trial || version != self.image.version() {
+        if trial {
             return;
         }
         let Some(n) = self.nodes.get_mut(&src) else {
             return;
         };
         if !n.committed {
+            return;
+        }
+        if version != self.image.version() {
+            // Its old image, confirmed, after a power cut: the new one never got to run, or was
+            // put back by the cut.
+            if n.stage == Stage::Confirming && n.power_cut_by.is_some() {
+                self.power_retry(src, now);
+                self.advance(now);
+            }
             return;
         }
         match (n.stage, n.outcome.as_ref().map(|o| o.0)) {
@@ -325,6 +334,28 @@ impl FwSender {
             _ => {}
         }
         self.advance(now);
+    }
+
+    /// A node whose power was cut runs its old image again: begun again, up to
+    /// [`POWER_RETRIES`] times; then its outcome is `lost_power`.
+    fn power_retry(&mut self, id: NodeId, now: Instant) {
+        let Some(n) = self.nodes.get_mut(&id) else {
+            return;
+        };
+        if n.power_retries >= POWER_RETRIES {
+            // `finish_node` names the cause.
+            self.finish_node(id, NodeOutcome::Reverted, None, now);
+            return;
+        }
+        tracing::info!(node = %id, host = ?n.power_cut_by, "lost power mid-update: updating it again");
+        n.power_retries += 1;
+        n.power_cut_by = None;
+        n.stage = Stage::Transfer;
+        n.status = None;
+        n.awaiting = false;
+        n.due = None;
+        n.give_up = None;
+        n.committed = false;
     }
 
     /// True while a mobile element of the update docked on `id` has no outcome yet.
@@ -407,22 +438,16 @@ impl FwSender {
             (Stage::Transfer, _) => n.status = Some(st),
             (Stage::Committing | Stage::Rebooting, _) => self.on_commit_status(src, st, now),
             (Stage::Confirming, FwPhase::Trial) => {}
+            // After a power cut, `idle` may also be the old image that never got to install:
+            // only its state report's version tells (`handle_firmware`).
+            (Stage::Confirming, FwPhase::Idle) if n.power_cut_by.is_some() => {}
             (Stage::Confirming, FwPhase::Idle) => {
                 self.finish_node(src, NodeOutcome::Updated, None, now)
             }
             // Its power was cut while the new image was on trial: that reset put the old image
             // back, through no fault of the image. Begin it again.
-            (Stage::Confirming, FwPhase::Reverted)
-                if n.power_cut_by.is_some() && n.power_retries < POWER_RETRIES =>
-            {
-                tracing::info!(node = %src, host = ?n.power_cut_by, "lost power on trial: updating it again");
-                n.power_retries += 1;
-                n.power_cut_by = None;
-                n.stage = Stage::Transfer;
-                n.status = None;
-                n.due = None;
-                n.give_up = None;
-                n.committed = false;
+            (Stage::Confirming, FwPhase::Reverted) if n.power_cut_by.is_some() => {
+                self.power_retry(src, now)
             }
             (Stage::Confirming, FwPhase::Reverted) => {
                 let reason = Some("the new image did not confirm itself".to_string());

@@ -270,6 +270,9 @@ struct HostCut {
     host: u16,
     mobile: u16,
     times: u32,
+    /// The mobile element comes back on its old image, confirmed (`idle`, and its state report
+    /// says the old version) instead of answering `reverted`.
+    old_idle: bool,
 }
 
 fn run_full(
@@ -305,6 +308,7 @@ fn run_full(
         for m in models.iter_mut() {
             m.tick(now, &mut out);
         }
+        let mut read_back = None;
         if let Some(c) = cut.as_mut().filter(|c| c.times > 0) {
             let on_trial = models
                 .iter()
@@ -316,8 +320,15 @@ fn run_full(
                 out.push((nid(c.host), boot_up()));
                 let m = models.iter_mut().find(|m| m.id == nid(c.mobile)).unwrap();
                 m.boots += 1;
-                m.phase = NPhase::Reverted;
+                m.phase = if c.old_idle {
+                    NPhase::Idle
+                } else {
+                    NPhase::Reverted
+                };
                 out.push((m.id, boot_up()));
+                if c.old_idle {
+                    read_back = Some(nid(c.mobile));
+                }
             }
         }
         replies.extend(out);
@@ -327,6 +338,10 @@ fn run_full(
                 Message::BootUp { .. } => s.handle_boot_up(src, now),
                 _ => {}
             }
+        }
+        if let Some(m) = read_back {
+            // Its state read-back after the boot-up: the old version, confirmed.
+            s.handle_firmware(m, ihex_proto::FirmwareVersion::new(1, 0, 0), false, now);
         }
         while let Some(e) = s.poll_event() {
             match e {
@@ -364,11 +379,39 @@ fn a_mobile_element_that_lost_power_is_retried_and_updated() {
         host: 0x101,
         mobile: 2,
         times: 1,
+        old_idle: false,
     };
     let r = run_full(models, img, FwConfig::default(), &[(0x101, 2)], Some(cut));
     assert_eq!(outcomes(&r.report), vec![(2, NodeOutcome::Updated, None)]);
     // Trial, revert by the power cut, trial again.
     assert_eq!(r.models[1].boots, 3);
+    assert_eq!(r.models[1].phase, NPhase::Confirmed);
+}
+
+/// After a power cut a mobile element answers `idle` on its old image: not `updated` — its
+/// state report's old version shows the new image never ran, so it is begun again.
+#[test]
+fn a_mobile_element_back_on_its_old_image_after_a_power_cut_is_not_updated_but_retried() {
+    let img = image(2000);
+    let frames = img.frames();
+    let models = [0x101, 2]
+        .into_iter()
+        .map(|id| Model::new(id, frames, Quirks::default()))
+        .collect();
+    let cut = HostCut {
+        host: 0x101,
+        mobile: 2,
+        times: 1,
+        old_idle: true,
+    };
+    let r = run_full(models, img, FwConfig::default(), &[(0x101, 2)], Some(cut));
+    assert_eq!(outcomes(&r.report), vec![(2, NodeOutcome::Updated, None)]);
+    // Its transfer ran twice: the header went out twice.
+    assert!(
+        r.report.frames_sent > u64::from(frames),
+        "{}",
+        r.report.frames_sent
+    );
     assert_eq!(r.models[1].phase, NPhase::Confirmed);
 }
 
@@ -386,6 +429,7 @@ fn a_mobile_element_that_keeps_losing_power_ends_lost_power() {
         host: 0x101,
         mobile: 2,
         times: u32::MAX,
+        old_idle: false,
     };
     let r = run_full(models, img, FwConfig::default(), &[(0x101, 2)], Some(cut));
     assert_eq!(
