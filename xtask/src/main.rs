@@ -122,6 +122,11 @@ struct SoakArgs {
     /// How long to inject random faults (0: every kind of fault once, the bounded run).
     #[arg(long, default_value_t = 10)]
     minutes: u64,
+    /// Instead of the fault suite: the firmware power-cut suite on the host
+    /// (`crates/sim-node/tests/power_cut.rs`) with this many seeded cuts (the test command runs
+    /// 100 of one fixed seed); --seed repeats a plan.
+    #[arg(long, value_name = "N")]
+    fw_power_cuts: Option<u64>,
     /// Run in the microVM even where native vcan exists (IHEX_VCAN=vm).
     #[arg(long)]
     vm: bool,
@@ -220,6 +225,9 @@ fn main() -> ExitCode {
 /// `cargo xtask soak`: the fault suite's test binary with `IHEX_FAULT_MINUTES` (and the seed),
 /// which the VM passes on like every `IHEX_*` variable.
 fn soak(args: SoakArgs) -> Result<()> {
+    if let Some(cuts) = args.fw_power_cuts {
+        return fw_power_cuts(cuts, args.seed);
+    }
     // Read by the child processes started below (the VM passes `IHEX_*` on).
     std::env::set_var(FAULT_MINUTES_ENV, args.minutes.to_string());
     if let Some(seed) = args.seed {
@@ -231,6 +239,26 @@ fn soak(args: SoakArgs) -> Result<()> {
         .timeout
         .max(Duration::from_secs(args.minutes * 60 * 2 + 600));
     vcan::stage(vcan::Mode::from_env(args.vm)?, vm, Some("faults"))
+}
+
+/// `cargo xtask soak --fw-power-cuts N`: the power-cut suite with N cuts and a fresh seed (or
+/// the one given), printed first so that a failing plan can be run again.
+fn fw_power_cuts(cuts: u64, seed: Option<u64>) -> Result<()> {
+    let seed = seed.unwrap_or_else(|| {
+        let t = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .unwrap_or_default();
+        t.as_nanos() as u64 ^ u64::from(std::process::id())
+    });
+    println!("firmware power-cut soak: {cuts} cuts, seed {seed} (again: --seed {seed})");
+    cmd::run(
+        cmd::cargo()
+            .current_dir(cmd::root())
+            .args(["test", "--release", "-p", "sim-node", "--test", "power_cut"])
+            .args(["--", "--nocapture"])
+            .env("IHEX_FW_CUTS", cuts.to_string())
+            .env("IHEX_FW_CUT_SEED", seed.to_string()),
+    )
 }
 
 /// Turns the fault suite into a soak of that many minutes (read by `tests/tests/faults.rs`).

@@ -144,6 +144,11 @@ struct NodeTx {
     grace_until: Option<Instant>,
     /// It was sent a commit: an image it later reports confirmed came from this update.
     committed: bool,
+    /// It restarted after the commit without having said `rebooting`: whether it installed the
+    /// image is known only from the version it reports.
+    unsure: bool,
+    /// Its state report named the image's version (on trial or not) since the commit.
+    seen_new: bool,
     /// Data frames of `planned` that went out (to it or broadcast) since its last status: its
     /// progress between two statuses, without asking it (a query per node per step would cost
     /// the bus what the update needs).
@@ -168,6 +173,8 @@ impl NodeTx {
             power_retries: 0,
             grace_until: None,
             committed: false,
+            unsure: false,
+            seen_new: false,
         }
     }
 }
@@ -287,13 +294,16 @@ impl FwSender {
         now: Instant,
     ) {
         self.tick(now);
-        if trial {
-            return;
-        }
         let Some(n) = self.nodes.get_mut(&src) else {
             return;
         };
         if !n.committed {
+            return;
+        }
+        if version == self.image.version() {
+            n.seen_new = true;
+        }
+        if trial {
             return;
         }
         if version != self.image.version() {
@@ -438,6 +448,17 @@ impl FwSender {
             (Stage::Transfer, _) => n.status = Some(st),
             (Stage::Committing | Stage::Rebooting, _) => self.on_commit_status(src, st, now),
             (Stage::Confirming, FwPhase::Trial) => {}
+            // Restarted before it said it installed, and no report of the new version: `idle`
+            // is its old image. Begin again.
+            (Stage::Confirming, FwPhase::Idle) if n.unsure && !n.seen_new => {
+                tracing::info!(node = %src, "restarted before installing: starting it again");
+                n.stage = Stage::Transfer;
+                n.status = None;
+                n.due = None;
+                n.give_up = None;
+                n.committed = false;
+                n.unsure = false;
+            }
             // After a power cut, `idle` may also be the old image that never got to install:
             // only its state report's version tells (`handle_firmware`).
             (Stage::Confirming, FwPhase::Idle) if n.power_cut_by.is_some() => {}
@@ -477,6 +498,10 @@ impl FwSender {
                 n.erasing_since = None;
             }
             Stage::Committing | Stage::Rebooting => {
+                // Without its `rebooting`, the restart may have come before it marked the image
+                // (a power cut during the commit): then it runs its old image, and `idle` says
+                // nothing about which.
+                n.unsure = n.stage == Stage::Committing;
                 n.stage = Stage::Confirming;
                 n.awaiting = false;
                 n.due = Some(now + confirm_poll);
@@ -858,6 +883,7 @@ impl FwSender {
         for id in &commits {
             if let Some(n) = self.nodes.get_mut(id) {
                 n.committed = true;
+                n.seen_new = false;
                 n.stage = Stage::Committing;
                 n.misses = 0;
                 n.due = Some(now + reboot);
