@@ -90,7 +90,9 @@ impl Feed {
             kind,
             json: Arc::from(json),
         });
-        if let Kind::Event(_) = kind {
+        // A firmware update's progress (a step per element every 5 %) would push every other
+        // event out of the timeline a new page starts from; the live stream carries it.
+        if matches!(kind, Kind::Event(name) if name != "fw_progress") {
             let mut recent = self.recent.lock().unwrap_or_else(|e| e.into_inner());
             if recent.len() == RECENT_EVENTS {
                 recent.pop_front();
@@ -208,6 +210,28 @@ mod tests {
             request_id: Some(n.to_string()),
             reason: "r".into(),
         }))
+    }
+
+    /// A firmware update's progress reaches the live readers but is not kept for the timeline of a
+    /// page that starts later (it would push every other event out).
+    #[test]
+    fn firmware_progress_is_streamed_not_kept() {
+        use ihex_gateway_core::fwupdate::FwProgress;
+        let feed = Feed::default();
+        let mut live = feed.subscribe();
+        let p = Publication::Event(Event::FwProgress(FwProgress {
+            request_id: None,
+            node: ihex_gateway_core::event::HexId("111".parse().unwrap()),
+            phase: "receiving".into(),
+            percent: 5,
+        }));
+        feed.publish(&p, &p.to_json());
+        let r = rejected(1);
+        feed.publish(&r, &r.to_json());
+        assert_eq!(live.try_recv().unwrap().kind, Kind::Event("fw_progress"));
+        let kept = feed.recent_events(u64::MAX);
+        assert_eq!(kept.len(), 1);
+        assert_eq!(kept[0].kind, Kind::Event("command_rejected"));
     }
 
     #[test]

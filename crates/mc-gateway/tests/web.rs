@@ -773,6 +773,95 @@ async fn the_island_view_follows_the_bench() {
     gateway.stop();
 }
 
+/// A firmware update of the demo island as the page shows it: each element's progress on the map
+/// (a bar, its percent moving in small steps), not in the timeline; then every element's outcome,
+/// the report in the timeline, the release notes in the details.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[ignore = "needs chromium and chromedriver: cargo xtask test --stage host"]
+async fn the_island_view_shows_a_firmware_update() {
+    let (broker, http) = (free_port(), free_port());
+    let gateway = Gateway::start(broker, http);
+    let mut rx = mqtt(broker);
+    let bus = rx.client.clone();
+    let driver = Driver::start();
+    let profile = tempfile::tempdir().unwrap();
+    let c = browser(&driver, profile.path()).await;
+    c.goto(&format!("http://127.0.0.1:{http}/")).await.unwrap();
+    until(
+        &c,
+        Duration::from_secs(10),
+        "the island",
+        "document.querySelectorAll('#map g.element').length === 3",
+    )
+    .await;
+    let image = ihex_image::sim::sim_image_with_notes(
+        ihex_image::FirmwareVersion::new(9, 0, 0),
+        ihex_image::sim::SimFirmware { confirms: true },
+        24 * 1024,
+        "9.0.0: the browser test's release",
+        &ihex_image::SigningKey::test_key(),
+    )
+    .unwrap();
+    bus.publish(
+        "ihex/fw/upload/web-9.0.0.img",
+        QoS::AtLeastOnce,
+        false,
+        image,
+    )
+    .await
+    .unwrap();
+    expect_mqtt(&mut rx, "the upload stored", |_, v| {
+        v["event"] == "fw_upload" && v["payload"]["result"] == "stored"
+    })
+    .await;
+    bus.publish(
+        "CommandsTopic",
+        QoS::AtLeastOnce,
+        false,
+        r#"{"cmd":"fw_update","image":"web-9.0.0.img","nodes":"all","request_id":"web-fw"}"#,
+    )
+    .await
+    .unwrap();
+    // Mid-transfer: a percent strictly between 0 and 100 on the map, for some element.
+    until(
+        &c,
+        Duration::from_secs(20),
+        "an element part-way through its transfer",
+        "[...document.querySelectorAll('#map g.element')].some(g => g.dataset.fwPhase === 'receiving' \
+            && Number(g.dataset.fwPercent) > 0 && Number(g.dataset.fwPercent) < 100 && g.querySelector('.fw-fill'))",
+    )
+    .await;
+    shoot(&c, "fw-progress.png").await;
+    for id in ["111", "112", "2"] {
+        until(
+            &c,
+            Duration::from_secs(90),
+            &format!("{id} updated"),
+            &format!("{} === 'updated'", attr(id, "fwOutcome")),
+        )
+        .await;
+    }
+    until(
+        &c,
+        Duration::from_secs(2),
+        "the report in the timeline, no progress there",
+        "document.querySelector(\"#timeline li[data-event='fw_report']\") !== null \
+            && document.querySelector(\"#timeline li[data-event='fw_progress']\") === null",
+    )
+    .await;
+    click(&c, &on_map("111")).await;
+    until(
+        &c,
+        Duration::from_secs(2),
+        "the release notes in the details",
+        "document.getElementById('details-facts').textContent.includes(\"9.0.0: the browser test's release\")",
+    )
+    .await;
+    shoot(&c, "fw-done.png").await;
+    c.close().await.unwrap();
+    gateway.stop();
+}
+
 // ---- the API without a browser (run by `cargo test`) ----
 
 /// One HTTP/1 request to the view on `port`: its status, `WWW-Authenticate` and body.

@@ -17,6 +17,9 @@
     seq: 0, ready: false, queue: [], nodes: new Map(), layout: {}, controls: 'read_only',
     events: [], health: null, selected: null, results: new Map(), pending: new Map(),
     lastBeat: Date.now(), stale: false, es: null, loading: false,
+    // A firmware update per element: { phase, percent } while it runs, then { outcome, reason };
+    // and the last update's image (version, release notes).
+    fw: new Map(), fwImage: null,
     token: localStorage.getItem('ihex-token') || '',
   };
 
@@ -212,6 +215,23 @@
     } else if (n && n.buzzer && n.buzzer.mode !== 'off') {
       g.append(svg('text', { class: 'tag', x: cx, y: cy + 12 }, '♪'));
     }
+    const fw = S.fw.get(id);
+    if (fw) {
+      // A running update: a bar under the ID filling with the transfer, the percent and phase in
+      // its tooltip; at the end, the outcome.
+      g.setAttribute('data-fw-phase', fw.outcome ? 'done' : fw.phase);
+      if (!fw.outcome) g.setAttribute('data-fw-percent', fw.percent);
+      if (fw.outcome) g.setAttribute('data-fw-outcome', fw.outcome);
+      // On a static hexagon between the status word and port 3, inside ports 2 and 4.
+      const w = role === 'static' ? 34 : rad * 1.1, top = cy + (role === 'static' ? 17 : rad * 0.55);
+      const bar = svg('g', { class: 'fw' + (fw.outcome ? ' ' + fw.outcome : '') });
+      bar.append(svg('rect', { class: 'fw-track', x: cx - w / 2, y: top, width: w, height: 5, rx: 2 }));
+      const done = fw.outcome ? 1 : Math.min(1, fw.percent / 100);
+      bar.append(svg('rect', { class: 'fw-fill', x: cx - w / 2, y: top, width: (w * done).toFixed(1), height: 5, rx: 2 }));
+      bar.append(svg('title', {}, fw.outcome ? 'firmware update: ' + fw.outcome + (fw.reason ? ' (' + fw.reason + ')' : '')
+        : 'firmware update: ' + fw.phase + ' ' + fw.percent + ' %'));
+      g.append(bar);
+    }
     g.addEventListener('click', () => select(id));
     g.addEventListener('keydown', (e) => { if (e.key === 'Enter' || e.key === ' ') select(id); });
     return g;
@@ -357,6 +377,11 @@
     fact(dl, 'Docking', dockText(n));
     if (n.role !== 'mobile') fact(dl, 'Closed signal loops', loopsText(n));
     fact(dl, 'Firmware', firmwareOf(n));
+    const fw = S.fw.get(id);
+    if (fw) {
+      fact(dl, 'Update', fw.outcome ? fw.outcome + (fw.reason ? ' (' + fw.reason + ')' : '') : fw.phase + ', ' + fw.percent + ' %', 'detail-fw');
+    }
+    if (fw && S.fwImage && S.fwImage.notes) fact(dl, 'Release notes', el('pre', { class: 'notes' }, S.fwImage.notes));
     fact(dl, 'UID', n.uid || unknown);
     const r = lastReboot(id);
     if (r) fact(dl, 'Last reboot', r.ev.payload.reset + ', ' + age(Date.now() - r.time));
@@ -430,15 +455,24 @@
       case 'node_list': return (p.nodes || []).length + ' nodes';
       case 'sim_result': return 'simulator ' + p.sim + ': ' + p.result + (p.reason ? ' (' + p.reason + ')' : '');
       case 'sim_rejected': return 'simulator: ' + p.reason;
+      case 'fw_report': {
+        const tally = {};
+        for (const n of p.nodes || []) tally[n.outcome] = (tally[n.outcome] || 0) + 1;
+        return 'firmware ' + p.version + ': ' + Object.entries(tally).map(([o, k]) => k + ' ' + o).join(', ');
+      }
+      case 'fw_correction': return p.node + ' ' + p.outcome + ' (was ' + p.was + '): ' + p.reason;
+      case 'fw_upload': return 'image ' + p.name + ': ' + p.result + (p.reason ? ' (' + p.reason + ')' : '');
       default: return JSON.stringify(p);
     }
   }
   const PROBLEMS = new Set(['node_lost', 'command_rejected', 'fault', 'bus_error', 'dock_failed', 'sim_rejected']);
+  const FW_PROBLEMS = new Set(['refused', 'reverted', 'unreachable', 'failed', 'lost_power']);
   function timelineItem(e) {
     const t = new Date(e.time);
     const hh = (v, n) => String(v).padStart(n || 2, '0');
     const when = hh(t.getHours()) + ':' + hh(t.getMinutes()) + ':' + hh(t.getSeconds()) + '.' + hh(t.getMilliseconds(), 3);
-    const failed = e.ev.event === 'command_result' && e.ev.payload.result !== 'ok';
+    const failed = (e.ev.event === 'command_result' && e.ev.payload.result !== 'ok')
+      || (e.ev.event === 'fw_report' && (e.ev.payload.nodes || []).some((n) => FW_PROBLEMS.has(n.outcome)));
     return el('li', { 'data-event': e.ev.event, 'data-nodes': nodesOf(e.ev).join(' '),
       class: PROBLEMS.has(e.ev.event) || failed ? 'problem' : null },
     el('time', { datetime: t.toISOString() }, when), el('span', { class: 'name' }, e.ev.event),
@@ -489,7 +523,25 @@
     }
   }
 
+  // What a firmware event says of each element; progress goes to the map, not to the timeline.
+  function noteFw(ev) {
+    const p = ev.payload || {};
+    if (ev.event === 'fw_progress') {
+      const was = S.fw.get(p.node);
+      if (!was || was.outcome) S.fwImage = null; // a new update
+      S.fw.set(p.node, { phase: p.phase, percent: p.percent });
+      return true;
+    }
+    if (ev.event === 'fw_report') {
+      S.fwImage = { version: p.version, notes: p.notes || null };
+      for (const n of p.nodes || []) S.fw.set(n.node, { outcome: n.outcome, reason: n.reason });
+    }
+    if (ev.event === 'fw_correction') S.fw.set(p.node, { outcome: p.outcome, reason: p.reason });
+    return false;
+  }
+
   function applyEvent(ev, time) {
+    if (noteFw(ev)) return;
     S.events.unshift({ ev, time });
     if (S.events.length > TIMELINE_MAX) S.events.length = TIMELINE_MAX;
     noteResult(ev);
@@ -502,7 +554,9 @@
     S.controls = snap.controls;
     S.nodes = new Map();
     for (const doc of snap.nodes) setNode(doc, now);
-    S.events = snap.events.map((e) => ({ ev: e.event, time: e.time_ms }));
+    S.fw = new Map();
+    for (const e of snap.events.slice().reverse()) noteFw(e.event);
+    S.events = snap.events.filter((e) => e.event.event !== 'fw_progress').map((e) => ({ ev: e.event, time: e.time_ms }));
     for (let i = S.events.length - 1; i >= 0; i--) noteResult(S.events[i].ev);
     S.health = { gateway: snap.gateway, bus: snap.bus };
     $('island-name').textContent = snap.island ? '“' + snap.island + '”' : '';
