@@ -15,7 +15,19 @@
 //! A static element whose docked mobile elements are in the same update installs only once
 //! they have their outcome ([`FwSender::set_docked`]).
 //! After the commit, each node is followed alone: `rebooting`, its `BootUp`, then queries until
-//! its new image has confirmed itself (`idle`: `updated`) or was put back (`reverted`).
+//! its new image has confirmed itself (`idle`: `updated`) or was put back (`reverted`). Where
+//! `idle` is ambiguous — a restart before the node said `rebooting`, or a mobile element whose
+//! power was cut — only the version in its state report ([`FwSender::handle_firmware`]) makes it
+//! `updated`; its old version begins it again.
+//!
+//! A mobile element docked on a static element that restarts (in the update or not) loses its
+//! power: it gets a restart's time before a missed answer counts, is begun again if the cut cost
+//! it its transfer or its trial image (up to [`POWER_RETRIES`] times), and otherwise ends
+//! `lost_power` naming the static element — never `reverted` or `unreachable`. A node given up
+//! that later reports the new version confirmed is corrected with an `fw_correction` event.
+//!
+//! Progress (`fw_progress`) is published at every [`PROGRESS_STEP`] % of a node's transfer, from
+//! what it last said it has plus the frames sent to it since: no query is added for it.
 //!
 //! Every frame the sender emits goes through a [`BitBucket`] (worst-case bits on the wire), so
 //! an update never takes more than its share of the bus; the bridge hands these frames out only
@@ -461,7 +473,7 @@ impl FwSender {
             }
             // After a power cut, `idle` may also be the old image that never got to install:
             // only its state report's version tells (`handle_firmware`).
-            (Stage::Confirming, FwPhase::Idle) if n.power_cut_by.is_some() => {}
+            (Stage::Confirming, FwPhase::Idle) if n.power_cut_by.is_some() && !n.seen_new => {}
             (Stage::Confirming, FwPhase::Idle) => {
                 self.finish_node(src, NodeOutcome::Updated, None, now)
             }
