@@ -673,6 +673,16 @@ fn fw_table(o: &mut String, f: &FwResults) {
         share(f.broadcast_frames, f.broadcast_report_ms as f64 / 1000.0),
         counts(&f.broadcast_outcomes)
     );
+    if f.docked_mobiles > 0 {
+        let _ = writeln!(
+            o,
+            "  all, {} mobiles docked            {:>7.1} s   {:.2}x the update without dockings (goal <= 1.5x)   {}",
+            f.docked_mobiles,
+            f.docked_s,
+            f.docked_s / f.broadcast_s.max(1e-9),
+            counts(&f.docked_outcomes)
+        );
+    }
     let _ = writeln!(
         o,
         "  one element                     {:>7.1} s   {} frames   {}",

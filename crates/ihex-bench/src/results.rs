@@ -216,6 +216,15 @@ pub struct FwResults {
     pub docking_idle_ms: f64,
     /// A docking during the update: the simulator's dock → `new_connection`, ms.
     pub docking_during_ms: Option<f64>,
+    /// Mobile elements docked (each on its own static element) for the last update.
+    #[serde(default)]
+    pub docked_mobiles: u16,
+    /// `fw_update` to all with those mobile elements docked: command → report, s.
+    #[serde(default)]
+    pub docked_s: f64,
+    /// That report's outcomes.
+    #[serde(default)]
+    pub docked_outcomes: Vec<(String, usize)>,
 }
 
 /// Islands per broker (`ihex-bench islands`, issue 15): N gateways, each on its own SocketCAN
