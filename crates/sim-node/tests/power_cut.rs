@@ -98,39 +98,33 @@ impl Sc {
     /// (which announces itself).
     fn power_on(&mut self, now: u64) {
         self.node = None;
-        loop {
-            self.ops_log.push(self.board.flash.ops());
-            self.board.flash.power_on();
-            if let Some(k) = self.arm_on_boot.take() {
-                self.board.flash.cut_after(k, k + 1);
+        self.ops_log.push(self.board.flash.ops());
+        self.board.flash.power_on();
+        if let Some(k) = self.arm_on_boot.take() {
+            self.board.flash.cut_after(k, k + 1);
+        }
+        match board::boot(&mut self.board, ihex_image::test_key::PUBLIC) {
+            Ok(b) => {
+                let config = Config {
+                    role: BootRole::Static,
+                    ports: 6,
+                    uid: Uid([self.id.get() as u8; 12]),
+                    node_id: Some(self.id),
+                    reset: ResetReason::Software,
+                    firmware: b.firmware,
+                    update: b.update,
+                };
+                let mut node = Node::new(config, Millis(now));
+                node.handle_self_test(b.self_test(), Millis(now));
+                self.node = Some(node);
+                self.drain(now);
             }
-            match board::boot(&mut self.board, ihex_image::test_key::PUBLIC) {
-                Ok(b) => {
-                    let config = Config {
-                        role: BootRole::Static,
-                        ports: 6,
-                        uid: Uid([self.id.get() as u8; 12]),
-                        node_id: Some(self.id),
-                        reset: ResetReason::Software,
-                        firmware: b.firmware,
-                        update: b.update,
-                    };
-                    let mut node = Node::new(config, Millis(now));
-                    node.handle_self_test(b.self_test(), Millis(now));
-                    self.node = Some(node);
-                    self.drain(now);
-                    return;
-                }
-                Err(BootFailure::Flash(_)) if self.board.flash.is_dead() => {
-                    // Cut during the swap: dead until the power comes back.
-                    self.was_cut = true;
-                    return;
-                }
-                Err(e) => panic!(
-                    "{}: the bootloader failed without a power cut: {e}",
-                    self.id
-                ),
-            }
+            // Cut during the swap: dead until the power comes back (the next boot resumes it).
+            Err(BootFailure::Flash(_)) if self.board.flash.is_dead() => self.cut(),
+            Err(e) => panic!(
+                "{}: the bootloader failed without a power cut: {e}",
+                self.id
+            ),
         }
     }
 
@@ -144,7 +138,7 @@ impl Sc {
             };
             let carried = board::carry_out(&mut self.board, node, out, Millis(now));
             if self.board.flash.is_dead() {
-                self.cut(now);
+                self.cut();
                 return;
             }
             match carried {
@@ -156,11 +150,10 @@ impl Sc {
         }
     }
 
-    /// The power fails now; it comes back `back_at`.
-    fn cut(&mut self, now: u64) {
+    /// The power fails now (the run decides when it comes back: `back_at`).
+    fn cut(&mut self) {
         self.node = None;
         self.was_cut = true;
-        self.back_at.get_or_insert(now + 200);
     }
 
     fn frame(&mut self, p: &Packet, now: u64) {
@@ -247,7 +240,7 @@ fn run(old: &[u8], new: &[u8], cut: Option<(usize, Cut)>, back_ms: u64) -> Run {
         if let Some((v, _)) = at_cut.filter(|&(_, t)| now >= t) {
             at_cut = None;
             if scs[v].node.is_some() {
-                scs[v].cut(now);
+                scs[v].cut();
             }
         }
         for sc in &mut scs {
