@@ -5,8 +5,10 @@
 //! (after the last frame, during the commit, on trial before or after the confirmation).
 //!
 //! Every run must end with every element booted on the old or the new image (byte for byte in
-//! its active slot), online (it answers), and its outcome in the report true to what it runs:
-//! `updated` only on the new image confirmed, `reverted` only on the old one.
+//! its active slot), running and confirmed, and its outcome in the report true to what it runs:
+//! `updated` only on the new image confirmed; never `reverted` (every image here confirms itself,
+//! so a revert is a cut's doing: the gateway, told of the power-on by the boot-up, begins such an
+//! element again, or reports `lost_power`).
 //!
 //! The test command runs a fixed seed ([`CI_SEED`], [`CI_CUTS`] cuts). `cargo xtask soak
 //! --fw-power-cuts N` runs N cuts with a fresh seed (`IHEX_FW_CUT_SEED`, `IHEX_FW_CUTS`); every
@@ -76,6 +78,8 @@ struct Sc {
     was_cut: bool,
     /// Flash operations counted before each power-on (the counter restarts at power-on).
     ops_log: Vec<u64>,
+    /// How it starts next: a reset it asked for, or power-on after a cut.
+    reset: ResetReason,
 }
 
 impl Sc {
@@ -89,6 +93,7 @@ impl Sc {
             back_at: None,
             was_cut: false,
             ops_log: Vec::new(),
+            reset: ResetReason::PowerOn,
         };
         sc.power_on(now);
         sc
@@ -110,7 +115,7 @@ impl Sc {
                     ports: 6,
                     uid: Uid([self.id.get() as u8; 12]),
                     node_id: Some(self.id),
-                    reset: ResetReason::Software,
+                    reset: std::mem::replace(&mut self.reset, ResetReason::Software),
                     firmware: b.firmware,
                     update: b.update,
                 };
@@ -154,6 +159,7 @@ impl Sc {
     fn cut(&mut self) {
         self.node = None;
         self.was_cut = true;
+        self.reset = ResetReason::PowerOn;
     }
 
     fn frame(&mut self, p: &Packet, now: u64) {
@@ -253,7 +259,17 @@ fn run(old: &[u8], new: &[u8], cut: Option<(usize, Cut)>, back_ms: u64) -> Run {
             for (src, msg) in std::mem::take(&mut sc.sent) {
                 match msg {
                     Message::FwStatus(st) => s.handle_status(src, st, at),
-                    Message::BootUp { .. } => s.handle_boot_up(src, at),
+                    // As the bridge does: a power-on is told first, and the state read-back
+                    // after a boot-up names the running firmware.
+                    Message::BootUp { reset, .. } => {
+                        if reset == ResetReason::PowerOn {
+                            s.handle_power_on(src, at);
+                        }
+                        s.handle_boot_up(src, at);
+                        if let Some((version, trial)) = sc.running() {
+                            s.handle_firmware(src, version, trial, at);
+                        }
+                    }
                     _ => {}
                 }
             }
@@ -290,7 +306,13 @@ fn clean_ops(old: &[u8], new: &[u8]) -> (u64, u64) {
         for (src, msg) in std::mem::take(&mut sc.sent) {
             match msg {
                 Message::FwStatus(st) => s.handle_status(src, st, at),
-                Message::BootUp { .. } => s.handle_boot_up(src, at),
+                // As the bridge does: a power-on is told first.
+                Message::BootUp { reset, .. } => {
+                    if reset == ResetReason::PowerOn {
+                        s.handle_power_on(src, at);
+                    }
+                    s.handle_boot_up(src, at)
+                }
                 _ => {}
             }
         }
@@ -340,7 +362,10 @@ fn check(r: &mut Run, old: &[u8], new: &[u8]) -> Result<(), String> {
         let (outcome, why) = &outcomes[&sc.id];
         let truthful = match outcome {
             NodeOutcome::Updated => version == NEW,
-            NodeOutcome::Reverted | NodeOutcome::Refused => version == OLD,
+            // Every image here confirms itself: a revert is the cut's doing, and reporting it
+            // as the image's would blame the image.
+            NodeOutcome::Reverted => false,
+            NodeOutcome::Refused => version == OLD,
             // The gateway stopped hearing it: it may run either.
             NodeOutcome::Unreachable | NodeOutcome::LostPower => true,
             NodeOutcome::Failed | NodeOutcome::Skipped => false,

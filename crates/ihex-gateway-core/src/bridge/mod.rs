@@ -474,9 +474,9 @@ impl Bridge {
             self.readback.want(src);
         }
         match packet.msg {
-            Message::BootUp { version, .. } => {
+            Message::BootUp { version, reset, .. } => {
                 self.readback.on_boot(src, version);
-                self.fw.on_boot_up(src, now, &mut self.out);
+                self.fw.on_boot_up(src, reset, now, &mut self.out);
             }
             // Handled by `on_heard`.
             Message::HealthReply(_) => {}

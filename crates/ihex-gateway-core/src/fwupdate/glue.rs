@@ -197,8 +197,17 @@ impl FwUpdates {
         self.drain(out);
     }
 
-    pub(crate) fn on_boot_up(&mut self, src: NodeId, now: Instant, out: &mut Outputs) {
+    pub(crate) fn on_boot_up(
+        &mut self,
+        src: NodeId,
+        reset: ihex_proto::ResetReason,
+        now: Instant,
+        out: &mut Outputs,
+    ) {
         if let Some(s) = self.sender.as_mut() {
+            if reset == ihex_proto::ResetReason::PowerOn {
+                s.handle_power_on(src, now);
+            }
             s.handle_boot_up(src, now);
         }
         self.drain(out);

@@ -294,6 +294,25 @@ impl FwSender {
         }
     }
 
+    /// A node of the update started from a power-on (its boot-up says so), not from a reset it
+    /// asked for: whatever it does next — come back on its old image, revert a trial image the
+    /// cut interrupted — is the cut's doing, not the image's. Call before
+    /// [`FwSender::handle_boot_up`].
+    pub fn handle_power_on(&mut self, src: NodeId, now: Instant) {
+        self.tick(now);
+        if let Some(n) = self.nodes.get_mut(&src) {
+            // In the transfer a restart only costs the transfer, which starts again anyway.
+            let installing = matches!(
+                n.stage,
+                Stage::Committing | Stage::Rebooting | Stage::Confirming
+            );
+            if installing && n.power_cut_by.is_none() {
+                tracing::info!(node = %src, "powered on in the middle of its update");
+                n.power_cut_by = Some(src);
+            }
+        }
+    }
+
     /// A node's state report names the firmware it runs (`trial`: not confirmed yet). The new
     /// version, confirmed, ends a node still being followed as `updated`; for a node already
     /// given up (`unreachable`, `lost_power`) it corrects its outcome and says so
@@ -912,6 +931,10 @@ impl FwSender {
                 return;
             }
             let (outcome, why) = match (outcome, n.power_cut_by) {
+                (NodeOutcome::Unreachable | NodeOutcome::Reverted, Some(host)) if host == id => (
+                    NodeOutcome::LostPower,
+                    Some("lost power in the middle of its update".to_string()),
+                ),
                 (NodeOutcome::Unreachable | NodeOutcome::Reverted, Some(host)) => (
                     NodeOutcome::LostPower,
                     Some(format!("lost power when {host} restarted")),
