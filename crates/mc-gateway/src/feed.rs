@@ -82,7 +82,11 @@ impl Feed {
             // Home Assistant's topics are not the page's; a forgotten node's emptied state document
             // reaches it as the `node_forgotten` event.
             // The page learns of leases from the `lease_*` events.
-            Publication::Ha(_) | Publication::Cleared(_) | Publication::Leases(_) => return,
+            // and of procedures from the `procedure_*` events.
+            Publication::Ha(_)
+            | Publication::Cleared(_)
+            | Publication::Leases(_)
+            | Publication::Procedures(_) => return,
         };
         let p = Arc::new(Published {
             seq: self.seq.fetch_add(1, Ordering::Relaxed) + 1,

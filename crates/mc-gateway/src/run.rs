@@ -484,6 +484,7 @@ fn outbound(
         }
         Publication::Cleared(t) => info!(topic = ?t, "retained topic cleared"),
         Publication::Leases(_) => info!(payload = %json(), "leases published"),
+        Publication::Procedures(_) => info!(payload = %json(), "procedures published"),
     }
     if let Some(feed) = feed {
         feed.publish(&publication, &json());
