@@ -42,8 +42,9 @@ impl Bridge {
         self.procedures.document(now)
     }
 
-    /// `procedure`: admitted when fewer than `max_procedures` run and every element it names is
-    /// known; its static elements are leased (those the sender's own lease does not hold
+    /// `procedure`: admitted when fewer than `max_procedures` run and every static element it
+    /// lights or waits on is known (a mobile element it waits for may not be: it is heard only
+    /// once docked); its static elements are leased (those the sender's own lease does not hold
     /// already), `procedure_started` answers, and its first step starts.
     pub(crate) fn procedure_command(
         &mut self,
@@ -55,18 +56,14 @@ impl Bridge {
             Ok(id) => id,
             Err(e) => return self.reject(request_id, e.into()),
         };
-        if let Some(&unknown) = spec
-            .elements()
-            .iter()
-            .find(|&&n| self.registry.get(n).is_none())
-        {
+        let statics = spec.static_elements();
+        if let Some(&unknown) = statics.iter().find(|&&n| self.registry.get(n).is_none()) {
             let error = CommandError::UnknownNode {
                 id: HexId(unknown),
                 known: self.registry.known_list(),
             };
             return self.reject(request_id, error);
         }
-        let statics = spec.static_elements();
         // `lease_refusal` let it through: each element is free or held by the sender's lease.
         let free: Vec<NodeId> = statics
             .iter()

@@ -113,15 +113,11 @@ pub struct Step {
 }
 
 impl Step {
-    /// The elements the step needs online: the lit ones, the static element of its wait, and a
-    /// given mobile element.
+    /// The elements the step needs online: the lit ones and the static element of its wait. A
+    /// mobile element is not among them: it has no power (and is not heard) until it docks.
     fn elements(&self) -> impl Iterator<Item = NodeId> + '_ {
-        let (node, _, mobile) = self.wait.parts();
-        self.light
-            .iter()
-            .copied()
-            .chain(std::iter::once(node))
-            .chain(mobile)
+        let (node, _, _) = self.wait.parts();
+        self.light.iter().copied().chain(std::iter::once(node))
     }
 }
 
@@ -142,19 +138,6 @@ impl Spec {
             for id in s.light.iter().copied().chain([s.wait.parts().0]) {
                 if !ids.contains(&id) {
                     ids.push(id);
-                }
-            }
-        }
-        ids
-    }
-
-    /// Every element it names (lit, waited on, or the mobile element of a wait).
-    pub fn elements(&self) -> Vec<NodeId> {
-        let mut ids = self.static_elements();
-        for s in &self.steps {
-            if let Some(m) = s.wait.parts().2 {
-                if !ids.contains(&m) {
-                    ids.push(m);
                 }
             }
         }
