@@ -119,6 +119,24 @@ impl Bridge {
         self.after(id, actions, now);
     }
 
+    /// True while a guided procedure runs.
+    pub fn procedures_running(&self) -> bool {
+        !self.procedures.runs().is_empty()
+    }
+
+    /// Ends every running procedure `cancelled` with `reason` (the gateway is stopping): their
+    /// lights are switched off and each publishes its `procedure_ended`.
+    pub fn cancel_procedures(&mut self, reason: &str, now: Instant) {
+        self.set_now(now);
+        let ids: Vec<u32> = self.procedures.runs().iter().map(Run::id).collect();
+        for id in ids {
+            if let Ok(run) = self.procedures.get_mut(id) {
+                let actions = run.stop(StepOutcome::Cancelled, reason.to_owned(), None, now);
+                self.after(id, actions, now);
+            }
+        }
+    }
+
     /// A procedure's own lease ended without it (broken or expired): the procedure fails.
     pub(crate) fn procedures_on_lease_ended(&mut self, lease_id: u32, how: &str, now: Instant) {
         let ids: Vec<u32> = self

@@ -586,6 +586,22 @@ fn an_element_lost_mid_step_fails_the_procedure_and_a_broken_lease_too() {
 }
 
 #[test]
+fn a_stopping_gateway_cancels_its_procedures_and_clears_their_lights() {
+    let (mut b, t0) = with_nodes(&[0x111, 0x112, 2]);
+    command(&mut b, handover_json(), t0 + MS);
+    assert!(b.procedures_running());
+    b.cancel_procedures("the gateway stopped", t0 + S);
+    let out = drain(&mut b);
+    let e = out.one("procedure_ended");
+    assert_eq!(
+        (e["outcome"].clone(), e["reason"].clone()),
+        (json!("cancelled"), json!("the gateway stopped"))
+    );
+    assert_eq!(led_to(&out, 0x111), [LedCommand::Off]);
+    assert!(!b.procedures_running());
+}
+
+#[test]
 fn a_procedure_runs_under_the_senders_own_lease() {
     let (mut b, t0) = with_nodes(&[0x111, 0x112, 2]);
     let out = command(
