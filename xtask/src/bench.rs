@@ -536,6 +536,14 @@ fn measure_host(
         missing.push("callgrind: valgrind not installed (apt-get install valgrind)".into());
     }
 
+    println!("\n==> xtask bench: docking -> procedure step done (the core)");
+    let mut c = Command::new(bench);
+    c.args(["procedure", "--out"])
+        .arg(dir.join("procedure.json"));
+    if let Err(e) = cmd::run(&mut c) {
+        missing.push(format!("procedure: {e:#}"));
+    }
+
     println!("\n==> xtask bench: firmware size");
     if let Err(e) = firmware(
         firmware_dir,

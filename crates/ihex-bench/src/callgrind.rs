@@ -56,7 +56,9 @@ pub fn run(n: u64) -> Result<Callgrind> {
     let can_to_event = path_cost(&exe, "can", n, &dir)?;
     let again = measure(&exe, "can", n, &dir)?;
     let command_to_frame = path_cost(&exe, "command", n, &dir)?;
+    let command_leased = path_cost(&exe, "command-leased", n, &dir)?;
     Ok(Callgrind {
+        command_leased: Some(command_leased),
         repeatable: again == can_to_event.instructions_n,
         can_to_event,
         command_to_frame,

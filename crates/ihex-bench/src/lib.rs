@@ -3,6 +3,7 @@
 //!
 //! * [`bus`] — frame bit lengths and the frame-rate limit of a 500 kbit/s bus;
 //! * [`workload`] — the sans-IO bridge on a fixed workload, for instruction counts (callgrind);
+//! * [`procedure`] — docking → a procedure step's `done`, timed in the sans-IO core;
 //! * [`results`], [`stats`], [`report`] — what the live run measured, percentiles, the results
 //!   file, the table and the SVG plots.
 //!
@@ -14,6 +15,7 @@
 #![warn(missing_docs)]
 
 pub mod bus;
+pub mod procedure;
 pub mod report;
 pub mod results;
 pub mod stats;

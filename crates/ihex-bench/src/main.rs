@@ -30,6 +30,8 @@ enum WorkPath {
     Can,
     /// JSON command -> frame.
     Command,
+    /// JSON command -> frame, with leases held (commands to leased nodes carry the token).
+    CommandLeased,
 }
 
 #[derive(Subcommand)]
@@ -155,6 +157,15 @@ enum Cmd {
         #[arg(long)]
         out: PathBuf,
     },
+    /// Docking -> a guided procedure's step `done`, timed in the gateway's sans-IO core.
+    Procedure {
+        /// Dockings.
+        #[arg(long, default_value_t = 2000)]
+        samples: usize,
+        /// Write the figures (JSON) here.
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
     /// Combine live.json, callgrind.json, firmware.json, islands.json, web.json and fw.json of DIR (and the baseline's
     /// baseline-commit.txt, baseline-live.json, baseline-callgrind.json when present) into
     /// results.json, the plots and the table.
@@ -278,9 +289,17 @@ fn main() -> Result<()> {
             let p = match path {
                 WorkPath::Can => workload::Path::CanToEvent,
                 WorkPath::Command => workload::Path::CommandToFrame,
+                WorkPath::CommandLeased => workload::Path::CommandLeased,
             };
             let out = workload::run(p, n);
             println!("{out:?}");
+        }
+        Cmd::Procedure { samples, out } => {
+            let p = ihex_bench::procedure::run(samples);
+            finish(p, out, None, |p| report::Results {
+                procedure: Some(p),
+                ..Default::default()
+            })?;
         }
         Cmd::Callgrind { n, out } => {
             let c = callgrind::run(n)?;
@@ -333,6 +352,14 @@ fn main() -> Result<()> {
                 None => r
                     .missing
                     .push("islands per broker (no islands.json)".into()),
+            }
+            match read("procedure.json") {
+                Some(b) => {
+                    r.procedure = Some(serde_json::from_slice(&b).context("procedure.json")?)
+                }
+                None => r
+                    .missing
+                    .push("docking -> procedure step (no procedure.json)".into()),
             }
             match read("web.json") {
                 Some(b) => r.web = Some(serde_json::from_slice(&b).context("web.json")?),

@@ -28,6 +28,10 @@ pub struct Callgrind {
     pub can_to_event: PathCost,
     /// JSON command → frame.
     pub command_to_frame: PathCost,
+    /// JSON command → frame with [`crate::workload::LEASES`] leases held (a baseline without
+    /// leases has none).
+    #[serde(default)]
+    pub command_leased: Option<PathCost>,
     /// A second run of the CAN → event `n` workload gave the same count.
     pub repeatable: bool,
     /// The binary that was measured (build profile and target).
@@ -63,6 +67,9 @@ pub struct Results {
     /// Islands per broker (16 gateways with simulated islands on one Mosquitto), if it ran.
     #[serde(default)]
     pub islands: Option<IslandsResults>,
+    /// Docking → a procedure step's `done` in the core, if it was measured.
+    #[serde(default)]
+    pub procedure: Option<crate::procedure::ProcedureResults>,
     /// The island view's latency, if it was measured.
     #[serde(default)]
     pub web: Option<WebResults>,
@@ -460,6 +467,16 @@ pub fn table(r: &Results) -> String {
             c.command_to_frame.instructions_n,
             c.command_to_frame.instructions_2n
         );
+        if let Some(l) = &c.command_leased {
+            let added = (l.per_frame / c.command_to_frame.per_frame - 1.0) * 100.0;
+            let _ = writeln!(
+                o,
+                "  command->frame, {} leases held {:>9.0}   ({added:+.1} % over none; goal <= 5 %: {})",
+                crate::workload::LEASES,
+                l.per_frame,
+                if added <= 5.0 { "pass" } else { "FAIL" }
+            );
+        }
         let _ = writeln!(
             o,
             "  repeatable: {}",
@@ -468,6 +485,18 @@ pub fn table(r: &Results) -> String {
             } else {
                 "NO"
             }
+        );
+    }
+    if let Some(p) = &r.procedure {
+        let d = &p.docking_to_done;
+        let _ = writeln!(
+            o,
+            "\nguided procedure, in the core (us)          p50      p99      max\n  docking -> step done ({} dockings)  {:>8.1} {:>8.1} {:>8.1}   goal <= 50 ms gateway-added: {}",
+            d.n,
+            d.p50_us,
+            d.p99_us,
+            d.max_us,
+            if d.n > 0 && d.p99_us <= 50_000.0 { "pass" } else { "FAIL" }
         );
     }
     if let Some(fw) = &r.firmware {

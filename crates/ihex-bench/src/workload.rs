@@ -9,6 +9,10 @@
 //!   pending ack) → [`Packet::encode`] to the frame's id and bytes → [`Bridge::handle_transmitted`]
 //!   (the frame's echo, as the gateway's SocketCAN adapter reports it).
 //!
+//! * command → frame with leases held: the same, with [`LEASES`] leases held on the first nodes;
+//!   a command to a leased node carries its lease's token, so every command passes the lease
+//!   check and goes out: the difference to the plain path is what the check costs per command.
+//!
 //! Inputs are prepared once, before the measured loop, and reused round-robin, so that running
 //! `n` and `2n` iterations differs only by `n` iterations of the loop: (I(2n) − I(n)) / n is the
 //! cost of one bridged frame, exactly repeatable.
@@ -30,7 +34,12 @@ pub enum Path {
     CanToEvent,
     /// MQTT command → CAN frame.
     CommandToFrame,
+    /// MQTT command → CAN frame while [`LEASES`] leases are held.
+    CommandLeased,
 }
+
+/// Leases held in [`Path::CommandLeased`], one node each.
+pub const LEASES: u16 = 8;
 
 /// What one run produced (so that nothing is optimised away, and so it can be checked).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -122,6 +131,30 @@ pub fn prepared_bridge(now: Instant) -> (Bridge, Topics) {
     (bridge, topics)
 }
 
+/// Takes a lease on each of the first [`LEASES`] nodes; their tokens, by node.
+fn take_leases(bridge: &mut Bridge, now: Instant) -> Vec<String> {
+    (0..LEASES)
+        .map(|i| {
+            let cmd = format!(
+                r#"{{"cmd":"lease","owner":"bench-{i}","nodes":"{}","seconds":86400}}"#,
+                node(i)
+            );
+            bridge.handle_command(cmd.as_bytes(), now);
+            while bridge.poll_transmit(now).is_some() {}
+            let mut token = String::new();
+            while let Some(p) = bridge.poll_publication() {
+                if let ihex_gateway_core::Publication::Event(
+                    ihex_gateway_core::event::Event::LeaseGranted(g),
+                ) = p
+                {
+                    token = g.token.clone();
+                }
+            }
+            token
+        })
+        .collect()
+}
+
 /// Runs `n` iterations of `path` and returns what they produced.
 pub fn run(path: Path, n: u32) -> Output {
     let now = Instant::now();
@@ -144,6 +177,22 @@ pub fn run(path: Path, n: u32) -> Output {
                     Ok(p) => bridge.handle_packet(p, now),
                     Err(e) => bridge.handle_undecodable(*id, data.as_slice(), e, now),
                 }
+                drain(&mut bridge, &topics, &mut text, &mut out, now);
+            }
+        }
+        Path::CommandLeased => {
+            let tokens = take_leases(&mut bridge, now);
+            let commands: Vec<String> = (0..DISTINCT)
+                .map(|i| {
+                    let c = led_command(i);
+                    match tokens.get((i % u32::from(NODES)) as usize) {
+                        Some(t) => format!("{},\"lease\":\"{t}\"}}", &c[..c.len() - 1]),
+                        None => c,
+                    }
+                })
+                .collect();
+            for i in 0..n {
+                bridge.handle_command(commands[(i % DISTINCT) as usize].as_bytes(), now);
                 drain(&mut bridge, &topics, &mut text, &mut out, now);
             }
         }
@@ -206,6 +255,13 @@ mod tests {
             out.publications, 0,
             "no rejection, no result before the ack"
         );
+    }
+
+    #[test]
+    fn every_command_to_a_leased_node_with_its_token_becomes_one_frame() {
+        let out = run(Path::CommandLeased, 1000);
+        assert_eq!(out.frames, 1000);
+        assert_eq!(out.publications, 0, "no rejection");
     }
 
     #[test]

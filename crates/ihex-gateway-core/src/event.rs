@@ -461,6 +461,14 @@ pub enum Event {
     LeaseEnded(Box<crate::lease::LeaseEnded>),
     /// The gateway started: leases of an earlier run ended with it.
     LeasesReset(crate::lease::LeasesReset),
+    /// Answer to `procedure`: it runs.
+    ProcedureStarted(Box<crate::procedure::glue::ProcedureStarted>),
+    /// A procedure's step started or ended.
+    ProcedureStep(Box<crate::procedure::ProcedureStep>),
+    /// A docking or undocking during a procedure's step that is not the one it waits for.
+    ProcedureMismatch(Box<crate::procedure::ProcedureMismatch>),
+    /// A procedure's one final outcome (and the answer to `procedure_cancel`).
+    ProcedureEnded(Box<crate::procedure::ProcedureEnded>),
 }
 
 impl Event {
@@ -489,6 +497,10 @@ impl Event {
             Event::LeaseGranted(_) => "lease_granted",
             Event::LeaseEnded(_) => "lease_ended",
             Event::LeasesReset(_) => "leases_reset",
+            Event::ProcedureStarted(_) => "procedure_started",
+            Event::ProcedureStep(_) => "procedure_step",
+            Event::ProcedureMismatch(_) => "procedure_mismatch",
+            Event::ProcedureEnded(_) => "procedure_ended",
         }
     }
 

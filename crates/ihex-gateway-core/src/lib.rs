@@ -48,6 +48,7 @@ pub mod event;
 pub mod fwupdate;
 pub mod ha;
 pub mod lease;
+pub mod procedure;
 pub mod registry;
 pub mod throttle;
 pub mod topic;

@@ -17,6 +17,8 @@ pub enum Topic {
     Ha(HaTopic),
     /// The retained leases document of the island.
     Leases,
+    /// The retained document of the procedures running on the island.
+    Procedures,
 }
 
 /// Default command topic (the seed's name).
@@ -31,6 +33,8 @@ pub const NODE_STATE_ROOT: &str = "ihex/node";
 pub const SIM: &str = "ihex/sim";
 /// Default topic of the retained leases document (under the island prefix like every topic).
 pub const LEASES: &str = "ihex/leases";
+/// Default topic of the retained document of the procedures running now.
+pub const PROCEDURES: &str = "ihex/procedures";
 /// Root of the firmware upload topics `<root>/<name>`: signed images handed to the gateway.
 pub const FW_UPLOAD: &str = "ihex/fw/upload";
 
@@ -51,6 +55,8 @@ pub struct Topics {
     pub fw_upload: String,
     /// Published retained: the leases held now.
     pub leases: String,
+    /// Published retained: the procedures running now.
+    pub procedures: String,
     /// Home Assistant's topics (discovery, status) and the gateway's own for it; Home Assistant's
     /// defaults until [`Topics::with_ha`].
     pub ha: HaTopics,
@@ -77,6 +83,7 @@ impl Topics {
             sim: p(SIM),
             fw_upload: p(FW_UPLOAD),
             leases: p(LEASES),
+            procedures: p(PROCEDURES),
             ha: HaTopics::defaults(island),
         }
     }
@@ -138,6 +145,7 @@ impl Topics {
             Topic::NodeState(id) => self.node_state(id),
             Topic::Ha(t) => self.ha.resolve(t),
             Topic::Leases => self.leases.clone(),
+            Topic::Procedures => self.procedures.clone(),
         }
     }
 }

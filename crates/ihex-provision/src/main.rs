@@ -22,6 +22,7 @@ use ihex_provision::{
     can::{self, Assignment, Topics},
     id::{self, Registry},
     mqtt::{Broker, Session},
+    procedure,
     serial::{self, SerialPort},
 };
 
@@ -48,6 +49,35 @@ enum Cmd {
         #[command(subcommand)]
         cmd: fw::FwCmd,
     },
+    /// Guided procedures (docs/procedures.md).
+    Procedure {
+        #[command(subcommand)]
+        cmd: ProcedureCmd,
+    },
+}
+
+#[derive(Subcommand)]
+enum ProcedureCmd {
+    /// Send a TOML procedure file as a `procedure` command and follow it to its end: exit 0 when
+    /// every step was done, 1 otherwise.
+    Run(ProcedureRunArgs),
+    /// Check a TOML procedure file with the gateway's own parser and print its JSON command.
+    Check {
+        /// The procedure file.
+        file: PathBuf,
+    },
+}
+
+#[derive(Args)]
+struct ProcedureRunArgs {
+    #[command(flatten)]
+    broker: BrokerArgs,
+    /// The procedure file (`examples/procedures/sample-handover.toml`).
+    file: PathBuf,
+    /// Give up waiting for its end after this many seconds (the procedure itself goes on; cancel
+    /// it with `procedure_cancel`).
+    #[arg(long, default_value_t = 3600)]
+    timeout_secs: u64,
 }
 
 #[derive(Args)]
@@ -179,6 +209,16 @@ fn main() -> ExitCode {
         Cmd::Serial(a) => run_serial(a),
         Cmd::Can(a) => tokio_main(run_can(a)),
         Cmd::WaitEvent(a) => tokio_main(run_wait(a)),
+        Cmd::Procedure {
+            cmd: ProcedureCmd::Check { file },
+        } => procedure_command(&file, "check").map(|json| say!("{json}")),
+        Cmd::Procedure {
+            cmd: ProcedureCmd::Run(a),
+        } => match tokio_main(run_procedure(a)) {
+            Ok(true) => Ok(()),
+            Ok(false) => return ExitCode::FAILURE,
+            Err(e) => Err(e),
+        },
         Cmd::Fw { cmd } => match fw::run(cmd) {
             Ok(true) => Ok(()),
             Ok(false) => return ExitCode::FAILURE,
@@ -314,4 +354,34 @@ async fn run_wait(a: WaitArgs) -> Result<()> {
         a.event,
         topics.events
     )
+}
+
+/// The `procedure` command of a procedure file, with a request id made for it.
+fn procedure_command(file: &std::path::Path, request_id: &str) -> Result<String> {
+    let text =
+        std::fs::read_to_string(file).with_context(|| format!("reading {}", file.display()))?;
+    procedure::command_from_toml(&text, request_id).with_context(|| file.display().to_string())
+}
+
+/// Runs a procedure file; true when its outcome is `done`.
+async fn run_procedure(a: ProcedureRunArgs) -> Result<bool> {
+    let request_id = api::new_request_id("procedure");
+    let command = procedure_command(&a.file, &request_id)?;
+    let broker = a.broker.broker()?;
+    let timeout = Duration::from_secs(a.timeout_secs);
+    let ended = procedure::run(
+        &broker,
+        &a.broker.topics(),
+        &command,
+        &request_id,
+        timeout,
+        |e| {
+            say!(
+                "{}",
+                serde_json::json!({"event": e.name, "payload": e.payload})
+            )
+        },
+    )
+    .await?;
+    Ok(ended.payload["outcome"] == "done")
 }

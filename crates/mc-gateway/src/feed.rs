@@ -19,6 +19,8 @@ use std::{
 use ihex_gateway_core::{
     bridge::{BusHealth, CommandCounters},
     event::NodeState,
+    lease::LeasesDocument,
+    procedure::ProceduresDocument,
     Bridge, Publication,
 };
 use ihex_proto::NodeId;
@@ -38,6 +40,10 @@ pub enum Kind {
     Event(&'static str),
     /// A node's retained state document.
     State(NodeId),
+    /// The retained leases document.
+    Leases,
+    /// The retained document of the running procedures.
+    Procedures,
 }
 
 /// One publication as it left the core.
@@ -79,10 +85,11 @@ impl Feed {
         let kind = match publication {
             Publication::Event(e) => Kind::Event(e.name()),
             Publication::State(s) => Kind::State(s.id.0),
+            Publication::Leases(_) => Kind::Leases,
+            Publication::Procedures(_) => Kind::Procedures,
             // Home Assistant's topics are not the page's; a forgotten node's emptied state document
             // reaches it as the `node_forgotten` event.
-            // The page learns of leases from the `lease_*` events.
-            Publication::Ha(_) | Publication::Cleared(_) | Publication::Leases(_) => return,
+            Publication::Ha(_) | Publication::Cleared(_) => return,
         };
         let p = Arc::new(Published {
             seq: self.seq.fetch_add(1, Ordering::Relaxed) + 1,
@@ -144,6 +151,10 @@ pub struct CoreView {
     pub bus: BusHealth,
     /// Commands in flight and how the others ended.
     pub commands: CommandCounters,
+    /// The leases held now.
+    pub leases: LeasesDocument,
+    /// The procedures running now.
+    pub procedures: ProceduresDocument,
 }
 
 /// A request for a [`CoreView`], answered by the core task.
@@ -164,6 +175,8 @@ impl ViewRequest {
             nodes: self.nodes.then(|| bridge.node_states(now)),
             bus: bridge.bus_health(),
             commands: bridge.command_counters(),
+            leases: bridge.leases(now),
+            procedures: bridge.procedures(now),
         };
         // The asker may have given up waiting.
         let _ = self.reply.send(view);

@@ -553,6 +553,8 @@ mod tests {
                 ..BusHealth::default()
             },
             commands: CommandCounters::default(),
+            leases: ihex_gateway_core::lease::LeasesDocument { leases: vec![] },
+            procedures: Default::default(),
         };
         Scrape {
             view: &view,

@@ -352,6 +352,12 @@ impl Core {
                 _ = self.pub_tx.reserve(), if publications_waiting => {}
             }
         }
+        if self.bridge.procedures_running() {
+            // Best effort, like the update's: lights off and `procedure_ended` if the tasks run.
+            self.bridge
+                .cancel_procedures("the gateway stopped", Instant::now());
+            self.carry_out();
+        }
         if self.bridge.fw_update_running() {
             // Best effort: the aborts and the report go out if the tasks still run.
             self.bridge
@@ -484,6 +490,7 @@ fn outbound(
         }
         Publication::Cleared(t) => info!(topic = ?t, "retained topic cleared"),
         Publication::Leases(_) => info!(payload = %json(), "leases published"),
+        Publication::Procedures(_) => info!(payload = %json(), "procedures published"),
     }
     if let Some(feed) = feed {
         feed.publish(&publication, &json());

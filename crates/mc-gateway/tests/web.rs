@@ -862,6 +862,152 @@ async fn the_island_view_shows_a_firmware_update() {
     gateway.stop();
 }
 
+/// Issue 30: the lease panel shows who holds what until when, with a countdown; a running
+/// procedure shows its step and highlights the element it waits on; its cancel button ends it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[ignore = "needs chromium and chromedriver: cargo xtask test --stage host"]
+async fn the_island_view_shows_leases_and_procedures_and_cancels_one() {
+    let (broker, http) = (free_port(), free_port());
+    let gateway = Gateway::start(broker, http);
+    let mut rx = mqtt(broker);
+    let bus = rx.client.clone();
+    let driver = Driver::start();
+    let profile = tempfile::tempdir().unwrap();
+    let c = browser(&driver, profile.path()).await;
+    c.goto(&format!("http://127.0.0.1:{http}/")).await.unwrap();
+    let one_second = Duration::from_secs(1);
+    until(
+        &c,
+        Duration::from_secs(10),
+        "the island",
+        "document.querySelectorAll('#map g.element').length === 3",
+    )
+    .await;
+    until(
+        &c,
+        one_second,
+        "nothing held",
+        "!document.getElementById('work-empty').hidden",
+    )
+    .await;
+
+    bus.publish(
+        "CommandsTopic",
+        QoS::AtLeastOnce,
+        false,
+        r#"{"cmd":"lease","owner":"run-42","nodes":"111","seconds":600,"note":"sample prep"}"#,
+    )
+    .await
+    .unwrap();
+    until(
+        &c,
+        one_second,
+        "the lease",
+        "(() => { const l = document.querySelector('#leases li.lease'); return l !== null \
+         && l.textContent.includes('111 leased by run-42 until ') \
+         && l.textContent.includes('note: sample prep'); })()",
+    )
+    .await;
+    let countdown = "document.querySelector('#leases .countdown').textContent";
+    until(
+        &c,
+        one_second,
+        "the countdown",
+        &format!("/^(9|10) min/.test({countdown})"),
+    )
+    .await;
+
+    bus.publish(
+        "CommandsTopic",
+        QoS::AtLeastOnce,
+        false,
+        r#"{"cmd":"procedure","name":"handover","request_id":"p1","steps":[{"text":"Place 3 on 112","node":"112","port":4,"mobile":"3","wait":"docked","color":"blue"}]}"#,
+    )
+    .await
+    .unwrap();
+    let started = expect_mqtt(&mut rx, "procedure_started", |t, v| {
+        t == "EventsTopic" && v["event"] == "procedure_started"
+    })
+    .await;
+    let id = started["payload"]["id"].as_u64().unwrap();
+    until(
+        &c,
+        one_second,
+        "the procedure's step",
+        "(() => { const p = document.querySelector('#procedures li.procedure'); return p !== null \
+         && p.textContent.includes('handover') && p.textContent.includes('step 1 of 1') \
+         && p.textContent.includes('Place 3 on 112'); })()",
+    )
+    .await;
+    until(
+        &c,
+        one_second,
+        "112 highlighted as the target",
+        &format!(
+            "document.querySelector(\"{}\").classList.contains('target') \
+             && !document.querySelector(\"{}\").classList.contains('target')",
+            on_map("112"),
+            on_map("111")
+        ),
+    )
+    .await;
+    until(
+        &c,
+        one_second,
+        "112 lit blue",
+        &format!("{} === '#0000ff'", attr("112", "led")),
+    )
+    .await;
+    shoot(&c, "procedure.png").await;
+
+    click(
+        &c,
+        &format!("#procedures button.cancel[data-procedure='{id}']"),
+    )
+    .await;
+    let ended = expect_mqtt(&mut rx, "procedure_ended", |t, v| {
+        t == "EventsTopic" && v["event"] == "procedure_ended"
+    })
+    .await;
+    assert_eq!(ended["payload"]["outcome"], "cancelled", "{ended}");
+    assert!(
+        ended["payload"]["request_id"]
+            .as_str()
+            .unwrap()
+            .starts_with("web-"),
+        "the page's cancel: {ended}"
+    );
+    until(
+        &c,
+        one_second,
+        "the procedure gone and 112 no longer highlighted",
+        &format!(
+            "document.querySelectorAll('#procedures li').length === 0 \
+             && !document.querySelector(\"{}\").classList.contains('target')",
+            on_map("112")
+        ),
+    )
+    .await;
+    until(
+        &c,
+        one_second,
+        "112 cleared",
+        &format!("{} === 'off'", attr("112", "led")),
+    )
+    .await;
+    // The lease is still shown (the procedure's own lease ended with it).
+    until(
+        &c,
+        one_second,
+        "only run-42's lease",
+        "document.querySelectorAll('#leases li.lease').length === 1",
+    )
+    .await;
+
+    c.close().await.unwrap();
+    gateway.stop();
+}
+
 // ---- the API without a browser (run by `cargo test`) ----
 
 /// One HTTP/1 request to the view on `port`: its status, `WWW-Authenticate` and body.

@@ -20,6 +20,9 @@
     // A firmware update per element: { phase, percent } while it runs, then { outcome, reason };
     // and the last update's image (version, release notes).
     fw: new Map(), fwImage: null,
+    // The retained leases and procedures documents, with when they were received (their
+    // `remaining_ms` count from then).
+    leases: [], procedures: [], workAt: Date.now(),
     token: localStorage.getItem('ihex-token') || '',
   };
 
@@ -185,7 +188,7 @@
     const led = n ? ledOf(n) : { mode: 'unknown', color: null };
     const status = n ? statusOf(n) : 'unknown';
     const g = svg('g', {
-      class: 'element ' + status + (S.selected === id ? ' selected' : ''),
+      class: 'element ' + status + (S.selected === id ? ' selected' : '') + (procedureTargets().has(id) ? ' target' : ''),
       'data-node': id, 'data-role': role, 'data-status': status,
       'data-led': led.color || 'off', 'data-led-mode': led.mode,
       'data-relay': n ? relayText(n) : unknown, 'data-buzzer': n && n.buzzer ? n.buzzer.mode : unknown,
@@ -486,7 +489,72 @@
       .map(timelineItem));
   }
 
+  // ---- leases and procedures ----
+  // The static elements the running procedures' current steps wait on: highlighted on the map.
+  function procedureTargets() {
+    return new Set(S.procedures.map((p) => p.wait.node));
+  }
+
+  function left(ms) {
+    const s = Math.max(0, Math.ceil((ms - (Date.now() - S.workAt)) / 1000));
+    return s >= 60 ? Math.floor(s / 60) + ' min ' + String(s % 60).padStart(2, '0') + ' s' : s + ' s';
+  }
+
+  function renderWork() {
+    $('work-empty').hidden = S.leases.length + S.procedures.length > 0;
+    $('procedures').replaceChildren(...S.procedures.map((p) => {
+      const w = p.wait;
+      const where = w.node + (w.port === null ? '' : ' port ' + w.port);
+      const what = (w.mobile ? 'mobile ' + w.mobile : 'a mobile element') + ' ' + w.condition + ' on ' + where;
+      const cancel = el('button', { type: 'button', class: 'cancel', 'data-procedure': p.id }, 'Cancel');
+      cancel.disabled = S.controls === 'read_only' || (S.controls === 'token' && !S.token);
+      cancel.addEventListener('click', () => cancelProcedure(p.id));
+      return el('li', { class: 'procedure', 'data-procedure': p.id },
+        el('strong', {}, 'Procedure ' + p.id + ' “' + p.name + '”'), ' — step ' + p.step + ' of ' + p.of,
+        el('p', { class: 'step-text' }, p.text || what),
+        el('p', { class: 'muted' }, 'waits for ' + what + '; ',
+          el('span', { class: 'countdown', 'data-ms': p.remaining_ms }, left(p.remaining_ms)), ' left'),
+        el('p', { class: 'result', id: 'procedure-result-' + p.id }, S.results.get('procedure ' + p.id) ? S.results.get('procedure ' + p.id).text : ''),
+        cancel);
+    }));
+    $('leases').replaceChildren(...S.leases.map((l) => {
+      const nodes = l.nodes === 'all' ? 'the island' : l.nodes.join(', ');
+      const until = l.expires_at ? ' until ' + l.expires_at.slice(11, 19) + ' UTC' : '';
+      return el('li', { class: 'lease', 'data-lease': l.id },
+        el('strong', {}, nodes), ' leased by ', el('span', { class: 'owner' }, l.owner), until, ' (',
+        el('span', { class: 'countdown', 'data-ms': l.remaining_ms }, left(l.remaining_ms)), ' left)',
+        l.note ? el('p', { class: 'muted' }, 'note: ' + l.note) : '');
+    }));
+  }
+
+  function renderCountdowns() {
+    for (const c of document.querySelectorAll('#work .countdown')) c.textContent = left(Number(c.dataset.ms));
+  }
+
+  async function cancelProcedure(id) {
+    const key = 'procedure ' + id;
+    const request_id = 'web-' + Date.now().toString(36) + '-' + (++requests);
+    S.pending.set(request_id, key);
+    S.results.set(key, { text: 'cancel: sent…', kind: 'pending' });
+    const headers = { 'Content-Type': 'application/json' };
+    if (S.token) headers.Authorization = 'Bearer ' + S.token;
+    try {
+      const r = await fetch('api/command', { method: 'POST', headers,
+        body: JSON.stringify({ cmd: 'procedure_cancel', id, request_id }) });
+      if (!r.ok) {
+        const body = await r.json().catch(() => ({}));
+        S.pending.delete(request_id);
+        S.results.set(key, { text: 'cancel: ' + (body.error || 'HTTP ' + r.status), kind: 'failed' });
+      }
+    } catch (err) {
+      S.pending.delete(request_id);
+      S.results.set(key, { text: 'cancel: not sent (' + (err.message || err) + ')', kind: 'failed' });
+    }
+    renderWork();
+  }
+
   function render() {
+    renderWork();
     renderMap();
     renderTable();
     renderDetails();
@@ -509,6 +577,10 @@
     if (mine !== null) S.pending.delete(p.request_id);
     if (ev.event === 'command_rejected') {
       if (mine !== null) S.results.set(mine, { text: 'rejected: ' + p.reason, kind: 'failed' });
+      return;
+    }
+    if (ev.event === 'procedure_ended' && mine !== null) {
+      S.results.set(mine, { text: 'procedure ' + p.id + ' ' + p.outcome, kind: 'ok' });
       return;
     }
     if (ev.event !== 'command_result') return;
@@ -559,6 +631,9 @@
     S.events = snap.events.filter((e) => e.event.event !== 'fw_progress').map((e) => ({ ev: e.event, time: e.time_ms }));
     for (let i = S.events.length - 1; i >= 0; i--) noteResult(S.events[i].ev);
     S.health = { gateway: snap.gateway, bus: snap.bus };
+    S.leases = (snap.leases || { leases: [] }).leases;
+    S.procedures = (snap.procedures || { procedures: [] }).procedures;
+    S.workAt = now;
     $('island-name').textContent = snap.island ? '“' + snap.island + '”' : '';
   }
 
@@ -586,6 +661,17 @@
       }
       renderHealth();
       renderAges();
+    } else if (e.type === 'leases' || e.type === 'procedures') {
+      const seq = Number(e.lastEventId);
+      if (seq && seq <= S.seq) return;
+      if (seq) S.seq = seq;
+      const doc = JSON.parse(e.data);
+      // Both documents' countdowns run from the latest one received.
+      S.leases.forEach((l) => { l.remaining_ms -= now - S.workAt; });
+      S.procedures.forEach((p) => { p.remaining_ms -= now - S.workAt; });
+      S.workAt = now;
+      if (e.type === 'leases') S.leases = doc.leases; else S.procedures = doc.procedures;
+      render();
     } else if (e.type === 'lagged') {
       loadSnapshot(); // publications were lost on the way: start again from a snapshot
     }
@@ -652,7 +738,7 @@
       // The browser retries by itself unless the stream was refused outright.
       if (es.readyState === EventSource.CLOSED) setTimeout(connect, 1000);
     });
-    for (const t of ['hello', 'event', 'state', 'health', 'lagged']) es.addEventListener(t, onMessage);
+    for (const t of ['hello', 'event', 'state', 'leases', 'procedures', 'health', 'lagged']) es.addEventListener(t, onMessage);
   }
 
   // A gateway that vanishes without closing the connection (a cable pulled) only goes quiet.
@@ -661,7 +747,7 @@
       setStale('no word from the gateway for ' + STALE_AFTER_MS / 1000 + ' s');
       connect();
     }
-    if (!S.stale) renderAges();
+    if (!S.stale) { renderAges(); renderCountdowns(); }
   }, 500);
 
   // ---- controls ----

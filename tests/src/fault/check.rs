@@ -602,7 +602,9 @@ fn cmd_and_node(s: &Sent) -> Option<(String, String)> {
         | Command::Lease { .. }
         | Command::Renew { .. }
         | Command::Release
-        | Command::BreakLease { .. } => None,
+        | Command::BreakLease { .. }
+        | Command::Procedure(_)
+        | Command::ProcedureCancel { .. } => None,
     }
 }
 

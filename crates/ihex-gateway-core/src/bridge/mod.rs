@@ -88,6 +88,8 @@ pub struct BridgeConfig {
     pub event_queue: usize,
     /// Firmware updates (`fw_update`): bus share and timeouts.
     pub fw: crate::fwupdate::FwConfig,
+    /// Guided procedures running at once at most (`procedure` beyond them is refused).
+    pub max_procedures: usize,
 }
 
 /// Default period of the broadcast health check (the seed's 1 s).
@@ -124,6 +126,7 @@ impl Default for BridgeConfig {
             tx_queue: DEFAULT_TX_QUEUE,
             event_queue: DEFAULT_EVENT_QUEUE,
             fw: crate::fwupdate::FwConfig::default(),
+            max_procedures: crate::procedure::DEFAULT_MAX_PROCEDURES,
         }
     }
 }
@@ -183,6 +186,8 @@ pub struct Bridge {
     pub(crate) clock: crate::lease::WallClock,
     /// `leases_reset` was published (at this run's first MQTT connection).
     pub(crate) leases_announced: bool,
+    /// The guided procedures running now.
+    pub(crate) procedures: crate::procedure::Procedures,
 }
 
 impl Bridge {
@@ -202,6 +207,7 @@ impl Bridge {
             hold_until: now + config.health_period * config.lost_after_misses.saturating_add(1),
             held: BTreeSet::new(),
             fw: FwUpdates::new(config.fw.clone()),
+            procedures: crate::procedure::Procedures::new(config.max_procedures),
             config,
             now,
             next_drop_report: now,
@@ -296,6 +302,21 @@ impl Bridge {
     /// are never dropped and their queue stays bounded.
     pub fn wants_commands(&self) -> bool {
         self.out.publish.answers_waiting() < ANSWER_BACKLOG
+    }
+
+    /// Queues an acknowledged frame of the bridge's own (`owner`'s) to `dest` as of the input
+    /// being handled; false, and nothing sent, when every sequence number is in use.
+    pub(crate) fn send_own(
+        &mut self,
+        owner: FrameOwner,
+        dest: NodeId,
+        kind: Kind,
+        msg: impl FnOnce(ihex_proto::Seq) -> Message,
+    ) -> bool {
+        let now = self.now;
+        self.pending
+            .send_internal(owner, dest, kind, msg, now, &mut self.out)
+            .is_some()
     }
 
     /// Records the time of the input being handled (state documents taken later are built as of it).
@@ -393,6 +414,14 @@ impl Bridge {
                 self.forget_command(request_id, id, now);
                 Ok(())
             }
+            Command::Procedure(spec) => {
+                self.procedure_command(request_id, *spec, now);
+                Ok(())
+            }
+            Command::ProcedureCancel { id } => {
+                self.procedure_cancel(request_id, id, now);
+                Ok(())
+            }
         };
         if let Err((request_id, error)) = sent {
             self.reject(request_id, error);
@@ -418,7 +447,9 @@ impl Bridge {
             | Command::Lease { .. }
             | Command::Renew { .. }
             | Command::Release
-            | Command::BreakLease { .. } => Target::All,
+            | Command::BreakLease { .. }
+            | Command::Procedure(_)
+            | Command::ProcedureCancel { .. } => Target::All,
         };
         let waited = millis(now.saturating_duration_since(delivery.received));
         self.pending.count_expired();
@@ -667,6 +698,12 @@ impl Bridge {
                 self.readback.on_fate(packet.dest, fate, now);
                 false
             }
+            FrameOwner::Procedure => {
+                // A light that could not be set is no reason to stop the procedure: the step
+                // waits on the docking, not on the LED; the frame's number is freed.
+                self.pending.on_fate(&packet, fate, now, &mut self.out);
+                false
+            }
             FrameOwner::HealthCheck | FrameOwner::FwUpdate => false,
         };
         if let (FrameFate::Failed(reason), false) = (fate, answered) {
@@ -692,6 +729,8 @@ impl Bridge {
         }
         self.out.dirty.clear();
         self.leases_on_connected(now);
+        // An earlier run's procedures ended with it: its retained document is replaced.
+        self.publish_procedures(now);
     }
 
     /// A retained state document of `id` the broker delivered when the adapter subscribed to the
@@ -1095,6 +1134,7 @@ impl Bridge {
                 self.on_frame_fate(p, owner, FrameFate::Failed(&reason), now);
             }
         }
+        self.procedures_on_input(now);
         for id in std::mem::take(&mut self.out.unsure) {
             self.readback.want(id);
         }

@@ -44,6 +44,8 @@ pub enum Publication {
     Ha(HaPublication),
     /// The leases document for [`Topic::Leases`] (retained).
     Leases(crate::lease::LeasesDocument),
+    /// The running procedures document for [`Topic::Procedures`] (retained).
+    Procedures(crate::procedure::ProceduresDocument),
     /// An empty retained message: the broker drops what the topic held (a forgotten node's state
     /// document, Home Assistant device and light state).
     Cleared(Topic),
@@ -57,6 +59,7 @@ impl Publication {
             Publication::State(s) => Topic::NodeState(s.id.0),
             Publication::Ha(h) => Topic::Ha(h.topic()),
             Publication::Leases(_) => Topic::Leases,
+            Publication::Procedures(_) => Topic::Procedures,
             Publication::Cleared(t) => *t,
         }
     }
@@ -74,6 +77,7 @@ impl Publication {
             Publication::State(s) => event::write_json(s, out),
             Publication::Ha(h) => h.write_payload(out),
             Publication::Leases(l) => event::write_json(l, out),
+            Publication::Procedures(p) => event::write_json(p, out),
             Publication::Cleared(_) => {}
         }
     }
@@ -145,6 +149,8 @@ pub enum FrameOwner {
     Command,
     /// The docking sequence: confirms, refusals, relay off, dock links.
     Docking,
+    /// A guided procedure's lights and beeps.
+    Procedure,
     /// The broadcast health check.
     HealthCheck,
     /// A state query of the read-back.
@@ -532,6 +538,8 @@ pub(crate) struct Outputs {
     pub(crate) dirty: Vec<NodeId>,
     /// Nodes whose real state the bridge is no longer sure of (a command to them timed out).
     pub(crate) unsure: BTreeSet<NodeId>,
+    /// Connections made (`true`) or ended (`false`) since the procedures last saw them.
+    pub(crate) dock_changes: Vec<(bool, crate::event::Connection)>,
 }
 
 impl Outputs {
@@ -541,6 +549,7 @@ impl Outputs {
             publish: PublishQueue::new(event_queue),
             dirty: Vec::new(),
             unsure: BTreeSet::new(),
+            dock_changes: Vec::new(),
         }
     }
 

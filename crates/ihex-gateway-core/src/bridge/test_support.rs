@@ -28,6 +28,8 @@ pub(crate) struct Out {
     pub(crate) cleared: Vec<Topic>,
     /// Leases documents published.
     pub(crate) leases: Vec<Value>,
+    /// Running procedures documents published.
+    pub(crate) procedures: Vec<Value>,
 }
 
 impl Out {
@@ -102,6 +104,11 @@ fn drain_with(b: &mut Bridge, confirm: bool) -> Out {
                 assert!(p.retain(), "the leases document is retained");
                 assert_eq!(p.topic(), Topic::Leases);
                 out.leases.push(serde_json::from_str(&payload).unwrap());
+            }
+            Publication::Procedures(_) => {
+                assert!(p.retain(), "the procedures document is retained");
+                assert_eq!(p.topic(), Topic::Procedures);
+                out.procedures.push(serde_json::from_str(&payload).unwrap());
             }
         }
     }

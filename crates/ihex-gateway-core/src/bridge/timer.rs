@@ -51,6 +51,8 @@ timers! {
     Hold,
     /// The earliest end of a lease.
     Leases,
+    /// The earliest timeout of a procedure's step.
+    Procedures,
 }
 
 /// The deadline of every [`Timer`], by [`Timer::VALUES`] index.
@@ -101,6 +103,7 @@ impl Bridge {
             Timer::Docking => self.docking.deadline(),
             Timer::Health => Some(self.health.next_deadline()),
             Timer::Leases => self.lease_table.next_deadline(),
+            Timer::Procedures => self.procedures.next_deadline(),
             Timer::DropReport => self
                 .out
                 .publish
@@ -130,6 +133,7 @@ impl Bridge {
             }
             Timer::Commands => self.pending.expire(now, &mut self.out),
             Timer::Leases => self.expire_leases(now),
+            Timer::Procedures => self.expire_procedures(now),
             Timer::ReadBack => self.readback.expire(now),
             Timer::Inherited => self.republish_inherited(now),
             Timer::Docking => {

@@ -11,7 +11,7 @@ pub(crate) mod pending;
 
 use std::time::Duration;
 
-use ihex_proto::{BuzzerCommand, LedCommand, Message, NodeId, Rgb, Seq, Uid};
+use ihex_proto::{BuzzerCommand, LedCommand, Message, NodeId, Port, Rgb, Seq, Uid};
 
 use crate::event::{HexId, Target};
 use crate::lease::{Scope, MAX_LEASE_S, MAX_NOTE_CHARS, MAX_OWNER_CHARS};
@@ -20,7 +20,7 @@ use json::{Arena, Json, Quote};
 
 /// Every command name, for error messages.
 pub const COMMAND_NAMES: &str =
-    "led, buzzer, power, identify, assign, forget, list, fw_update, lease, renew, release, break_lease";
+    "led, buzzer, power, identify, assign, forget, list, fw_update, lease, renew, release, break_lease, procedure, procedure_cancel";
 
 /// Default buzzer tone when a command gives none, in Hz.
 pub const DEFAULT_FREQ_HZ: u16 = 2000;
@@ -108,6 +108,9 @@ pub enum CommandError {
     /// A lease refuses the command, or a lease command was refused.
     #[error(transparent)]
     Lease(#[from] crate::lease::LeaseError),
+    /// A procedure could not start, or `procedure_cancel` named none running.
+    #[error(transparent)]
+    Procedure(#[from] crate::procedure::ProcedureError),
     /// `fw_update` to `"all"` with no node online.
     #[error("fw_update: no node is online")]
     FwNoNodes,
@@ -218,6 +221,13 @@ pub enum Command {
         /// Why, published with the `lease_ended` event.
         reason: String,
     },
+    /// `procedure`: run a guided procedure (its steps inline).
+    Procedure(Box<crate::procedure::Spec>),
+    /// `procedure_cancel`: end a running procedure.
+    ProcedureCancel {
+        /// The procedure's id.
+        id: u32,
+    },
 }
 
 /// The nodes of an `fw_update`.
@@ -242,6 +252,8 @@ impl Command {
             Command::Renew { .. } => "renew",
             Command::Release => "release",
             Command::BreakLease { .. } => "break_lease",
+            Command::Procedure(_) => "procedure",
+            Command::ProcedureCancel { .. } => "procedure_cancel",
         }
     }
 }
@@ -453,10 +465,156 @@ fn command(cmd: &str, members: &[(&str, Json<'_>)]) -> Result<Command, CommandEr
                 reason: reason.to_owned(),
             })
         }
+        "procedure" => procedure(&Fields::new(
+            "procedure",
+            "",
+            members,
+            &["name", "steps"],
+            "",
+        )?),
+        "procedure_cancel" => {
+            let f = Fields::new("procedure_cancel", "", members, &["id"], "")?;
+            let id = f.int("id", 1, i64::from(u32::MAX))?;
+            let id = f.required("id", id, "the procedure's id from procedure_started")?;
+            Ok(Command::ProcedureCancel {
+                id: u32::try_from(id).unwrap_or(u32::MAX),
+            })
+        }
         _ => Err(CommandError::UnknownCmd(
             Quote(&Json::String(cmd)).to_string(),
         )),
     }
+}
+
+/// Fields of one step of `procedure`.
+const STEP_FIELDS: &[&str] = &[
+    "text",
+    "light",
+    "color",
+    "brightness",
+    "blink",
+    "beep",
+    "wait",
+    "node",
+    "port",
+    "mobile",
+    "timeout_s",
+];
+/// What `procedure`'s `steps` accepts.
+const STEPS: &str = "an array of 1 to 64 step objects";
+/// What a step's `wait` accepts.
+const WAIT: &str = "\"docked\" or \"undocked\"";
+/// What a step's `text` accepts.
+const TEXT: &str = "text of at most 200 characters";
+
+fn procedure(f: &Fields<'_>) -> Result<Command, CommandError> {
+    use crate::procedure::{Spec, MAX_STEPS};
+    let name_expected = format!("a name of 1 to {MAX_OWNER_CHARS} printable characters");
+    let name = f.str("name", &name_expected)?.unwrap_or("procedure");
+    if name.trim().is_empty()
+        || name.chars().count() > MAX_OWNER_CHARS
+        || name.chars().any(char::is_control)
+    {
+        return Err(f.bad("name", &name_expected, &Json::String(name)));
+    }
+    let list = f.get("steps").ok_or_else(|| f.missing("steps", STEPS))?;
+    let items = match list {
+        Json::Array(items) if (1..=MAX_STEPS).contains(&items.len()) => items,
+        other => return Err(f.bad("steps", STEPS, other)),
+    };
+    let mut steps = Vec::with_capacity(items.len());
+    for (i, item) in items.iter().enumerate() {
+        let in_step = |e: CommandError| match e {
+            CommandError::Invalid { cmd, message } => CommandError::Invalid {
+                cmd,
+                message: format!("step {}: {message}", i + 1),
+            },
+            other => other,
+        };
+        let Json::Object(members) = item else {
+            return Err(in_step(f.invalid(format!(
+                "a step must be an object like {{\"wait\":\"docked\",\"node\":\"111\",\"color\":\"green\"}}; got {}",
+                item.kind()
+            ))));
+        };
+        let s = Fields::new("procedure", "step.", members, STEP_FIELDS, "").map_err(in_step)?;
+        steps.push(step(&s).map_err(in_step)?);
+    }
+    let spec = Spec {
+        name: name.to_owned(),
+        steps,
+    };
+    if spec.longest() > Duration::from_secs(u64::from(MAX_LEASE_S)) {
+        return Err(f.invalid(format!(
+            "the steps' timeouts add up to {} s; a procedure may last at most {MAX_LEASE_S} s (its lease's longest)",
+            spec.longest().as_secs()
+        )));
+    }
+    Ok(Command::Procedure(Box::new(spec)))
+}
+
+/// One element id of a step (`node`, `mobile`).
+fn step_node(f: &Fields<'_>, name: &str) -> Result<Option<NodeId>, CommandError> {
+    let Some(v) = f.get(name) else {
+        return Ok(None);
+    };
+    match v {
+        Json::String(s) => match s.parse::<NodeId>() {
+            Ok(id) if id.is_sc() => Ok(Some(id)),
+            _ => Err(f.bad(name, NODE_ID, v)),
+        },
+        _ => Err(f.bad(name, NODE_ID, v)),
+    }
+}
+
+fn step(f: &Fields<'_>) -> Result<crate::procedure::Step, CommandError> {
+    use crate::procedure::{Step, Wait, DEFAULT_STEP_TIMEOUT_S, MAX_STEP_TIMEOUT_S};
+    let text = f.str("text", TEXT)?;
+    if let Some(t) = text {
+        if t.chars().count() > MAX_NOTE_CHARS {
+            return Err(f.bad("text", TEXT, &Json::String(t)));
+        }
+    }
+    let node = f.required("node", step_node(f, "node")?, NODE_ID)?;
+    let mobile = step_node(f, "mobile")?;
+    let port = match f.u8_in("port", 0, 7)? {
+        Some(p) => Port::new(p),
+        None => None,
+    };
+    let wait = match f.required("wait", f.str("wait", WAIT)?, WAIT)? {
+        "docked" => Wait::Docked { node, port, mobile },
+        "undocked" => Wait::Undocked { node, port, mobile },
+        other => return Err(f.bad("wait", WAIT, &Json::String(other))),
+    };
+    let light = match f.get("light") {
+        None => vec![node],
+        Some(_) => match node_list(f, "light")? {
+            FwNodes::List(ids) => ids,
+            FwNodes::All => {
+                let v = Json::String("all");
+                return Err(f.bad("light", "node ids in hex separated by commas", &v));
+            }
+        },
+    };
+    let led = match led_pattern(f)? {
+        LedCommand::Off => {
+            return Err(
+                f.invalid("`step.color` must light the elements (a colour other than off)".into())
+            )
+        }
+        led => led,
+    };
+    let timeout_s = f
+        .int("timeout_s", 1, i64::from(MAX_STEP_TIMEOUT_S))?
+        .unwrap_or(i64::from(DEFAULT_STEP_TIMEOUT_S));
+    Ok(Step {
+        text: text.map(str::to_owned),
+        light,
+        led,
+        beep: f.bool("beep")?.unwrap_or(false),
+        wait,
+        timeout: Duration::from_secs(u64::try_from(timeout_s).unwrap_or(1)),
+    })
 }
 
 /// Fields of `lease` besides the common ones.
@@ -579,6 +737,14 @@ fn color(f: &Fields<'_>, v: &Json<'_>) -> Result<Option<Rgb>, CommandError> {
 
 fn led(f: &Fields<'_>) -> Result<Command, CommandError> {
     let target = target(f)?;
+    Ok(Command::Node {
+        target,
+        action: NodeAction::Led(led_pattern(f)?),
+    })
+}
+
+/// `color`, `brightness`, `blink` and `off` of `led` (and of a procedure's step).
+fn led_pattern(f: &Fields<'_>) -> Result<LedCommand, CommandError> {
     let brightness = f.u8_in("brightness", 0, 255)?.unwrap_or(255);
     let blink = match f.get("blink") {
         None => None,
@@ -612,10 +778,7 @@ fn led(f: &Fields<'_>) -> Result<Command, CommandError> {
             duty_pct,
         },
     };
-    Ok(Command::Node {
-        target,
-        action: NodeAction::Led(cmd),
-    })
+    Ok(cmd)
 }
 
 fn buzzer(f: &Fields<'_>) -> Result<Command, CommandError> {

@@ -567,9 +567,22 @@ impl Pending {
         let key = (src, kind, seq);
         if let Some(p) = self.pending.get(&key) {
             if matches!(p.what, What::Internal) {
+                let frame = p.frame;
                 self.remove(&key);
                 if result != AckResult::Ok {
                     tracing::debug!(%src, ?kind, seq, %result, "the node refused a frame of the gateway's own");
+                    return;
+                }
+                // What the node now shows (a procedure's light, the relay the docking switched
+                // off) is in its state document like a command's.
+                let action = match frame.msg {
+                    Message::LedSet { cmd, .. } => Some(NodeAction::Led(cmd)),
+                    Message::BuzzerSet { cmd, .. } => Some(NodeAction::Buzzer(cmd)),
+                    Message::PowerSet { on, .. } => Some(NodeAction::Power(on)),
+                    _ => None,
+                };
+                if let Some(action) = action {
+                    apply_action_state(registry, out, src, action, now);
                 }
                 return;
             }

@@ -72,6 +72,7 @@ pub(crate) fn apply(steps: Vec<Step>, parts: DockParts<'_>, now: Instant, out: &
                 out.mark_changed(c.n.id.0);
                 out.mark_changed(c.n_1.id.0);
                 out.emit(Event::NewConnection(c));
+                out.dock_changes.push((true, c));
                 if let (Some(port), Some(mport)) = (Port::new(c.n_1.port), Port::new(c.n.port)) {
                     let partner = DockPartner {
                         node: c.n.id.0,
@@ -91,6 +92,7 @@ pub(crate) fn apply(steps: Vec<Step>, parts: DockParts<'_>, now: Instant, out: &
                 out.mark_changed(c.n.id.0);
                 out.mark_changed(c.n_1.id.0);
                 out.emit(Event::ConnectionRemoved(c));
+                out.dock_changes.push((false, c));
             }
             Step::Failed {
                 node,

@@ -35,6 +35,16 @@ pub const BUZZER_STATE: &str = "{{ 'None' if value_json.buzzer is none else \
 /// protocol version, which is its `version`).
 pub const VERSION_STATE: &str =
     "{{ 'None' if value_json.firmware is none else value_json.firmware.version }}";
+/// The procedure sensor's state, from the retained procedures document: the first running
+/// procedure's current step (`sample-handover: step 1 of 3: Place the carrier on 112`), or `idle`;
+/// at most 255 characters, Home Assistant's limit for a state.
+pub const PROCEDURE_STATE: &str = "{% set p = value_json.procedures %}\
+     {% if p | length == 0 %}idle{% else %}\
+     {{ (p[0].name ~ ': step ' ~ p[0].step ~ ' of ' ~ p[0].of \
+     ~ (': ' ~ p[0].text if p[0].text else ''))[:255] }}{% endif %}";
+/// The procedure sensor's attributes: every running procedure, as the document lists them.
+pub const PROCEDURE_ATTRIBUTES: &str = "{{ {'procedures': value_json.procedures} | tojson }}";
+
 /// The event types of the docking entity.
 pub const DOCKING_EVENTS: [&str; 2] = ["docked", "undocked"];
 
@@ -125,10 +135,21 @@ pub fn gateway(cfg: &HaConfig) -> Value {
             "entity_category": "diagnostic",
         }),
     );
+    let procedure = with(
+        component(cfg, &id, "sensor", "procedure", "Procedure step"),
+        json!({
+            "state_topic": cfg.topics.procedures,
+            "value_template": PROCEDURE_STATE,
+            "json_attributes_topic": cfg.topics.procedures,
+            "json_attributes_template": PROCEDURE_ATTRIBUTES,
+            "icon": "mdi:clipboard-list-outline",
+            "availability": [{"topic": cfg.topics.availability}],
+        }),
+    );
     json!({
         "device": dev,
         "origin": origin(cfg),
-        "components": {"connection": connection},
+        "components": {"connection": connection, "procedure": procedure},
     })
 }
 

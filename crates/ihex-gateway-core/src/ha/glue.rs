@@ -401,6 +401,49 @@ mod tests {
         assert_eq!(seen(0x111, online), "");
     }
 
+    /// Issue 30: the gateway device's procedure sensor reads the retained procedures document: the
+    /// current step of the running procedure, `idle` without one, every procedure as attributes.
+    #[test]
+    fn the_procedure_sensor_shows_the_current_step() {
+        let (mut b, t0, out) = demo(Some("lab1"));
+        let (_, gw) = configs(&out)
+            .into_iter()
+            .rfind(|(t, _)| *t == HaTopic::GatewayConfig)
+            .expect("the gateway's config");
+        let sensor = gw["components"]["procedure"].clone();
+        assert_eq!(sensor["platform"], "sensor");
+        assert_eq!(sensor["state_topic"], "lab1/ihex/procedures");
+        assert_eq!(sensor["json_attributes_topic"], "lab1/ihex/procedures");
+        let state =
+            |doc: &Value| render(sensor["value_template"].as_str().unwrap(), &doc.to_string());
+        let idle = serde_json::to_value(b.procedures(t0)).unwrap();
+        assert_eq!(state(&idle), "idle");
+        let out = command(
+            &mut b,
+            json!({"cmd": "procedure", "name": "handover", "steps": [
+                {"text": "Place 3 on 112", "node": "112", "wait": "docked", "color": "green"},
+                {"node": "111", "port": 5, "wait": "docked", "color": "green"}]}),
+            t0 + S,
+        );
+        let doc = out.procedures.last().expect("the procedures document");
+        assert_eq!(state(doc), "handover: step 1 of 2: Place 3 on 112");
+        let attributes: Value = serde_json::from_str(&render(
+            sensor["json_attributes_template"].as_str().unwrap(),
+            &doc.to_string(),
+        ))
+        .unwrap();
+        assert_eq!(attributes["procedures"][0]["wait"]["node"], "112");
+        // Docked where it waits: step 2, without text.
+        let out = dock(&mut b, 0x112, 1, 3, t0 + 2 * S);
+        assert_eq!(
+            state(out.procedures.last().unwrap()),
+            "handover: step 2 of 2"
+        );
+        let long =
+            json!({"procedures": [{"name": "p", "step": 1, "of": 1, "text": "x".repeat(300)}]});
+        assert_eq!(state(&long).chars().count(), 255);
+    }
+
     /// Acks every frame `sent` carries as `ok` from its destination.
     fn ack_all(b: &mut Bridge, sent: &[Packet], now: Instant) -> Out {
         for p in sent {

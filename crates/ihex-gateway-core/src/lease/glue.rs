@@ -49,6 +49,12 @@ impl Bridge {
                 target: Target::All,
                 ..
             } => t.check_all(token, c, now),
+            // A procedure lights and waits on its static elements: they must be free, or held by
+            // the lease whose token it carries.
+            Command::Procedure(spec) => spec
+                .static_elements()
+                .into_iter()
+                .try_for_each(|id| t.check(id, token, c, now)),
             Command::Assign { new_id: id, .. } | Command::Forget { id } => {
                 t.check(*id, token, c, now)
             }
@@ -59,7 +65,8 @@ impl Bridge {
             | Command::Lease { .. }
             | Command::Renew { .. }
             | Command::Release
-            | Command::BreakLease { .. } => Ok(()),
+            | Command::BreakLease { .. }
+            | Command::ProcedureCancel { .. } => Ok(()),
         };
         checked.err().map(CommandError::from)
     }
@@ -113,6 +120,7 @@ impl Bridge {
             }),
             Command::BreakLease { id, reason } => self.lease_table.break_lease(id, now).map(|l| {
                 tracing::warn!(id, owner = %l.owner, %reason, "lease broken");
+                self.procedures_on_lease_ended(id, "broken (break_lease)", now);
                 self.ended(request_id.clone(), Ended::Broken, Some(reason), &l, now)
             }),
             _ => return,
@@ -156,6 +164,7 @@ impl Bridge {
         }
         for l in &ended {
             tracing::info!(id = l.id, owner = %l.owner, "lease expired");
+            self.procedures_on_lease_ended(l.id, "expired", now);
             let event = self.ended(None, Ended::Expired, None, l, now);
             self.out.emit(event);
         }

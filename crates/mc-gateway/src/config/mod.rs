@@ -121,6 +121,10 @@ options! {
     /// Largest accepted command payload, bytes (larger ones are `command_rejected`).
     max_command_bytes: usize = {bridge::DEFAULT_MAX_COMMAND_BYTES}, env "IHEX_MAX_COMMAND_BYTES",
         value "BYTES", range 64..=1048576;
+    /// Guided procedures running at once at most; a `procedure` command beyond them is refused
+    /// (`docs/procedures.md`).
+    max_procedures: usize = {ihex_gateway_core::procedure::DEFAULT_MAX_PROCEDURES},
+        env "IHEX_MAX_PROCEDURES", value "N", range 1..=64;
     /// Directory of signed firmware images an `fw_update` command may name by file name, besides
     /// the images uploaded over MQTT (`docs/firmware-update.md`).
     fw_dir: PathBuf = (text "none: only uploaded images"), env "IHEX_FW_DIR", value "DIR";
@@ -661,6 +665,7 @@ impl Config {
             dock_timeout: Duration::from_millis(s.dock_timeout_ms),
             command_timeout: Duration::from_millis(s.command_timeout_ms),
             max_command_bytes: s.max_command_bytes,
+            max_procedures: s.max_procedures,
             tx_queue: s.tx_queue,
             event_queue: s.mqtt_queue,
             fw: fwupdate::FwConfig {

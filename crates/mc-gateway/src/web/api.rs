@@ -115,6 +115,8 @@ fn sse_of(p: &Published) -> Event {
     let name = match p.kind {
         Kind::Event(_) => "event",
         Kind::State(_) => "state",
+        Kind::Leases => "leases",
+        Kind::Procedures => "procedures",
     };
     Event::default()
         .event(name)

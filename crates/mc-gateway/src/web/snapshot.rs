@@ -8,6 +8,8 @@ use std::{collections::BTreeMap, time::Instant};
 use ihex_gateway_core::{
     bridge::{BusHealth, CommandCounters},
     event::NodeState,
+    lease::LeasesDocument,
+    procedure::ProceduresDocument,
 };
 use serde::Serialize;
 use serde_json::value::RawValue;
@@ -45,6 +47,10 @@ pub struct Snapshot<'a> {
     pub nodes: Vec<NodeState>,
     /// The last events (up to [`crate::feed::RECENT_EVENTS`]), newest first.
     pub events: Vec<TimelineEntry>,
+    /// The leases held now, as the retained leases document carries them.
+    pub leases: LeasesDocument,
+    /// The procedures running now, as the retained procedures document carries them.
+    pub procedures: ProceduresDocument,
 }
 
 /// One event of the timeline.
@@ -218,6 +224,8 @@ impl<'a> Snapshot<'a> {
             bus: app.bus_view(&view, rates),
             nodes: view.nodes.unwrap_or_default(),
             events,
+            leases: view.leases,
+            procedures: view.procedures,
         }
     }
 }
