@@ -295,6 +295,9 @@ pub struct CommandResult {
     /// Broadcasts only: nodes that were online when the command was sent and did not answer.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub missing: Option<Vec<HexId>>,
+    /// The command's interface and identity; absent for the shared command topic without one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub origin: Option<crate::origin::Origin>,
 }
 
 /// Payload of `command_rejected`: the command was not sent because it is invalid.
@@ -304,6 +307,9 @@ pub struct CommandRejected {
     pub request_id: Option<String>,
     /// What was wrong and what is accepted.
     pub reason: String,
+    /// The command's interface and identity; absent for the shared command topic without one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub origin: Option<crate::origin::Origin>,
 }
 
 /// Payload of `fault`: a node's `Fault` report, or a protocol violation the gateway noticed.
@@ -803,6 +809,7 @@ mod tests {
             acked: Some(vec![id(1)]),
             refused: Some(vec![]),
             missing: Some(vec![id(0xffd)]),
+            origin: None,
         });
         let text = ev.to_json();
         assert!(text.contains(r#""node":"all""#), "{text}");
@@ -822,6 +829,7 @@ mod tests {
             acked: None,
             refused: None,
             missing: None,
+            origin: None,
         });
         assert_eq!(
             ev.to_json(),
