@@ -405,6 +405,17 @@ pub struct PublicationsDropped {
     pub events: std::collections::BTreeMap<String, u64>,
 }
 
+/// Payload of `audit_error`: the audit trail could not record (a full disk, the directory's size
+/// limit, a failing disk). Commands are carried out and answered all the same; the records lost
+/// are counted, and a `gap` record says how many once the trail records again.
+#[derive(Clone, PartialEq, Eq, Debug, Serialize, Deserialize)]
+pub struct AuditError {
+    /// What went wrong.
+    pub reason: String,
+    /// Records lost since the trail last recorded.
+    pub lost: u64,
+}
+
 /// Payload of `sim_result` (demo only): how a control message on the `ihex/sim` topic ended.
 #[derive(Clone, PartialEq, Eq, Debug, Serialize, Deserialize)]
 pub struct SimResult {
@@ -465,6 +476,8 @@ pub enum Event {
     LeaseEnded(Box<crate::lease::LeaseEnded>),
     /// The gateway started: leases of an earlier run ended with it.
     LeasesReset(crate::lease::LeasesReset),
+    /// The audit trail could not record.
+    AuditError(AuditError),
 }
 
 impl Event {
@@ -492,6 +505,7 @@ impl Event {
             Event::LeaseGranted(_) => "lease_granted",
             Event::LeaseEnded(_) => "lease_ended",
             Event::LeasesReset(_) => "leases_reset",
+            Event::AuditError(_) => "audit_error",
         }
     }
 

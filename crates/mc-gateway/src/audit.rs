@@ -1,0 +1,355 @@
+//! The audit trail in the gateway (`docs/audit.md`): the core task notes what happens — each
+//! command as received with its origin, each answer, lease changes, firmware outcomes, start and
+//! stop — as [`Record`]s, and hands them to a writer thread through a bounded queue without ever
+//! waiting: a slow or full disk never slows a command or keeps it from its answer. The writer
+//! appends them to the hash chain ([`ihex_audit::Writer`]) and makes them durable at least once a
+//! second (`fdatasync`), so a power cut loses at most the last second.
+//!
+//! When a record cannot be written (a full disk, `--audit-max-bytes` reached, a failing disk) or the
+//! queue is full, the record is lost and counted: the health flag ([`AuditStatus`], on `/healthz`
+//! and in the metrics) says why, the core publishes one `audit_error` event, and once the writer
+//! records again its first record is a `gap` saying how many were lost.
+
+use std::collections::VecDeque;
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{mpsc as std_mpsc, Arc, Mutex};
+use std::time::{Duration, Instant, SystemTime};
+
+use ihex_audit::{Head, Kind, Record, Writer, WriterOptions};
+use ihex_gateway_core::event::{self, AuditError, Event};
+use ihex_gateway_core::{Interface, Origin, Publication};
+use serde_json::{json, Value};
+use tokio::task::JoinSet;
+use tracing::{error, info, warn};
+
+use crate::config::AuditConfig;
+
+/// Records waiting for the writer; beyond this they are lost (and counted).
+pub const QUEUE: usize = 4096;
+/// Longest time a written record waits for `fdatasync`.
+pub const SYNC_EVERY: Duration = Duration::from_secs(1);
+/// Lines the island view may show.
+pub const RECENT: usize = 50;
+
+/// How the trail is doing, shared with the island view and the metrics.
+#[derive(Debug, Default)]
+pub struct AuditStatus {
+    /// Records written since start.
+    pub written: AtomicU64,
+    /// Records lost since start (not written: disk full, queue full).
+    pub lost: AtomicU64,
+    /// True while records cannot be written.
+    pub failing: AtomicBool,
+    /// Why, while failing.
+    pub why: Mutex<Option<String>>,
+    /// The chain's head.
+    pub head: Mutex<Option<Head>>,
+    /// The last lines written, oldest first (the island view shows them).
+    pub recent: Mutex<VecDeque<String>>,
+}
+
+impl AuditStatus {
+    /// Why records are not being written, `None` while they are.
+    pub fn problem(&self) -> Option<String> {
+        if !self.failing.load(Ordering::Relaxed) {
+            return None;
+        }
+        lock(&self.why).clone()
+    }
+
+    fn fail(&self, why: String) {
+        self.lost.fetch_add(1, Ordering::Relaxed);
+        *lock(&self.why) = Some(why);
+        self.failing.store(true, Ordering::Relaxed);
+    }
+}
+
+/// A poisoned lock only means a thread panicked while holding it; the data is still usable.
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
+/// The core task's end of the trail.
+#[derive(Debug)]
+pub struct Audit {
+    tx: std_mpsc::SyncSender<(SystemTime, Record)>,
+    status: Arc<AuditStatus>,
+    /// `audit_error` was published for the current failure.
+    reported: bool,
+    anchor: Option<(Duration, Instant, Option<Head>)>,
+}
+
+impl Audit {
+    /// Opens the trail `config` names (`None` when it is off) and starts its writer on `tasks`. A
+    /// directory that cannot be opened does not stop the gateway: the trail is failing from the
+    /// start (health flag, `audit_error`).
+    pub fn start(config: &AuditConfig, tasks: &mut JoinSet<()>) -> Option<Audit> {
+        let dir = config.dir.clone()?;
+        let status = Arc::new(AuditStatus::default());
+        let (tx, rx) = std_mpsc::sync_channel(QUEUE);
+        let options = WriterOptions {
+            max_bytes: config.max_bytes,
+            ..WriterOptions::default()
+        };
+        let st = status.clone();
+        tasks.spawn_blocking(move || write_loop(dir, options, rx, &st));
+        let anchor = config.anchor.map(|every| (every, Instant::now(), None));
+        Some(Audit {
+            tx,
+            status,
+            reported: false,
+            anchor,
+        })
+    }
+
+    /// The status the island view and the metrics read.
+    pub fn status(&self) -> Arc<AuditStatus> {
+        self.status.clone()
+    }
+
+    /// Hands `record` to the writer; never waits.
+    pub fn record(&self, record: Record) {
+        match self.tx.try_send((SystemTime::now(), record)) {
+            Ok(()) => {}
+            Err(std_mpsc::TrySendError::Full(_)) => {
+                self.status.fail("the audit writer's queue is full (a slow disk)".into());
+            }
+            Err(std_mpsc::TrySendError::Disconnected(_)) => {
+                self.status.fail("the audit writer stopped".into());
+            }
+        }
+    }
+
+    /// A command as received, with its origin.
+    pub fn command(&self, origin: &Origin, payload: &[u8], retained: bool) {
+        let command = serde_json::from_slice::<Value>(payload)
+            .unwrap_or_else(|_| Value::String(String::from_utf8_lossy(payload).into_owned()));
+        let mut r = with_origin(Kind::Command, origin);
+        r.request_id = command
+            .get("request_id")
+            .and_then(Value::as_str)
+            .map(str::to_owned);
+        r.claimed = command.get("user").and_then(Value::as_str).map(str::to_owned);
+        r.elements = elements(&command);
+        r.data = if retained {
+            json!({"command": command, "retained": true})
+        } else {
+            json!({"command": command})
+        };
+        self.record(r);
+    }
+
+    /// A command from Home Assistant (its topic names the element and the entity).
+    pub fn ha_command(&self, topic: &str, payload: &[u8]) {
+        let mut r = with_origin(Kind::Command, &Origin::new(Interface::Ha, None));
+        r.request_id = Some(ihex_gateway_core::ha::command::REQUEST_ID.to_owned());
+        let payload = String::from_utf8_lossy(payload);
+        r.data = json!({"topic": topic, "payload": payload});
+        self.record(r);
+    }
+
+    /// A publication leaves the core: answers, lease changes and firmware outcomes are recorded.
+    pub fn published(&self, publication: &Publication) {
+        let (kind, request_id, origin, elements, data) = match publication {
+            Publication::Event(e) => match e {
+                Event::CommandResult(r) => {
+                    let node = match r.node {
+                        event::Target::Node(id) => vec![event::HexId(id).to_string()],
+                        event::Target::All => Vec::new(),
+                    };
+                    (Kind::Answer, &r.request_id, &r.origin, node, event_value(e))
+                }
+                Event::CommandRejected(r) => {
+                    (Kind::Answer, &r.request_id, &r.origin, Vec::new(), event_value(e))
+                }
+                Event::FwReport(_) | Event::FwUpload(_) => {
+                    (Kind::Firmware, &None, &None, Vec::new(), event_value(e))
+                }
+                Event::LeaseGranted(_) | Event::LeaseEnded(_) | Event::LeasesReset(_) => {
+                    (Kind::Lease, &None, &None, Vec::new(), event_value(e))
+                }
+                _ => return,
+            },
+            _ => return,
+        };
+        let mut r = match origin {
+            Some(o) => with_origin(kind, o),
+            None => Record::new(kind, Value::Null),
+        };
+        r.request_id = request_id.clone();
+        r.elements = elements;
+        r.data = data;
+        self.record(r);
+    }
+
+    /// An `audit_error` event when the trail started failing since the last call (one per
+    /// failure: the health flag says the rest).
+    pub fn poll_error(&mut self) -> Option<Event> {
+        let failing = self.status.failing.load(Ordering::Relaxed);
+        if !failing {
+            self.reported = false;
+            return None;
+        }
+        if std::mem::replace(&mut self.reported, true) {
+            return None;
+        }
+        let reason = self.status.problem().unwrap_or_default();
+        let lost = self.status.lost.load(Ordering::Relaxed);
+        Some(Event::AuditError(AuditError { reason, lost }))
+    }
+
+    /// The chain's head as the retained anchor's payload (`SEQ:SHA256`), when one is due and the
+    /// head moved since the last.
+    pub fn poll_anchor(&mut self, now: Instant) -> Option<String> {
+        let (every, next, last) = self.anchor.as_mut()?;
+        if now < *next {
+            return None;
+        }
+        *next = now + *every;
+        let head = (*lock(&self.status.head))?;
+        if *last == Some(head) {
+            return None;
+        }
+        *last = Some(head);
+        Some(head.to_text())
+    }
+}
+
+fn with_origin(kind: Kind, origin: &Origin) -> Record {
+    let mut r = Record::new(kind, Value::Null);
+    r.interface = Some(origin.interface.as_str().to_owned());
+    r.user.clone_from(&origin.user);
+    r.claimed.clone_from(&origin.claimed);
+    r
+}
+
+fn event_value(e: &Event) -> Value {
+    serde_json::to_value(e).unwrap_or(Value::Null)
+}
+
+/// The elements a command names: `node` (one ID or `all`) and `nodes` (IDs separated by commas).
+fn elements(command: &Value) -> Vec<String> {
+    let mut out = Vec::new();
+    for key in ["node", "nodes"] {
+        if let Some(v) = command.get(key).and_then(Value::as_str) {
+            out.extend(
+                v.split(',')
+                    .map(str::trim)
+                    .filter(|s| !s.is_empty() && *s != "all")
+                    .map(str::to_ascii_lowercase),
+            );
+        }
+    }
+    out
+}
+
+/// The `start` record: version and the options set.
+pub fn start_record(config: &crate::config::Config) -> Record {
+    Record::new(
+        Kind::Start,
+        json!({
+            "version": env!("CARGO_PKG_VERSION"),
+            "island": config.island,
+            "options": crate::config::check::set_values(config),
+        }),
+    )
+}
+
+/// The writer thread: appends what comes, syncs at least every [`SYNC_EVERY`], records a `gap`
+/// after a failure, and ends (synced) when the core's end is dropped.
+fn write_loop(
+    dir: PathBuf,
+    options: WriterOptions,
+    rx: std_mpsc::Receiver<(SystemTime, Record)>,
+    status: &AuditStatus,
+) {
+    let mut writer = match Writer::open(&dir, options) {
+        Ok((w, resumed)) => {
+            if let Some(torn) = &resumed.torn {
+                warn!(%torn, "audit: the last line was torn (a crash mid-write); the chain goes on in a new file");
+            }
+            info!(dir = %dir.display(), head = ?resumed.head.map(|h| h.seq), "audit trail open");
+            *lock(&status.head) = resumed.head;
+            Some(w)
+        }
+        Err(e) => {
+            error!(error = %e, "audit trail cannot be opened: nothing is recorded");
+            status.fail(format!("cannot open {}: {e}", dir.display()));
+            None
+        }
+    };
+    let mut unsynced = None::<Instant>;
+    // Records lost since the last one written (the `gap` record says how many).
+    let mut lost_before = status.lost.load(Ordering::Relaxed);
+    loop {
+        let wait = unsynced.map_or(SYNC_EVERY, |since: Instant| {
+            SYNC_EVERY.saturating_sub(since.elapsed())
+        });
+        let item = match rx.recv_timeout(wait) {
+            Ok(item) => Some(item),
+            Err(std_mpsc::RecvTimeoutError::Timeout) => None,
+            Err(std_mpsc::RecvTimeoutError::Disconnected) => break,
+        };
+        if let (Some((ts, record)), Some(w)) = (item, writer.as_mut()) {
+            let lost = status.lost.load(Ordering::Relaxed) - lost_before;
+            let gap = (lost > 0).then(|| Record::new(Kind::Gap, json!({"lost": lost})));
+            let written = gap
+                .iter()
+                .chain(std::iter::once(&record))
+                .try_for_each(|r| append(w, ts, r, status));
+            match written {
+                Ok(()) => {
+                    lost_before += lost;
+                    unsynced.get_or_insert_with(Instant::now);
+                    if status.failing.swap(false, Ordering::Relaxed) {
+                        info!(lost, "audit trail records again");
+                    }
+                }
+                Err(e) => {
+                    if !status.failing.load(Ordering::Relaxed) {
+                        error!(error = %e, "audit trail cannot record: records are lost until it can");
+                    }
+                    status.fail(e.to_string());
+                }
+            }
+        }
+        if unsynced.is_some_and(|since| since.elapsed() >= SYNC_EVERY) {
+            sync(writer.as_mut(), status);
+            unsynced = None;
+        }
+    }
+    sync(writer.as_mut(), status);
+}
+
+fn append(
+    w: &mut Writer,
+    ts: SystemTime,
+    r: &Record,
+    status: &AuditStatus,
+) -> Result<(), ihex_audit::AuditError> {
+    let head = w.append(ts, r)?;
+    status.written.fetch_add(1, Ordering::Relaxed);
+    *lock(&status.head) = Some(head);
+    let mut line = json!({"seq": head.seq, "ts": ihex_audit::chain::rfc3339(ts)});
+    if let (Value::Object(line), Ok(Value::Object(fields))) = (&mut line, serde_json::to_value(r)) {
+        line.extend(fields);
+    }
+    let line = line.to_string();
+    let mut recent = lock(&status.recent);
+    if recent.len() == RECENT {
+        recent.pop_front();
+    }
+    recent.push_back(line);
+    Ok(())
+}
+
+fn sync(writer: Option<&mut Writer>, status: &AuditStatus) {
+    if let Some(w) = writer {
+        if let Err(e) = w.sync() {
+            error!(error = %e, "audit trail: fdatasync failed");
+            *lock(&status.why) = Some(e.to_string());
+            status.failing.store(true, Ordering::Relaxed);
+        }
+    }
+}
