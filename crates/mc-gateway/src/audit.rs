@@ -113,7 +113,8 @@ impl Audit {
         match self.tx.try_send((SystemTime::now(), record)) {
             Ok(()) => {}
             Err(std_mpsc::TrySendError::Full(_)) => {
-                self.status.fail("the audit writer's queue is full (a slow disk)".into());
+                self.status
+                    .fail("the audit writer's queue is full (a slow disk)".into());
             }
             Err(std_mpsc::TrySendError::Disconnected(_)) => {
                 self.status.fail("the audit writer stopped".into());
@@ -130,7 +131,10 @@ impl Audit {
             .get("request_id")
             .and_then(Value::as_str)
             .map(str::to_owned);
-        r.claimed = command.get("user").and_then(Value::as_str).map(str::to_owned);
+        r.claimed = command
+            .get("user")
+            .and_then(Value::as_str)
+            .map(str::to_owned);
         r.elements = elements(&command);
         r.data = if retained {
             json!({"command": command, "retained": true})
@@ -160,9 +164,13 @@ impl Audit {
                     };
                     (Kind::Answer, &r.request_id, &r.origin, node, event_value(e))
                 }
-                Event::CommandRejected(r) => {
-                    (Kind::Answer, &r.request_id, &r.origin, Vec::new(), event_value(e))
-                }
+                Event::CommandRejected(r) => (
+                    Kind::Answer,
+                    &r.request_id,
+                    &r.origin,
+                    Vec::new(),
+                    event_value(e),
+                ),
                 Event::FwReport(_) | Event::FwUpload(_) => {
                     (Kind::Firmware, &None, &None, Vec::new(), event_value(e))
                 }

@@ -369,7 +369,10 @@ impl Core {
         }
         self.flush_at_shutdown().await;
         if let Some(a) = &self.audit {
-            a.record(ihex_audit::Record::new(ihex_audit::Kind::Stop, serde_json::Value::Null));
+            a.record(ihex_audit::Record::new(
+                ihex_audit::Kind::Stop,
+                serde_json::Value::Null,
+            ));
         }
         Ok(())
     }
@@ -421,7 +424,12 @@ impl Core {
         if let Ok(permit) = self.pub_tx.try_reserve() {
             if let Some(event) = audit.poll_error() {
                 let p = Publication::Event(event);
-                permit.send(outbound(&self.topics, self.feed.as_deref(), &mut self.text, p));
+                permit.send(outbound(
+                    &self.topics,
+                    self.feed.as_deref(),
+                    &mut self.text,
+                    p,
+                ));
             }
         }
         if let Ok(permit) = self.pub_tx.try_reserve() {

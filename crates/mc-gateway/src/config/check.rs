@@ -102,7 +102,11 @@ pub fn set_values(config: &Config) -> std::collections::BTreeMap<String, String>
         .filter_map(|(key, value)| {
             let secret = specs.iter().any(|s| s.key == key && s.secret);
             let value = value?;
-            let value = if secret { "(set, hidden)".to_owned() } else { value };
+            let value = if secret {
+                "(set, hidden)".to_owned()
+            } else {
+                value
+            };
             Some((key.to_owned(), value))
         })
         .collect()
