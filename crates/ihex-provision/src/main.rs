@@ -9,6 +9,7 @@ macro_rules! say {
     ($($arg:tt)*) => { $crate::out::line(format_args!($($arg)*)) };
 }
 
+mod audit;
 mod fw;
 mod out;
 
@@ -47,6 +48,11 @@ enum Cmd {
     Fw {
         #[command(subcommand)]
         cmd: fw::FwCmd,
+    },
+    /// The gateway's audit trail: verify its hash chain, show who did what (docs/audit.md).
+    Audit {
+        #[command(subcommand)]
+        cmd: audit::AuditCmd,
     },
 }
 
@@ -180,6 +186,11 @@ fn main() -> ExitCode {
         Cmd::Can(a) => tokio_main(run_can(a)),
         Cmd::WaitEvent(a) => tokio_main(run_wait(a)),
         Cmd::Fw { cmd } => match fw::run(cmd) {
+            Ok(true) => Ok(()),
+            Ok(false) => return ExitCode::FAILURE,
+            Err(e) => Err(e),
+        },
+        Cmd::Audit { cmd } => match audit::run(cmd) {
             Ok(true) => Ok(()),
             Ok(false) => return ExitCode::FAILURE,
             Err(e) => Err(e),
