@@ -171,6 +171,12 @@ impl Audit {
                     Vec::new(),
                     event_value(e),
                 ),
+                Event::NodeList(l) => {
+                    // The answer to `list`: what it said, not the whole island again.
+                    let data = json!({"event": "node_list", "payload":
+                        {"request_id": l.request_id, "nodes": l.nodes.len()}});
+                    (Kind::Answer, &l.request_id, &None, Vec::new(), data)
+                }
                 Event::FwReport(_) | Event::FwUpload(_) => {
                     (Kind::Firmware, &None, &None, Vec::new(), event_value(e))
                 }
