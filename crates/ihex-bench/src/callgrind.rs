@@ -56,10 +56,14 @@ pub fn run(n: u64) -> Result<Callgrind> {
     let can_to_event = path_cost(&exe, "can", n, &dir)?;
     let again = measure(&exe, "can", n, &dir)?;
     let command_to_frame = path_cost(&exe, "command", n, &dir)?;
+    let command_answered = Some(path_cost(&exe, "answered", n, &dir)?);
+    let command_audited = Some(path_cost(&exe, "audited", n, &dir)?);
     Ok(Callgrind {
         repeatable: again == can_to_event.instructions_n,
         can_to_event,
         command_to_frame,
+        command_answered,
+        command_audited,
         binary: format!(
             "{} ({})",
             exe.file_name().unwrap_or_default().to_string_lossy(),

@@ -85,6 +85,13 @@ impl Audit {
     /// directory that cannot be opened does not stop the gateway: the trail is failing from the
     /// start (health flag, `audit_error`).
     pub fn start(config: &AuditConfig, tasks: &mut JoinSet<()>) -> Option<Audit> {
+        let (audit, writer) = Audit::open(config)?;
+        tasks.spawn_blocking(move || writer.run());
+        Some(audit)
+    }
+
+    /// The trail `config` names and its writer, not started (the benchmark runs it inline).
+    pub fn open(config: &AuditConfig) -> Option<(Audit, AuditWriter)> {
         let dir = config.dir.clone()?;
         let status = Arc::new(AuditStatus::default());
         let (tx, rx) = std_mpsc::sync_channel(QUEUE);
@@ -92,15 +99,15 @@ impl Audit {
             max_bytes: config.max_bytes,
             ..WriterOptions::default()
         };
-        let st = status.clone();
-        tasks.spawn_blocking(move || write_loop(dir, options, rx, &st));
+        let writer = AuditWriter::open(dir, options, rx, status.clone());
         let anchor = config.anchor.map(|every| (every, Instant::now(), None));
-        Some(Audit {
+        let audit = Audit {
             tx,
             status,
             reported: false,
             anchor,
-        })
+        };
+        Some((audit, writer))
     }
 
     /// The status the island view and the metrics read.
@@ -270,70 +277,117 @@ pub fn start_record(config: &crate::config::Config) -> Record {
     )
 }
 
-/// The writer thread: appends what comes, syncs at least every [`SYNC_EVERY`], records a `gap`
-/// after a failure, and ends (synced) when the core's end is dropped.
-fn write_loop(
-    dir: PathBuf,
-    options: WriterOptions,
+/// The writer's end: appends what comes, syncs at least every [`SYNC_EVERY`], records a `gap`
+/// after a failure.
+#[derive(Debug)]
+pub struct AuditWriter {
     rx: std_mpsc::Receiver<(SystemTime, Record)>,
-    status: &AuditStatus,
-) {
-    let mut writer = match Writer::open(&dir, options) {
-        Ok((w, resumed)) => {
-            if let Some(torn) = &resumed.torn {
-                warn!(%torn, "audit: the last line was torn (a crash mid-write); the chain goes on in a new file");
+    writer: Option<Writer>,
+    status: Arc<AuditStatus>,
+    /// Written and not yet synced since then.
+    unsynced: Option<Instant>,
+    /// The lost count the last `gap` (or the start) accounted for.
+    lost_before: u64,
+}
+
+impl AuditWriter {
+    fn open(
+        dir: PathBuf,
+        options: WriterOptions,
+        rx: std_mpsc::Receiver<(SystemTime, Record)>,
+        status: Arc<AuditStatus>,
+    ) -> AuditWriter {
+        let writer = match Writer::open(&dir, options) {
+            Ok((w, resumed)) => {
+                if let Some(torn) = &resumed.torn {
+                    warn!(%torn, "audit: the last line was torn (a crash mid-write); the chain goes on in a new file");
+                }
+                info!(dir = %dir.display(), head = ?resumed.head.map(|h| h.seq), "audit trail open");
+                *lock(&status.head) = resumed.head;
+                Some(w)
             }
-            info!(dir = %dir.display(), head = ?resumed.head.map(|h| h.seq), "audit trail open");
-            *lock(&status.head) = resumed.head;
-            Some(w)
-        }
-        Err(e) => {
-            error!(error = %e, "audit trail cannot be opened: nothing is recorded");
-            status.fail(format!("cannot open {}: {e}", dir.display()));
-            None
-        }
-    };
-    let mut unsynced = None::<Instant>;
-    // Records lost since the last one written (the `gap` record says how many).
-    let mut lost_before = status.lost.load(Ordering::Relaxed);
-    loop {
-        let wait = unsynced.map_or(SYNC_EVERY, |since: Instant| {
-            SYNC_EVERY.saturating_sub(since.elapsed())
-        });
-        let item = match rx.recv_timeout(wait) {
-            Ok(item) => Some(item),
-            Err(std_mpsc::RecvTimeoutError::Timeout) => None,
-            Err(std_mpsc::RecvTimeoutError::Disconnected) => break,
+            Err(e) => {
+                error!(error = %e, "audit trail cannot be opened: nothing is recorded");
+                status.fail(format!("cannot open {}: {e}", dir.display()));
+                None
+            }
         };
-        if let (Some((ts, record)), Some(w)) = (item, writer.as_mut()) {
-            let lost = status.lost.load(Ordering::Relaxed) - lost_before;
-            let gap = (lost > 0).then(|| Record::new(Kind::Gap, json!({"lost": lost})));
-            let written = gap
-                .iter()
-                .chain(std::iter::once(&record))
-                .try_for_each(|r| append(w, ts, r, status));
-            match written {
-                Ok(()) => {
-                    lost_before += lost;
-                    unsynced.get_or_insert_with(Instant::now);
-                    if status.failing.swap(false, Ordering::Relaxed) {
-                        info!(lost, "audit trail records again");
-                    }
-                }
-                Err(e) => {
-                    if !status.failing.load(Ordering::Relaxed) {
-                        error!(error = %e, "audit trail cannot record: records are lost until it can");
-                    }
-                    status.fail(e.to_string());
-                }
-            }
-        }
-        if unsynced.is_some_and(|since| since.elapsed() >= SYNC_EVERY) {
-            sync(writer.as_mut(), status);
-            unsynced = None;
+        let lost_before = status.lost.load(Ordering::Relaxed);
+        AuditWriter {
+            rx,
+            writer,
+            status,
+            unsynced: None,
+            lost_before,
         }
     }
-    sync(writer.as_mut(), status);
+
+    /// The writer thread: runs until the core's end is dropped, then syncs and returns.
+    pub fn run(mut self) {
+        loop {
+            let wait = self.unsynced.map_or(SYNC_EVERY, |since| {
+                SYNC_EVERY.saturating_sub(since.elapsed())
+            });
+            match self.rx.recv_timeout(wait) {
+                Ok((ts, record)) => self.take(ts, &record),
+                Err(std_mpsc::RecvTimeoutError::Timeout) => {}
+                Err(std_mpsc::RecvTimeoutError::Disconnected) => break,
+            }
+            if self
+                .unsynced
+                .is_some_and(|since| since.elapsed() >= SYNC_EVERY)
+            {
+                self.sync();
+            }
+        }
+        self.sync();
+    }
+
+    /// Writes every record waiting, without waiting for more (the benchmark's inline writer).
+    pub fn write_waiting(&mut self) {
+        while let Ok((ts, record)) = self.rx.try_recv() {
+            self.take(ts, &record);
+        }
+    }
+
+    fn take(&mut self, ts: SystemTime, record: &Record) {
+        let Some(w) = self.writer.as_mut() else {
+            return;
+        };
+        let status = &*self.status;
+        let lost = status.lost.load(Ordering::Relaxed) - self.lost_before;
+        let gap = (lost > 0).then(|| Record::new(Kind::Gap, json!({"lost": lost})));
+        let written = gap
+            .iter()
+            .chain(std::iter::once(record))
+            .try_for_each(|r| append(w, ts, r, status));
+        match written {
+            Ok(()) => {
+                self.lost_before += lost;
+                self.unsynced.get_or_insert_with(Instant::now);
+                if status.failing.swap(false, Ordering::Relaxed) {
+                    info!(lost, "audit trail records again");
+                }
+            }
+            Err(e) => {
+                if !status.failing.load(Ordering::Relaxed) {
+                    error!(error = %e, "audit trail cannot record: records are lost until it can");
+                }
+                status.fail(e.to_string());
+            }
+        }
+    }
+
+    fn sync(&mut self) {
+        self.unsynced = None;
+        if let Some(w) = self.writer.as_mut() {
+            if let Err(e) = w.sync() {
+                error!(error = %e, "audit trail: fdatasync failed");
+                *lock(&self.status.why) = Some(e.to_string());
+                self.status.failing.store(true, Ordering::Relaxed);
+            }
+        }
+    }
 }
 
 fn append(
@@ -356,14 +410,4 @@ fn append(
     }
     recent.push_back(line);
     Ok(())
-}
-
-fn sync(writer: Option<&mut Writer>, status: &AuditStatus) {
-    if let Some(w) = writer {
-        if let Err(e) = w.sync() {
-            error!(error = %e, "audit trail: fdatasync failed");
-            *lock(&status.why) = Some(e.to_string());
-            status.failing.store(true, Ordering::Relaxed);
-        }
-    }
 }
