@@ -70,10 +70,16 @@ fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
     m.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
 }
 
+/// A record for the writer: when it was made, and how many records were lost (the queue full)
+/// right before it.
+type Item = (SystemTime, Record, u64);
+
 /// The core task's end of the trail.
 #[derive(Debug)]
 pub struct Audit {
-    tx: std_mpsc::SyncSender<(SystemTime, Record)>,
+    tx: std_mpsc::SyncSender<Item>,
+    /// Records lost to a full queue since the last one handed over.
+    unsent: std::cell::Cell<u64>,
     status: Arc<AuditStatus>,
     /// `audit_error` was published for the current failure.
     reported: bool,
@@ -103,6 +109,7 @@ impl Audit {
         let anchor = config.anchor.map(|every| (every, Instant::now(), None));
         let audit = Audit {
             tx,
+            unsent: std::cell::Cell::new(0),
             status,
             reported: false,
             anchor,
@@ -117,9 +124,13 @@ impl Audit {
 
     /// Hands `record` to the writer; never waits.
     pub fn record(&self, record: Record) {
-        match self.tx.try_send((SystemTime::now(), record)) {
-            Ok(()) => {}
+        match self
+            .tx
+            .try_send((SystemTime::now(), record, self.unsent.get()))
+        {
+            Ok(()) => self.unsent.set(0),
             Err(std_mpsc::TrySendError::Full(_)) => {
+                self.unsent.set(self.unsent.get() + 1);
                 self.status
                     .fail("the audit writer's queue is full (a slow disk)".into());
             }
@@ -281,20 +292,20 @@ pub fn start_record(config: &crate::config::Config) -> Record {
 /// after a failure.
 #[derive(Debug)]
 pub struct AuditWriter {
-    rx: std_mpsc::Receiver<(SystemTime, Record)>,
+    rx: std_mpsc::Receiver<Item>,
     writer: Option<Writer>,
     status: Arc<AuditStatus>,
     /// Written and not yet synced since then.
     unsynced: Option<Instant>,
-    /// The lost count the last `gap` (or the start) accounted for.
-    lost_before: u64,
+    /// Records lost since the last one written (the next `gap` says how many).
+    unwritten: u64,
 }
 
 impl AuditWriter {
     fn open(
         dir: PathBuf,
         options: WriterOptions,
-        rx: std_mpsc::Receiver<(SystemTime, Record)>,
+        rx: std_mpsc::Receiver<Item>,
         status: Arc<AuditStatus>,
     ) -> AuditWriter {
         let writer = match Writer::open(&dir, options) {
@@ -312,13 +323,12 @@ impl AuditWriter {
                 None
             }
         };
-        let lost_before = status.lost.load(Ordering::Relaxed);
         AuditWriter {
             rx,
             writer,
             status,
             unsynced: None,
-            lost_before,
+            unwritten: 0,
         }
     }
 
@@ -329,7 +339,7 @@ impl AuditWriter {
                 SYNC_EVERY.saturating_sub(since.elapsed())
             });
             match self.rx.recv_timeout(wait) {
-                Ok((ts, record)) => self.take(ts, &record),
+                Ok((ts, record, unsent)) => self.take(ts, &record, unsent),
                 Err(std_mpsc::RecvTimeoutError::Timeout) => {}
                 Err(std_mpsc::RecvTimeoutError::Disconnected) => break,
             }
@@ -345,25 +355,37 @@ impl AuditWriter {
 
     /// Writes every record waiting, without waiting for more (the benchmark's inline writer).
     pub fn write_waiting(&mut self) {
-        while let Ok((ts, record)) = self.rx.try_recv() {
-            self.take(ts, &record);
+        while let Ok((ts, record, unsent)) = self.rx.try_recv() {
+            self.take(ts, &record, unsent);
         }
     }
 
-    fn take(&mut self, ts: SystemTime, record: &Record) {
+    /// Writes `record`, after a `gap` when records were lost right before it (`unsent` of them to
+    /// a full queue, and those this writer could not write).
+    fn take(&mut self, ts: SystemTime, record: &Record, unsent: u64) {
+        self.unwritten += unsent;
         let Some(w) = self.writer.as_mut() else {
             return;
         };
         let status = &*self.status;
-        let lost = status.lost.load(Ordering::Relaxed) - self.lost_before;
-        let gap = (lost > 0).then(|| Record::new(Kind::Gap, json!({"lost": lost})));
-        let written = gap
-            .iter()
-            .chain(std::iter::once(record))
-            .try_for_each(|r| append(w, ts, r, status));
+        let lost = self.unwritten;
+        let mut written = Ok(());
+        if lost > 0 {
+            written = append(
+                w,
+                ts,
+                &Record::new(Kind::Gap, json!({"lost": lost})),
+                status,
+            );
+            if written.is_ok() {
+                self.unwritten = 0;
+            }
+        }
+        if written.is_ok() {
+            written = append(w, ts, record, status);
+        }
         match written {
             Ok(()) => {
-                self.lost_before += lost;
                 self.unsynced.get_or_insert_with(Instant::now);
                 if status.failing.swap(false, Ordering::Relaxed) {
                     info!(lost, "audit trail records again");
@@ -373,6 +395,7 @@ impl AuditWriter {
                 if !status.failing.load(Ordering::Relaxed) {
                     error!(error = %e, "audit trail cannot record: records are lost until it can");
                 }
+                self.unwritten += 1;
                 status.fail(e.to_string());
             }
         }
@@ -410,4 +433,97 @@ fn append(
     }
     recent.push_back(line);
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use ihex_audit::dir::{chain_files, file_lines, verify_dir};
+    use ihex_audit::Entry;
+
+    fn entries(dir: &std::path::Path) -> Vec<Entry> {
+        chain_files(dir)
+            .unwrap()
+            .iter()
+            .flat_map(|f| file_lines(f).unwrap())
+            .map(|l| serde_json::from_slice(&l.bytes).unwrap())
+            .collect()
+    }
+
+    #[test]
+    fn records_lost_to_a_full_queue_are_a_gap_and_an_error_once() {
+        let tmp = tempfile::tempdir().unwrap();
+        let config = AuditConfig {
+            dir: Some(tmp.path().to_owned()),
+            anchor: Some(Duration::ZERO),
+            max_bytes: None,
+        };
+        let (mut audit, mut writer) = Audit::open(&config).unwrap();
+        let alice = Origin::new(Interface::Web, Some("local".into()));
+        // The writer takes nothing meanwhile: the queue fills and the rest is lost.
+        for _ in 0..QUEUE + 3 {
+            audit.command(&alice, br#"{"cmd":"list","request_id":"q"}"#, false);
+        }
+        assert_eq!(audit.status().lost.load(Ordering::Relaxed), 3);
+        let Some(Event::AuditError(e)) = audit.poll_error() else {
+            panic!("no audit_error")
+        };
+        assert_eq!(e.lost, 3);
+        assert!(e.reason.contains("queue is full"), "{}", e.reason);
+        assert_eq!(audit.poll_error(), None, "one event per failure");
+
+        writer.write_waiting();
+        audit.command(&alice, b"not json", false);
+        writer.write_waiting();
+        let all = entries(tmp.path());
+        assert_eq!(all.len(), QUEUE + 2);
+        assert_eq!(
+            all[QUEUE].record.kind,
+            Kind::Gap,
+            "right after what was queued"
+        );
+        assert_eq!(all[QUEUE].record.data, json!({"lost": 3}));
+        let last = &all[QUEUE + 1].record;
+        assert_eq!(last.data, json!({"command": "not json"}));
+        assert_eq!(
+            (last.interface.as_deref(), last.user.as_deref()),
+            (Some("web"), Some("local"))
+        );
+        assert_eq!(audit.status().problem(), None, "recording again");
+        assert_eq!(audit.poll_error(), None);
+        let head = audit.poll_anchor(Instant::now()).unwrap();
+        assert!(head.starts_with(&format!("{}:", QUEUE + 1)), "{head}");
+        assert_eq!(
+            audit.poll_anchor(Instant::now()),
+            None,
+            "the head did not move"
+        );
+        drop(audit);
+        writer.run();
+        assert_eq!(verify_dir(tmp.path(), None).unwrap().broken, None);
+    }
+
+    #[test]
+    fn a_command_record_names_its_elements_and_claim() {
+        let tmp = tempfile::tempdir().unwrap();
+        let config = AuditConfig {
+            dir: Some(tmp.path().to_owned()),
+            anchor: None,
+            max_bytes: None,
+        };
+        let (audit, mut writer) = Audit::open(&config).unwrap();
+        let cmd =
+            br#"{"cmd":"fw_update","image":"x","nodes":"111, 2A","user":"bob","request_id":"f"}"#;
+        audit.command(&Origin::default(), cmd, true);
+        writer.write_waiting();
+        let r = &entries(tmp.path())[0].record;
+        assert_eq!(r.elements, ["111", "2a"]);
+        assert_eq!(r.claimed.as_deref(), Some("bob"));
+        assert_eq!(
+            (r.user.as_deref(), r.interface.as_deref()),
+            (None, Some("mqtt"))
+        );
+        assert_eq!(r.request_id.as_deref(), Some("f"));
+        assert_eq!(r.data["retained"], true);
+    }
 }
