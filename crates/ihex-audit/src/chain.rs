@@ -24,13 +24,18 @@ pub fn hash_line(line: &[u8]) -> Hash {
 
 /// `hash` as 64 lowercase hex digits.
 pub fn to_hex(hash: &Hash) -> String {
+    hex_in(hash, &mut [0; 64]).to_owned()
+}
+
+/// `hash` as 64 lowercase hex digits, written into `buf` (no allocation on a record's path).
+fn hex_in<'b>(hash: &Hash, buf: &'b mut [u8; 64]) -> &'b str {
     const DIGITS: &[u8; 16] = b"0123456789abcdef";
-    let mut s = String::with_capacity(64);
-    for b in hash {
-        s.push(char::from(DIGITS[usize::from(b >> 4)]));
-        s.push(char::from(DIGITS[usize::from(b & 15)]));
+    for (i, b) in hash.iter().enumerate() {
+        buf[2 * i] = DIGITS[usize::from(b >> 4)];
+        buf[2 * i + 1] = DIGITS[usize::from(b & 15)];
     }
-    s
+    // Only ASCII digits were written.
+    std::str::from_utf8(buf).unwrap_or_default()
 }
 
 /// 64 hex digits as a hash; `None` for anything else.
@@ -115,8 +120,16 @@ struct Line<'a, B> {
 
 /// `t` as RFC 3339 UTC with milliseconds (`2026-11-25T14:05:10.123Z`).
 pub fn rfc3339(t: SystemTime) -> String {
+    rfc3339_in(t, &mut [0; 32]).to_owned()
+}
+
+/// [`rfc3339`], written into `buf` (no allocation on a record's path).
+fn rfc3339_in(t: SystemTime, buf: &mut [u8; 32]) -> &str {
+    use std::io::Write;
     let t = time::OffsetDateTime::from(t);
-    format!(
+    let mut w = &mut buf[..];
+    let _ = write!(
+        w,
         "{:04}-{:02}-{:02}T{:02}:{:02}:{:02}.{:03}Z",
         t.year(),
         u8::from(t.month()),
@@ -125,7 +138,9 @@ pub fn rfc3339(t: SystemTime) -> String {
         t.minute(),
         t.second(),
         t.millisecond()
-    )
+    );
+    let len = 32 - w.len();
+    std::str::from_utf8(&buf[..len]).unwrap_or_default()
 }
 
 /// Where the chain stands: the next record's sequence number and `prev`.
@@ -196,10 +211,11 @@ impl Chain {
         out: &mut Vec<u8>,
     ) -> Result<Built, serde_json::Error> {
         let start = out.len();
+        let (mut prev, mut time) = ([0; 64], [0; 32]);
         let line = Line {
             seq: self.next,
-            prev: &to_hex(&self.prev),
-            ts: &rfc3339(ts),
+            prev: hex_in(&self.prev, &mut prev),
+            ts: rfc3339_in(ts, &mut time),
             body,
         };
         serde_json::to_writer(&mut *out, &line)?;

@@ -270,6 +270,11 @@ impl Writer {
         &self.dir
     }
 
+    /// The line [`Writer::append`] last wrote (without its `\n`; empty before the first).
+    pub fn last_line(&self) -> &[u8] {
+        self.line.strip_suffix(b"\n").unwrap_or(&self.line)
+    }
+
     /// Appends the record `body` made at `ts`. On an error nothing of it stays in the file and the
     /// chain does not move: the same record may be tried again.
     pub fn append<B: Serialize>(&mut self, ts: SystemTime, body: &B) -> Result<Head, AuditError> {

@@ -16,9 +16,12 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{mpsc as std_mpsc, Arc, Mutex};
 use std::time::{Duration, Instant, SystemTime};
 
+use bytes::Bytes;
 use ihex_audit::{Head, Kind, Record, Writer, WriterOptions};
 use ihex_gateway_core::event::{self, AuditError, Event};
 use ihex_gateway_core::{Interface, Origin, Publication};
+use serde::{Deserialize, Serialize};
+use serde_json::value::RawValue;
 use serde_json::{json, Value};
 use tokio::task::JoinSet;
 use tracing::{error, info, warn};
@@ -70,9 +73,32 @@ fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
     m.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
 }
 
-/// A record for the writer: when it was made, and how many records were lost (the queue full)
+/// What the core task hands the writer: a record, or the text of a command or of a publication
+/// with what the core knows about it. The writer makes the record's line from the text, so that
+/// the core task builds no JSON tree and copies no payload (`Bytes` are shared).
+#[derive(Debug)]
+enum Note {
+    /// A record made by the core task (start, stop, a `list` answer, Home Assistant's commands).
+    Record(Record),
+    /// A command as received.
+    Command {
+        origin: Origin,
+        payload: Bytes,
+        retained: bool,
+    },
+    /// An answer, lease change or firmware outcome, as published.
+    Published {
+        kind: Kind,
+        origin: Option<Origin>,
+        request_id: Option<String>,
+        node: Option<String>,
+        text: Bytes,
+    },
+}
+
+/// A note for the writer: when it was made, and how many records were lost (the queue full)
 /// right before it.
-type Item = (SystemTime, Record, u64);
+type Item = (SystemTime, Note, u64);
 
 /// The core task's end of the trail.
 #[derive(Debug)]
@@ -124,9 +150,13 @@ impl Audit {
 
     /// Hands `record` to the writer; never waits.
     pub fn record(&self, record: Record) {
+        self.note(Note::Record(record));
+    }
+
+    fn note(&self, note: Note) {
         match self
             .tx
-            .try_send((SystemTime::now(), record, self.unsent.get()))
+            .try_send((SystemTime::now(), note, self.unsent.get()))
         {
             Ok(()) => self.unsent.set(0),
             Err(std_mpsc::TrySendError::Full(_)) => {
@@ -141,25 +171,12 @@ impl Audit {
     }
 
     /// A command as received, with its origin.
-    pub fn command(&self, origin: &Origin, payload: &[u8], retained: bool) {
-        let command = serde_json::from_slice::<Value>(payload)
-            .unwrap_or_else(|_| Value::String(String::from_utf8_lossy(payload).into_owned()));
-        let mut r = with_origin(Kind::Command, origin);
-        r.request_id = command
-            .get("request_id")
-            .and_then(Value::as_str)
-            .map(str::to_owned);
-        r.claimed = command
-            .get("user")
-            .and_then(Value::as_str)
-            .map(str::to_owned);
-        r.elements = elements(&command);
-        r.data = if retained {
-            json!({"command": command, "retained": true})
-        } else {
-            json!({"command": command})
-        };
-        self.record(r);
+    pub fn command(&self, origin: &Origin, payload: &Bytes, retained: bool) {
+        self.note(Note::Command {
+            origin: origin.clone(),
+            payload: payload.clone(),
+            retained,
+        });
     }
 
     /// A command from Home Assistant (its topic names the element and the entity).
@@ -171,48 +188,44 @@ impl Audit {
         self.record(r);
     }
 
-    /// A publication leaves the core: answers, lease changes and firmware outcomes are recorded.
-    pub fn published(&self, publication: &Publication) {
-        let (kind, request_id, origin, elements, data) = match publication {
-            Publication::Event(e) => match e {
-                Event::CommandResult(r) => {
-                    let node = match r.node {
-                        event::Target::Node(id) => vec![event::HexId(id).to_string()],
-                        event::Target::All => Vec::new(),
-                    };
-                    (Kind::Answer, &r.request_id, &r.origin, node, event_value(e))
-                }
-                Event::CommandRejected(r) => (
+    /// A publication leaves the core as `text`: answers, lease changes and firmware outcomes are
+    /// recorded.
+    pub fn published(&self, publication: &Publication, text: &Bytes) {
+        let Publication::Event(e) = publication else {
+            return;
+        };
+        let (kind, origin, request_id, node) = match e {
+            Event::CommandResult(r) => {
+                let node = match r.node {
+                    event::Target::Node(id) => Some(event::HexId(id).to_string()),
+                    event::Target::All => None,
+                };
+                (Kind::Answer, &r.origin, &r.request_id, node)
+            }
+            Event::CommandRejected(r) => (Kind::Answer, &r.origin, &r.request_id, None),
+            Event::NodeList(l) => {
+                // The answer to `list`: what it said, not the whole island again.
+                let mut r = Record::new(
                     Kind::Answer,
-                    &r.request_id,
-                    &r.origin,
-                    Vec::new(),
-                    event_value(e),
-                ),
-                Event::NodeList(l) => {
-                    // The answer to `list`: what it said, not the whole island again.
-                    let data = json!({"event": "node_list", "payload":
-                        {"request_id": l.request_id, "nodes": l.nodes.len()}});
-                    (Kind::Answer, &l.request_id, &None, Vec::new(), data)
-                }
-                Event::FwReport(_) | Event::FwUpload(_) => {
-                    (Kind::Firmware, &None, &None, Vec::new(), event_value(e))
-                }
-                Event::LeaseGranted(_) | Event::LeaseEnded(_) | Event::LeasesReset(_) => {
-                    (Kind::Lease, &None, &None, Vec::new(), event_value(e))
-                }
-                _ => return,
-            },
+                    json!({"event": "node_list", "payload":
+                        {"request_id": l.request_id, "nodes": l.nodes.len()}}),
+                );
+                r.request_id.clone_from(&l.request_id);
+                return self.record(r);
+            }
+            Event::FwReport(_) | Event::FwUpload(_) => (Kind::Firmware, &None, &None, None),
+            Event::LeaseGranted(_) | Event::LeaseEnded(_) | Event::LeasesReset(_) => {
+                (Kind::Lease, &None, &None, None)
+            }
             _ => return,
         };
-        let mut r = match origin {
-            Some(o) => with_origin(kind, o),
-            None => Record::new(kind, Value::Null),
-        };
-        r.request_id = request_id.clone();
-        r.elements = elements;
-        r.data = data;
-        self.record(r);
+        self.note(Note::Published {
+            kind,
+            origin: origin.clone(),
+            request_id: request_id.clone(),
+            node,
+            text: text.clone(),
+        });
     }
 
     /// An `audit_error` event when the trail started failing since the last call (one per
@@ -256,24 +269,75 @@ fn with_origin(kind: Kind, origin: &Origin) -> Record {
     r
 }
 
-fn event_value(e: &Event) -> Value {
-    serde_json::to_value(e).unwrap_or(Value::Null)
+/// The fields of a command the trail indexes, read without building a tree (each may be
+/// anything; only strings count).
+#[derive(Deserialize)]
+struct Peek<'a> {
+    #[serde(borrow)]
+    request_id: Option<&'a RawValue>,
+    #[serde(borrow)]
+    user: Option<&'a RawValue>,
+    #[serde(borrow)]
+    node: Option<&'a RawValue>,
+    #[serde(borrow)]
+    nodes: Option<&'a RawValue>,
+}
+
+/// A raw JSON value as a string, if it is one.
+fn text_of(v: Option<&RawValue>) -> Option<String> {
+    serde_json::from_str::<String>(v?.get()).ok()
 }
 
 /// The elements a command names: `node` (one ID or `all`) and `nodes` (IDs separated by commas).
-fn elements(command: &Value) -> Vec<String> {
-    let mut out = Vec::new();
-    for key in ["node", "nodes"] {
-        if let Some(v) = command.get(key).and_then(Value::as_str) {
-            out.extend(
-                v.split(',')
-                    .map(str::trim)
-                    .filter(|s| !s.is_empty() && *s != "all")
-                    .map(str::to_ascii_lowercase),
-            );
-        }
-    }
-    out
+fn elements(fields: [Option<String>; 2]) -> Vec<String> {
+    fields
+        .iter()
+        .flatten()
+        .flat_map(|v| v.split(','))
+        .map(str::trim)
+        .filter(|s| !s.is_empty() && *s != "all")
+        .map(str::to_ascii_lowercase)
+        .collect()
+}
+
+/// A record's line made from text: the same fields as [`Record`], `data` written as it came.
+#[derive(Serialize)]
+struct Line<'a> {
+    kind: Kind,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    interface: Option<&'a str>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    user: Option<&'a str>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    claimed: Option<&'a str>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    request_id: Option<&'a str>,
+    #[serde(skip_serializing_if = "<[String]>::is_empty")]
+    elements: &'a [String],
+    data: Data<'a>,
+}
+
+/// A line's `data`.
+#[derive(Serialize)]
+#[serde(untagged)]
+enum Data<'a> {
+    /// `{"command": <as received>}` (a string when it was no JSON), `"retained": true` for a
+    /// retained message.
+    Command {
+        command: Raw<'a>,
+        #[serde(skip_serializing_if = "std::ops::Not::not")]
+        retained: bool,
+    },
+    /// The publication as published.
+    Published(&'a RawValue),
+}
+
+/// A command as received: its JSON, or its text when it is no JSON.
+#[derive(Serialize)]
+#[serde(untagged)]
+enum Raw<'a> {
+    Json(&'a RawValue),
+    Text(std::borrow::Cow<'a, str>),
 }
 
 /// The `start` record: version and the options set.
@@ -339,7 +403,7 @@ impl AuditWriter {
                 SYNC_EVERY.saturating_sub(since.elapsed())
             });
             match self.rx.recv_timeout(wait) {
-                Ok((ts, record, unsent)) => self.take(ts, &record, unsent),
+                Ok((ts, note, unsent)) => self.take(ts, &note, unsent),
                 Err(std_mpsc::RecvTimeoutError::Timeout) => {}
                 Err(std_mpsc::RecvTimeoutError::Disconnected) => break,
             }
@@ -355,14 +419,14 @@ impl AuditWriter {
 
     /// Writes every record waiting, without waiting for more (the benchmark's inline writer).
     pub fn write_waiting(&mut self) {
-        while let Ok((ts, record, unsent)) = self.rx.try_recv() {
-            self.take(ts, &record, unsent);
+        while let Ok((ts, note, unsent)) = self.rx.try_recv() {
+            self.take(ts, &note, unsent);
         }
     }
 
-    /// Writes `record`, after a `gap` when records were lost right before it (`unsent` of them to
-    /// a full queue, and those this writer could not write).
-    fn take(&mut self, ts: SystemTime, record: &Record, unsent: u64) {
+    /// Writes the record of `note`, after a `gap` when records were lost right before it
+    /// (`unsent` of them to a full queue, and those this writer could not write).
+    fn take(&mut self, ts: SystemTime, note: &Note, unsent: u64) {
         self.unwritten += unsent;
         let Some(w) = self.writer.as_mut() else {
             return;
@@ -382,7 +446,7 @@ impl AuditWriter {
             }
         }
         if written.is_ok() {
-            written = append(w, ts, record, status);
+            written = append_note(w, ts, note, status);
         }
         match written {
             Ok(()) => {
@@ -413,20 +477,81 @@ impl AuditWriter {
     }
 }
 
-fn append(
+/// Appends the record of `note`.
+fn append_note(
     w: &mut Writer,
     ts: SystemTime,
-    r: &Record,
+    note: &Note,
     status: &AuditStatus,
 ) -> Result<(), ihex_audit::AuditError> {
-    let head = w.append(ts, r)?;
+    match note {
+        Note::Record(r) => append(w, ts, r, status),
+        Note::Command {
+            origin,
+            payload,
+            retained,
+        } => {
+            let (command, peek) = match serde_json::from_slice::<&RawValue>(payload) {
+                Ok(raw) => (
+                    Raw::Json(raw),
+                    serde_json::from_str::<Peek<'_>>(raw.get()).ok(),
+                ),
+                Err(_) => (Raw::Text(String::from_utf8_lossy(payload)), None),
+            };
+            let (request_id, claimed, elements) = match peek {
+                Some(p) => (
+                    text_of(p.request_id),
+                    text_of(p.user),
+                    elements([text_of(p.node), text_of(p.nodes)]),
+                ),
+                None => (None, None, Vec::new()),
+            };
+            let line = Line {
+                kind: Kind::Command,
+                interface: Some(origin.interface.as_str()),
+                user: origin.user.as_deref(),
+                claimed: claimed.as_deref(),
+                request_id: request_id.as_deref(),
+                elements: &elements,
+                data: Data::Command {
+                    command,
+                    retained: *retained,
+                },
+            };
+            append(w, ts, &line, status)
+        }
+        Note::Published {
+            kind,
+            origin,
+            request_id,
+            node,
+            text,
+        } => {
+            let raw = serde_json::from_slice::<&RawValue>(text)?;
+            let line = Line {
+                kind: *kind,
+                interface: origin.as_ref().map(|o| o.interface.as_str()),
+                user: origin.as_ref().and_then(|o| o.user.as_deref()),
+                claimed: origin.as_ref().and_then(|o| o.claimed.as_deref()),
+                request_id: request_id.as_deref(),
+                elements: node.as_slice(),
+                data: Data::Published(raw),
+            };
+            append(w, ts, &line, status)
+        }
+    }
+}
+
+fn append<B: Serialize>(
+    w: &mut Writer,
+    ts: SystemTime,
+    body: &B,
+    status: &AuditStatus,
+) -> Result<(), ihex_audit::AuditError> {
+    let head = w.append(ts, body)?;
     status.written.fetch_add(1, Ordering::Relaxed);
     *lock(&status.head) = Some(head);
-    let mut line = json!({"seq": head.seq, "ts": ihex_audit::chain::rfc3339(ts)});
-    if let (Value::Object(line), Ok(Value::Object(fields))) = (&mut line, serde_json::to_value(r)) {
-        line.extend(fields);
-    }
-    let line = line.to_string();
+    let line = String::from_utf8_lossy(w.last_line()).into_owned();
     let mut recent = lock(&status.recent);
     if recent.len() == RECENT {
         recent.pop_front();
@@ -462,7 +587,8 @@ mod tests {
         let alice = Origin::new(Interface::Web, Some("local".into()));
         // The writer takes nothing meanwhile: the queue fills and the rest is lost.
         for _ in 0..QUEUE + 3 {
-            audit.command(&alice, br#"{"cmd":"list","request_id":"q"}"#, false);
+            let cmd = Bytes::from_static(br#"{"cmd":"list","request_id":"q"}"#);
+            audit.command(&alice, &cmd, false);
         }
         assert_eq!(audit.status().lost.load(Ordering::Relaxed), 3);
         let Some(Event::AuditError(e)) = audit.poll_error() else {
@@ -473,7 +599,7 @@ mod tests {
         assert_eq!(audit.poll_error(), None, "one event per failure");
 
         writer.write_waiting();
-        audit.command(&alice, b"not json", false);
+        audit.command(&alice, &Bytes::from_static(b"not json"), false);
         writer.write_waiting();
         let all = entries(tmp.path());
         assert_eq!(all.len(), QUEUE + 2);
@@ -514,7 +640,7 @@ mod tests {
         let (audit, mut writer) = Audit::open(&config).unwrap();
         let cmd =
             br#"{"cmd":"fw_update","image":"x","nodes":"111, 2A","user":"bob","request_id":"f"}"#;
-        audit.command(&Origin::default(), cmd, true);
+        audit.command(&Origin::default(), &Bytes::from_static(cmd), true);
         writer.write_waiting();
         let r = &entries(tmp.path())[0].record;
         assert_eq!(r.elements, ["111", "2a"]);

@@ -399,12 +399,10 @@ impl Core {
                 break;
             };
             self.meter.published(&publication, now);
-            if let Some(a) = &self.audit {
-                a.published(&publication);
-            }
             permit.send(outbound(
                 &self.topics,
                 self.feed.as_deref(),
+                self.audit.as_ref(),
                 &mut self.text,
                 publication,
             ));
@@ -424,12 +422,9 @@ impl Core {
         if let Ok(permit) = self.pub_tx.try_reserve() {
             if let Some(event) = audit.poll_error() {
                 let p = Publication::Event(event);
-                permit.send(outbound(
-                    &self.topics,
-                    self.feed.as_deref(),
-                    &mut self.text,
-                    p,
-                ));
+                // Not recorded: the trail cannot record now.
+                let feed = self.feed.as_deref();
+                permit.send(outbound(&self.topics, feed, None, &mut self.text, p));
             }
         }
         if let Ok(permit) = self.pub_tx.try_reserve() {
@@ -449,12 +444,10 @@ impl Core {
         let deadline = tokio::time::Instant::now() + SHUTDOWN_FLUSH;
         while let Some(publication) = self.bridge.poll_publication() {
             self.meter.published(&publication, Instant::now());
-            if let Some(a) = &self.audit {
-                a.published(&publication);
-            }
             let p = outbound(
                 &self.topics,
                 self.feed.as_deref(),
+                self.audit.as_ref(),
                 &mut self.text,
                 publication,
             );
@@ -526,14 +519,19 @@ fn on_mqtt(bridge: &mut Bridge, meter: &mut CommandMeter, audit: Option<&Audit>,
 }
 
 /// The one place publications leave the core: serialised once, logged (every event at info, so
-/// the log alone tells the island's story), copied to the island view, addressed for the MQTT task.
+/// the log alone tells the island's story), copied to the island view and the audit trail,
+/// addressed for the MQTT task.
 fn outbound(
     topics: &Topics,
     feed: Option<&Feed>,
+    audit: Option<&Audit>,
     text: &mut PayloadWriter,
     publication: Publication,
 ) -> Outbound {
     let payload = text.write(&publication);
+    if let Some(a) = audit {
+        a.published(&publication, &payload);
+    }
     // serde_json writes UTF-8 only; the text is checked only where it is read as text (a log line
     // that is enabled, the island view).
     let json = || String::from_utf8_lossy(&payload);
