@@ -377,7 +377,10 @@ impl AuditWriter {
                 if let Some(torn) = &resumed.torn {
                     warn!(%torn, "audit: the last line was torn (a crash mid-write); the chain goes on in a new file");
                 }
-                info!(dir = %dir.display(), head = ?resumed.head.map(|h| h.seq), "audit trail open");
+                let head = resumed
+                    .head
+                    .map_or_else(|| "none".to_owned(), |h| h.seq.to_string());
+                info!(dir = %dir.display(), %head, "audit trail open");
                 *lock(&status.head) = resumed.head;
                 Some(w)
             }
