@@ -49,7 +49,7 @@ pub struct AuditStatus {
     /// The chain's head.
     pub head: Mutex<Option<Head>>,
     /// The last lines written, oldest first (the island view shows them).
-    pub recent: Mutex<VecDeque<String>>,
+    pub recent: Mutex<VecDeque<Vec<u8>>>,
 }
 
 impl AuditStatus {
@@ -554,11 +554,14 @@ fn append<B: Serialize>(
     let head = w.append(ts, body)?;
     status.written.fetch_add(1, Ordering::Relaxed);
     *lock(&status.head) = Some(head);
-    let line = String::from_utf8_lossy(w.last_line()).into_owned();
     let mut recent = lock(&status.recent);
-    if recent.len() == RECENT {
-        recent.pop_front();
-    }
+    // The oldest line's buffer holds the newest: no allocation once the list is full.
+    let mut line = match recent.len() {
+        RECENT => recent.pop_front().unwrap_or_default(),
+        _ => Vec::new(),
+    };
+    line.clear();
+    line.extend_from_slice(w.last_line());
     recent.push_back(line);
     Ok(())
 }

@@ -292,6 +292,27 @@ async fn full_trail_still_answers(audit_dir: &Path, max_bytes: Option<u64>) {
         .await
         .unwrap();
     assert!(metrics.contains("\nihex_audit_up 0"), "{metrics}");
+    // The island view's list: the records written, without the chain's link, and why it stopped.
+    let (status, body) = tokio::task::spawn_blocking(move || http_get(view, "/api/audit"))
+        .await
+        .unwrap();
+    let audit: Value = serde_json::from_str(&body).unwrap();
+    assert_eq!((status, &audit["on"]), (200, &Value::from(true)), "{body}");
+    assert!(audit["problem"].as_str().is_some(), "{body}");
+    let records = audit["records"].as_array().unwrap();
+    assert_eq!(records[0]["kind"], "start", "{body}");
+    assert!(
+        records
+            .iter()
+            .all(|r| r.get("prev").is_none() && r["seq"].is_u64()),
+        "{body}"
+    );
+    assert!(
+        records
+            .iter()
+            .any(|r| r["kind"] == "answer" && r["data"]["event"] == "command_result"),
+        "{body}"
+    );
 
     stop.cancel();
     run.await.unwrap().unwrap();

@@ -160,7 +160,7 @@ async fn audit(State(app): State<Arc<App>>) -> Response {
         .lock()
         .unwrap_or_else(std::sync::PoisonError::into_inner)
         .iter()
-        .filter_map(|line| serde_json::from_str(line).ok())
+        .filter_map(|line| serde_json::from_slice(line).ok())
         .map(|mut v: serde_json::Value| {
             // The chain's link means nothing to a person.
             if let Some(o) = v.as_object_mut() {
