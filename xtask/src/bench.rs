@@ -544,6 +544,14 @@ fn measure_host(
         missing.push(format!("procedure: {e:#}"));
     }
 
+    println!("\n==> xtask bench: audit trail, one million records verified");
+    let mut c = Command::new(bench);
+    c.args(["audit-verify", "--records", "1000000", "--out"])
+        .arg(dir.join("audit.json"));
+    if let Err(e) = cmd::run(&mut c) {
+        missing.push(format!("audit verification: {e:#}"));
+    }
+
     println!("\n==> xtask bench: firmware size");
     if let Err(e) = firmware(
         firmware_dir,

@@ -57,11 +57,15 @@ pub fn run(n: u64) -> Result<Callgrind> {
     let again = measure(&exe, "can", n, &dir)?;
     let command_to_frame = path_cost(&exe, "command", n, &dir)?;
     let command_leased = path_cost(&exe, "command-leased", n, &dir)?;
+    let command_answered = Some(path_cost(&exe, "answered", n, &dir)?);
+    let command_audited = Some(path_cost(&exe, "audited", n, &dir)?);
     Ok(Callgrind {
         command_leased: Some(command_leased),
         repeatable: again == can_to_event.instructions_n,
         can_to_event,
         command_to_frame,
+        command_answered,
+        command_audited,
         binary: format!(
             "{} ({})",
             exe.file_name().unwrap_or_default().to_string_lossy(),

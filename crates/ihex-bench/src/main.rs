@@ -32,6 +32,10 @@ enum WorkPath {
     Command,
     /// JSON command -> frame, with leases held (commands to leased nodes carry the token).
     CommandLeased,
+    /// JSON command -> frame -> ack -> command_result, audit trail off.
+    Answered,
+    /// The same, audit trail on.
+    Audited,
 }
 
 #[derive(Subcommand)]
@@ -147,6 +151,15 @@ enum Cmd {
         /// Iterations.
         #[arg(long)]
         n: u32,
+    },
+    /// The audit trail: write RECORDS records into a temporary directory, time their verification.
+    AuditVerify {
+        /// Records in the chain.
+        #[arg(long, default_value_t = 1_000_000)]
+        records: u64,
+        /// Write the figures (JSON) here.
+        #[arg(long)]
+        out: Option<PathBuf>,
     },
     /// Instruction counts of both workload paths under valgrind: (I(2n) - I(n)) / n.
     Callgrind {
@@ -290,6 +303,8 @@ fn main() -> Result<()> {
                 WorkPath::Can => workload::Path::CanToEvent,
                 WorkPath::Command => workload::Path::CommandToFrame,
                 WorkPath::CommandLeased => workload::Path::CommandLeased,
+                WorkPath::Answered => workload::Path::CommandAnswered,
+                WorkPath::Audited => workload::Path::CommandAudited,
             };
             let out = workload::run(p, n);
             println!("{out:?}");
@@ -298,6 +313,17 @@ fn main() -> Result<()> {
             let p = ihex_bench::procedure::run(samples);
             finish(p, out, None, |p| report::Results {
                 procedure: Some(p),
+                ..Default::default()
+            })?;
+        }
+        Cmd::AuditVerify { records, out } => {
+            let dir =
+                std::env::temp_dir().join(format!("ihex-bench-verify-{}", std::process::id()));
+            let result = ihex_bench::audit::run(&dir, records, 3);
+            let _ = std::fs::remove_dir_all(&dir);
+            let a = result?;
+            finish(a, out, None, |a| report::Results {
+                audit: Some(a),
                 ..Default::default()
             })?;
         }
@@ -342,6 +368,12 @@ fn main() -> Result<()> {
                     live,
                     callgrind,
                 });
+            }
+            match read("audit.json") {
+                Some(b) => r.audit = Some(serde_json::from_slice(&b).context("audit.json")?),
+                None => r
+                    .missing
+                    .push("audit trail verification (no audit.json)".into()),
             }
             match read("fw.json") {
                 Some(b) => r.fw = Some(serde_json::from_slice(&b).context("fw.json")?),

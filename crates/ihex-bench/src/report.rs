@@ -32,6 +32,12 @@ pub struct Callgrind {
     /// leases has none).
     #[serde(default)]
     pub command_leased: Option<PathCost>,
+    /// JSON command → frame → ack → `command_result`, audit trail off (absent in older results).
+    #[serde(default)]
+    pub command_answered: Option<PathCost>,
+    /// The same with the audit trail on: records made, chained and written (docs/audit.md).
+    #[serde(default)]
+    pub command_audited: Option<PathCost>,
     /// A second run of the CAN → event `n` workload gave the same count.
     pub repeatable: bool,
     /// The binary that was measured (build profile and target).
@@ -76,6 +82,9 @@ pub struct Results {
     /// The firmware update of a simulated island, if it was measured.
     #[serde(default)]
     pub fw: Option<FwResults>,
+    /// The audit trail's verification time, if it was measured.
+    #[serde(default)]
+    pub audit: Option<crate::audit::AuditVerify>,
     /// Why a part is missing.
     pub missing: Vec<String>,
     /// The same measurements of an earlier gateway, taken in the same run with the same harness.
@@ -477,6 +486,21 @@ pub fn table(r: &Results) -> String {
                 if added <= 5.0 { "pass" } else { "FAIL" }
             );
         }
+        if let (Some(off), Some(on)) = (&c.command_answered, &c.command_audited) {
+            let extra = on.per_frame / off.per_frame - 1.0;
+            let _ = writeln!(
+                o,
+                "  command answered  {:>9.0}   audit off\n  command answered  {:>9.0}   audit on: {:+.1} %  {}",
+                off.per_frame,
+                on.per_frame,
+                extra * 100.0,
+                if extra <= 0.15 {
+                    "(goal <= +15 %: pass)"
+                } else {
+                    "(goal <= +15 %: FAIL)"
+                }
+            );
+        }
         let _ = writeln!(
             o,
             "  repeatable: {}",
@@ -497,6 +521,23 @@ pub fn table(r: &Results) -> String {
             d.p99_us,
             d.max_us,
             if d.n > 0 && d.p99_us <= 50_000.0 { "pass" } else { "FAIL" }
+        );
+    }
+    if let Some(a) = &r.audit {
+        let _ = writeln!(
+            o,
+            "\naudit trail: {} records ({:.0} MB, {} files) verified in {:.2} s {}",
+            a.records,
+            a.bytes as f64 / 1e6,
+            a.files,
+            a.seconds,
+            if a.records >= 1_000_000 && a.seconds <= 5.0 {
+                "(goal: a million in <= 5 s: pass)"
+            } else if a.records >= 1_000_000 {
+                "(goal: a million in <= 5 s: FAIL)"
+            } else {
+                ""
+            }
         );
     }
     if let Some(fw) = &r.firmware {

@@ -21,8 +21,10 @@ use std::hint::black_box;
 use std::time::{Duration, Instant};
 
 use ihex_gateway_core::topic::Topics;
-use ihex_gateway_core::{Bridge, BridgeConfig, PayloadWriter};
-use ihex_proto::{BootRole, Message, NodeId, Packet, ResetReason};
+use ihex_gateway_core::{Bridge, BridgeConfig, Delivery, Interface, Origin, PayloadWriter};
+use ihex_proto::{AckResult, BootRole, Message, NodeId, Packet, ResetReason};
+use mc_gateway::audit::Audit;
+use mc_gateway::config::AuditConfig;
 
 /// Nodes made known before the loop (commands and reports rotate over them).
 pub const NODES: u16 = 64;
@@ -36,6 +38,11 @@ pub enum Path {
     CommandToFrame,
     /// MQTT command → CAN frame while [`LEASES`] leases are held.
     CommandLeased,
+    /// MQTT command → CAN frame → the node's ack → `command_result`, audit trail off.
+    CommandAnswered,
+    /// The same with the audit trail on: the command and answer records made by the core task and
+    /// written by the writer (run inline here, into a temporary directory), chain hashes included.
+    CommandAudited,
 }
 
 /// Leases held in [`Path::CommandLeased`], one node each.
@@ -87,17 +94,46 @@ fn drain(
     out: &mut Output,
     now: Instant,
 ) {
+    drain_answered(bridge, topics, text, out, now, false, None);
+}
+
+/// [`drain`], with each frame acknowledged by its node when `ack`, and each publication handed to
+/// the audit trail when it is on.
+fn drain_answered(
+    bridge: &mut Bridge,
+    topics: &Topics,
+    text: &mut PayloadWriter,
+    out: &mut Output,
+    now: Instant,
+    ack: bool,
+    audit: Option<&Audit>,
+) {
     // As the gateway's shell does: the frame encoded, then confirmed by its echo.
     while let Some(t) = bridge.poll_transmit(now) {
         let (id, data) = t.packet.encode();
         black_box((id, &data));
         bridge.handle_transmitted(t.packet, now);
         out.frames += 1;
+        if ack {
+            let msg = &t.packet.msg;
+            if let Some(seq) = msg.ack_seq() {
+                let answer = Message::Ack {
+                    kind: msg.kind(),
+                    seq,
+                    result: AckResult::Ok,
+                    detail: 0,
+                };
+                bridge.handle_packet(Packet::report(t.packet.dest, answer), now);
+            }
+        }
     }
     // As the gateway's shell does: the topic resolved, the publication serialised once.
     while let Some(p) = bridge.poll_publication() {
         let name = topics.resolve(p.topic());
         let payload = text.write(&p);
+        if let Some(a) = audit {
+            a.published(&p, &payload);
+        }
         out.bytes += black_box(name.len() + payload.len());
         out.publications += 1;
     }
@@ -203,6 +239,36 @@ pub fn run(path: Path, n: u32) -> Output {
                 drain(&mut bridge, &topics, &mut text, &mut out, now);
             }
         }
+        Path::CommandAnswered | Path::CommandAudited => {
+            let dir = std::env::temp_dir().join(format!("ihex-bench-audit-{}", std::process::id()));
+            let config = AuditConfig {
+                dir: Some(dir.clone()),
+                anchor: None,
+                max_bytes: None,
+            };
+            let mut audit = (path == Path::CommandAudited)
+                .then(|| Audit::open(&config))
+                .flatten();
+            // As the gateway's MQTT task hands commands over (the payload shared, not copied).
+            let commands: Vec<bytes::Bytes> =
+                (0..DISTINCT).map(|i| led_command(i).into()).collect();
+            let origin = Origin::new(Interface::Mqtt, Some("alice".into()));
+            for i in 0..n {
+                let payload = commands[(i % DISTINCT) as usize].clone();
+                let delivery = Delivery::live(now).with_origin(origin.clone());
+                if let Some((a, _)) = &audit {
+                    a.command(&delivery.origin, &payload, false);
+                }
+                bridge.handle_delivered_command(&payload, delivery, now);
+                let a = audit.as_ref().map(|(a, _)| a);
+                drain_answered(&mut bridge, &topics, &mut text, &mut out, now, true, a);
+                if let Some((_, w)) = &mut audit {
+                    w.write_waiting();
+                }
+            }
+            drop(audit);
+            let _ = std::fs::remove_dir_all(&dir);
+        }
     }
     out
 }
@@ -262,6 +328,18 @@ mod tests {
         let out = run(Path::CommandLeased, 1000);
         assert_eq!(out.frames, 1000);
         assert_eq!(out.publications, 0, "no rejection");
+    }
+
+    #[test]
+    fn the_audit_trail_changes_nothing_the_gateway_sends() {
+        let plain = run(Path::CommandAnswered, 300);
+        // Each command: its frame, its command_result and the element's new state document.
+        assert_eq!((plain.frames, plain.publications), (300, 600));
+        let audited = run(Path::CommandAudited, 300);
+        assert_eq!(
+            audited, plain,
+            "the trail changes nothing the gateway sends"
+        );
     }
 
     #[test]

@@ -295,6 +295,9 @@ pub struct CommandResult {
     /// Broadcasts only: nodes that were online when the command was sent and did not answer.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub missing: Option<Vec<HexId>>,
+    /// The command's interface and identity; absent for the shared command topic without one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub origin: Option<crate::origin::Origin>,
 }
 
 /// Payload of `command_rejected`: the command was not sent because it is invalid.
@@ -304,6 +307,9 @@ pub struct CommandRejected {
     pub request_id: Option<String>,
     /// What was wrong and what is accepted.
     pub reason: String,
+    /// The command's interface and identity; absent for the shared command topic without one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub origin: Option<crate::origin::Origin>,
 }
 
 /// Payload of `fault`: a node's `Fault` report, or a protocol violation the gateway noticed.
@@ -399,6 +405,17 @@ pub struct PublicationsDropped {
     pub events: std::collections::BTreeMap<String, u64>,
 }
 
+/// Payload of `audit_error`: the audit trail could not record (a full disk, the directory's size
+/// limit, a failing disk). Commands are carried out and answered all the same; the records lost
+/// are counted, and a `gap` record says how many once the trail records again.
+#[derive(Clone, PartialEq, Eq, Debug, Serialize, Deserialize)]
+pub struct AuditError {
+    /// What went wrong.
+    pub reason: String,
+    /// Records lost since the trail last recorded.
+    pub lost: u64,
+}
+
 /// Payload of `sim_result` (demo only): how a control message on the `ihex/sim` topic ended.
 #[derive(Clone, PartialEq, Eq, Debug, Serialize, Deserialize)]
 pub struct SimResult {
@@ -469,6 +486,8 @@ pub enum Event {
     ProcedureMismatch(Box<crate::procedure::ProcedureMismatch>),
     /// A procedure's one final outcome (and the answer to `procedure_cancel`).
     ProcedureEnded(Box<crate::procedure::ProcedureEnded>),
+    /// The audit trail could not record.
+    AuditError(AuditError),
 }
 
 impl Event {
@@ -501,6 +520,7 @@ impl Event {
             Event::ProcedureStep(_) => "procedure_step",
             Event::ProcedureMismatch(_) => "procedure_mismatch",
             Event::ProcedureEnded(_) => "procedure_ended",
+            Event::AuditError(_) => "audit_error",
         }
     }
 
@@ -818,6 +838,7 @@ mod tests {
             acked: Some(vec![id(1)]),
             refused: Some(vec![]),
             missing: Some(vec![id(0xffd)]),
+            origin: None,
         });
         let text = ev.to_json();
         assert!(text.contains(r#""node":"all""#), "{text}");
@@ -837,6 +858,7 @@ mod tests {
             acked: None,
             refused: None,
             missing: None,
+            origin: None,
         });
         assert_eq!(
             ev.to_json(),

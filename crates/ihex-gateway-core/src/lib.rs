@@ -35,7 +35,8 @@
 //! (rate limit of error events), [`error_frame`] (SocketCAN error frames), [`topic`] (logical
 //! topics and their names), [`ha`] (Home Assistant discovery and commands), [`fwupdate`] (the
 //! firmware-update sender, uploads and `fw_update`), [`lease`] (who holds which elements, and the
-//! refusal of everyone else's commands to them). A concept's folder holds its machine and the
+//! refusal of everyone else's commands to them), [`origin`] (the interface and identity a command
+//! came with). A concept's folder holds its machine and the
 //! bridge's glue for it.
 #![forbid(unsafe_code)]
 #![warn(missing_docs)]
@@ -49,6 +50,7 @@ pub mod fwupdate;
 pub mod ha;
 pub mod lease;
 pub mod procedure;
+pub mod origin;
 pub mod registry;
 pub mod throttle;
 pub mod topic;
@@ -58,4 +60,5 @@ pub use bridge::{
     Publication, PublicationCounters, Transmit,
 };
 pub use event::{Event, NodeState};
+pub use origin::{Interface, Origin};
 pub use topic::Topic;

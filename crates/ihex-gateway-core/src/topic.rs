@@ -37,6 +37,11 @@ pub const LEASES: &str = "ihex/leases";
 pub const PROCEDURES: &str = "ihex/procedures";
 /// Root of the firmware upload topics `<root>/<name>`: signed images handed to the gateway.
 pub const FW_UPLOAD: &str = "ihex/fw/upload";
+/// Root of the per-user command topics `<root>/<user>`: a broker ACL (`pattern write
+/// <island>/ihex/cmd/%u`) lets only `<user>` publish there, so the broker vouches for the sender.
+pub const USER_COMMANDS: &str = "ihex/cmd";
+/// Topic of the retained audit anchor: the head of the audit chain, published periodically.
+pub const AUDIT_HEAD: &str = "ihex/audit/head";
 
 /// The concrete topic names one gateway uses, every one already under the island prefix.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -57,6 +62,10 @@ pub struct Topics {
     pub leases: String,
     /// Published retained: the procedures running now.
     pub procedures: String,
+    /// Root of the subscribed `<root>/<user>`: JSON commands from an authenticated user.
+    pub user_commands: String,
+    /// Published retained: the audit chain's head (`SEQ:SHA256`).
+    pub audit_head: String,
     /// Home Assistant's topics (discovery, status) and the gateway's own for it; Home Assistant's
     /// defaults until [`Topics::with_ha`].
     pub ha: HaTopics,
@@ -84,6 +93,8 @@ impl Topics {
             fw_upload: p(FW_UPLOAD),
             leases: p(LEASES),
             procedures: p(PROCEDURES),
+            user_commands: p(USER_COMMANDS),
+            audit_head: p(AUDIT_HEAD),
             ha: HaTopics::defaults(island),
         }
     }
@@ -120,6 +131,19 @@ impl Topics {
             .strip_prefix(self.fw_upload.as_str())?
             .strip_prefix('/')
             .filter(|name| !name.is_empty() && !name.contains('/'))
+    }
+
+    /// The subscription of the per-user command topics (`<root>/+`).
+    pub fn user_command_filter(&self) -> String {
+        format!("{}/+", self.user_commands)
+    }
+
+    /// The user of a per-user command topic, `None` for any other topic.
+    pub fn parse_user_command<'a>(&self, topic: &'a str) -> Option<&'a str> {
+        topic
+            .strip_prefix(self.user_commands.as_str())?
+            .strip_prefix('/')
+            .filter(|user| !user.is_empty() && !user.contains('/'))
     }
 
     /// The filter that matches every node's state topic (`<root>/+/state`).
@@ -216,6 +240,17 @@ mod tests {
             "ihex/node/111/state"
         );
         assert_eq!(t.resolve(Topic::Events), "EventsTopic");
+    }
+
+    #[test]
+    fn per_user_command_topics_name_their_user() {
+        let t = Topics::seed_on(Some("lab-a"));
+        assert_eq!(t.user_command_filter(), "lab-a/ihex/cmd/+");
+        assert_eq!(t.parse_user_command("lab-a/ihex/cmd/alice"), Some("alice"));
+        assert_eq!(t.parse_user_command("lab-a/ihex/cmd/"), None);
+        assert_eq!(t.parse_user_command("lab-a/ihex/cmd/a/b"), None);
+        assert_eq!(t.parse_user_command("lab-b/ihex/cmd/alice"), None);
+        assert_eq!(t.parse_user_command("lab-a/ihex/cmdx/alice"), None);
     }
 
     #[test]

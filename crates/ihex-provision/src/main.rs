@@ -9,6 +9,7 @@ macro_rules! say {
     ($($arg:tt)*) => { $crate::out::line(format_args!($($arg)*)) };
 }
 
+mod audit;
 mod fw;
 mod out;
 
@@ -48,6 +49,11 @@ enum Cmd {
     Fw {
         #[command(subcommand)]
         cmd: fw::FwCmd,
+    },
+    /// The gateway's audit trail: verify its hash chain, show who did what (docs/audit.md).
+    Audit {
+        #[command(subcommand)]
+        cmd: audit::AuditCmd,
     },
     /// Guided procedures (docs/procedures.md).
     Procedure {
@@ -220,6 +226,11 @@ fn main() -> ExitCode {
             Err(e) => Err(e),
         },
         Cmd::Fw { cmd } => match fw::run(cmd) {
+            Ok(true) => Ok(()),
+            Ok(false) => return ExitCode::FAILURE,
+            Err(e) => Err(e),
+        },
+        Cmd::Audit { cmd } => match audit::run(cmd) {
             Ok(true) => Ok(()),
             Ok(false) => return ExitCode::FAILURE,
             Err(e) => Err(e),

@@ -222,6 +222,7 @@ mod tests {
         Publication::Event(Event::CommandRejected(CommandRejected {
             request_id: Some(n.to_string()),
             reason: "r".into(),
+            origin: None,
         }))
     }
 

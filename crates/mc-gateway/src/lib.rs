@@ -19,6 +19,7 @@
 // The one exception is `sys` (system calls std and tokio do not offer).
 #![deny(unsafe_code)]
 
+pub mod audit;
 pub mod can;
 pub mod config;
 #[cfg(feature = "demo")]

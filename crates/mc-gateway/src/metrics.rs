@@ -8,6 +8,7 @@
 //! round trips, and firmware update outcomes. Every label set is bounded: interfaces, results and
 //! outcomes are fixed words, and node IDs are the island's elements.
 
+use ihex_gateway_core::Interface;
 use std::{
     collections::VecDeque,
     sync::atomic::{AtomicU64, Ordering},
@@ -45,17 +46,16 @@ const PENDING_MAX: usize = 4096;
 /// `command_result` or `command_rejected`, such as `sim`, are forgotten after it).
 const PENDING_FOR: Duration = Duration::from_secs(15 * 60);
 
-/// Where a command came from.
+/// The `interface` label: where a command came from (the core's [`Interface`]), or `unknown` for
+/// an answer whose command the meter no longer knew (it keeps at most `PENDING_MAX` waiting).
 #[derive(Clone, Copy, Debug, Hash, PartialEq, Eq)]
-pub enum Interface {
-    /// The command topic.
-    Mqtt,
-    /// The island view's `POST /api/command`.
-    Web,
-    /// Home Assistant's command topics.
-    Ha,
-    /// An answer whose command the meter no longer knew (it keeps at most `PENDING_MAX` commands waiting).
-    Unknown,
+struct InterfaceLabel(Option<Interface>);
+
+impl EncodeLabelValue for InterfaceLabel {
+    fn encode(&self, encoder: &mut LabelValueEncoder) -> Result<(), std::fmt::Error> {
+        let word = self.0.map_or("unknown", Interface::as_str);
+        std::fmt::Write::write_str(encoder, word)
+    }
 }
 
 /// How a command ended: `command_result`'s `result`, or `rejected` for `command_rejected`.
@@ -105,7 +105,6 @@ macro_rules! label_words {
     };
 }
 
-label_words!(Interface { Mqtt => "mqtt", Web => "web", Ha => "ha", Unknown => "unknown" });
 label_words!(CommandResult {
     Ok => "ok",
     Refused => "refused",
@@ -117,13 +116,13 @@ label_words!(CommandResult {
 
 #[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
 struct CommandLabels {
-    interface: Interface,
+    interface: InterfaceLabel,
     result: CommandResult,
 }
 
 #[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
 struct InterfaceLabels {
-    interface: Interface,
+    interface: InterfaceLabel,
 }
 
 #[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
@@ -177,7 +176,7 @@ impl Default for Counted {
             round_trip: Family::new_with_constructor(|| Histogram::new(ROUND_TRIP_BUCKETS)),
             fw_nodes: Family::default(),
         };
-        for interface in INTERFACES {
+        for interface in INTERFACES.map(|i| InterfaceLabel(Some(i))) {
             for result in RESULTS {
                 let _ = c
                     .commands
@@ -275,11 +274,13 @@ impl CommandMeter {
                 let secs = now.saturating_duration_since(p.received).as_secs_f64();
                 self.counted
                     .round_trip
-                    .get_or_create(&InterfaceLabels { interface: p.from })
+                    .get_or_create(&InterfaceLabels {
+                        interface: InterfaceLabel(Some(p.from)),
+                    })
                     .observe(secs);
-                p.from
+                InterfaceLabel(Some(p.from))
             }
-            None => Interface::Unknown,
+            None => InterfaceLabel(None),
         };
         self.counted
             .commands
@@ -313,6 +314,8 @@ pub struct Scrape<'a> {
     pub bus_load: f64,
     /// When the gateway started running.
     pub started: Instant,
+    /// The audit trail, when it is on.
+    pub audit: Option<&'a crate::audit::AuditStatus>,
 }
 
 fn counter(registry: &mut Registry, name: &str, help: &str, v: u64) {
@@ -344,6 +347,27 @@ impl Scrape<'_> {
                 .saturating_duration_since(self.started)
                 .as_secs_f64(),
         );
+
+        if let Some(a) = self.audit {
+            gauge(
+                r,
+                "audit_up",
+                "1 while the audit trail records, 0 while it cannot (docs/audit.md)",
+                f64::from(u8::from(a.problem().is_none())),
+            );
+            counter(
+                r,
+                "audit_records",
+                "Audit records written",
+                a.written.load(Ordering::Relaxed),
+            );
+            counter(
+                r,
+                "audit_records_lost",
+                "Audit records that could not be written (a full disk, a full queue)",
+                a.lost.load(Ordering::Relaxed),
+            );
+        }
 
         let b = &self.view.bus;
         counter(
@@ -533,6 +557,7 @@ mod tests {
             acked: None,
             refused: None,
             missing: None,
+            origin: None,
         }))
     }
 
@@ -540,6 +565,7 @@ mod tests {
         Publication::Event(Event::CommandRejected(CommandRejected {
             request_id: id.map(Into::into),
             reason: "r".into(),
+            origin: None,
         }))
     }
 
@@ -563,6 +589,7 @@ mod tests {
             bitrate: 500_000,
             bus_load: 0.25,
             started: view.at,
+            audit: None,
         }
         .encode()
     }

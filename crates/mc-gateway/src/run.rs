@@ -17,18 +17,19 @@ use std::{
 };
 
 use ihex_gateway_core::{
-    bridge::TRANSMIT_WINDOW, Bridge, Delivery, PayloadWriter, Publication, Transmit,
+    bridge::TRANSMIT_WINDOW, Bridge, Delivery, Interface, PayloadWriter, Publication, Transmit,
 };
 use tokio::{sync::mpsc, task::JoinSet};
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, error, info, warn};
 
 use crate::{
+    audit::Audit,
     can::{CanInput, CanLink},
     config::{Config, Link},
     error::GatewayError,
     feed::{Feed, ViewRequests},
-    metrics::{CommandMeter, Counted, Interface},
+    metrics::{CommandMeter, Counted},
     mqtt::{self, MqttInput, MqttStats, MqttTask, Outbound},
     topic::Topics,
 };
@@ -161,6 +162,10 @@ impl Gateway {
         let (mqtt_in_tx, mqtt_in) = mpsc::channel(MQTT_INPUTS);
         let (pub_tx, pub_rx) = mpsc::channel(PUBLICATIONS);
         let counted = Counted::default();
+        let audit = Audit::start(&config.audit, &mut tasks);
+        if let Some(a) = &audit {
+            a.record(crate::audit::start_record(&config));
+        }
 
         // The island view reads the core through the feed and its views, and sends commands into
         // an input of its own (so their outcomes are counted by interface).
@@ -177,6 +182,7 @@ impl Gateway {
                     commands: web_tx,
                     mqtt: mqtt.stats.clone(),
                     counted: counted.clone(),
+                    audit: audit.as_ref().map(Audit::status),
                 };
                 web.spawn(parts, &mut tasks, cancel.clone());
                 (Some(feed), views, Some(web_in), Some(url))
@@ -224,6 +230,7 @@ impl Gateway {
             stats: mqtt_stats,
             fw_dir: config.settings.fw_dir.clone(),
             meter: CommandMeter::new(counted),
+            audit,
         };
         let inputs = Inputs {
             can: can_in,
@@ -264,6 +271,8 @@ struct Core {
     fw_dir: Option<std::path::PathBuf>,
     /// Counts command outcomes by interface for the metrics.
     meter: CommandMeter,
+    /// The audit trail, when it is on.
+    audit: Option<Audit>,
 }
 
 /// The core task's inputs.
@@ -336,17 +345,17 @@ impl Core {
                 // While answers cannot be handed on, commands stay with the MQTT task (unacknowledged,
                 // so the broker holds back more): answers are never dropped and stay bounded.
                 Some(input) = mqtt_in.recv(), if wants_commands => {
-                    on_mqtt(&mut self.bridge, &mut self.meter, input, Interface::Mqtt);
+                    on_mqtt(&mut self.bridge, &mut self.meter, self.audit.as_ref(), input);
                     for _ in 1..BATCH {
                         if !self.bridge.wants_commands() {
                             break;
                         }
                         let Ok(input) = mqtt_in.try_recv() else { break };
-                        on_mqtt(&mut self.bridge, &mut self.meter, input, Interface::Mqtt);
+                        on_mqtt(&mut self.bridge, &mut self.meter, self.audit.as_ref(), input);
                     }
                 }
                 input = next_of(&mut web_in), if wants_commands => {
-                    on_mqtt(&mut self.bridge, &mut self.meter, input, Interface::Web);
+                    on_mqtt(&mut self.bridge, &mut self.meter, self.audit.as_ref(), input);
                 }
                 // Room for publications again: the loop's top hands them on.
                 _ = self.pub_tx.reserve(), if publications_waiting => {}
@@ -365,6 +374,12 @@ impl Core {
             self.carry_out();
         }
         self.flush_at_shutdown().await;
+        if let Some(a) = &self.audit {
+            a.record(ihex_audit::Record::new(
+                ihex_audit::Kind::Stop,
+                serde_json::Value::Null,
+            ));
+        }
         Ok(())
     }
 
@@ -393,6 +408,7 @@ impl Core {
             permit.send(outbound(
                 &self.topics,
                 self.feed.as_deref(),
+                self.audit.as_ref(),
                 &mut self.text,
                 publication,
             ));
@@ -400,6 +416,32 @@ impl Core {
         self.stats
             .publications_dropped
             .store(self.bridge.publications_dropped(), Ordering::Relaxed);
+        self.carry_out_audit(now);
+    }
+
+    /// The audit trail's own publications: its `audit_error` event and its retained anchor. Never
+    /// waits: without room they wait for the next turn (the health flag keeps saying the error).
+    fn carry_out_audit(&mut self, now: Instant) {
+        let Some(audit) = &mut self.audit else {
+            return;
+        };
+        if let Ok(permit) = self.pub_tx.try_reserve() {
+            if let Some(event) = audit.poll_error() {
+                let p = Publication::Event(event);
+                // Not recorded: the trail cannot record now.
+                let feed = self.feed.as_deref();
+                permit.send(outbound(&self.topics, feed, None, &mut self.text, p));
+            }
+        }
+        if let Ok(permit) = self.pub_tx.try_reserve() {
+            if let Some(head) = audit.poll_anchor(now) {
+                permit.send(Outbound {
+                    topic: self.topics.audit_head.clone(),
+                    payload: head.into_bytes().into(),
+                    retain: true,
+                });
+            }
+        }
     }
 
     /// Hands the publications the bridge still holds to the MQTT task (which sends them within
@@ -411,6 +453,7 @@ impl Core {
             let p = outbound(
                 &self.topics,
                 self.feed.as_deref(),
+                self.audit.as_ref(),
                 &mut self.text,
                 publication,
             );
@@ -441,22 +484,33 @@ fn on_can(bridge: &mut Bridge, input: CanInput) {
 }
 
 /// One input from the MQTT task (or the island view) into the bridge; a command is noted for the
-/// metrics as coming from `from` (Home Assistant's are always [`Interface::Ha`]).
-fn on_mqtt(bridge: &mut Bridge, meter: &mut CommandMeter, input: MqttInput, from: Interface) {
+/// metrics as coming from its origin's interface (Home Assistant's are always [`Interface::Ha`]).
+fn on_mqtt(bridge: &mut Bridge, meter: &mut CommandMeter, audit: Option<&Audit>, input: MqttInput) {
     let now = Instant::now();
     match input {
         MqttInput::Command {
             payload,
             received,
             retained,
+            origin,
         } => {
-            meter.command(from, &payload, received);
-            let delivery = Delivery { received, retained };
+            meter.command(origin.interface, &payload, received);
+            if let Some(a) = audit {
+                a.command(&origin, &payload, retained);
+            }
+            let delivery = Delivery {
+                received,
+                retained,
+                origin,
+            };
             bridge.handle_delivered_command(&payload, delivery, now);
         }
         MqttInput::HaCommand { topic, payload } => {
             let id = ihex_gateway_core::ha::command::REQUEST_ID.to_owned();
             meter.noted(Interface::Ha, Some(id), now);
+            if let Some(a) = audit {
+                a.ha_command(&topic, &payload);
+            }
             bridge.handle_ha_command(&topic, &payload, now)
         }
         MqttInput::HaStatus(payload) => bridge.handle_ha_status(&payload, now),
@@ -471,14 +525,19 @@ fn on_mqtt(bridge: &mut Bridge, meter: &mut CommandMeter, input: MqttInput, from
 }
 
 /// The one place publications leave the core: serialised once, logged (every event at info, so
-/// the log alone tells the island's story), copied to the island view, addressed for the MQTT task.
+/// the log alone tells the island's story), copied to the island view and the audit trail,
+/// addressed for the MQTT task.
 fn outbound(
     topics: &Topics,
     feed: Option<&Feed>,
+    audit: Option<&Audit>,
     text: &mut PayloadWriter,
     publication: Publication,
 ) -> Outbound {
     let payload = text.write(&publication);
+    if let Some(a) = audit {
+        a.published(&publication, &payload);
+    }
     // serde_json writes UTF-8 only; the text is checked only where it is read as text (a log line
     // that is enabled, the island view).
     let json = || String::from_utf8_lossy(&payload);

@@ -807,6 +807,40 @@
     $('timeline-filter').addEventListener('change', renderTimeline);
   }
 
+  // ---- the audit trail's last records, with who sent each command (docs/audit.md) ----
+  function auditWhat(r) {
+    const d = r.data || {};
+    switch (r.kind) {
+      case 'command': return JSON.stringify(d.command !== undefined ? d.command : d);
+      case 'answer': {
+        const p = (d.payload || {});
+        return d.event + (p.result ? ' ' + p.result : '') + (p.reason ? ': ' + p.reason : '');
+      }
+      case 'gap': return d.lost + ' records lost';
+      default: return d.event || (r.kind === 'start' ? 'version ' + d.version : '');
+    }
+  }
+  async function loadAudit() {
+    try {
+      const r = await fetch('api/audit', { cache: 'no-store' });
+      const a = await r.json();
+      $('audit-state').textContent = !a.on ? 'off on this gateway'
+        : a.problem ? 'NOT RECORDING: ' + a.problem + ' (' + a.lost + ' records lost)'
+        : a.written + ' records written since start';
+      $('audit-state').className = a.problem ? 'problem' : 'muted';
+      $('audit').tBodies[0].replaceChildren(...a.records.slice().reverse().map((r) =>
+        el('tr', { 'data-kind': r.kind },
+          el('td', {}, String(r.seq)), el('td', {}, r.ts.replace('T', ' ').replace('Z', '')),
+          el('td', {}, r.kind), el('td', {}, r.interface || ''), el('td', { class: 'user' }, r.user || ''),
+          el('td', {}, r.claimed ? r.claimed + ' (claimed)' : ''), el('td', {}, (r.elements || []).join(', ')),
+          el('td', {}, auditWhat(r)))));
+    } catch (e) {
+      $('audit-state').textContent = 'not available (' + e.message + ')';
+    }
+  }
+
   wire();
   connect();
+  loadAudit();
+  setInterval(loadAudit, 2000);
 })();

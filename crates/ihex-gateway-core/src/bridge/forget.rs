@@ -37,6 +37,7 @@ impl Bridge {
             acked: None,
             refused: None,
             missing: None,
+            origin: self.origin_for_answer(),
         }));
     }
 

@@ -56,6 +56,7 @@ use crate::event::{
 };
 use crate::fwupdate::FwUpdates;
 use crate::ha::Ha;
+use crate::origin::Origin;
 use crate::registry::{millis, Registry, Seen};
 use diagnostics::Diagnostics;
 use health::Health;
@@ -90,6 +91,10 @@ pub struct BridgeConfig {
     pub fw: crate::fwupdate::FwConfig,
     /// Guided procedures running at once at most (`procedure` beyond them is refused).
     pub max_procedures: usize,
+    /// `--require-identity`: commands (other than `list`) without a vouched identity are
+    /// `command_rejected`; the refusal names this root of the per-user command topics. `None`:
+    /// they are taken.
+    pub require_identity: Option<String>,
 }
 
 /// Default period of the broadcast health check (the seed's 1 s).
@@ -127,6 +132,7 @@ impl Default for BridgeConfig {
             event_queue: DEFAULT_EVENT_QUEUE,
             fw: crate::fwupdate::FwConfig::default(),
             max_procedures: crate::procedure::DEFAULT_MAX_PROCEDURES,
+            require_identity: None,
         }
     }
 }
@@ -135,21 +141,29 @@ impl Default for BridgeConfig {
 pub const MIN_HEALTH_PERIOD: Duration = Duration::from_millis(10);
 
 /// How a command reached the gateway.
-#[derive(Clone, Copy, PartialEq, Eq, Debug)]
+#[derive(Clone, PartialEq, Eq, Debug)]
 pub struct Delivery {
     /// When the adapter received it (its `ttl_ms` counts from here).
     pub received: Instant,
     /// It was a retained message (the broker replays those on every subscription): never executed.
     pub retained: bool,
+    /// The interface it came through and who sent it.
+    pub origin: Origin,
 }
 
 impl Delivery {
-    /// A live message received at `now`.
+    /// A live message received at `now` on the shared MQTT command topic, without an identity.
     pub fn live(now: Instant) -> Self {
         Delivery {
             received: now,
             retained: false,
+            origin: Origin::default(),
         }
+    }
+
+    /// The same delivery, from `origin`.
+    pub fn with_origin(self, origin: Origin) -> Self {
+        Delivery { origin, ..self }
     }
 }
 
@@ -188,6 +202,9 @@ pub struct Bridge {
     pub(crate) leases_announced: bool,
     /// The guided procedures running now.
     pub(crate) procedures: crate::procedure::Procedures,
+    /// Where the command being handled came from (the default between commands): its answers
+    /// carry it.
+    pub(crate) origin: Origin,
 }
 
 impl Bridge {
@@ -215,6 +232,7 @@ impl Bridge {
             lease_table: crate::lease::LeaseTable::new(),
             clock: crate::lease::WallClock::default(),
             leases_announced: false,
+            origin: Origin::default(),
         }
     }
 
@@ -319,6 +337,11 @@ impl Bridge {
             .is_some()
     }
 
+    /// The origin the answers to the command being handled carry.
+    pub(crate) fn origin_for_answer(&self) -> Option<Origin> {
+        self.origin.for_answer()
+    }
+
     /// Records the time of the input being handled (state documents taken later are built as of it).
     pub(crate) fn set_now(&mut self, now: Instant) {
         self.now = now;
@@ -337,18 +360,41 @@ impl Bridge {
     pub fn handle_delivered_command(&mut self, payload: &[u8], delivery: Delivery, now: Instant) {
         self.set_now(now);
         if delivery.retained {
-            let request_id = command::request_id(payload);
-            return self.reject(request_id, CommandError::Retained);
+            self.origin = delivery.origin;
+            self.reject(command::request_id(payload), CommandError::Retained);
+            self.origin = Origin::default();
+            return;
         }
         match command::parse_in(payload, self.config.max_command_bytes, &mut self.arena) {
             Ok(req) => self.execute(req, delivery, now),
-            Err(rej) => self.reject(rej.request_id, rej.error),
+            Err(rej) => {
+                self.origin = delivery.origin;
+                self.reject(rej.request_id, rej.error);
+                self.origin = Origin::default();
+            }
         }
     }
 
     /// Carries out a valid command (from the JSON API or from Home Assistant) delivered as
-    /// `delivery` says.
-    pub(crate) fn execute(&mut self, req: Request, delivery: Delivery, now: Instant) {
+    /// `delivery` says; its answers carry its origin.
+    pub(crate) fn execute(&mut self, mut req: Request, mut delivery: Delivery, now: Instant) {
+        if let Some(user) = req.user.take() {
+            delivery.origin.claimed = Some(user);
+        }
+        self.origin = std::mem::take(&mut delivery.origin);
+        if let Some(root) = &self.config.require_identity {
+            if self.origin.user.is_none() && !matches!(req.command, Command::List) {
+                let topic = root.clone();
+                self.reject(req.request_id, CommandError::NoIdentity { topic });
+                return self.origin = Origin::default();
+            }
+        }
+        self.execute_from(req, delivery, now);
+        self.origin = Origin::default();
+    }
+
+    /// [`Bridge::execute`] once the origin is known.
+    fn execute_from(&mut self, req: Request, delivery: Delivery, now: Instant) {
         let request_id = req.request_id;
         let expires = req.ttl.map(|ttl| delivery.received + ttl);
         if let (Some(expires), Some(ttl)) = (expires, req.ttl) {
@@ -359,7 +405,11 @@ impl Bridge {
         if let Some(error) = self.lease_refusal(&req.command, req.lease.as_deref(), now) {
             return self.reject(request_id, error);
         }
-        let acc = Accepted { now, expires };
+        let acc = Accepted {
+            now,
+            expires,
+            origin: self.origin.for_answer(),
+        };
         let sent = match req.command {
             Command::List => {
                 let nodes = self.node_states(now);
@@ -466,6 +516,7 @@ impl Bridge {
             acked: None,
             refused: None,
             missing: None,
+            origin: self.origin.for_answer(),
         }));
     }
 
@@ -946,6 +997,7 @@ impl Bridge {
         self.out.emit(Event::CommandRejected(CommandRejected {
             request_id,
             reason: error.to_string(),
+            origin: self.origin.for_answer(),
         }));
     }
 
@@ -1509,11 +1561,11 @@ mod tests {
     fn retained_commands_are_never_executed() {
         let (mut b, t0) = with_nodes(&[2]);
         let retained = Delivery {
-            received: t0,
             retained: true,
+            ..Delivery::live(t0)
         };
         let cmd = json!({"cmd": "power", "node": "2", "on": true, "request_id": "old"});
-        b.handle_delivered_command(cmd.to_string().as_bytes(), retained, t0);
+        b.handle_delivered_command(cmd.to_string().as_bytes(), retained.clone(), t0);
         let out = drain(&mut b);
         assert!(out.sent.is_empty());
         let r = out.one("command_rejected");
@@ -1523,7 +1575,7 @@ mod tests {
             .unwrap()
             .starts_with("retained message on the command topic: not executed"));
         // Even a retained `list` or a broken retained message gets its one answer.
-        b.handle_delivered_command(b"{\"cmd\":\"list\"}", retained, t0);
+        b.handle_delivered_command(b"{\"cmd\":\"list\"}", retained.clone(), t0);
         b.handle_delivered_command(b"garbage", retained, t0);
         let out = drain(&mut b);
         assert_eq!(out.named("command_rejected").len(), 2);

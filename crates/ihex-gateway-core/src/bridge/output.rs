@@ -594,6 +594,7 @@ mod tests {
         Event::CommandRejected(CommandRejected {
             request_id: Some(n.to_string()),
             reason: "x".into(),
+            origin: None,
         })
     }
 
@@ -725,6 +726,7 @@ mod tests {
         let big = Publication::Event(Event::CommandRejected(CommandRejected {
             request_id: None,
             reason: "y".repeat(3 * CHUNK),
+            origin: None,
         }));
         let bytes = w.write(&big);
         assert_eq!(bytes, big.to_json().as_bytes());

@@ -18,7 +18,7 @@ pub(crate) struct Fields<'a> {
 }
 
 /// Fields every command may have: `cmd`, then those listed as accepted besides its own.
-pub(super) const COMMON: [&str; 4] = ["cmd", "request_id", "ttl_ms", "lease"];
+pub(super) const COMMON: [&str; 5] = ["cmd", "request_id", "ttl_ms", "lease", "user"];
 
 /// `ttl_ms` of `cmd`'s object (already checked for repeats by [`Fields::new`]).
 pub(super) fn ttl(
@@ -52,6 +52,20 @@ pub(super) fn lease(
     };
     let expected = "the token of a lease, as `lease_granted` answered it";
     Ok(f.str("lease", expected)?.map(str::to_owned))
+}
+
+/// `user` of `cmd`'s object: the name the sender gives itself (claimed, not vouched for).
+pub(super) fn user(
+    cmd: &'static str,
+    members: &[(&str, Json<'_>)],
+) -> Result<Option<String>, CommandError> {
+    let f = Fields {
+        cmd,
+        prefix: "",
+        members,
+    };
+    Ok(f.str("user", "a name (recorded as claimed)")?
+        .map(str::to_owned))
 }
 
 /// What a duration field accepts.

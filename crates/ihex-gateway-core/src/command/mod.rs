@@ -40,6 +40,16 @@ pub enum CommandError {
         /// The configured limit.
         max: usize,
     },
+    /// `--require-identity`: the command came without an identity anyone vouches for.
+    #[error(
+        "no vouched identity: this gateway takes commands only on a per-user command topic \
+         ({topic}/<user>, which the broker lets only <user> publish to) or from an interface that \
+         establishes who sent them"
+    )]
+    NoIdentity {
+        /// The per-user topics' root as the adapter names it.
+        topic: String,
+    },
     /// Not UTF-8.
     #[error(
         "command is not valid UTF-8 (invalid byte at offset {0}); send a JSON object as UTF-8 text"
@@ -270,6 +280,8 @@ pub struct Request {
     /// `lease`: the token of a lease the sender holds (needed by commands to leased elements,
     /// and by `renew` and `release`).
     pub lease: Option<String>,
+    /// `user`: the name the sender gives itself (recorded as claimed, never vouched for).
+    pub user: Option<String>,
 }
 
 /// A rejected command: the reason, and the request id if it could be read.
@@ -371,20 +383,22 @@ pub fn parse_in(payload: &[u8], max_bytes: usize, arena: &mut Arena) -> Result<R
     let ttl = command.and_then(|c| {
         let ttl = field::ttl(c.name(), members)?;
         let lease = field::lease(c.name(), members)?;
+        let user = field::user(c.name(), members)?;
         if lease.is_none() && matches!(c, Command::Renew { .. } | Command::Release) {
             return Err(CommandError::Invalid {
                 cmd: c.name(),
                 message: "missing `lease`: the token `lease_granted` answered".into(),
             });
         }
-        Ok((c, ttl, lease))
+        Ok((c, ttl, lease, user))
     });
     match ttl {
-        Ok((command, ttl, lease)) => Ok(Request {
+        Ok((command, ttl, lease, user)) => Ok(Request {
             request_id,
             ttl,
             command,
             lease,
+            user,
         }),
         Err(error) => Err(reject(request_id, error)),
     }

@@ -28,6 +28,7 @@ use crate::bridge::output::{FrameFate, FrameOwner, Outputs};
 use crate::bridge::TRANSMIT_CONFIRM_TIMEOUT;
 use crate::command::{CommandError, NodeAction};
 use crate::event::{CommandResult, Event, HexId, Outcome, Refusal, Target};
+use crate::origin::Origin;
 use crate::registry::{millis, Registry};
 
 /// How many commands are in flight, and how the finished ones ended (since start).
@@ -80,6 +81,9 @@ struct PendingCommand {
     /// When its `ttl_ms` ends, if it has one.
     expires: Option<Instant>,
     fate: Fate,
+    /// Where it came from, for its answer (boxed: most commands have none, and every pending
+    /// command would grow by it).
+    origin: Option<Box<Origin>>,
 }
 
 #[derive(Debug)]
@@ -322,12 +326,14 @@ fn seq_bit(seq: Seq) -> (usize, u64) {
 }
 
 /// When and how a command reached the bridge.
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Debug)]
 pub(crate) struct Accepted {
     /// Accepted now.
     pub(crate) now: Instant,
     /// Its ttl ends then, if it has one.
     pub(crate) expires: Option<Instant>,
+    /// Where it came from, as its answer says it (`None`: the plain shared topic).
+    pub(crate) origin: Option<Origin>,
 }
 
 /// Sequence numbers and the commands waiting for their answer.
@@ -407,7 +413,7 @@ impl Pending {
     }
 
     /// The latest moment a command accepted as `acc` may still be written to the bus.
-    fn not_after(&self, acc: Accepted) -> Instant {
+    fn not_after(&self, acc: &Accepted) -> Instant {
         let by_timeout = acc.now + self.timeout;
         acc.expires.map_or(by_timeout, |e| e.min(by_timeout))
     }
@@ -443,7 +449,7 @@ impl Pending {
                 }),
             },
         };
-        let not_after = self.not_after(acc);
+        let not_after = self.not_after(&acc);
         self.insert(
             (target.dest(), kind, seq),
             PendingCommand {
@@ -456,6 +462,7 @@ impl Pending {
                 accepted: acc.now,
                 expires: acc.expires,
                 fate: Fate::Queued,
+                origin: acc.origin.map(Box::new),
             },
         );
         self.counters.sent += 1;
@@ -494,7 +501,7 @@ impl Pending {
                 seq,
             },
         );
-        let not_after = self.not_after(acc);
+        let not_after = self.not_after(&acc);
         self.insert(
             (NodeId::BROADCAST, Kind::AssignCommit, seq),
             PendingCommand {
@@ -507,6 +514,7 @@ impl Pending {
                 accepted: acc.now,
                 expires: acc.expires,
                 fate: Fate::Queued,
+                origin: acc.origin.map(Box::new),
             },
         );
         self.counters.sent += 1;
@@ -544,6 +552,7 @@ impl Pending {
                 accepted: now,
                 expires: None,
                 fate: Fate::Queued,
+                origin: None,
             },
         );
         out.send(frame, owner);
@@ -952,6 +961,7 @@ impl Pending {
                     .collect(),
             ),
             missing: Some(missing),
+            origin: p.origin.map(|o| *o),
         };
         self.count(outcome);
         out.emit(Event::CommandResult(result));
@@ -979,6 +989,7 @@ impl Pending {
             acked: None,
             refused: None,
             missing: None,
+            origin: p.origin.map(|o| *o),
         }));
     }
 
@@ -1449,10 +1460,7 @@ mod tests {
 
         // A command whose ttl ended before the bridge got it is never queued.
         let received = t0 + S;
-        let late = Delivery {
-            received,
-            retained: false,
-        };
+        let late = Delivery::live(received);
         let cmd = json!({"cmd": "power", "node": "2", "on": true, "ttl_ms": 50});
         b.handle_delivered_command(cmd.to_string().as_bytes(), late, received + 50 * MS);
         let out = drain(&mut b);
@@ -1626,6 +1634,7 @@ mod pending_tests {
             accepted: deadline,
             expires: None,
             fate: Fate::Queued,
+            origin: None,
         };
         (key, command)
     }

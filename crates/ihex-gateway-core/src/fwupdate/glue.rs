@@ -153,6 +153,9 @@ impl FwUpdates {
             acked: None,
             refused: None,
             missing: None,
+            // Answered once the image is read, after the command's turn: the audit trail pairs
+            // it with its command by `request_id`.
+            origin: None,
         }));
         self.drain(out);
     }

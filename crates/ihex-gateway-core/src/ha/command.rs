@@ -94,6 +94,7 @@ pub fn parse(
         // refuses them.
         ttl: None,
         lease: None,
+        user: None,
         command: Command::Node {
             target: Target::Node(id),
             action,

@@ -8,6 +8,7 @@ use ihex_proto::NodeId;
 
 use super::{Ha, HaConfig};
 use crate::bridge::{Bridge, Delivery, Publication};
+use crate::origin::{Interface, Origin};
 
 /// Home Assistant's birth message (and the payload its status topic holds while it runs).
 pub const HA_ONLINE: &[u8] = b"online";
@@ -52,8 +53,15 @@ impl Bridge {
             registry.get(id).and_then(|e| e.led)
         });
         match parsed {
-            Ok(req) => self.execute(req, Delivery::live(now), now),
-            Err(rej) => self.reject(rej.request_id, rej.error),
+            Ok(req) => {
+                let ha = Origin::new(Interface::Ha, None);
+                self.execute(req, Delivery::live(now).with_origin(ha), now)
+            }
+            Err(rej) => {
+                self.origin = Origin::new(Interface::Ha, None);
+                self.reject(rej.request_id, rej.error);
+                self.origin = Origin::default();
+            }
         }
     }
 
@@ -483,7 +491,7 @@ mod tests {
         assert_eq!(
             out.one("command_result"),
             &json!({"request_id": "homeassistant", "cmd": "led", "node": "111",
-                    "result": "ok", "reason": null})
+                    "result": "ok", "reason": null, "origin": {"interface": "ha"}})
         );
         assert_eq!(
             out.ha,
@@ -528,7 +536,8 @@ mod tests {
         assert_eq!(
             out.one("command_rejected"),
             &json!({"request_id": "homeassistant",
-                    "reason": "light: `brightness` must be an integer 0 to 255; got 999"})
+                    "reason": "light: `brightness` must be an integer 0 to 255; got 999",
+                    "origin": {"interface": "ha"}})
         );
         b.handle_ha_command(&topic("7", "relay"), b"ON", now);
         assert_eq!(

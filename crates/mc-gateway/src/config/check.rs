@@ -91,6 +91,27 @@ fn flag(key: &str) -> String {
     format!("--{}", key.replace('_', "-"))
 }
 
+/// Every option that is set, with its value (secrets hidden): what the audit trail's `start`
+/// record says the gateway ran with.
+pub fn set_values(config: &Config) -> std::collections::BTreeMap<String, String> {
+    let specs = specs();
+    config
+        .settings
+        .shown()
+        .into_iter()
+        .filter_map(|(key, value)| {
+            let secret = specs.iter().any(|s| s.key == key && s.secret);
+            let value = value?;
+            let value = if secret {
+                "(set, hidden)".to_owned()
+            } else {
+                value
+            };
+            Some((key.to_owned(), value))
+        })
+        .collect()
+}
+
 /// Every option with its value and origin, then what the values resolve to.
 pub fn report(config: &Config) -> String {
     let specs = specs();

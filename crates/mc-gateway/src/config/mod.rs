@@ -156,6 +156,22 @@ options! {
         one_of ["minutely", "hourly", "daily", "never"];
     /// Log filter: a default level and `target=level` directives, e.g. `info,mc_gateway=debug`.
     log: String = "info", env "IHEX_LOG", value "FILTER";
+    /// Directory of the audit trail (`docs/audit.md`): every command with who sent it, through
+    /// which interface and what came of it, lease changes, firmware outcomes, start and stop, in
+    /// hash-chained JSON lines. `off`: no trail.
+    audit_dir: String = (text "`audit/` in the log directory; none with `--log-dir -`"),
+        env "IHEX_AUDIT_DIR", value "DIR";
+    /// Period of the retained anchor of the audit chain's head (`ihex/audit/head` under the
+    /// island prefix), seconds; 0: no anchor.
+    audit_anchor_s: u64 = 60, env "IHEX_AUDIT_ANCHOR_S", value "SECS", range 0..=86400;
+    /// Size of the audit directory beyond which nothing more is recorded (as with a full disk:
+    /// an `audit_error` event and the health flag; commands are still answered), bytes.
+    audit_max_bytes: u64 = (text "none: until the disk is full"), env "IHEX_AUDIT_MAX_BYTES",
+        value "BYTES";
+    /// Refuse commands (`command_rejected`; `list` aside) without an identity something vouches
+    /// for: on the shared command topic, only the per-user topics `ihex/cmd/<user>` (under the
+    /// island prefix) and interfaces that establish who sends are taken.
+    require_identity: bool = false, env "IHEX_REQUIRE_IDENTITY", value "BOOL";
 }
 
 /// The command line: every option of the table, with its environment variable.
@@ -375,6 +391,8 @@ pub struct Config {
     pub ha: Option<ha::HaConfig>,
     /// Logging.
     pub log: LogConfig,
+    /// The audit trail.
+    pub audit: AuditConfig,
     /// The island view.
     pub web: web::WebConfig,
     /// Every option as resolved (defaults applied, ranges checked), for options that need no more
@@ -386,6 +404,17 @@ pub struct Config {
     /// Where each option came from (all [`Origin::Default`] unless read by
     /// [`Config::from_env_and_args`]).
     pub origins: Origins,
+}
+
+/// The audit trail's settings (`docs/audit.md`).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct AuditConfig {
+    /// Its directory; `None`: no trail.
+    pub dir: Option<PathBuf>,
+    /// How often the chain's head is published as a retained message; `None`: never.
+    pub anchor: Option<Duration>,
+    /// Size of the directory beyond which nothing more is recorded.
+    pub max_bytes: Option<u64>,
 }
 
 /// Where each option's value came from (what `--check-config` prints, and what errors name).
@@ -676,6 +705,7 @@ impl Config {
                 trusted_key,
                 ..fwupdate::FwConfig::default()
             },
+            require_identity: s.require_identity.then(|| topics.user_commands.clone()),
         };
 
         let dir = match s.log_dir.as_deref() {
@@ -697,6 +727,28 @@ impl Config {
             "hourly" => Rotation::Hourly,
             "never" => Rotation::Never,
             _ => Rotation::Daily,
+        };
+        let audit_dir = match s.audit_dir.as_deref() {
+            Some("off") => None,
+            Some(d) => Some(PathBuf::from(d)),
+            None => match &dir {
+                Some(log_dir) => Some(log_dir.join("audit")),
+                None => {
+                    warnings.push(
+                        "no audit trail: no log directory (--log-dir -) and no --audit-dir".into(),
+                    );
+                    None
+                }
+            },
+        };
+        if s.audit_max_bytes.is_some_and(|b| b < 4096) {
+            let why = "at least 4096 bytes (a few records)";
+            return Err(ConfigError::invalid("audit-max-bytes", why));
+        }
+        let audit = AuditConfig {
+            dir: audit_dir,
+            anchor: (s.audit_anchor_s > 0).then(|| Duration::from_secs(s.audit_anchor_s)),
+            max_bytes: s.audit_max_bytes,
         };
         let log = LogConfig {
             dir,
@@ -723,6 +775,7 @@ impl Config {
             bridge,
             ha,
             log,
+            audit,
             web: web::WebConfig::from_settings(&s)?,
             settings: s,
             warnings,

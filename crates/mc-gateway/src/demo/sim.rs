@@ -202,6 +202,7 @@ pub async fn handle(island: &IslandHandle, payload: &[u8]) -> Event {
         Ok(req) => req,
         Err(r) => {
             return Event::SimRejected(CommandRejected {
+                origin: None,
                 request_id: r.request_id,
                 reason: r.reason,
             })

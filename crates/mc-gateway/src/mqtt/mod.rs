@@ -12,6 +12,7 @@
 //! state fields are read in [`rumqttc_state`] only, the socket options set through
 //! `crate::sys` only (the crate's one `unsafe` module).
 
+use ihex_gateway_core::Origin;
 use std::{
     sync::{
         atomic::{AtomicBool, AtomicU64, Ordering},
@@ -76,6 +77,8 @@ pub enum MqttInput {
         received: Instant,
         /// The broker delivered it as a retained message (never executed).
         retained: bool,
+        /// The interface and the identity it came with (a per-user topic names its user).
+        origin: Origin,
     },
     /// A message on one of Home Assistant's command topics (the core reads the topic too).
     HaCommand {

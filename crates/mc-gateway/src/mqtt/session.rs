@@ -26,6 +26,7 @@
 //!   low-water mark; the PINGREQ lowers it, so they are read with its answer); when nothing is
 //!   acknowledged for the whole bound the link is closed and the session reconnects.
 
+use ihex_gateway_core::{Interface, Origin};
 use std::{
     collections::VecDeque,
     sync::{atomic::Ordering, Arc},
@@ -377,7 +378,11 @@ impl Session {
             "connected to the broker"
         );
         self.requests.clear();
-        let mut filters = vec![self.topics.commands.clone(), self.topics.fw_upload_filter()];
+        let mut filters = vec![
+            self.topics.commands.clone(),
+            self.topics.user_command_filter(),
+            self.topics.fw_upload_filter(),
+        ];
         if self.ha {
             filters.push(self.topics.ha.status.clone());
             filters.push(self.topics.ha.command_filter());
@@ -407,7 +412,8 @@ impl Session {
     /// document, or the end of the retained-state window.
     pub fn handle_publish(&mut self, p: Publish, now: Instant) {
         let ack = (p.qos != QoS::AtMostOnce).then_some((p.pkid, self.generation));
-        let input = if p.topic == self.topics.commands {
+        let user = self.topics.parse_user_command(&p.topic);
+        let input = if p.topic == self.topics.commands || user.is_some() {
             if p.payload.is_empty() {
                 // How MQTT deletes a retained message: not a command, nothing to answer.
                 debug!(
@@ -418,10 +424,13 @@ impl Session {
                 return;
             }
             self.stats.commands.fetch_add(1, Ordering::Relaxed);
+            // The broker's ACL lets only the user named by the topic publish there.
+            let user = user.map(str::to_owned);
             MqttInput::Command {
                 payload: p.payload,
                 received: now,
                 retained: p.retain,
+                origin: Origin::new(Interface::Mqtt, user),
             }
         } else if let Some(name) = self.topics.parse_fw_upload(&p.topic) {
             MqttInput::FwUpload {

@@ -8,6 +8,7 @@
 //! rebound to 127.0.0.1); `415` unless the body is declared `application/json` (which also keeps
 //! other sites' plain form posts out). Reading is open to anyone who reaches the port.
 
+use ihex_gateway_core::{Interface, Origin};
 use std::{
     convert::Infallible,
     sync::{Arc, Mutex},
@@ -50,6 +51,7 @@ pub struct App {
     pub(super) commands: mpsc::Sender<MqttInput>,
     pub(super) mqtt: Arc<MqttStats>,
     pub(super) counted: crate::metrics::Counted,
+    pub(super) audit: Option<Arc<crate::audit::AuditStatus>>,
     pub(super) started: Instant,
     pub(super) info: Info,
     pub(super) token: Option<String>,
@@ -64,6 +66,7 @@ pub fn router(app: Arc<App>, max_command: usize) -> Router {
     Router::new()
         .route("/api/island", get(island))
         .route("/api/events", get(events))
+        .route("/api/audit", get(audit))
         .route(
             "/api/command",
             post(command).layer(DefaultBodyLimit::max(max_command)),
@@ -148,6 +151,36 @@ async fn events(State(app): State<Arc<App>>) -> Sse<impl Stream<Item = Result<Ev
     Sse::new(s).keep_alive(KeepAlive::default())
 }
 
+/// `GET /api/audit`: the audit trail's last records (oldest first) with their identities, and
+/// whether it records (`docs/audit.md`); `{"on":false}` when it is off.
+async fn audit(State(app): State<Arc<App>>) -> Response {
+    let Some(status) = &app.audit else {
+        return json(StatusCode::OK, r#"{"on":false,"records":[]}"#.to_owned());
+    };
+    let records: Vec<serde_json::Value> = status
+        .recent
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner)
+        .iter()
+        .filter_map(|line| serde_json::from_slice(line).ok())
+        .map(|mut v: serde_json::Value| {
+            // The chain's link means nothing to a person.
+            if let Some(o) = v.as_object_mut() {
+                o.remove("prev");
+            }
+            v
+        })
+        .collect();
+    let body = serde_json::json!({
+        "on": true,
+        "problem": status.problem(),
+        "written": status.written.load(std::sync::atomic::Ordering::Relaxed),
+        "lost": status.lost.load(std::sync::atomic::Ordering::Relaxed),
+        "records": records,
+    });
+    json(StatusCode::OK, body.to_string())
+}
+
 /// `POST /api/command`: the body goes, unchanged, to the core's command input.
 async fn command(
     State(app): State<Arc<App>>,
@@ -173,10 +206,16 @@ async fn command(
             "send the command with Content-Type: application/json",
         );
     }
+    // Whoever holds the token, or anyone on this host when the controls need none.
+    let user = match app.info.controls {
+        Controls::Token => "token",
+        _ => "local",
+    };
     let input = MqttInput::Command {
         payload: body,
         received: std::time::Instant::now(),
         retained: false,
+        origin: Origin::new(Interface::Web, Some(user.to_owned())),
     };
     match app.commands.try_send(input) {
         Ok(()) => json(StatusCode::ACCEPTED, r#"{"accepted":true}"#.to_owned()),

@@ -87,6 +87,8 @@ pub struct Parts {
     pub mqtt: Arc<MqttStats>,
     /// The core task's counts for the metrics.
     pub counted: crate::metrics::Counted,
+    /// The audit trail's status and last lines, when it is on.
+    pub audit: Option<Arc<crate::audit::AuditStatus>>,
 }
 
 impl Web {
@@ -167,6 +169,7 @@ impl Web {
             commands: parts.commands,
             mqtt: parts.mqtt,
             counted: parts.counted,
+            audit: parts.audit,
             started: Instant::now(),
             info: self.info,
             token: self.token,

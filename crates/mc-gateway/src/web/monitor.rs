@@ -61,6 +61,7 @@ async fn metrics(State(app): State<Arc<App>>) -> Response {
         bitrate: app.info.bitrate,
         bus_load: rates.load_percent / 100.0,
         started: app.started,
+        audit: app.audit.as_deref(),
     }
     .encode();
     (
@@ -74,10 +75,19 @@ async fn metrics(State(app): State<Arc<App>>) -> Response {
         .into_response()
 }
 
-/// `GET /healthz`: `200 {"status":"ok"}` while the core task answers.
+/// `GET /healthz`: `200 {"status":"ok"}` while the core task answers; while the audit trail cannot
+/// record, the body says why in `audit` (still `200`: restarting the gateway would not help, and
+/// its commands are still carried out and answered).
 async fn healthz(State(app): State<Arc<App>>) -> Response {
     match view(&app, false).await {
-        Ok(_) => json(StatusCode::OK, r#"{"status":"ok"}"#.to_owned()),
+        Ok(_) => {
+            let problem = app.audit.as_ref().and_then(|a| a.problem());
+            let body = match problem {
+                None => r#"{"status":"ok"}"#.to_owned(),
+                Some(why) => serde_json::json!({"status": "ok", "audit": why}).to_string(),
+            };
+            json(StatusCode::OK, body)
+        }
         Err(r) => r,
     }
 }

@@ -80,6 +80,10 @@ fn every_connack_subscribes_and_announces_online_first() {
                 qos: QoS::AtLeastOnce
             },
             Request::Subscribe {
+                filter: "ihex/cmd/+".into(),
+                qos: QoS::AtLeastOnce
+            },
+            Request::Subscribe {
                 filter: "ihex/fw/upload/+".into(),
                 qos: QoS::AtLeastOnce
             },
@@ -113,6 +117,29 @@ fn a_command_is_acknowledged_only_once_the_core_took_it() {
     s.handle_publish(command(0, QoS::AtMostOnce, b"{}"), t0);
     assert!(s.poll_input().is_some());
     assert_eq!(drain(&mut s), []);
+}
+
+#[test]
+fn a_per_user_topic_names_its_user_and_the_shared_one_nobody() {
+    let t0 = Instant::now();
+    let mut s = connected(t0);
+    let mut p = Publish::new("ihex/cmd/alice", QoS::AtLeastOnce, b"{}".to_vec());
+    p.pkid = 3;
+    s.handle_publish(p, t0);
+    s.handle_publish(command(4, QoS::AtLeastOnce, b"{}"), t0);
+    // Not a command topic: a deeper level under the per-user root.
+    s.handle_publish(
+        Publish::new("ihex/cmd/alice/x", QoS::AtMostOnce, b"{}".to_vec()),
+        t0,
+    );
+    let origin = |input| match input {
+        Some(MqttInput::Command { origin, .. }) => origin,
+        other => panic!("{other:?}"),
+    };
+    let alice = Origin::new(Interface::Mqtt, Some("alice".into()));
+    assert_eq!(origin(s.poll_input()), alice);
+    assert_eq!(origin(s.poll_input()), Origin::default());
+    assert_eq!(s.poll_input(), None);
 }
 
 #[test]
