@@ -54,6 +54,8 @@ pub enum Interface {
     Web,
     /// Home Assistant's command topics.
     Ha,
+    /// The SiLA 2 server's `IslandControl` commands.
+    Sila,
     /// An answer whose command the meter no longer knew (it keeps at most `PENDING_MAX` commands waiting).
     Unknown,
 }
@@ -105,7 +107,7 @@ macro_rules! label_words {
     };
 }
 
-label_words!(Interface { Mqtt => "mqtt", Web => "web", Ha => "ha", Unknown => "unknown" });
+label_words!(Interface { Mqtt => "mqtt", Web => "web", Ha => "ha", Sila => "sila", Unknown => "unknown" });
 label_words!(CommandResult {
     Ok => "ok",
     Refused => "refused",
@@ -160,7 +162,12 @@ pub struct Counted {
 
 /// The interfaces and results every series exists for from the start (at 0), so that a rate or a
 /// ratio over them has data before the first command of a kind.
-const INTERFACES: [Interface; 3] = [Interface::Mqtt, Interface::Web, Interface::Ha];
+const INTERFACES: [Interface; 4] = [
+    Interface::Mqtt,
+    Interface::Web,
+    Interface::Ha,
+    Interface::Sila,
+];
 const RESULTS: [CommandResult; 6] = [
     CommandResult::Ok,
     CommandResult::Refused,

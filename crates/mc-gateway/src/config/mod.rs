@@ -8,6 +8,7 @@
 
 pub mod check;
 pub mod options;
+pub mod sila;
 pub mod web;
 
 use std::{
@@ -58,6 +59,8 @@ options! {
         env "IHEX_BROKER_LISTEN", value "ADDR:PORT";
     /// Where the island view (web page and JSON API, `docs/web.md`) listens; `off` switches it off.
     http: String = (text "`127.0.0.1:8080`"), env "IHEX_HTTP", value "ADDR:PORT";
+    /// Where the SiLA 2 server (`docs/sila.md`) listens; `off` switches it off.
+    sila: String = (text "`127.0.0.1:50052`"), env "IHEX_SILA", value "ADDR:PORT";
     /// Bearer token for the island view's controls; without one they work only when the view
     /// listens on a loopback address (elsewhere it is read-only).
     http_token: String = none, env "IHEX_HTTP_TOKEN", value "TOKEN", [secret];
@@ -373,6 +376,8 @@ pub struct Config {
     pub log: LogConfig,
     /// The island view.
     pub web: web::WebConfig,
+    /// The SiLA 2 server.
+    pub sila: sila::SilaConfig,
     /// Every option as resolved (defaults applied, ranges checked), for options that need no more
     /// than that.
     pub settings: Settings,
@@ -719,6 +724,7 @@ impl Config {
             ha,
             log,
             web: web::WebConfig::from_settings(&s)?,
+            sila: sila::SilaConfig::from_settings(&s)?,
             settings: s,
             warnings,
             origins: Origins::default(),
