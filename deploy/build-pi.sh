@@ -2,7 +2,8 @@
 [ -n "${BASH_VERSION:-}" ] || exec bash "$0" "$@"   # also when started as `sh script`
 # Cross-compile the iHEX host binaries for the Raspberry Pi (64-bit Raspberry Pi OS): mc-gateway,
 # sim-node and ihex-provision, the gateway as deployed: without the demo (--no-default-features),
-# with the island view (feature mc-gateway/web; --no-web leaves it out).
+# with the island view (feature mc-gateway/web; --no-web leaves it out) and the SiLA 2 server
+# (feature mc-gateway/sila; --no-sila leaves it out).
 #
 #   deploy/build-pi.sh                        # glibc (>= 2.29) and static musl builds
 #   deploy/build-pi.sh --musl                 # only the static musl build
@@ -10,6 +11,7 @@
 #   deploy/build-pi.sh --musl --profile arm64-check   # what deploy/check-arm64.sh runs
 #   deploy/build-pi.sh --features mc-gateway/demo   # with the demo (embedded broker, simulated island)
 #   deploy/build-pi.sh --no-web               # a gateway without the island view (no axum)
+#   deploy/build-pi.sh --no-sila              # a gateway without the SiLA 2 server (no tonic)
 #
 # musl is linked by rust-lld (shipped with rustup: no C toolchain needed); glibc by cargo-zigbuild,
 # which pins the glibc version (IHEX_PI_GLIBC, default 2.29; bullseye has 2.31, bookworm 2.36).
@@ -26,6 +28,7 @@ PROFILE=release
 PACKAGES=()
 FEATURES=()
 WEB=1
+SILA=1
 while [ $# -gt 0 ]; do
     case "$1" in
         --gnu) MUSL=0 ;;
@@ -34,12 +37,19 @@ while [ $# -gt 0 ]; do
         --profile) PROFILE="$2"; shift ;;
         --features) FEATURES+=(--features "$2"); shift ;;
         --no-web) WEB=0 ;;
+        --no-sila) SILA=0 ;;
         -h|--help) sed -n '/^# /,/^[^#]/{/^[^#]/q;s/^# \{0,1\}//p}' "$0"; exit 0 ;;
         *) echo "build-pi.sh: unknown argument $1 (see --help)" >&2; exit 2 ;;
     esac
     shift
 done
 [ ${#PACKAGES[@]} -gt 0 ] || PACKAGES=(mc-gateway sim-node ihex-provision)
+# The gateway's own features (the island view, the SiLA server), named only when it is built.
+GW_FEATURES=()
+[ $WEB = 1 ] && GW_FEATURES+=(mc-gateway/web)
+[ $SILA = 1 ] && GW_FEATURES+=(mc-gateway/sila)
+GW_ARGS=()
+[ ${#GW_FEATURES[@]} -gt 0 ] && GW_ARGS=(--features "$(IFS=,; echo "${GW_FEATURES[*]}")")
 CARGO="${CARGO:-cargo}"
 OUT_DIR="$PROFILE"
 [ "$PROFILE" = dev ] && OUT_DIR=debug
@@ -84,8 +94,7 @@ for t in "${targets[@]}"; do
     pkg_args=()
     for p in "${PACKAGES[@]}"; do
         pkg_args+=(-p "$p")
-        # The island view is a feature of the gateway alone: name it only when it is built.
-        [ "$p" = mc-gateway ] && [ $WEB = 1 ] && pkg_args+=(--features mc-gateway/web)
+        [ "$p" = mc-gateway ] && pkg_args+=("${GW_ARGS[@]}")
     done
     say "building ${PACKAGES[*]} for $t ($PROFILE)"
     if "${build[@]}" "${pkg_args[@]}"; then
@@ -94,9 +103,9 @@ for t in "${targets[@]}"; do
     fi
     for p in "${PACKAGES[@]}"; do
         say "building $p alone for $t"
-        web=()
-        [ "$p" = mc-gateway ] && [ $WEB = 1 ] && web=(--features mc-gateway/web)
-        if "${build[@]}" -p "$p" "${web[@]}"; then
+        gw=()
+        [ "$p" = mc-gateway ] && gw=("${GW_ARGS[@]}")
+        if "${build[@]}" -p "$p" "${gw[@]}"; then
             built+=("$t:$p")
         else
             failed+=("$p ($t)")
