@@ -151,6 +151,9 @@ pub enum SilaError {
         /// The OS's answer.
         source: io::Error,
     },
+    /// The TLS certificate cannot be made, read, kept or used.
+    #[error("SiLA server TLS: {0}")]
+    Tls(String),
     /// The server's identity (its UUID and name) cannot be read or kept.
     #[error("SiLA server identity in {path}: {why} (fix or remove the file)")]
     Identity {

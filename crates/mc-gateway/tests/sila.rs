@@ -3,7 +3,9 @@
 //! transform makes of them), then drives the `mc-gateway` demo binary (embedded broker, simulated
 //! island): `SiLAService`, its dynamic client built from the served definitions, `SetLight` with the
 //! `command_result` it gives on MQTT, the documented errors, the `Dockings` stream over a dock and an
-//! undock through `ihex/sim`, and after a restart the same UUID and the name it set.
+//! undock through `ihex/sim`, and after a restart the same UUID and the name it set — all over TLS,
+//! trusting the self-signed certificate the gateway made at its first start (a plaintext client is
+//! refused).
 //!
 //! Ignored by `cargo test` (it needs the Python environment); the host stage of `cargo xtask test`
 //! makes `target/venv` with `tests/sila/requirements.txt` and runs it with `--ignored`
@@ -126,10 +128,14 @@ fn the_reference_client_drives_the_island() {
     let (broker, sila) = (free_port(), free_port());
     let name = "Bench A (SiLA test)";
     let gw = gateway(state.path(), broker, sila);
+    // The self-signed certificate the gateway made at its first start: what clients trust.
+    let ca = state.path().join("ihex/sila-cert.pem");
+    let ca = ca.to_str().unwrap();
     let out = client(&[
         "first",
         "127.0.0.1",
         &sila.to_string(),
+        ca,
         &broker.to_string(),
         sila_dir,
         name,
@@ -141,8 +147,14 @@ fn the_reference_client_drives_the_island() {
         .expect("the first run prints the UUID");
     assert!(state.path().join("ihex/sila.json").is_file());
 
+    let cert = std::fs::read(ca).unwrap();
     let _gw = gateway(state.path(), broker, sila);
-    client(&["again", "127.0.0.1", &sila.to_string(), uuid, name]);
+    assert_eq!(
+        std::fs::read(ca).unwrap(),
+        cert,
+        "the certificate is kept, so clients that trust it keep trusting the server"
+    );
+    client(&["again", "127.0.0.1", &sila.to_string(), ca, uuid, name]);
 
     let passed = target_dir().join("sila/passed");
     std::fs::create_dir_all(passed.parent().unwrap()).unwrap();

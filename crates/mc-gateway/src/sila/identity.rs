@@ -18,6 +18,9 @@ pub struct Identity {
     pub uuid: String,
     /// The server name.
     pub name: String,
+    /// The names the kept self-signed certificate was made for (it is made again when they change).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub cert_names: Vec<String>,
 }
 
 impl Identity {
@@ -26,6 +29,7 @@ impl Identity {
         Identity {
             uuid: uuid::Uuid::new_v4().to_string(),
             name,
+            cert_names: Vec::new(),
         }
     }
 

@@ -17,6 +17,7 @@ pub mod control;
 pub mod identity;
 pub mod island;
 pub mod service;
+pub mod tls;
 
 use std::{net::SocketAddr, path::PathBuf, sync::Arc, time::Duration};
 
@@ -30,7 +31,7 @@ use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
 
 use crate::{
-    config::Config,
+    config::{sila::Security, Config},
     error::SilaError,
     feed::{self, Feed, Kind, ViewRequest},
     mqtt::MqttInput,
@@ -164,6 +165,8 @@ pub struct Sila {
     identity_file: Option<PathBuf>,
     description: String,
     answer_wait: Duration,
+    /// The certificate and key it serves TLS with; `None`: plaintext.
+    tls: Option<tls::Pem>,
 }
 
 impl Sila {
@@ -202,7 +205,7 @@ impl Sila {
         };
         let dir =
             crate::config::state_dir(std::env::var_os("XDG_STATE_HOME"), std::env::var_os("HOME"));
-        let (identity, identity_file) = match dir {
+        let (mut identity, identity_file) = match dir {
             Some(dir) => {
                 let path = identity::file(&dir, island);
                 (identity::load_or_create(&path, &default_name)?, Some(path))
@@ -210,6 +213,16 @@ impl Sila {
             None => {
                 warn!("SiLA server: neither XDG_STATE_HOME nor HOME is set: its UUID changes at every start");
                 (identity::Identity::new(default_name), None)
+            }
+        };
+        let tls = match &sila.security {
+            Security::Insecure => None,
+            Security::Files { cert, key } => Some(tls::Pem {
+                cert: tls::read(cert)?,
+                key: tls::read(key)?,
+            }),
+            Security::SelfSigned => {
+                Some(self_signed(&mut identity, identity_file.as_deref(), addr)?)
             }
         };
         let description = format!(
@@ -224,6 +237,7 @@ impl Sila {
             identity_file,
             description,
             answer_wait: config.bridge.command_timeout + ANSWER_MARGIN,
+            tls,
         }))
     }
 
@@ -247,7 +261,8 @@ impl Sila {
             addr = %self.addr,
             uuid = %self.identity.uuid,
             name = %self.identity.name,
-            "SiLA server listening (plaintext)"
+            tls = self.tls.is_some(),
+            "SiLA server listening"
         );
         let prefix: String = self.identity.uuid.chars().take(8).collect();
         let service = service::Service::new(self.identity, self.identity_file, self.description);
@@ -263,7 +278,20 @@ impl Sila {
         };
         let incoming =
             tonic::transport::server::TcpIncoming::from(self.listener).with_nodelay(Some(true));
-        let server = tonic::transport::Server::builder()
+        let mut builder = tonic::transport::Server::builder();
+        if let Some(pem) = &self.tls {
+            let identity = tonic::transport::Identity::from_pem(&pem.cert, &pem.key);
+            let config = tonic::transport::ServerTlsConfig::new().identity(identity);
+            builder = match builder.tls_config(config) {
+                Ok(b) => b,
+                Err(e) => {
+                    // Checked in `bind`; a failure here leaves the server off, the gateway on.
+                    tracing::error!(error = %e, "SiLA server off: its TLS configuration is unusable");
+                    return;
+                }
+            };
+        }
+        let server = builder
             .add_service(proto::sila_service::si_la_service_server::SiLaServiceServer::new(service))
             .add_service(
                 proto::island_control::island_control_server::IslandControlServer::new(control),
@@ -275,6 +303,39 @@ impl Sila {
             }
         });
     }
+}
+
+/// The self-signed certificate kept beside the identity file, made (again) when there is none or
+/// when the names it must carry changed; without an identity file one for this run only.
+fn self_signed(
+    identity: &mut identity::Identity,
+    file: Option<&std::path::Path>,
+    addr: SocketAddr,
+) -> Result<tls::Pem, SilaError> {
+    let names = tls::names(
+        addr,
+        tls::host_name().as_deref(),
+        &tls::interface_addresses(),
+    );
+    let make = |identity: &identity::Identity| {
+        tls::self_signed(&identity.uuid, &names).map_err(SilaError::Tls)
+    };
+    let Some(file) = file else {
+        return make(identity);
+    };
+    let (cert, key) = tls::files(file);
+    if identity.cert_names == names && cert.is_file() && key.is_file() {
+        return Ok(tls::Pem {
+            cert: tls::read(&cert)?,
+            key: tls::read(&key)?,
+        });
+    }
+    let pem = make(identity)?;
+    tls::save(&pem, (&cert, &key))?;
+    identity.cert_names = names;
+    identity::save(file, identity)?;
+    info!(cert = %cert.display(), "SiLA server: new self-signed certificate (clients trust this file)");
+    Ok(pem)
 }
 
 /// The model task: keeps the island's elements and dockings current from the feed and hands

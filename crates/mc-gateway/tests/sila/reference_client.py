@@ -3,10 +3,10 @@
   reference_client.py definitions SILA_DIR
       Every feature definition of SILA_DIR/features validates against SILA_DIR/xsd's
       FeatureDefinition.xsd, and SiLA's own FDL-to-proto transform gives SILA_DIR/proto's files.
-  reference_client.py first HOST SILA_PORT MQTT_PORT SILA_DIR NAME
-      The whole tour against a fresh demo gateway (its simulated island); renames the server NAME.
-      Prints "uuid=..." for the second run.
-  reference_client.py again HOST SILA_PORT UUID NAME
+  reference_client.py first HOST SILA_PORT CA MQTT_PORT SILA_DIR NAME
+      The whole tour against a fresh demo gateway (its simulated island), over TLS trusting the
+      certificate file CA; renames the server NAME. Prints "uuid=..." for the second run.
+  reference_client.py again HOST SILA_PORT CA UUID NAME
       After a restart: the same UUID and the name the first run gave.
 
 Exits non-zero with the reason on the first thing that is not as it should be.
@@ -90,7 +90,7 @@ def expect_error(call, kind, contains):
         text = f"{type(e).__name__}: {e}"
         # A defined execution error is `UnknownElement: ...` (or a class of that name), a validation
         # error a `ValidationError`.
-        check(kind in text.split(": ")[:2] and contains in text, f"expected {kind} with {contains!r}, got {text}")
+        check((kind in text.split(": ")[:2] or type(e).__name__ == kind) and contains in text, f"expected {kind} with {contains!r}, got {text}")
         print(f"ok: {text}")
         return e
     raise AssertionError(f"expected {kind}, the call succeeded")
@@ -103,13 +103,15 @@ def wait_for(what, pred):
         time.sleep(0.05)
 
 
-def first(host, sila_port, mqtt_port, sila_dir: Path, name):
+def first(host, sila_port, ca: Path, mqtt_port, sila_dir: Path, name):
     from sila2.client import SilaClient
     from sila2.client.utils import call_rpc_function
     from sila2.framework.pb2 import SiLAFramework_pb2 as fw
 
     events = Events(host, mqtt_port)
-    client = SilaClient(host, sila_port, insecure=True)
+    # A plaintext client on the TLS port gets a clear error; the server keeps serving the next.
+    expect_error(lambda: SilaClient(host, sila_port, insecure=True), "SilaConnectionError", "UNAVAILABLE")
+    client = SilaClient(host, sila_port, root_certs=ca.read_bytes())
     svc = client.SiLAService
     check(svc.ServerType.get() == "IhexIsland", "server type")
     server_uuid = svc.ServerUUID.get()
@@ -209,10 +211,10 @@ def first(host, sila_port, mqtt_port, sila_dir: Path, name):
     print(f"uuid={server_uuid}")
 
 
-def again(host, sila_port, server_uuid, name):
+def again(host, sila_port, ca: Path, server_uuid, name):
     from sila2.client import SilaClient
 
-    client = SilaClient(host, sila_port, insecure=True)
+    client = SilaClient(host, sila_port, root_certs=ca.read_bytes())
     got = client.SiLAService.ServerUUID.get()
     check(got == server_uuid, f"UUID after a restart {got}, was {server_uuid}")
     check(client.SiLAService.ServerName.get() == name, "the name after a restart")
@@ -224,9 +226,9 @@ def main(argv):
     if mode == "definitions":
         definitions(Path(argv[2]))
     elif mode == "first":
-        first(argv[2], int(argv[3]), int(argv[4]), Path(argv[5]), argv[6])
+        first(argv[2], int(argv[3]), Path(argv[4]), int(argv[5]), Path(argv[6]), argv[7])
     elif mode == "again":
-        again(argv[2], int(argv[3]), argv[4], argv[5])
+        again(argv[2], int(argv[3]), Path(argv[4]), argv[5], argv[6])
     else:
         raise SystemExit(f"unknown mode {mode}")
     # sila2's subscription threads do not always end with the interpreter.
