@@ -1,7 +1,7 @@
 //! The SiLA 2 server as the reference client sees it: PyPI's `sila2` (tests/sila/reference_client.py)
 //! checks the feature definitions (valid against `FeatureDefinition.xsd`, the protos what SiLA's own
 //! transform makes of them), then drives the `mc-gateway` demo binary (embedded broker, simulated
-//! island): `SiLAService`, its dynamic client built from the served definitions, `SetLight` with the
+//! island): discovery over mDNS (on loopback), `SiLAService`, its dynamic client built from the served definitions, `SetLight` with the
 //! `command_result` it gives on MQTT, the documented errors, the `Dockings` stream over a dock and an
 //! undock through `ihex/sim`, and after a restart the same UUID and the name it set — all over TLS,
 //! trusting the self-signed certificate the gateway made at its first start (a plaintext client is
@@ -131,7 +131,11 @@ fn the_reference_client_drives_the_island() {
     // The self-signed certificate the gateway made at its first start: what clients trust.
     let ca = state.path().join("ihex/sila-cert.pem");
     let ca = ca.to_str().unwrap();
-    let out = client(&[
+    let identity: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(state.path().join("ihex/sila.json")).unwrap())
+            .unwrap();
+    let uuid = identity["uuid"].as_str().unwrap();
+    client(&[
         "first",
         "127.0.0.1",
         &sila.to_string(),
@@ -139,13 +143,9 @@ fn the_reference_client_drives_the_island() {
         &broker.to_string(),
         sila_dir,
         name,
+        uuid,
     ]);
     drop(gw);
-    let uuid = out
-        .lines()
-        .find_map(|l| l.strip_prefix("uuid="))
-        .expect("the first run prints the UUID");
-    assert!(state.path().join("ihex/sila.json").is_file());
 
     let cert = std::fs::read(ca).unwrap();
     let _gw = gateway(state.path(), broker, sila);

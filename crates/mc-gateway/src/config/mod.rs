@@ -72,6 +72,8 @@ options! {
     /// Allow `sila_insecure` on a non-loopback address: anyone on the network can then read and
     /// drive the island unencrypted.
     sila_insecure_anywhere: bool = false, env "IHEX_SILA_INSECURE_ANYWHERE", value "BOOL";
+    /// Announce the SiLA server over mDNS/DNS-SD (`_sila._tcp`), so orchestrators find it.
+    sila_announce: String = "on", env "IHEX_SILA_ANNOUNCE", value "on|off", one_of ["on", "off"];
     /// Bearer token for the island view's controls; without one they work only when the view
     /// listens on a loopback address (elsewhere it is read-only).
     http_token: String = none, env "IHEX_HTTP_TOKEN", value "TOKEN", [secret];

@@ -41,6 +41,8 @@ pub struct SilaConfig {
     pub configured: bool,
     /// TLS or not.
     pub security: Security,
+    /// Announced over mDNS.
+    pub announce: bool,
 }
 
 impl SilaConfig {
@@ -95,6 +97,7 @@ impl SilaConfig {
             listen,
             configured: s.sila.is_some(),
             security,
+            announce: s.sila_announce != "off",
         })
     }
 }

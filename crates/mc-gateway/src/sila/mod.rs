@@ -12,6 +12,7 @@
 //!
 //! [`Interface::Sila`]: crate::metrics::Interface::Sila
 
+pub mod announce;
 pub mod command;
 pub mod control;
 pub mod identity;
@@ -167,6 +168,8 @@ pub struct Sila {
     answer_wait: Duration,
     /// The certificate and key it serves TLS with; `None`: plaintext.
     tls: Option<tls::Pem>,
+    /// Announced over mDNS.
+    announce: bool,
 }
 
 impl Sila {
@@ -238,6 +241,7 @@ impl Sila {
             description,
             answer_wait: config.bridge.command_timeout + ANSWER_MARGIN,
             tls,
+            announce: sila.announce,
         }))
     }
 
@@ -264,6 +268,23 @@ impl Sila {
             tls = self.tls.is_some(),
             "SiLA server listening"
         );
+        if self.announce {
+            let what = announce::Announcement {
+                uuid: self.identity.uuid.clone(),
+                version: env!("CARGO_PKG_VERSION").to_owned(),
+                server_name: self.identity.name.clone(),
+                description: self.description.clone(),
+                ca: self.tls.as_ref().map(|t| t.cert.clone()),
+            };
+            let host = tls::host_name().unwrap_or_else(|| "ihex-gateway".to_owned());
+            let announcer = announce::Announcer::start(self.addr, &host, &what);
+            let until = cancel.clone();
+            // Withdrawn (goodbye packets) when the gateway stops.
+            tasks.spawn(async move {
+                until.cancelled().await;
+                drop(announcer);
+            });
+        }
         let prefix: String = self.identity.uuid.chars().take(8).collect();
         let service = service::Service::new(self.identity, self.identity_file, self.description);
         let control = control::Control {

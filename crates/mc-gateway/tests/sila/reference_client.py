@@ -3,9 +3,10 @@
   reference_client.py definitions SILA_DIR
       Every feature definition of SILA_DIR/features validates against SILA_DIR/xsd's
       FeatureDefinition.xsd, and SiLA's own FDL-to-proto transform gives SILA_DIR/proto's files.
-  reference_client.py first HOST SILA_PORT CA MQTT_PORT SILA_DIR NAME
-      The whole tour against a fresh demo gateway (its simulated island), over TLS trusting the
-      certificate file CA; renames the server NAME. Prints "uuid=..." for the second run.
+  reference_client.py first HOST SILA_PORT CA MQTT_PORT SILA_DIR NAME UUID
+      The whole tour against a fresh demo gateway (its simulated island): found by mDNS by its UUID
+      (and verified with the certificate its announcement carries), then over TLS trusting the
+      certificate file CA; renames the server NAME.
   reference_client.py again HOST SILA_PORT CA UUID NAME
       After a restart: the same UUID and the name the first run gave.
 
@@ -103,7 +104,7 @@ def wait_for(what, pred):
         time.sleep(0.05)
 
 
-def first(host, sila_port, ca: Path, mqtt_port, sila_dir: Path, name):
+def first(host, sila_port, ca: Path, mqtt_port, sila_dir: Path, name, server_uuid):
     from sila2.client import SilaClient
     from sila2.client.utils import call_rpc_function
     from sila2.framework.pb2 import SiLAFramework_pb2 as fw
@@ -111,11 +112,15 @@ def first(host, sila_port, ca: Path, mqtt_port, sila_dir: Path, name):
     events = Events(host, mqtt_port)
     # A plaintext client on the TLS port gets a clear error; the server keeps serving the next.
     expect_error(lambda: SilaClient(host, sila_port, insecure=True), "SilaConnectionError", "UNAVAILABLE")
+    # Discovery: the announcement names the address and port and carries the certificate (ca0, ...).
+    found = SilaClient.discover(server_uuid=server_uuid, timeout=WAIT)
+    check((found.address, found.port) == (host, sila_port), f"discovered at {found.address}:{found.port}")
+    check(found.SiLAService.ServerUUID.get() == server_uuid, "the discovered server's UUID")
+    print(f"ok: discovered {server_uuid} at {found.address}:{found.port} over mDNS, TLS with its announced certificate")
     client = SilaClient(host, sila_port, root_certs=ca.read_bytes())
     svc = client.SiLAService
     check(svc.ServerType.get() == "IhexIsland", "server type")
-    server_uuid = svc.ServerUUID.get()
-    uuid.UUID(server_uuid)
+    check(svc.ServerUUID.get() == server_uuid, "the UUID")
     features = svc.ImplementedFeatures.get()
     check(
         features == ["org.silastandard/core/SiLAService/v1", "de.ihex/bench/IslandControl/v1"],
@@ -208,7 +213,6 @@ def first(host, sila_port, ca: Path, mqtt_port, sila_dir: Path, name):
 
     svc.SetServerName(name)
     check(svc.ServerName.get() == name, "the new name")
-    print(f"uuid={server_uuid}")
 
 
 def again(host, sila_port, ca: Path, server_uuid, name):
@@ -226,7 +230,7 @@ def main(argv):
     if mode == "definitions":
         definitions(Path(argv[2]))
     elif mode == "first":
-        first(argv[2], int(argv[3]), Path(argv[4]), int(argv[5]), Path(argv[6]), argv[7])
+        first(argv[2], int(argv[3]), Path(argv[4]), int(argv[5]), Path(argv[6]), argv[7], argv[8])
     elif mode == "again":
         again(argv[2], int(argv[3]), Path(argv[4]), argv[5], argv[6])
     else:
