@@ -62,7 +62,8 @@ pub fn file(dir: &Path, island: Option<&str>) -> PathBuf {
     }
 }
 
-/// The identity kept in `path`, made (and kept) with `default_name` the first time.
+/// The identity kept in `path`, made (and kept, when the directory can be written) with
+/// `default_name` the first time; a file that cannot be read or parsed is an error.
 pub fn load_or_create(path: &Path, default_name: &str) -> Result<Identity, SilaError> {
     let err = |why: String| SilaError::Identity {
         path: path.to_owned(),
@@ -72,7 +73,10 @@ pub fn load_or_create(path: &Path, default_name: &str) -> Result<Identity, SilaE
         Ok(text) => Identity::parse(&text).map_err(err),
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
             let id = Identity::new(default_name.to_owned());
-            save(path, &id)?;
+            // A state directory that cannot be written must not keep the gateway from running.
+            if let Err(e) = save(path, &id) {
+                tracing::warn!(error = %e, "SiLA server identity not kept: its UUID changes at every start");
+            }
             Ok(id)
         }
         Err(e) => Err(err(e.to_string())),

@@ -352,10 +352,17 @@ fn self_signed(
         });
     }
     let pem = make(identity)?;
-    tls::save(&pem, (&cert, &key))?;
-    identity.cert_names = names;
-    identity::save(file, identity)?;
-    info!(cert = %cert.display(), "SiLA server: new self-signed certificate (clients trust this file)");
+    let kept = tls::save(&pem, (&cert, &key)).and_then(|()| {
+        identity.cert_names = names;
+        identity::save(file, identity)
+    });
+    match kept {
+        Ok(()) => info!(
+            cert = %cert.display(),
+            "SiLA server: new self-signed certificate (clients trust this file)"
+        ),
+        Err(e) => warn!(error = %e, "SiLA server: its certificate is for this run only"),
+    }
     Ok(pem)
 }
 
