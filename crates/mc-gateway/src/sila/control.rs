@@ -45,7 +45,7 @@ pub struct Control {
     pub next: AtomicU64,
     /// How long a command waits for its answer.
     pub answer_wait: Duration,
-    /// Ends the property streams when the gateway stops.
+    /// Ends the property streams and waiting commands when the gateway stops.
     pub cancel: CancellationToken,
 }
 
@@ -124,15 +124,19 @@ impl Control {
                 }
             }
         };
-        tokio::time::timeout(self.answer_wait, answer)
-            .await
-            .unwrap_or_else(|_| {
+        tokio::select! {
+            r = tokio::time::timeout(self.answer_wait, answer) => r.unwrap_or_else(|_| {
                 Err(Failure::NoAnswer(format!(
                     "the gateway's core gave no answer within {} ms; the command {id} may still \
                      be carried out (its command_result on MQTT tells)",
                     self.answer_wait.as_millis()
                 )))
-            })
+            }),
+            // A stopping gateway answers no more; the call must not hold up its shutdown.
+            () = self.cancel.cancelled() => {
+                Err(Failure::NoAnswer("the gateway is stopping".into()))
+            }
+        }
     }
 
     /// [`Control::execute`] with its failure as the SiLA error.
