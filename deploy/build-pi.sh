@@ -13,12 +13,14 @@
 #   deploy/build-pi.sh --no-web               # a gateway without the island view (no axum)
 #   deploy/build-pi.sh --no-sila              # a gateway without the SiLA 2 server (no tonic)
 #
-# musl is linked by rust-lld (shipped with rustup: no C toolchain needed); glibc by cargo-zigbuild,
+# musl is linked by rust-lld (shipped with rustup), its C code (ring, for the SiLA server's TLS)
+# compiled by zig; glibc by cargo-zigbuild,
 # which pins the glibc version (IHEX_PI_GLIBC, default 2.29; bullseye has 2.31, bookworm 2.36).
-# Installs what is missing: the rustup targets, and for --gnu cargo-zigbuild (cargo install --locked)
-# and zig (pip install ziglang). Binaries land in target/<triple>/<profile>/ (release: release/) and
-# are listed at the end. All packages build in one cargo run; if that fails, each is retried alone so
-# one that does not build does not hide the others. The exit code is non-zero if any failed.
+# Installs what is missing: the rustup targets, for --gnu cargo-zigbuild (cargo install --locked),
+# and zig (pip install ziglang) for --gnu and the SiLA build's musl C code. Binaries land in
+# target/<triple>/<profile>/ (release: release/) and are listed at the end. All packages build in
+# one cargo run; if that fails, each is retried alone so one that does not build does not hide the
+# others. The exit code is non-zero if any failed.
 set -euo pipefail
 
 cd "$(dirname "$0")/.."
@@ -64,15 +66,39 @@ installed="$(rustup target list --installed 2>/dev/null || true)"
 for t in "${targets[@]}"; do
     grep -qx "$t" <<<"$installed" || { say "adding rustup target $t"; rustup target add "$t"; }
 done
+# The SiLA server's TLS (ring) has C and assembly: the musl build needs an aarch64 C compiler too,
+# which zig provides (as it does for the glibc build).
+MUSL_CC=0
+[ $MUSL = 1 ] && [ $SILA = 1 ] && [ -z "${CC_aarch64_unknown_linux_musl:-}" ] && MUSL_CC=1
 if [ $GNU = 1 ]; then
     if ! "$CARGO" zigbuild --help >/dev/null 2>&1; then
         say "installing cargo-zigbuild (cargo install cargo-zigbuild --locked; a few minutes)"
         "$CARGO" install cargo-zigbuild --locked
     fi
+fi
+if [ $GNU = 1 ] || [ $MUSL_CC = 1 ]; then
     if ! command -v zig >/dev/null 2>&1 && ! python3 -m ziglang version >/dev/null 2>&1; then
         say "installing zig (pip install ziglang)"
         python3 -m pip install --quiet ziglang || python3 -m pip install --quiet --break-system-packages ziglang
     fi
+fi
+if [ $MUSL_CC = 1 ]; then
+    if command -v zig >/dev/null 2>&1; then ZIG="$(command -v zig)"; else ZIG="$(command -v python3) -m ziglang"; fi
+    wrap="$PWD/target/zig-cc"
+    mkdir -p "$wrap"
+    # cc-rs passes its own --target= (a Rust triple), which zig does not parse: dropped here.
+    {
+        echo '#!/bin/sh'
+        echo 'for a in "$@"; do shift; case "$a" in --target=*) ;; *) set -- "$@" "$a" ;; esac; done'
+        echo "exec $ZIG cc -target aarch64-linux-musl \"\$@\""
+    } >"$wrap/aarch64-linux-musl-cc"
+    {
+        echo '#!/bin/sh'
+        echo "exec $ZIG ar \"\$@\""
+    } >"$wrap/aarch64-linux-musl-ar"
+    chmod +x "$wrap/aarch64-linux-musl-cc" "$wrap/aarch64-linux-musl-ar"
+    export CC_aarch64_unknown_linux_musl="$wrap/aarch64-linux-musl-cc"
+    export AR_aarch64_unknown_linux_musl="$wrap/aarch64-linux-musl-ar"
 fi
 # rust-lld links the static musl binaries with the musl CRT objects rustup ships (self-contained).
 export CARGO_TARGET_AARCH64_UNKNOWN_LINUX_MUSL_LINKER="${CARGO_TARGET_AARCH64_UNKNOWN_LINUX_MUSL_LINKER:-rust-lld}"
