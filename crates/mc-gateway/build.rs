@@ -1,6 +1,7 @@
 //! Records the build year (`IHEX_BUILD_YEAR`) for `mc-gateway doctor`'s clock check: a clock before
 //! the year the binary was built is certainly wrong. `SOURCE_DATE_EPOCH` fixes it for reproducible
-//! builds.
+//! builds. With the `sila` feature, also generates the SiLA 2 gRPC code from the vendored protos in
+//! `sila/proto` (compiled by protox, so no system `protoc` is needed).
 
 #[path = "src/doctor/calendar.rs"]
 mod calendar;
@@ -20,4 +21,25 @@ fn main() {
         "cargo:rustc-env=IHEX_BUILD_YEAR={}",
         calendar::year_of(secs)
     );
+    #[cfg(feature = "sila")]
+    sila();
+}
+
+/// The SiLA protos, compiled in order (each after what it imports).
+#[cfg(feature = "sila")]
+fn sila() {
+    const PROTOS: [&str; 3] = [
+        "sila/proto/SiLAFramework.proto",
+        "sila/proto/SiLAService.proto",
+        "sila/proto/IslandControl.proto",
+    ];
+    for p in PROTOS {
+        println!("cargo:rerun-if-changed={p}");
+    }
+    let fds = protox::compile(PROTOS, ["sila/proto"]).expect("compiling the SiLA protos");
+    tonic_prost_build::configure()
+        .build_client(true)
+        .build_server(true)
+        .compile_fds(fds)
+        .expect("generating the SiLA gRPC code");
 }

@@ -1,6 +1,7 @@
 //! The host stage's cantools round trip: a virtual environment in `target/venv` with the pinned
-//! cantools (`crates/ihex-proto/tests/dbc/requirements.txt`), then the ignored cantools test of
-//! `crates/ihex-proto/tests/dbc.rs` run with it and with the golden vectors of the same stage.
+//! Python packages of the host stage ([`REQUIREMENTS`]: cantools, and the reference SiLA client the
+//! SiLA test uses), then the ignored cantools test of `crates/ihex-proto/tests/dbc.rs` run with it
+//! and with the golden vectors of the same stage.
 //!
 //! pip runs only when the requirements changed since the last install (a stamp file in the
 //! environment), so a warm run costs the test alone. Where Python or PyPI is missing the round trip
@@ -14,7 +15,10 @@ use anyhow::{bail, Context, Result};
 use crate::cmd;
 
 /// The pinned requirements, relative to the workspace root.
-const REQUIREMENTS: &str = "crates/ihex-proto/tests/dbc/requirements.txt";
+const REQUIREMENTS: [&str; 2] = [
+    "crates/ihex-proto/tests/dbc/requirements.txt",
+    "crates/mc-gateway/tests/sila/requirements.txt",
+];
 
 /// True under CI, where nothing may be skipped for want of a tool.
 pub fn in_ci() -> bool {
@@ -62,12 +66,14 @@ pub fn round_trip(vectors: &Path) -> Result<()> {
 }
 
 /// The environment's Python, created and filled when needed.
-fn venv() -> Result<PathBuf> {
+pub fn venv() -> Result<PathBuf> {
     let root = cmd::root();
     let dir = cmd::target_dir().join("venv");
     let python = dir.join("bin/python");
-    let wanted = std::fs::read_to_string(root.join(REQUIREMENTS))
-        .with_context(|| format!("reading {REQUIREMENTS}"))?;
+    let mut wanted = String::new();
+    for r in REQUIREMENTS {
+        wanted += &std::fs::read_to_string(root.join(r)).with_context(|| format!("reading {r}"))?;
+    }
     let stamp = dir.join("ihex-requirements.txt");
     if python.is_file() && std::fs::read_to_string(&stamp).is_ok_and(|s| s == wanted) {
         return Ok(python);
@@ -80,19 +86,12 @@ fn venv() -> Result<PathBuf> {
             "creating the virtual environment (on Debian/Ubuntu: apt-get install python3-venv)",
         )?;
     }
-    cmd::run(
-        Command::new(&python)
-            .args([
-                "-m",
-                "pip",
-                "install",
-                "--disable-pip-version-check",
-                "-q",
-                "-r",
-            ])
-            .arg(root.join(REQUIREMENTS)),
-    )
-    .context("installing cantools from PyPI")?;
+    let mut pip = Command::new(&python);
+    pip.args(["-m", "pip", "install", "--disable-pip-version-check", "-q"]);
+    for r in REQUIREMENTS {
+        pip.arg("-r").arg(root.join(r));
+    }
+    cmd::run(&mut pip).context("installing cantools and sila2 from PyPI")?;
     std::fs::write(&stamp, wanted).with_context(|| format!("writing {}", stamp.display()))?;
     Ok(python)
 }

@@ -14,6 +14,7 @@ mod ignored_test;
 mod lint;
 mod prometheus;
 mod setup;
+mod sila;
 #[cfg(test)]
 mod tidy;
 mod vcan;
@@ -387,6 +388,10 @@ fn run_stage(stage: Stage, args: &TestArgs) -> Result<Done> {
             println!("==> xtask: host: Prometheus scraping the demo gateway");
             if let Err(e) = prometheus::run() {
                 failures.push(format!("Prometheus test: {e:#}"));
+            }
+            println!("==> xtask: host: the reference SiLA 2 client driving the demo gateway");
+            if let Err(e) = sila::run() {
+                failures.push(format!("SiLA test: {e:#}"));
             }
             if !failures.is_empty() {
                 anyhow::bail!("{}", failures.join("; "));

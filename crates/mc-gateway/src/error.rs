@@ -137,6 +137,33 @@ pub enum WebError {
     },
 }
 
+/// Why the SiLA 2 server could not start.
+#[derive(Debug, thiserror::Error)]
+pub enum SilaError {
+    /// The configured address cannot be listened on.
+    #[error(
+        "cannot listen on {addr} for the SiLA server: {source} (choose another address with \
+         --sila ADDR:PORT, or --sila off)"
+    )]
+    Bind {
+        /// The address.
+        addr: SocketAddr,
+        /// The OS's answer.
+        source: io::Error,
+    },
+    /// The TLS certificate cannot be made, read, kept or used.
+    #[error("SiLA server TLS: {0}")]
+    Tls(String),
+    /// The server's identity (its UUID and name) cannot be read or kept.
+    #[error("SiLA server identity in {path}: {why} (fix or remove the file)")]
+    Identity {
+        /// The file.
+        path: std::path::PathBuf,
+        /// What is wrong.
+        why: String,
+    },
+}
+
 /// Everything [`crate::run()`] can fail with.
 #[derive(Debug, thiserror::Error)]
 pub enum GatewayError {
@@ -155,6 +182,9 @@ pub enum GatewayError {
     /// The island view could not be started.
     #[error(transparent)]
     Web(#[from] WebError),
+    /// The SiLA server could not be started.
+    #[error(transparent)]
+    Sila(#[from] SilaError),
     /// The simulated island could not be built.
     #[error("simulated island: {0}")]
     Sim(String),
@@ -170,6 +200,11 @@ pub enum GatewayError {
         "this gateway was built without the `web` cargo feature (island view): pass --http off"
     )]
     WebUnavailable,
+    /// `--sila` names an address, and this build has no `sila` feature.
+    #[error(
+        "this gateway was built without the `sila` cargo feature (SiLA 2 server): pass --sila off"
+    )]
+    SilaUnavailable,
     /// A gateway task panicked.
     #[error("gateway task failed: {0}")]
     Task(String),

@@ -33,6 +33,8 @@ pub mod metrics;
 pub mod mqtt;
 pub mod run;
 pub mod shutdown;
+#[cfg(feature = "sila")]
+pub mod sila;
 #[allow(unsafe_code)]
 mod sys;
 #[cfg(feature = "web")]

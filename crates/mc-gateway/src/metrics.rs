@@ -159,7 +159,12 @@ pub struct Counted {
 
 /// The interfaces and results every series exists for from the start (at 0), so that a rate or a
 /// ratio over them has data before the first command of a kind.
-const INTERFACES: [Interface; 3] = [Interface::Mqtt, Interface::Web, Interface::Ha];
+const INTERFACES: [Interface; 4] = [
+    Interface::Mqtt,
+    Interface::Web,
+    Interface::Ha,
+    Interface::Sila,
+];
 const RESULTS: [CommandResult; 6] = [
     CommandResult::Ok,
     CommandResult::Refused,

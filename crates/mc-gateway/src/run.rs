@@ -75,6 +75,8 @@ pub struct Gateway {
     demo: crate::demo::Demo,
     #[cfg(feature = "web")]
     web: Option<crate::web::Web>,
+    #[cfg(feature = "sila")]
+    sila: Option<crate::sila::Sila>,
 }
 
 impl Gateway {
@@ -101,6 +103,12 @@ impl Gateway {
         #[cfg(not(feature = "web"))]
         if config.web.configured && config.web.listen.is_some() {
             return Err(GatewayError::WebUnavailable);
+        }
+        #[cfg(feature = "sila")]
+        let sila = crate::sila::Sila::bind(&config).await?;
+        #[cfg(not(feature = "sila"))]
+        if config.sila.configured && config.sila.listen.is_some() {
+            return Err(GatewayError::SilaUnavailable);
         }
         #[cfg(feature = "demo")]
         let island_link = demo.start_island(&config).await?;
@@ -132,6 +140,8 @@ impl Gateway {
             demo,
             #[cfg(feature = "web")]
             web,
+            #[cfg(feature = "sila")]
+            sila,
         })
     }
 
@@ -140,6 +150,14 @@ impl Gateway {
         #[cfg(feature = "web")]
         return self.web.as_ref().map(crate::web::Web::addr);
         #[cfg(not(feature = "web"))]
+        None
+    }
+
+    /// Where the SiLA server listens, when it runs.
+    pub fn sila_addr(&self) -> Option<std::net::SocketAddr> {
+        #[cfg(feature = "sila")]
+        return self.sila.as_ref().map(crate::sila::Sila::addr);
+        #[cfg(not(feature = "sila"))]
         None
     }
 
@@ -154,6 +172,8 @@ impl Gateway {
             mut demo,
             #[cfg(feature = "web")]
             web,
+            #[cfg(feature = "sila")]
+            sila,
         } = self;
         let cancel = shutdown.child_token();
         let mqtt_stats = mqtt.stats.clone();
@@ -167,31 +187,59 @@ impl Gateway {
             a.record(crate::audit::start_record(&config));
         }
 
-        // The island view reads the core through the feed and its views, and sends commands into
-        // an input of its own (so their outcomes are counted by interface).
+        // The island view and the SiLA server read the core through the feed and its views, and
+        // send commands into inputs of their own (so their outcomes are counted by interface).
         #[cfg(feature = "web")]
-        let (feed, views, web_in, view_url) = match web {
-            Some(web) => {
-                let feed = Arc::new(Feed::default());
-                let (views_tx, views) = ViewRequests::channel();
+        let has_web = web.is_some();
+        #[cfg(not(feature = "web"))]
+        let has_web = false;
+        #[cfg(feature = "sila")]
+        let has_sila = sila.is_some();
+        #[cfg(not(feature = "sila"))]
+        let has_sila = false;
+        let (feed, views, views_tx) = if has_web || has_sila {
+            let (views_tx, views) = ViewRequests::channel();
+            (Some(Arc::new(Feed::default())), views, Some(views_tx))
+        } else {
+            (None, ViewRequests::default(), None)
+        };
+        #[cfg(feature = "web")]
+        let (web_in, view_url) = match (web, &feed, &views_tx) {
+            (Some(web), Some(feed), Some(views_tx)) => {
                 let (web_tx, web_in) = mpsc::channel(WEB_INPUTS);
                 let url = web.url();
                 let parts = crate::web::Parts {
                     feed: feed.clone(),
-                    views: views_tx,
+                    views: views_tx.clone(),
                     commands: web_tx,
                     mqtt: mqtt.stats.clone(),
                     counted: counted.clone(),
                     audit: audit.as_ref().map(Audit::status),
                 };
                 web.spawn(parts, &mut tasks, cancel.clone());
-                (Some(feed), views, Some(web_in), Some(url))
+                (Some(web_in), Some(url))
             }
-            None => (None, ViewRequests::default(), None, None),
+            _ => (None, None),
         };
         #[cfg(not(feature = "web"))]
-        let (feed, views, web_in, view_url): (Option<Arc<Feed>>, _, _, Option<String>) =
-            (None, ViewRequests::default(), None, None);
+        let (web_in, view_url): (_, Option<String>) = (None, None);
+        #[cfg(feature = "sila")]
+        let sila_in = match (sila, &feed, &views_tx) {
+            (Some(sila), Some(feed), Some(views_tx)) => {
+                let (sila_tx, sila_in) = mpsc::channel(crate::sila::SILA_INPUTS);
+                let parts = crate::sila::Parts {
+                    feed: feed.clone(),
+                    views: views_tx.clone(),
+                    commands: sila_tx,
+                };
+                sila.spawn(parts, &mut tasks, cancel.clone());
+                Some(sila_in)
+            }
+            _ => None,
+        };
+        #[cfg(not(feature = "sila"))]
+        let sila_in = None;
+        drop(views_tx);
         let can_tx = link.spawn(TRANSMIT_WINDOW, can_in_tx, &mut tasks, cancel.clone());
         tasks.spawn(mqtt.run(pub_rx, mqtt_in_tx, cancel.clone()));
         #[cfg(feature = "demo")]
@@ -236,6 +284,7 @@ impl Gateway {
             can: can_in,
             mqtt: mqtt_in,
             web: web_in,
+            sila: sila_in,
         };
         let result = core.run(inputs, &mut tasks, &cancel).await;
 
@@ -281,6 +330,8 @@ struct Inputs {
     mqtt: mpsc::Receiver<MqttInput>,
     /// The island view's commands, when it runs.
     web: Option<mpsc::Receiver<MqttInput>>,
+    /// The SiLA server's commands, when it runs.
+    sila: Option<mpsc::Receiver<MqttInput>>,
 }
 
 /// The next message of an optional input; pending forever without one (or once it is closed).
@@ -305,6 +356,7 @@ impl Core {
             can: mut can_in,
             mqtt: mut mqtt_in,
             web: mut web_in,
+            sila: mut sila_in,
         } = inputs;
         loop {
             self.carry_out();
@@ -355,6 +407,9 @@ impl Core {
                     }
                 }
                 input = next_of(&mut web_in), if wants_commands => {
+                    on_mqtt(&mut self.bridge, &mut self.meter, self.audit.as_ref(), input);
+                }
+                input = next_of(&mut sila_in), if wants_commands => {
                     on_mqtt(&mut self.bridge, &mut self.meter, self.audit.as_ref(), input);
                 }
                 // Room for publications again: the loop's top hands them on.

@@ -116,12 +116,13 @@ impl DemoRun {
     }
 }
 
-/// The JSON-lines records of the one log file in `dir` (beside it: the audit trail's folder).
+/// The JSON-lines records of the one log file in `dir` (the state directory also holds the SiLA
+/// server's identity and certificate).
 fn log_records(dir: &Path) -> (String, Vec<serde_json::Value>) {
     let files: Vec<_> = std::fs::read_dir(dir)
         .unwrap()
         .map(|e| e.unwrap().path())
-        .filter(|p| p.is_file())
+        .filter(|p| p.extension().is_some_and(|e| e == "jsonl"))
         .collect();
     assert_eq!(files.len(), 1, "{files:?}");
     let text = std::fs::read_to_string(&files[0]).unwrap();

@@ -1,4 +1,4 @@
-//! The Pi build (`--no-default-features`, with or without `web`) links neither the embedded broker (rumqttd) nor the
+//! The Pi build (`--no-default-features`, with or without `web` and `sila`) links neither the embedded broker (rumqttd) nor the
 //! simulator (sim-node): checked on cargo's own dependency tree, so a new dependency path that drags
 //! either in fails here.
 
@@ -35,14 +35,19 @@ fn has(tree: &str, krate: &str) -> bool {
 
 #[test]
 fn the_pi_build_links_neither_the_broker_nor_the_simulator() {
-    // As deploy/build-pi.sh builds it (with the island view), and with --no-web.
+    // As deploy/build-pi.sh builds it (with the island view and the SiLA server), and with
+    // --no-web --no-sila.
     for features in [
-        &["--no-default-features", "--features", "web"][..],
+        &["--no-default-features", "--features", "web,sila"][..],
         &["--no-default-features"][..],
     ] {
         let pi = normal_deps(features);
+        let full = features.contains(&"web,sila");
         assert!(has(&pi, "ihex-gateway-core"), "{pi}");
-        assert_eq!(has(&pi, "axum"), features.contains(&"web"), "{pi}");
+        assert_eq!(has(&pi, "axum"), full, "{pi}");
+        assert_eq!(has(&pi, "tonic"), full, "{pi}");
+        // protox and the code generator run in the build script only.
+        assert!(!has(&pi, "protox"), "{pi}");
         for demo_only in ["rumqttd", "sim-node"] {
             assert!(
                 !has(&pi, demo_only),

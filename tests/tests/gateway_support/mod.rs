@@ -122,6 +122,8 @@ impl Gateway {
             command_timeout_ms: Some(scaled_ms(1000)),
             dock_timeout_ms: Some(scaled_ms(3000)),
             log_dir: Some("-".into()),
+            // No SiLA server (its port, state files and mDNS) unless a test asks for one.
+            sila: Some("off".into()),
             ..Options::default()
         };
         tweak(&mut cli);
@@ -176,8 +178,17 @@ impl Rig {
 
     /// A rig on a broker someone else owns.
     pub async fn start_at(addr: std::net::SocketAddr, name: &str) -> Rig {
+        Rig::start_at_with(addr, name, |_| {}).await
+    }
+
+    /// [`Rig::start_at`] with more gateway options set by `tweak`.
+    pub async fn start_at_with(
+        addr: std::net::SocketAddr,
+        name: &str,
+        tweak: impl FnOnce(&mut Options),
+    ) -> Rig {
         let iface = ihex_tests::can::lease();
-        let gateway = Gateway::start(addr, &iface, name);
+        let gateway = Gateway::start_with(addr, &iface, name, tweak);
         let mut client = Client::connect(addr, &format!("test-{name}"), &[format!("{name}/#")]);
         let avail = gateway.config.topics.availability.clone();
         client

@@ -8,6 +8,7 @@
 
 pub mod check;
 pub mod options;
+pub mod sila;
 pub mod web;
 
 use std::{
@@ -58,6 +59,21 @@ options! {
         env "IHEX_BROKER_LISTEN", value "ADDR:PORT";
     /// Where the island view (web page and JSON API, `docs/web.md`) listens; `off` switches it off.
     http: String = (text "`127.0.0.1:8080`"), env "IHEX_HTTP", value "ADDR:PORT";
+    /// Where the SiLA 2 server (`docs/sila.md`) listens; `off` switches it off.
+    sila: String = (text "`127.0.0.1:50052`"), env "IHEX_SILA", value "ADDR:PORT";
+    /// The SiLA server's TLS certificate (PEM; what clients verify it with) instead of the
+    /// self-signed one it makes and keeps in the state directory. Needs `sila_key`.
+    sila_cert: PathBuf = (text "self-signed, made once"), env "IHEX_SILA_CERT", value "FILE";
+    /// The private key of `sila_cert` (PEM).
+    sila_key: PathBuf = none, env "IHEX_SILA_KEY", value "FILE";
+    /// Serve SiLA without TLS (plaintext gRPC): only on a loopback address, unless
+    /// `sila_insecure_anywhere` is given too.
+    sila_insecure: bool = false, env "IHEX_SILA_INSECURE", value "BOOL";
+    /// Allow `sila_insecure` on a non-loopback address: anyone on the network can then read and
+    /// drive the island unencrypted.
+    sila_insecure_anywhere: bool = false, env "IHEX_SILA_INSECURE_ANYWHERE", value "BOOL";
+    /// Announce the SiLA server over mDNS/DNS-SD (`_sila._tcp`), so orchestrators find it.
+    sila_announce: String = "on", env "IHEX_SILA_ANNOUNCE", value "on|off", one_of ["on", "off"];
     /// Bearer token for the island view's controls; without one they work only when the view
     /// listens on a loopback address (elsewhere it is read-only).
     http_token: String = none, env "IHEX_HTTP_TOKEN", value "TOKEN", [secret];
@@ -395,6 +411,8 @@ pub struct Config {
     pub audit: AuditConfig,
     /// The island view.
     pub web: web::WebConfig,
+    /// The SiLA 2 server.
+    pub sila: sila::SilaConfig,
     /// Every option as resolved (defaults applied, ranges checked), for options that need no more
     /// than that.
     pub settings: Settings,
@@ -777,6 +795,7 @@ impl Config {
             log,
             audit,
             web: web::WebConfig::from_settings(&s)?,
+            sila: sila::SilaConfig::from_settings(&s)?,
             settings: s,
             warnings,
             origins: Origins::default(),

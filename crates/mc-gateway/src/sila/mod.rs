@@ -1,0 +1,439 @@
+//! The SiLA 2 server (`docs/sila.md`): the island as a lab-automation server that orchestrators
+//! discover and drive. gRPC (tonic) with the code generated from the vendored protos in `sila/`
+//! ([`proto`]); the features `SiLAService` ([`service`]) and our `IslandControl` ([`control`]),
+//! whose definitions (`sila/features/*.sila.xml`) are served verbatim.
+//!
+//! `IslandControl`'s commands take the island view's path into the core: the JSON command of the
+//! MQTT API ([`command`]) on an input of their own (so they count as [`Interface::Sila`]), their
+//! answer read back from the core's [`Feed`]. Its properties come from the model task, which keeps
+//! the [`island::Island`] current from the same feed and hands it to every subscriber through a
+//! `watch` channel: a slow or vanished client only ever misses intermediate values and never
+//! holds up the gateway.
+//!
+//! [`Interface::Sila`]: ihex_gateway_core::origin::Interface::Sila
+
+pub mod announce;
+pub mod command;
+pub mod control;
+pub mod identity;
+pub mod island;
+pub mod service;
+pub mod tls;
+
+use std::{net::SocketAddr, path::PathBuf, sync::Arc, time::Duration};
+
+use prost::Message;
+use tokio::{
+    net::TcpListener,
+    sync::{broadcast::error::RecvError, mpsc, watch},
+    task::JoinSet,
+};
+use tokio_util::sync::CancellationToken;
+use tracing::{info, warn};
+
+use crate::{
+    config::{sila::Security, Config},
+    error::SilaError,
+    feed::{self, Feed, Kind, ViewRequest},
+    mqtt::MqttInput,
+};
+use island::{Docking, Element, Island};
+
+/// The generated gRPC code, in modules that follow the protos' packages.
+#[allow(
+    missing_docs,
+    non_camel_case_types,
+    clippy::all,
+    clippy::pedantic,
+    rustdoc::all
+)]
+pub mod proto {
+    /// `sila2.*`.
+    pub mod sila2 {
+        /// `sila2.org.*`.
+        pub mod org {
+            /// `sila2.org.silastandard`: the framework's types.
+            pub mod silastandard {
+                tonic::include_proto!("sila2.org.silastandard");
+                /// `sila2.org.silastandard.core.*`.
+                pub mod core {
+                    /// `SiLAService`.
+                    pub mod silaservice {
+                        /// Version 1.
+                        pub mod v1 {
+                            tonic::include_proto!("sila2.org.silastandard.core.silaservice.v1");
+                        }
+                    }
+                }
+            }
+        }
+        /// `sila2.de.*`.
+        pub mod de {
+            /// `sila2.de.ihex.*`.
+            pub mod ihex {
+                /// `sila2.de.ihex.bench.*`.
+                pub mod bench {
+                    /// `IslandControl`.
+                    pub mod islandcontrol {
+                        /// Version 1.
+                        pub mod v1 {
+                            tonic::include_proto!("sila2.de.ihex.bench.islandcontrol.v1");
+                        }
+                    }
+                }
+            }
+        }
+    }
+    pub use sila2::de::ihex::bench::islandcontrol::v1 as island_control;
+    pub use sila2::org::silastandard as framework;
+    pub use sila2::org::silastandard::core::silaservice::v1 as sila_service;
+}
+
+/// `SiLAService`'s feature definition, served verbatim.
+pub const SILA_SERVICE_FDL: &str = include_str!("../../sila/features/SiLAService.sila.xml");
+/// `IslandControl`'s feature definition, served verbatim.
+pub const ISLAND_CONTROL_FDL: &str = include_str!("../../sila/features/IslandControl.sila.xml");
+/// `SiLAService`'s fully qualified identifier.
+pub const SILA_SERVICE: &str = "org.silastandard/core/SiLAService/v1";
+/// `IslandControl`'s fully qualified identifier.
+pub const ISLAND_CONTROL: &str = "de.ihex/bench/IslandControl/v1";
+/// Commands from SiLA clients waiting for the core.
+pub const SILA_INPUTS: usize = 64;
+/// How much longer than the command timeout a command waits for its answer (the core answers
+/// every command within its timeout; this covers a core busy with a burst).
+const ANSWER_MARGIN: Duration = Duration::from_secs(5);
+
+/// The SiLA error of a failed call: gRPC `ABORTED` with the `SiLAError` message, base64-encoded,
+/// as the details (the SiLA 2 wire mapping).
+pub fn sila_error(error: proto::framework::si_la_error::Error) -> tonic::Status {
+    use base64::Engine as _;
+    let bytes = proto::framework::SiLaError { error: Some(error) }.encode_to_vec();
+    tonic::Status::aborted(base64::engine::general_purpose::STANDARD.encode(bytes))
+}
+
+/// A defined execution error of `feature` (fully qualified) named `identifier`.
+pub fn defined_error(feature: &str, identifier: &str, message: &str) -> tonic::Status {
+    sila_error(proto::framework::si_la_error::Error::DefinedExecutionError(
+        proto::framework::DefinedExecutionError {
+            error_identifier: format!("{feature}/DefinedExecutionError/{identifier}"),
+            message: message.to_owned(),
+        },
+    ))
+}
+
+/// A validation error naming `parameter` of `command` of `feature` (both as in the definition).
+pub fn validation_error(
+    feature: &str,
+    command: &str,
+    parameter: &str,
+    message: &str,
+) -> tonic::Status {
+    sila_error(proto::framework::si_la_error::Error::ValidationError(
+        proto::framework::ValidationError {
+            parameter: format!("{feature}/Command/{command}/Parameter/{parameter}"),
+            message: message.to_owned(),
+        },
+    ))
+}
+
+/// An undefined execution error (what no defined error describes).
+pub fn undefined_error(message: &str) -> tonic::Status {
+    sila_error(
+        proto::framework::si_la_error::Error::UndefinedExecutionError(
+            proto::framework::UndefinedExecutionError {
+                message: message.to_owned(),
+            },
+        ),
+    )
+}
+
+/// What the server shares with the rest of the gateway while it runs.
+pub struct Parts {
+    /// The core's publications.
+    pub feed: Arc<Feed>,
+    /// Views of the core.
+    pub views: mpsc::Sender<ViewRequest>,
+    /// The core's command input for SiLA clients.
+    pub commands: mpsc::Sender<MqttInput>,
+}
+
+/// A SiLA server whose address is bound and whose identity is read, ready to serve.
+pub struct Sila {
+    listener: TcpListener,
+    addr: SocketAddr,
+    identity: identity::Identity,
+    /// Where the identity is kept (`None`: nowhere, a name change lasts until the gateway stops).
+    identity_file: Option<PathBuf>,
+    description: String,
+    answer_wait: Duration,
+    /// The certificate and key it serves TLS with; `None`: plaintext.
+    tls: Option<tls::Pem>,
+    /// Announced over mDNS.
+    announce: bool,
+}
+
+impl Sila {
+    /// Listens where `config` says and reads (or makes) the server's identity. `None` when the
+    /// server is off, or when the default address is taken (a warning says so).
+    pub async fn bind(config: &Config) -> Result<Option<Sila>, SilaError> {
+        let sila = &config.sila;
+        let Some(listen) = sila.listen else {
+            return Ok(None);
+        };
+        let listener = match TcpListener::bind(listen).await {
+            Ok(l) => l,
+            Err(source) if !sila.configured => {
+                warn!(
+                    addr = %listen,
+                    error = %source,
+                    "SiLA server off: its default address is taken (choose one with --sila ADDR:PORT)"
+                );
+                return Ok(None);
+            }
+            Err(source) => {
+                return Err(SilaError::Bind {
+                    addr: listen,
+                    source,
+                })
+            }
+        };
+        let addr = listener.local_addr().map_err(|source| SilaError::Bind {
+            addr: listen,
+            source,
+        })?;
+        let island = config.island.as_deref();
+        let default_name = match island {
+            Some(i) => format!("iHEX {i}"),
+            None => "iHEX island".to_owned(),
+        };
+        let dir =
+            crate::config::state_dir(std::env::var_os("XDG_STATE_HOME"), std::env::var_os("HOME"));
+        let (mut identity, identity_file) = match dir {
+            Some(dir) => {
+                let path = identity::file(&dir, island);
+                (identity::load_or_create(&path, &default_name)?, Some(path))
+            }
+            None => {
+                warn!("SiLA server: neither XDG_STATE_HOME nor HOME is set: its UUID changes at every start");
+                (identity::Identity::new(default_name), None)
+            }
+        };
+        let tls = match &sila.security {
+            Security::Insecure => None,
+            Security::Files { cert, key } => Some(tls::Pem {
+                cert: tls::read(cert)?,
+                key: tls::read(key)?,
+            }),
+            Security::SelfSigned => {
+                Some(self_signed(&mut identity, identity_file.as_deref(), addr)?)
+            }
+        };
+        let description = format!(
+            "iHEX island{}: hexagonal bench elements on a CAN bus, served by mc-gateway {}",
+            island.map(|i| format!(" {i}")).unwrap_or_default(),
+            env!("CARGO_PKG_VERSION")
+        );
+        Ok(Some(Sila {
+            listener,
+            addr,
+            identity,
+            identity_file,
+            description,
+            answer_wait: config.bridge.command_timeout + ANSWER_MARGIN,
+            tls,
+            announce: sila.announce,
+        }))
+    }
+
+    /// The address it listens on.
+    pub fn addr(&self) -> SocketAddr {
+        self.addr
+    }
+
+    /// Serves SiLA clients and keeps the island model current on `tasks` until `cancel`.
+    pub fn spawn(self, parts: Parts, tasks: &mut JoinSet<()>, cancel: CancellationToken) {
+        let (elements_tx, elements) = watch::channel(Arc::new(Vec::new()));
+        let (dockings_tx, dockings) = watch::channel(Arc::new(Vec::new()));
+        tasks.spawn(model(
+            parts.feed.clone(),
+            parts.views,
+            elements_tx,
+            dockings_tx,
+            cancel.clone(),
+        ));
+        info!(
+            addr = %self.addr,
+            uuid = %self.identity.uuid,
+            name = %self.identity.name,
+            tls = self.tls.is_some(),
+            "SiLA server listening"
+        );
+        if self.announce {
+            let what = announce::Announcement {
+                uuid: self.identity.uuid.clone(),
+                version: env!("CARGO_PKG_VERSION").to_owned(),
+                server_name: self.identity.name.clone(),
+                description: self.description.clone(),
+                ca: self.tls.as_ref().map(|t| t.cert.clone()),
+            };
+            let host = tls::host_name().unwrap_or_else(|| "ihex-gateway".to_owned());
+            let announcer = announce::Announcer::start(self.addr, &host, &what);
+            let until = cancel.clone();
+            // Withdrawn (goodbye packets) when the gateway stops.
+            tasks.spawn(async move {
+                until.cancelled().await;
+                drop(announcer);
+            });
+        }
+        let prefix: String = self.identity.uuid.chars().take(8).collect();
+        let service = service::Service::new(self.identity, self.identity_file, self.description);
+        let control = control::Control {
+            feed: parts.feed,
+            commands: parts.commands,
+            elements,
+            dockings,
+            prefix,
+            next: Default::default(),
+            answer_wait: self.answer_wait,
+            cancel: cancel.clone(),
+        };
+        let incoming =
+            tonic::transport::server::TcpIncoming::from(self.listener).with_nodelay(Some(true));
+        let mut builder = tonic::transport::Server::builder();
+        if let Some(pem) = &self.tls {
+            let identity = tonic::transport::Identity::from_pem(&pem.cert, &pem.key);
+            let config = tonic::transport::ServerTlsConfig::new().identity(identity);
+            builder = match builder.tls_config(config) {
+                Ok(b) => b,
+                Err(e) => {
+                    // Checked in `bind`; a failure here leaves the server off, the gateway on.
+                    tracing::error!(error = %e, "SiLA server off: its TLS configuration is unusable");
+                    return;
+                }
+            };
+        }
+        let server = builder
+            .add_service(proto::sila_service::si_la_service_server::SiLaServiceServer::new(service))
+            .add_service(
+                proto::island_control::island_control_server::IslandControlServer::new(control),
+            )
+            .serve_with_incoming_shutdown(incoming, cancel.cancelled_owned());
+        tasks.spawn(async move {
+            if let Err(e) = server.await {
+                tracing::error!(error = %e, "SiLA server failed");
+            }
+        });
+    }
+}
+
+/// The self-signed certificate kept beside the identity file, made (again) when there is none or
+/// when the names it must carry changed; without an identity file one for this run only.
+fn self_signed(
+    identity: &mut identity::Identity,
+    file: Option<&std::path::Path>,
+    addr: SocketAddr,
+) -> Result<tls::Pem, SilaError> {
+    let names = tls::names(
+        addr,
+        tls::host_name().as_deref(),
+        &tls::interface_addresses(),
+    );
+    let make = |identity: &identity::Identity| {
+        tls::self_signed(&identity.uuid, &names).map_err(SilaError::Tls)
+    };
+    let Some(file) = file else {
+        return make(identity);
+    };
+    let (cert, key) = tls::files(file);
+    if identity.cert_names == names && cert.is_file() && key.is_file() {
+        return Ok(tls::Pem {
+            cert: tls::read(&cert)?,
+            key: tls::read(&key)?,
+        });
+    }
+    let pem = make(identity)?;
+    let kept = tls::save(&pem, (&cert, &key)).and_then(|()| {
+        identity.cert_names = names;
+        identity::save(file, identity)
+    });
+    match kept {
+        Ok(()) => info!(
+            cert = %cert.display(),
+            "SiLA server: new self-signed certificate (clients trust this file)"
+        ),
+        Err(e) => warn!(error = %e, "SiLA server: its certificate is for this run only"),
+    }
+    Ok(pem)
+}
+
+/// The model task: keeps the island's elements and dockings current from the feed and hands
+/// every change to the subscribers' `watch` channels.
+async fn model(
+    feed: Arc<Feed>,
+    views: mpsc::Sender<ViewRequest>,
+    elements: watch::Sender<Arc<Vec<Element>>>,
+    dockings: watch::Sender<Arc<Vec<Docking>>>,
+    cancel: CancellationToken,
+) {
+    let mut live = feed.subscribe();
+    let mut island = Island::default();
+    let mut resync = true;
+    loop {
+        if resync {
+            resync = false;
+            let view = tokio::select! {
+                _ = cancel.cancelled() => return,
+                v = feed::ask(&views, true) => v,
+            };
+            let docs: Vec<serde_json::Value> = view
+                .and_then(|v| v.nodes)
+                .unwrap_or_default()
+                .iter()
+                .filter_map(|n| serde_json::to_value(n).ok())
+                .collect();
+            island.handle_snapshot(&docs);
+            show(&island, &elements, &dockings);
+        }
+        let changed = tokio::select! {
+            _ = cancel.cancelled() => return,
+            r = live.recv() => match r {
+                Ok(p) => match p.kind {
+                    Kind::State(_) => island.handle_state(&p.json),
+                    Kind::Event(_) => island.handle_event(&p.json),
+                    // Leases and procedures are not part of IslandControl's properties.
+                    Kind::Leases | Kind::Procedures => false,
+                },
+                // Missed documents: start again from a whole view.
+                Err(RecvError::Lagged(_)) => {
+                    resync = true;
+                    false
+                }
+                Err(RecvError::Closed) => {
+                    cancel.cancelled().await;
+                    return;
+                }
+            },
+        };
+        if changed {
+            show(&island, &elements, &dockings);
+        }
+    }
+}
+
+/// Hands the island's current elements and dockings to the subscribers (dockings only when they
+/// changed, so a docking stream's values are dockings and undockings).
+fn show(
+    island: &Island,
+    elements: &watch::Sender<Arc<Vec<Element>>>,
+    dockings: &watch::Sender<Arc<Vec<Docking>>>,
+) {
+    elements.send_replace(Arc::new(island.elements()));
+    let d = island.dockings();
+    dockings.send_if_modified(|old| {
+        if **old == d {
+            return false;
+        }
+        *old = Arc::new(d);
+        true
+    });
+}

@@ -1,0 +1,244 @@
+"""The reference SiLA 2 client (PyPI sila2) against the gateway's SiLA server; run by tests/sila.rs.
+
+  reference_client.py definitions SILA_DIR
+      Every feature definition of SILA_DIR/features validates against SILA_DIR/xsd's
+      FeatureDefinition.xsd, and SiLA's own FDL-to-proto transform gives SILA_DIR/proto's files.
+  reference_client.py first HOST SILA_PORT CA MQTT_PORT SILA_DIR NAME UUID
+      The whole tour against a fresh demo gateway (its simulated island): found by mDNS by its UUID
+      (and verified with the certificate its announcement carries), then over TLS trusting the
+      certificate file CA; renames the server NAME.
+  reference_client.py again HOST SILA_PORT CA UUID NAME
+      After a restart: the same UUID and the name the first run gave.
+
+Exits non-zero with the reason on the first thing that is not as it should be.
+"""
+
+import json
+import queue
+import sys
+import threading
+import time
+import uuid
+from pathlib import Path
+
+WAIT = 20.0
+
+
+def check(cond, what):
+    if not cond:
+        raise AssertionError(what)
+
+
+def definitions(sila_dir: Path):
+    from sila2.framework.utils import feature_definition_to_proto_string, parse_feature_definition
+
+    features = sorted((sila_dir / "features").glob("*.sila.xml"))
+    check(len(features) >= 2, f"no feature definitions in {sila_dir}")
+    for fdl in features:
+        # Validates against the FeatureDefinition.xsd inside sila2 (the same file as ours: compared below).
+        node = parse_feature_definition(str(fdl))
+        name = fdl.name.removesuffix(".sila.xml")
+        proto = (sila_dir / "proto" / f"{name}.proto").read_text(encoding="utf-8")
+        check(
+            feature_definition_to_proto_string(node) == proto,
+            f"proto/{name}.proto is not what SiLA's fdl2proto.xsl makes of features/{fdl.name}: regenerate it",
+        )
+        print(f"ok: {fdl.name} valid, proto/{name}.proto current")
+    import sila2
+
+    ours = (sila_dir / "xsd" / "FeatureDefinition.xsd").read_bytes()
+    theirs = (Path(sila2.__file__).parent / "resources" / "xsd" / "FeatureDefinition.xsd").read_bytes()
+    check(ours == theirs, "xsd/FeatureDefinition.xsd differs from the one sila2 validates with")
+
+
+class Events:
+    """The gateway's events topic and its retained node states, over MQTT."""
+
+    def __init__(self, host, port):
+        import paho.mqtt.client as mqtt
+
+        self.q = queue.Queue()
+        self.c = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id=f"sila-test-{uuid.uuid4().hex[:8]}")
+        self.c.on_message = lambda c, u, m: self.q.put((m.topic, m.payload))
+        self.c.on_connect = lambda c, u, f, rc, p: c.subscribe([("EventsTopic", 1)])
+        self.c.connect(host, port)
+        self.c.loop_start()
+
+    def publish(self, topic, payload):
+        self.c.publish(topic, json.dumps(payload), qos=1).wait_for_publish(WAIT)
+
+    def expect(self, what, pred):
+        deadline = time.monotonic() + WAIT
+        while True:
+            left = deadline - time.monotonic()
+            check(left > 0, f"no {what} within {WAIT} s")
+            try:
+                _, payload = self.q.get(timeout=left)
+            except queue.Empty:
+                continue
+            try:
+                ev = json.loads(payload)
+            except ValueError:
+                continue
+            if pred(ev):
+                return ev
+
+
+def expect_error(call, kind, contains):
+    try:
+        call()
+    except Exception as e:  # noqa: BLE001 - the kind is checked by name below
+        text = f"{type(e).__name__}: {e}"
+        # A defined execution error is `UnknownElement: ...` (or a class of that name), a validation
+        # error a `ValidationError`.
+        check((kind in text.split(": ")[:2] or type(e).__name__ == kind) and contains in text, f"expected {kind} with {contains!r}, got {text}")
+        print(f"ok: {text}")
+        return e
+    raise AssertionError(f"expected {kind}, the call succeeded")
+
+
+def wait_for(what, pred):
+    deadline = time.monotonic() + WAIT
+    while not pred():
+        check(time.monotonic() < deadline, f"{what} not seen within {WAIT} s")
+        time.sleep(0.05)
+
+
+def first(host, sila_port, ca: Path, mqtt_port, sila_dir: Path, name, server_uuid):
+    from sila2.client import SilaClient
+    from sila2.client.utils import call_rpc_function
+    from sila2.framework.pb2 import SiLAFramework_pb2 as fw
+
+    events = Events(host, mqtt_port)
+    # A plaintext client on the TLS port gets a clear error; the server keeps serving the next.
+    expect_error(lambda: SilaClient(host, sila_port, insecure=True), "SilaConnectionError", "UNAVAILABLE")
+    # Discovery: the announcement names the address and port and carries the certificate (ca0, ...).
+    found = SilaClient.discover(server_uuid=server_uuid, timeout=WAIT)
+    check((found.address, found.port) == (host, sila_port), f"discovered at {found.address}:{found.port}")
+    check(found.SiLAService.ServerUUID.get() == server_uuid, "the discovered server's UUID")
+    print(f"ok: discovered {server_uuid} at {found.address}:{found.port} over mDNS, TLS with its announced certificate")
+    client = SilaClient(host, sila_port, root_certs=ca.read_bytes())
+    svc = client.SiLAService
+    check(svc.ServerType.get() == "IhexIsland", "server type")
+    check(svc.ServerUUID.get() == server_uuid, "the UUID")
+    features = svc.ImplementedFeatures.get()
+    check(
+        features == ["org.silastandard/core/SiLAService/v1", "de.ihex/bench/IslandControl/v1"],
+        f"features {features}",
+    )
+    # Served verbatim: byte for byte the repository's definition.
+    served = svc.GetFeatureDefinition("de.ihex/bench/IslandControl/v1").FeatureDefinition
+    check(served == (sila_dir / "features" / "IslandControl.sila.xml").read_text(encoding="utf-8"), "served FDL")
+    expect_error(
+        lambda: svc.GetFeatureDefinition("de.ihex/bench/Nothing/v1"), "UnimplementedFeature", "does not implement"
+    )
+    print(f"ok: SiLAService: {svc.ServerName.get()!r} {server_uuid} {features}")
+
+    # The client built IslandControl from the served definition.
+    ic = client.IslandControl
+    elements = {e.ElementId: e for e in ic.Elements.get()}
+    check({"111", "112", "2"} <= set(elements), f"elements {sorted(elements)}")
+    check(elements["111"].Role == "static" and elements["111"].Online, f"111: {elements['111']}")
+
+    ic.SetLight(ElementId="111", Color="red", Brightness=50, BlinkPeriod=0, BlinkDuty=50)
+    result = events.expect(
+        "the SiLA command's command_result",
+        lambda e: e.get("event") == "command_result" and str(e["payload"].get("request_id")).startswith("sila-"),
+    )
+    check(
+        (result["payload"]["cmd"], result["payload"]["node"], result["payload"]["result"]) == ("led", "111", "ok"),
+        f"command_result {result}",
+    )
+    light = {e.ElementId: e for e in ic.Elements.get()}["111"].Light
+    check(light == "steady #ff0000 128", f"111's light after SetLight: {light!r}")
+    print(f"ok: SetLight 111 red 50 % -> {light!r}, {json.dumps(result)}")
+
+    expect_error(
+        lambda: ic.SetLight(ElementId="5", Color="red", Brightness=50, BlinkPeriod=0, BlinkDuty=50),
+        "UnknownElement",
+        "unknown node 5",
+    )
+    # The client checks the constraints itself; the server must too, for clients that do not.
+    expect_error(
+        lambda: ic.SetLight(ElementId="111", Color="red", Brightness=150, BlinkPeriod=0, BlinkDuty=50),
+        "ValidationError",
+        "150",
+    )
+    raw = ic._pb2_module.SetLight_Parameters(
+        ElementId=fw.String(value="111"),
+        Color=fw.String(value="red"),
+        Brightness=fw.Integer(value=150),
+        BlinkPeriod=fw.Integer(value=0),
+        BlinkDuty=fw.Integer(value=50),
+    )
+    e = expect_error(
+        lambda: call_rpc_function(ic._grpc_stub.SetLight, raw, None, client, ic.SetLight._wrapped_command),
+        "ValidationError",
+        "Brightness must be 0 to 100 percent; got 150",
+    )
+    # The client resolves the identifier the server named to the parameter of its feature.
+    named = str(e.parameter_fully_qualified_identifier.fully_qualified_identifier)
+    check(named == "de.ihex/bench/IslandControl/v1/Command/SetLight/Parameter/Brightness", f"named {named}")
+    raw.Color.value = "mauve"
+    raw.Brightness.value = 50
+    e = expect_error(
+        lambda: call_rpc_function(ic._grpc_stub.SetLight, raw, None, client, ic.SetLight._wrapped_command),
+        "ValidationError",
+        "`color` must be",
+    )
+    named = str(e.parameter_fully_qualified_identifier.fully_qualified_identifier)
+    check(named.endswith("/SetLight/Parameter/Color"), f"named {named}")
+
+    # Dockings: one value now, then one per docking change done through the simulator.
+    values = queue.Queue()
+    sub = ic.Dockings.subscribe()
+    sub.add_callback(values.put)
+
+    def next_dockings(what):
+        try:
+            return {(d.StaticElement, d.Port, d.MobileElement, d.MobilePort) for d in values.get(timeout=WAIT)}
+        except queue.Empty:
+            raise AssertionError(f"no Dockings value for {what} within {WAIT} s") from None
+
+    now = next_dockings("the subscription")
+    check(("111", 3, "2", 0) in now, f"dockings at start {now}")
+    events.publish("ihex/sim", {"sim": "dock", "mobile": "3", "static": "112", "port": 2})
+    docked = next_dockings("the dock")
+    check(any(d[:3] == ("112", 2, "3") for d in docked - now), f"dockings after the dock {docked}")
+    events.publish("ihex/sim", {"sim": "undock", "mobile": "3"})
+    undocked = next_dockings("the undock")
+    check(undocked == now, f"dockings after the undock {undocked}")
+    sub.cancel()
+    print(f"ok: Dockings {now} -> {docked} -> {undocked}")
+
+    svc.SetServerName(name)
+    check(svc.ServerName.get() == name, "the new name")
+
+
+def again(host, sila_port, ca: Path, server_uuid, name):
+    from sila2.client import SilaClient
+
+    client = SilaClient(host, sila_port, root_certs=ca.read_bytes())
+    got = client.SiLAService.ServerUUID.get()
+    check(got == server_uuid, f"UUID after a restart {got}, was {server_uuid}")
+    check(client.SiLAService.ServerName.get() == name, "the name after a restart")
+    print(f"ok: after a restart: {got} {name!r}")
+
+
+def main(argv):
+    mode = argv[1]
+    if mode == "definitions":
+        definitions(Path(argv[2]))
+    elif mode == "first":
+        first(argv[2], int(argv[3]), Path(argv[4]), int(argv[5]), Path(argv[6]), argv[7], argv[8])
+    elif mode == "again":
+        again(argv[2], int(argv[3]), Path(argv[4]), argv[5], argv[6])
+    else:
+        raise SystemExit(f"unknown mode {mode}")
+    # sila2's subscription threads do not always end with the interpreter.
+    sys.stdout.flush()
+    threading.Timer(0.1, lambda: None).start()
+
+
+if __name__ == "__main__":
+    main(sys.argv)
