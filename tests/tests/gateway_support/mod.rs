@@ -176,8 +176,25 @@ impl Rig {
 
     /// A rig on a broker someone else owns.
     pub async fn start_at(addr: std::net::SocketAddr, name: &str) -> Rig {
+        Rig::start_at_with(addr, name, |_| {}).await
+    }
+
+    /// [`Rig::start`] with more gateway options set by `tweak`.
+    pub async fn start_with(name: &str, tweak: impl FnOnce(&mut Options)) -> Rig {
+        let broker = Mosquitto::start().expect("start mosquitto");
+        let mut rig = Rig::start_at_with(broker.addr(), name, tweak).await;
+        rig.broker = Some(broker);
+        rig
+    }
+
+    /// [`Rig::start_at`] with more gateway options set by `tweak`.
+    pub async fn start_at_with(
+        addr: std::net::SocketAddr,
+        name: &str,
+        tweak: impl FnOnce(&mut Options),
+    ) -> Rig {
         let iface = ihex_tests::can::lease();
-        let gateway = Gateway::start(addr, &iface, name);
+        let gateway = Gateway::start_with(addr, &iface, name, tweak);
         let mut client = Client::connect(addr, &format!("test-{name}"), &[format!("{name}/#")]);
         let avail = gateway.config.topics.availability.clone();
         client
