@@ -433,10 +433,16 @@
       case 'node_list': return (p.nodes || []).length + ' nodes';
       case 'sim_result': return 'simulator ' + p.sim + ': ' + p.result + (p.reason ? ' (' + p.reason + ')' : '');
       case 'sim_rejected': return 'simulator: ' + p.reason;
+      case 'lease_granted': return 'lease ' + p.lease.id + ' (' + p.cmd + ') to ' + p.lease.owner;
+      case 'lease_ended': return 'lease ' + p.lease.id + ' of ' + p.lease.owner + ' ' + p.why + (p.reason ? ' (' + p.reason + ')' : '');
+      case 'procedure_started': return 'procedure ' + p.id + ' “' + p.name + '” started (' + p.steps + ' steps)';
+      case 'procedure_step': return 'procedure ' + p.id + ' step ' + p.step + ' of ' + p.of + ': ' + p.state.replace('_', ' ') + (p.reason ? ' (' + p.reason + ')' : '');
+      case 'procedure_mismatch': return 'procedure ' + p.id + ' step ' + p.step + ': ' + p.connection.n.id + ' ' + p.got + ' on ' + p.connection['n-1'].id + ' port ' + p.connection['n-1'].port + ', not what it waits for';
+      case 'procedure_ended': return 'procedure ' + p.id + ' “' + p.name + '” ' + p.outcome.replace('_', ' ') + ' (' + p.steps_done + ' of ' + p.of + ' steps)' + (p.reason ? ': ' + p.reason : '');
       default: return JSON.stringify(p);
     }
   }
-  const PROBLEMS = new Set(['node_lost', 'command_rejected', 'fault', 'bus_error', 'dock_failed', 'sim_rejected']);
+  const PROBLEMS = new Set(['node_lost', 'command_rejected', 'fault', 'bus_error', 'dock_failed', 'sim_rejected', 'procedure_mismatch']);
   function timelineItem(e) {
     const t = new Date(e.time);
     const hh = (v, n) => String(v).padStart(n || 2, '0');
