@@ -18,7 +18,9 @@ const SAMPLE: &str = include_str!("../../examples/procedures/sample-handover.tom
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_sample_handover_is_confirmed_by_the_bench() {
-    let mut rig = Rig::start("proc").await;
+    // A step fails when its element is lost: under emulation a stalled VM must not look like that
+    // (10 s of missed health checks before `node_lost`).
+    let mut rig = Rig::start_with("proc", |o| o.lost_after = Some(50)).await;
     let events = rig.events();
     let commands = rig.gateway.commands();
     let procedures_topic = rig.gateway.config.topics.procedures.clone();
@@ -163,7 +165,8 @@ async fn the_sample_handover_is_confirmed_by_the_bench() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_step_times_out_is_cancelled_or_fails_when_its_element_is_lost() {
-    let mut rig = Rig::start("proc2").await;
+    // Tolerant of a stalled VM (2 s of missed health checks), quick enough for the lost step.
+    let mut rig = Rig::start_with("proc2", |o| o.lost_after = Some(10)).await;
     let events = rig.events();
 
     // A timeout.

@@ -15,7 +15,7 @@ fn help(args: &[&str]) -> String {
 #[test]
 fn help_lists_every_subcommand() {
     let text = help(&[]);
-    for cmd in ["serial", "can", "wait-event", "fw", "audit"] {
+    for cmd in ["serial", "can", "wait-event", "fw", "audit", "procedure"] {
         assert!(text.contains(cmd), "--help lacks {cmd}:\n{text}");
     }
 }

@@ -960,6 +960,13 @@ async fn the_island_view_shows_leases_and_procedures_and_cancels_one() {
     .await;
     shoot(&c, "procedure.png").await;
 
+    until(
+        &c,
+        one_second,
+        "the procedure's events in the timeline",
+        "document.getElementById('timeline').textContent.includes('procedure 1 “handover” started (1 steps)')",
+    )
+    .await;
     click(
         &c,
         &format!("#procedures button.cancel[data-procedure='{id}']"),

@@ -465,10 +465,16 @@
       }
       case 'fw_correction': return p.node + ' ' + p.outcome + ' (was ' + p.was + '): ' + p.reason;
       case 'fw_upload': return 'image ' + p.name + ': ' + p.result + (p.reason ? ' (' + p.reason + ')' : '');
+      case 'lease_granted': return 'lease ' + p.lease.id + ' (' + p.cmd + ') to ' + p.lease.owner;
+      case 'lease_ended': return 'lease ' + p.lease.id + ' of ' + p.lease.owner + ' ' + p.why + (p.reason ? ' (' + p.reason + ')' : '');
+      case 'procedure_started': return 'procedure ' + p.id + ' “' + p.name + '” started (' + p.steps + ' steps)';
+      case 'procedure_step': return 'procedure ' + p.id + ' step ' + p.step + ' of ' + p.of + ': ' + p.state.replace('_', ' ') + (p.reason ? ' (' + p.reason + ')' : '');
+      case 'procedure_mismatch': return 'procedure ' + p.id + ' step ' + p.step + ': ' + p.connection.n.id + ' ' + p.got + ' on ' + p.connection['n-1'].id + ' port ' + p.connection['n-1'].port + ', not what it waits for';
+      case 'procedure_ended': return 'procedure ' + p.id + ' “' + p.name + '” ' + p.outcome.replace('_', ' ') + ' (' + p.steps_done + ' of ' + p.of + ' steps)' + (p.reason ? ': ' + p.reason : '');
       default: return JSON.stringify(p);
     }
   }
-  const PROBLEMS = new Set(['node_lost', 'command_rejected', 'fault', 'bus_error', 'dock_failed', 'sim_rejected']);
+  const PROBLEMS = new Set(['node_lost', 'command_rejected', 'fault', 'bus_error', 'dock_failed', 'sim_rejected', 'procedure_mismatch']);
   const FW_PROBLEMS = new Set(['refused', 'reverted', 'unreachable', 'failed', 'lost_power']);
   function timelineItem(e) {
     const t = new Date(e.time);

@@ -181,6 +181,14 @@ impl Rig {
         Rig::start_at_with(addr, name, |_| {}).await
     }
 
+    /// [`Rig::start`] with more gateway options set by `tweak`.
+    pub async fn start_with(name: &str, tweak: impl FnOnce(&mut Options)) -> Rig {
+        let broker = Mosquitto::start().expect("start mosquitto");
+        let mut rig = Rig::start_at_with(broker.addr(), name, tweak).await;
+        rig.broker = Some(broker);
+        rig
+    }
+
     /// [`Rig::start_at`] with more gateway options set by `tweak`.
     pub async fn start_at_with(
         addr: std::net::SocketAddr,
