@@ -86,11 +86,12 @@ if [ $MUSL_CC = 1 ]; then
     if command -v zig >/dev/null 2>&1; then ZIG="$(command -v zig)"; else ZIG="$(command -v python3) -m ziglang"; fi
     wrap="$PWD/target/zig-cc"
     mkdir -p "$wrap"
-    # cc-rs passes its own --target= (a Rust triple), which zig does not parse: dropped here.
+    # cc-rs passes its own --target= (a Rust triple), which zig does not parse: dropped here. zig
+    # turns on UBSan at -O0 (the dev profile), whose runtime rust-lld does not link: off.
     {
         echo '#!/bin/sh'
         echo 'for a in "$@"; do shift; case "$a" in --target=*) ;; *) set -- "$@" "$a" ;; esac; done'
-        echo "exec $ZIG cc -target aarch64-linux-musl \"\$@\""
+        echo "exec $ZIG cc -target aarch64-linux-musl -fno-sanitize=all \"\$@\""
     } >"$wrap/aarch64-linux-musl-cc"
     {
         echo '#!/bin/sh'
