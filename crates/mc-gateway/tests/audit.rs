@@ -358,6 +358,14 @@ async fn a_full_disk_never_costs_a_commands_answer() {
         eprintln!("skipped: cannot mount a tmpfs here (not root)");
         return;
     }
+    /// Unmounts the tmpfs however the test ends.
+    struct Mounted<'a>(&'a Path);
+    impl Drop for Mounted<'_> {
+        fn drop(&mut self) {
+            let _ = std::process::Command::new("umount").arg(self.0).status();
+        }
+    }
+    let _mounted = Mounted(dir.path());
     // Nearly full before the gateway starts.
     let filler = dir.path().join("filler");
     let _ = std::fs::write(&filler, vec![0u8; 56 * 1024]);
