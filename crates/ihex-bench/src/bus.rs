@@ -37,9 +37,52 @@ impl Limit {
     }
 }
 
+/// The bus's limit for acknowledged commands: each command frame and its node's ack share the
+/// bus, so a pair takes the bits of both.
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct PairLimit {
+    /// Data bytes of the command frame.
+    pub command_len: u8,
+    /// Data bytes of the ack frame.
+    pub ack_len: u8,
+    /// Bits per pair without stuffing.
+    pub bits: u32,
+    /// Bits per pair with worst-case stuffing.
+    pub bits_worst: u32,
+    /// Pairs per second without stuffing (the best case).
+    pub pps_best: f64,
+    /// Pairs per second with worst-case stuffing (what a full bus is guaranteed to carry).
+    pub pps_worst: f64,
+}
+
+impl PairLimit {
+    /// The limits of pairs of a `command_len`-byte command and an `ack_len`-byte ack at `bitrate`.
+    pub fn new(bitrate: u32, command_len: u8, ack_len: u8) -> PairLimit {
+        let bits = frame_bits(command_len) + frame_bits(ack_len);
+        let bits_worst = frame_bits_worst(command_len) + frame_bits_worst(ack_len);
+        PairLimit {
+            command_len,
+            ack_len,
+            bits,
+            bits_worst,
+            pps_best: frames_per_second(bitrate, bits),
+            pps_worst: frames_per_second(bitrate, bits_worst),
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn led_command_and_ack_pair_is_230_bits_plain_and_280_worst() {
+        // LedSet (8 bytes) and Ack (4 bytes), docs/protocol.md.
+        let p = PairLimit::new(500_000, 8, 4);
+        assert_eq!((p.bits, p.bits_worst), (131 + 99, 160 + 120));
+        assert_eq!(p.pps_worst.round(), 1786.0);
+        assert_eq!(p.pps_best.round(), 2174.0);
+    }
 
     #[test]
     fn eight_byte_frame_is_131_bits_plain_and_160_worst() {

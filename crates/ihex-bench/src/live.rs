@@ -26,7 +26,7 @@ use ihex_proto::{
 use rumqttc::{Client, Event as MqttEvent, MqttOptions, Packet as MqttPacket, QoS};
 use socketcan::{CanFilter, CanFrame, CanSocket, EmbeddedFrame, Socket, SocketOptions};
 
-use ihex_bench::bus::Limit;
+use ihex_bench::bus::{Limit, PairLimit};
 use ihex_bench::results::{Bare, CpuShare, LiveResults, Trial};
 use ihex_bench::stats::Summary;
 
@@ -1312,6 +1312,11 @@ pub fn run(s: Settings) -> Result<LiveResults> {
         limit_report: Limit::new(BITRATE, frame(&report(0))?.data().len() as u8),
         limit_background,
         limit_command: Limit::new(BITRATE, 8),
+        limit_command_pair: PairLimit::new(
+            BITRATE,
+            Message::len_of(Kind::LedSet),
+            Message::len_of(Kind::Ack),
+        ),
         notes: b.notes.clone(),
     };
     let _ = std::fs::remove_dir_all(&dir);

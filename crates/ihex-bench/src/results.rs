@@ -2,7 +2,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::bus::Limit;
+use crate::bus::{Limit, PairLimit};
 use crate::stats::Summary;
 
 /// One CAN → MQTT rate trial.
@@ -162,6 +162,9 @@ pub struct LiveResults {
     pub limit_background: Limit,
     /// Bus limit of the command frame (LedSet).
     pub limit_command: Limit,
+    /// Bus limit of acknowledged commands: a LedSet and its Ack per command.
+    #[serde(default)]
+    pub limit_command_pair: PairLimit,
     /// Notes about the run (fallbacks taken, anomalies).
     pub notes: Vec<String>,
 }

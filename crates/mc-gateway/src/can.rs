@@ -41,6 +41,8 @@ pub const REOPEN_MIN: Duration = Duration::from_millis(100);
 pub const REOPEN_MAX: Duration = Duration::from_secs(5);
 /// A write that cannot get into the kernel's queue within this time fails (the bus is stuck).
 const WRITE_TIMEOUT: Duration = Duration::from_millis(200);
+/// Pause before a write the interface's full queue refused (ENOBUFS) is tried again.
+const ENOBUFS_RETRY: Duration = Duration::from_millis(1);
 /// How often the receive task looks at the interface's flags while the socket is quiet.
 const LINK_CHECK: Duration = Duration::from_secs(1);
 
@@ -458,42 +460,57 @@ impl Writer for SocketWriter {
         let Some(sock) = self.link.borrow().clone() else {
             return Err(WriteError::Failed("CAN interface down".into(), false));
         };
-        // ENOBUFS means the interface's queue is full (the socket does not wait for room on its
-        // own): retry briefly, then give up so one stuck bus cannot stall the gateway — and never
-        // past the frame's own deadline.
-        let give_up = tokio::time::Instant::now() + WRITE_TIMEOUT;
-        let deadline = not_after.map_or(give_up, |d| d.min(give_up));
-        loop {
-            if not_after.is_some_and(|d| tokio::time::Instant::now() >= d) {
-                return Err(WriteError::Late);
-            }
-            match tokio::time::timeout_at(deadline, sock.write_frame(frame)).await {
-                Ok(Ok(())) => return Ok(()),
-                Ok(Err(e)) if e.raw_os_error() == Some(libc::ENOBUFS) => {
-                    if tokio::time::Instant::now() >= deadline {
-                        if deadline < give_up {
-                            return Err(WriteError::Late);
-                        }
-                        let why = "transmit queue full (ENOBUFS)".into();
-                        return Err(WriteError::Failed(why, false));
-                    }
-                    tokio::time::sleep(Duration::from_millis(2)).await;
-                }
-                Ok(Err(e)) => {
-                    let link_error = matches!(
-                        e.raw_os_error(),
-                        Some(libc::ENETDOWN | libc::ENODEV | libc::ENXIO | libc::EBADF)
-                    );
-                    return Err(WriteError::Failed(e.to_string(), link_error));
-                }
-                Err(_) if deadline < give_up => return Err(WriteError::Late),
-                Err(_) => return Err(WriteError::Failed("transmit timed out".into(), false)),
-            }
-        }
+        write_retrying(|| sock.write_frame(frame), not_after).await
     }
 
     fn echoes(&self) -> bool {
         true
+    }
+}
+
+/// Writes with `attempt`, retrying while the kernel answers ENOBUFS: the interface's queue
+/// (`txqueuelen`, 10 frames on most CAN drivers) is full, and a raw CAN socket does not wait for
+/// room on its own nor signal it through readiness. The retry comes after [`ENOBUFS_RETRY`], the
+/// timer's resolution, because ten of the shortest frames leave a 500 kbit/s bus in about 1.1 ms:
+/// a longer pause lets the queue run dry and the bus idle while frames wait here. Gives up after
+/// [`WRITE_TIMEOUT`] so one stuck bus cannot stall the gateway, and never retries past the frame's
+/// own deadline (then [`WriteError::Late`]).
+async fn write_retrying<F, Fut>(
+    mut attempt: F,
+    not_after: Option<tokio::time::Instant>,
+) -> Result<(), WriteError>
+where
+    F: FnMut() -> Fut,
+    Fut: Future<Output = io::Result<()>>,
+{
+    let give_up = tokio::time::Instant::now() + WRITE_TIMEOUT;
+    let deadline = not_after.map_or(give_up, |d| d.min(give_up));
+    loop {
+        if not_after.is_some_and(|d| tokio::time::Instant::now() >= d) {
+            return Err(WriteError::Late);
+        }
+        match tokio::time::timeout_at(deadline, attempt()).await {
+            Ok(Ok(())) => return Ok(()),
+            Ok(Err(e)) if e.raw_os_error() == Some(libc::ENOBUFS) => {
+                if tokio::time::Instant::now() >= deadline {
+                    if deadline < give_up {
+                        return Err(WriteError::Late);
+                    }
+                    let why = "transmit queue full (ENOBUFS)".into();
+                    return Err(WriteError::Failed(why, false));
+                }
+                tokio::time::sleep(ENOBUFS_RETRY).await;
+            }
+            Ok(Err(e)) => {
+                let link_error = matches!(
+                    e.raw_os_error(),
+                    Some(libc::ENETDOWN | libc::ENODEV | libc::ENXIO | libc::EBADF)
+                );
+                return Err(WriteError::Failed(e.to_string(), link_error));
+            }
+            Err(_) if deadline < give_up => return Err(WriteError::Late),
+            Err(_) => return Err(WriteError::Failed("transmit timed out".into(), false)),
+        }
     }
 }
 
@@ -626,6 +643,107 @@ mod tests {
             "test premise"
         );
         assert_eq!(classify(&frame, &filters, true), None);
+    }
+
+    /// A link whose interface queue is full for its first `full_for` attempts: the kernel answers
+    /// ENOBUFS, as a CAN driver's 10-frame `txqueuelen` does while the bus is saturated.
+    struct QueueFull {
+        full_for: usize,
+        attempts: Arc<std::sync::atomic::AtomicUsize>,
+    }
+
+    impl Writer for QueueFull {
+        async fn write(
+            &self,
+            _frame: CanFrame,
+            not_after: Option<tokio::time::Instant>,
+        ) -> Result<(), WriteError> {
+            let attempt = || {
+                let n = self
+                    .attempts
+                    .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                let r = if n < self.full_for {
+                    Err(io::Error::from_raw_os_error(libc::ENOBUFS))
+                } else {
+                    Ok(())
+                };
+                std::future::ready(r)
+            };
+            write_retrying(attempt, not_after).await
+        }
+
+        fn echoes(&self) -> bool {
+            false
+        }
+    }
+
+    /// Runs the transmit task on `writer` for one frame with `not_after`; what it reported.
+    async fn transmit_one(writer: QueueFull, not_after: Option<std::time::Instant>) -> CanInput {
+        let (tx, rx) = mpsc::channel(1);
+        let (in_tx, mut in_rx) = mpsc::channel(1);
+        let cancel = CancellationToken::new();
+        let task = tokio::spawn(transmit(rx, writer, in_tx, None, cancel.clone()));
+        let packet = Packet::command(
+            NodeId::new_sc(0x111).unwrap(),
+            Message::Identify { seq: 1, seconds: 1 },
+        );
+        let owner = ihex_gateway_core::bridge::FrameOwner::Command;
+        tx.send(Transmit {
+            packet,
+            not_after,
+            owner,
+        })
+        .await
+        .unwrap();
+        let report = in_rx.recv().await.unwrap();
+        cancel.cancel();
+        task.await.unwrap();
+        report
+    }
+
+    #[tokio::test]
+    async fn a_full_interface_queue_is_retried_until_it_has_room() {
+        let attempts = Arc::new(std::sync::atomic::AtomicUsize::new(0));
+        let writer = QueueFull {
+            full_for: 3,
+            attempts: attempts.clone(),
+        };
+        let later = std::time::Instant::now() + Duration::from_secs(10);
+        match transmit_one(writer, Some(later)).await {
+            CanInput::Transmitted(p) => assert_eq!(p.dest, NodeId::new_sc(0x111).unwrap()),
+            other => panic!("{other:?}"),
+        }
+        assert_eq!(attempts.load(std::sync::atomic::Ordering::Relaxed), 4);
+    }
+
+    #[tokio::test]
+    async fn a_frame_is_withdrawn_when_its_deadline_passes_in_a_full_queue() {
+        let attempts = Arc::new(std::sync::atomic::AtomicUsize::new(0));
+        let writer = QueueFull {
+            full_for: usize::MAX,
+            attempts: attempts.clone(),
+        };
+        let soon = std::time::Instant::now() + Duration::from_millis(20);
+        assert!(matches!(
+            transmit_one(writer, Some(soon)).await,
+            CanInput::Withdrawn(_)
+        ));
+        assert!(
+            attempts.load(std::sync::atomic::Ordering::Relaxed) > 1,
+            "retried"
+        );
+    }
+
+    #[tokio::test]
+    async fn a_queue_that_stays_full_fails_the_frame() {
+        let writer = QueueFull {
+            full_for: usize::MAX,
+            attempts: Arc::default(),
+        };
+        match transmit_one(writer, None).await {
+            CanInput::SendFailed(_, why) => assert_eq!(why, "transmit queue full (ENOBUFS)"),
+            other => panic!("{other:?}"),
+        }
     }
 
     #[test]

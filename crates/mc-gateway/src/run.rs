@@ -415,6 +415,7 @@ impl Core {
                 // Room for publications again: the loop's top hands them on.
                 _ = self.pub_tx.reserve(), if publications_waiting => {}
             }
+            self.take_waiting(&mut can_in, &mut mqtt_in);
         }
         if self.bridge.procedures_running() {
             // Best effort, like the update's: lights off and `procedure_ended` if the tasks run.
@@ -436,6 +437,28 @@ impl Core {
             ));
         }
         Ok(())
+    }
+
+    /// Takes what already waits on the CAN and MQTT inputs into the same turn, frames first (an
+    /// echo frees a place in the transmit window, an ack ends a command): a command's echo, the
+    /// node's ack and the next commands often arrive together, and each turn hands the outputs on
+    /// and sets its timer once, whichever input woke it.
+    fn take_waiting(
+        &mut self,
+        can_in: &mut mpsc::Receiver<CanInput>,
+        mqtt_in: &mut mpsc::Receiver<MqttInput>,
+    ) {
+        for _ in 0..BATCH {
+            let Ok(input) = can_in.try_recv() else { break };
+            on_can(&mut self.bridge, input);
+        }
+        for _ in 0..BATCH {
+            if !self.bridge.wants_commands() {
+                break;
+            }
+            let Ok(input) = mqtt_in.try_recv() else { break };
+            on_mqtt(&mut self.bridge, &mut self.meter, input, Interface::Mqtt);
+        }
     }
 
     /// Drains the bridge's outputs without ever waiting: frames while its transmit window has room

@@ -42,7 +42,7 @@ pub use crate::fwupdate::FwLoad;
 pub use diagnostics::{BusEvent, BusHealth, ERROR_EVENT_WINDOW};
 pub use output::{
     FrameOwner, PayloadWriter, Publication, PublicationCounters, Transmit, ANSWER_BACKLOG,
-    TRANSMIT_WINDOW,
+    COMMAND_SHARE, TRANSMIT_WINDOW,
 };
 pub use readback::{INCOMPLETE_LIMIT, MAX_QUERIES, READ_BACK_VERSION, SILENT_LIMIT};
 
@@ -315,11 +315,14 @@ impl Bridge {
         (self.out.transmit.queued(), self.out.transmit.in_flight())
     }
 
-    /// False while [`ANSWER_BACKLOG`] answers wait for the adapter: it should then stop taking
-    /// commands (and leave them with the broker) until it has taken publications, so that answers
-    /// are never dropped and their queue stays bounded.
+    /// False while [`ANSWER_BACKLOG`] answers wait for the adapter, or while the transmit queue is
+    /// filled to its command share ([`COMMAND_SHARE`]): the adapter should then stop taking
+    /// commands (and leave them with the broker) until it has taken publications or the bus has
+    /// taken frames, so that answers are never dropped, their queue stays bounded, and commands
+    /// that come faster than the bus carries them wait instead of failing `transmit queue full`.
+    /// Checked before each command: one call may queue up to two frames.
     pub fn wants_commands(&self) -> bool {
-        self.out.publish.answers_waiting() < ANSWER_BACKLOG
+        self.out.publish.answers_waiting() < ANSWER_BACKLOG && self.out.transmit.takes_commands()
     }
 
     /// Queues an acknowledged frame of the bridge's own (`owner`'s) to `dest` as of the input
@@ -1791,6 +1794,83 @@ mod tests {
             "{:?}",
             out.states
         );
+    }
+
+    /// A burst far above what the bus carries, taken as the adapter takes it (up to 64 commands a
+    /// turn while [`Bridge::wants_commands`]), with the echoes of the written frames coming back a
+    /// few per turn and each node acking its frame in the turn after its echo: the commands wait
+    /// with the broker rather than fill the transmit queue, the window stays full while frames
+    /// wait, and every command ends `ok`, once.
+    #[test]
+    fn a_burst_of_commands_waits_for_the_bus_instead_of_failing() {
+        const BURST: usize = 2000;
+        const TAKEN_PER_TURN: usize = 64;
+        const ECHOES_PER_TURN: usize = 3;
+        let nodes = [2u16, 3, 4, 5, 6];
+        let (mut b, t0) = with_nodes(&nodes);
+        drain(&mut b);
+        let cap = BridgeConfig::default().tx_queue;
+        let mut offered = 0;
+        let mut written: std::collections::VecDeque<Packet> = Default::default();
+        let mut echoed: Vec<Packet> = Vec::new();
+        let mut results: std::collections::BTreeMap<String, Vec<Value>> = Default::default();
+        let mut now = t0 + MS;
+        let mut turns = 0;
+        while results.len() < BURST {
+            turns += 1;
+            assert!(turns < 10 * BURST, "stalled with {} results", results.len());
+            now += Duration::from_micros(100);
+            // The acks of last turn's echoes, then this turn's echoes.
+            for f in echoed.drain(..) {
+                let seq = f.msg.ack_seq().unwrap();
+                let a = ack(Kind::Identify, seq, AckResult::Ok);
+                b.handle_packet(Packet::report(f.dest, a), now);
+            }
+            for _ in 0..ECHOES_PER_TURN {
+                let Some(f) = written.pop_front() else { break };
+                b.handle_packet(f, now);
+                echoed.push(f);
+            }
+            for _ in 0..TAKEN_PER_TURN {
+                if offered == BURST || !b.wants_commands() {
+                    break;
+                }
+                let node = nodes[offered % nodes.len()];
+                let cmd = json!({"cmd": "identify", "node": format!("{node:x}"), "seconds": 1,
+                                 "request_id": offered.to_string()});
+                b.handle_command(cmd.to_string().as_bytes(), now);
+                offered += 1;
+            }
+            if b.poll_timeout() <= now {
+                b.handle_timeout(now);
+            }
+            while let Some(t) = b.poll_transmit(now) {
+                if matches!(t.packet.msg, Message::Identify { .. }) {
+                    written.push_back(t.packet);
+                } else {
+                    // Health checks: confirmed at once, nobody answers within the test.
+                    b.handle_transmitted(t.packet, now);
+                }
+            }
+            let (queued, in_flight) = b.transmit_backlog();
+            assert!(queued <= cap / COMMAND_SHARE + 1, "{queued} frames wait");
+            if queued > 0 {
+                assert_eq!(in_flight, TRANSMIT_WINDOW, "the window is kept full");
+            }
+            while let Some(p) = b.poll_publication() {
+                let v: Value = serde_json::from_str(&p.to_json()).unwrap();
+                if v["event"] == "command_result" {
+                    let r = v["payload"]["request_id"].as_str().unwrap().to_owned();
+                    results.entry(r).or_default().push(v["payload"].clone());
+                }
+            }
+        }
+        assert_eq!(offered, BURST);
+        for (r, answers) in &results {
+            assert_eq!(answers.len(), 1, "one answer for {r}: {answers:?}");
+            assert_eq!(answers[0]["result"], "ok", "{r}: {answers:?}");
+        }
+        assert_eq!(b.command_counters().failed, 0);
     }
 
     #[test]

@@ -30,6 +30,10 @@ use crate::topic::Topic;
 /// a frame until the bus takes it).
 pub const TRANSMIT_WINDOW: usize = 8;
 
+/// Commands are taken while fewer than `1 / COMMAND_SHARE` of the transmit queue's frames wait
+/// (see [`super::Bridge::wants_commands`]).
+pub const COMMAND_SHARE: usize = 2;
+
 /// Answers waiting for the adapter beyond which [`super::Bridge::wants_commands`] says no.
 pub const ANSWER_BACKLOG: usize = 256;
 
@@ -430,6 +434,15 @@ impl TransmitQueue {
     /// The capacity of the queue.
     pub(crate) fn cap(&self) -> usize {
         self.cap
+    }
+
+    /// True while a command's frames may be queued: fewer than [`COMMAND_SHARE`] of the queue's
+    /// frames wait. Beyond that the adapter leaves commands with the broker, so commands that
+    /// arrive faster than the bus takes them wait there (unacknowledged) instead of filling the
+    /// queue and failing; the other part stays free for the frames the bridge sends on its own
+    /// (docking, health checks, read-back) and for the second frame of an `assign`.
+    pub(crate) fn takes_commands(&self) -> bool {
+        self.queue.len() < self.cap.div_ceil(COMMAND_SHARE)
     }
 
     pub(crate) fn take_refused(&mut self) -> Vec<(Packet, FrameOwner)> {
