@@ -457,7 +457,7 @@ impl Core {
                 break;
             }
             let Ok(input) = mqtt_in.try_recv() else { break };
-            on_mqtt(&mut self.bridge, &mut self.meter, input, Interface::Mqtt);
+            on_mqtt(&mut self.bridge, &mut self.meter, self.audit.as_ref(), input);
         }
     }
 
