@@ -78,7 +78,20 @@ pub fn venv() -> Result<PathBuf> {
     if python.is_file() && std::fs::read_to_string(&stamp).is_ok_and(|s| s == wanted) {
         return Ok(python);
     }
-    if !python.is_file() {
+    // A half-made environment (an interrupted or failed creation, a full disk) has no pip: made
+    // again from scratch rather than failing every later run.
+    let has_pip = python.is_file()
+        && Command::new(&python)
+            .args(["-m", "pip", "--version"])
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null())
+            .status()
+            .is_ok_and(|s| s.success());
+    if !has_pip {
+        if dir.exists() {
+            std::fs::remove_dir_all(&dir)
+                .with_context(|| format!("removing the broken {}", dir.display()))?;
+        }
         let Some(system) = cmd::find("python3") else {
             bail!("python3 not found (install Python 3 with pip and venv)");
         };

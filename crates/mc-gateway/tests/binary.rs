@@ -172,10 +172,9 @@ fn sigterm_stops_the_demo_cleanly_and_flushes_the_log() {
     // Where the log is, said in the banner and in the log itself; whose lines they are, in each.
     let file = std::fs::read_dir(dir.path())
         .unwrap()
-        .next()
-        .unwrap()
-        .unwrap()
-        .path();
+        .map(|e| e.unwrap().path())
+        .find(|p| p.extension().is_some_and(|e| e == "jsonl"))
+        .expect("the log file");
     assert!(
         demo_banner.contains(&format!(
             "The JSON log: {} (this gateway's lines have \"pid\":{pid}).",
