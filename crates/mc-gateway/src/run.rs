@@ -457,7 +457,12 @@ impl Core {
                 break;
             }
             let Ok(input) = mqtt_in.try_recv() else { break };
-            on_mqtt(&mut self.bridge, &mut self.meter, self.audit.as_ref(), input);
+            on_mqtt(
+                &mut self.bridge,
+                &mut self.meter,
+                self.audit.as_ref(),
+                input,
+            );
         }
     }
 
