@@ -28,9 +28,10 @@ fn main() {
 /// The SiLA protos, compiled in order (each after what it imports).
 #[cfg(feature = "sila")]
 fn sila() {
-    const PROTOS: [&str; 3] = [
+    const PROTOS: [&str; 4] = [
         "sila/proto/SiLAFramework.proto",
         "sila/proto/SiLAService.proto",
+        "sila/proto/LockController.proto",
         "sila/proto/IslandControl.proto",
     ];
     for p in PROTOS {

@@ -3,7 +3,7 @@
 //! transform makes of them), then drives the `mc-gateway` demo binary (embedded broker, simulated
 //! island): discovery over mDNS (on loopback), `SiLAService`, its dynamic client built from the served definitions, `SetLight` with the
 //! `command_result` it gives on MQTT, the documented errors, the `Dockings` stream over a dock and an
-//! undock through `ihex/sim`, and after a restart the same UUID and the name it set — all over TLS,
+//! undock through `ihex/sim`, a `LockController` lock that SiLA and MQTT commands honour, and after a restart the same UUID and the name it set — all over TLS,
 //! trusting the self-signed certificate the gateway made at its first start (a plaintext client is
 //! refused).
 //!

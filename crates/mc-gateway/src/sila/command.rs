@@ -147,9 +147,9 @@ impl Request {
         }
     }
 
-    /// The gateway command, as JSON on the command topic, answered under `request_id`; call after
-    /// [`Request::check`].
-    pub fn to_json(&self, request_id: &str) -> String {
+    /// The gateway command, as JSON on the command topic, answered under `request_id`, carrying
+    /// the token `lease` when given; call after [`Request::check`].
+    pub fn to_json(&self, request_id: &str, lease: Option<&str>) -> String {
         let v = match self {
             Request::SetLight {
                 element,
@@ -187,6 +187,9 @@ impl Request {
         };
         let mut v = v;
         v["request_id"] = json!(request_id);
+        if let Some(token) = lease {
+            v["lease"] = json!(token);
+        }
         v.to_string()
     }
 }
@@ -277,11 +280,11 @@ mod tests {
     #[test]
     fn commands_become_the_mqtt_apis_json() {
         assert_eq!(
-            light(50, 0).to_json("s1"),
+            light(50, 0).to_json("s1", None),
             r#"{"brightness":128,"cmd":"led","color":"red","node":"111","request_id":"s1"}"#
         );
         assert_eq!(
-            light(100, 500).to_json("s2"),
+            light(100, 500).to_json("s2", None),
             r#"{"blink":{"duty":50,"period_ms":500},"brightness":255,"cmd":"led","color":"red","node":"111","request_id":"s2"}"#
         );
         let beep = Request::Beep {
@@ -290,7 +293,7 @@ mod tests {
             count: 3,
         };
         assert_eq!(
-            beep.to_json("b"),
+            beep.to_json("b", None),
             r#"{"cmd":"buzzer","count":3,"freq_hz":440,"mode":"pattern","node":"2","off_ms":100,"on_ms":100,"request_id":"b"}"#
         );
         let stop = Request::Beep {
@@ -299,7 +302,7 @@ mod tests {
             count: 0,
         };
         assert_eq!(
-            stop.to_json("b"),
+            stop.to_json("b", None),
             r#"{"cmd":"buzzer","mode":"off","node":"2","request_id":"b"}"#
         );
     }

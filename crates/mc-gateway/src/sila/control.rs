@@ -22,6 +22,7 @@ use super::{
     command::{outcome, Failure, Request as Command},
     defined_error,
     island::{Docking, Element},
+    lock::Locks,
     proto::{framework, island_control as pb},
     undefined_error, validation_error, ISLAND_CONTROL,
 };
@@ -30,16 +31,13 @@ use crate::{
     mqtt::MqttInput,
 };
 
-/// The `IslandControl` feature.
-pub struct Control {
+/// The way into the core that `IslandControl` and `LockController` share: gateway commands on
+/// the SiLA input, their answers read back from the feed.
+pub struct Gateway {
     /// The core's publications, where commands' answers appear.
     pub feed: Arc<Feed>,
     /// The core's command input for SiLA clients.
     pub commands: mpsc::Sender<MqttInput>,
-    /// The elements, kept current by the model task.
-    pub elements: watch::Receiver<Arc<Vec<Element>>>,
-    /// The dockings, kept current by the model task.
-    pub dockings: watch::Receiver<Arc<Vec<Docking>>>,
     /// Starts every request ID of this server (`sila-PREFIX-N`).
     pub prefix: String,
     /// The number of the next request.
@@ -48,6 +46,99 @@ pub struct Control {
     pub answer_wait: Duration,
     /// Ends the property streams and waiting commands when the gateway stops.
     pub cancel: CancellationToken,
+}
+
+/// The events that answer a command (`request_id` in their payload).
+fn answers(kind: &Kind) -> bool {
+    matches!(
+        kind,
+        Kind::Event("command_result" | "command_rejected" | "lease_granted" | "lease_ended")
+    )
+}
+
+impl Gateway {
+    /// Sends the gateway command `json(request_id)` into the core and waits for the one event
+    /// that answers it; that event's JSON.
+    pub async fn ask(
+        &self,
+        json: impl FnOnce(&str) -> String,
+        user: Option<String>,
+    ) -> Result<(String, Arc<str>), Failure> {
+        let id = format!(
+            "sila-{}-{}",
+            self.prefix,
+            self.next.fetch_add(1, Ordering::Relaxed)
+        );
+        let quoted = format!("\"{id}\"");
+        // Subscribed before the command goes in, so its answer cannot come first.
+        let mut live = self.feed.subscribe();
+        let input = MqttInput::Command {
+            payload: json(&id).into(),
+            received: Instant::now(),
+            retained: false,
+            origin: Origin::new(Interface::Sila, user),
+        };
+        match self.commands.try_send(input) {
+            Ok(()) => {}
+            Err(mpsc::error::TrySendError::Full(_)) => {
+                return Err(Failure::NotAllowed(
+                    "the gateway's command queue for SiLA clients is full; try again".into(),
+                ))
+            }
+            Err(mpsc::error::TrySendError::Closed(_)) => {
+                return Err(Failure::NoAnswer("the gateway is stopping".into()))
+            }
+        }
+        let answer = async {
+            loop {
+                match live.recv().await {
+                    Ok(p) => {
+                        if answers(&p.kind) && p.json.contains(&quoted) {
+                            let v: Option<serde_json::Value> = serde_json::from_str(&p.json).ok();
+                            let mine = v
+                                .as_ref()
+                                .and_then(|v| v.get("payload")?.get("request_id")?.as_str())
+                                == Some(id.as_str());
+                            if mine {
+                                return Ok(p.json.clone());
+                            }
+                        }
+                    }
+                    // Its answer may be among the missed ones: the wait then ends at its limit.
+                    Err(RecvError::Lagged(_)) => {}
+                    Err(RecvError::Closed) => {
+                        return Err(Failure::NoAnswer("the gateway is stopping".into()))
+                    }
+                }
+            }
+        };
+        let answer = tokio::select! {
+            r = tokio::time::timeout(self.answer_wait, answer) => r.unwrap_or_else(|_| {
+                Err(Failure::NoAnswer(format!(
+                    "the gateway's core gave no answer within {} ms; the command {id} may still \
+                     be carried out (its command_result on MQTT tells)",
+                    self.answer_wait.as_millis()
+                )))
+            }),
+            // A stopping gateway answers no more; the call must not hold up its shutdown.
+            () = self.cancel.cancelled() => {
+                Err(Failure::NoAnswer("the gateway is stopping".into()))
+            }
+        };
+        answer.map(|json| (id, json))
+    }
+}
+
+/// The `IslandControl` feature.
+pub struct Control {
+    /// The way into the core.
+    pub gateway: Arc<Gateway>,
+    /// The locks SiLA clients hold, for the `LockIdentifier` metadata.
+    pub locks: Arc<Locks>,
+    /// The elements, kept current by the model task.
+    pub elements: watch::Receiver<Arc<Vec<Element>>>,
+    /// The dockings, kept current by the model task.
+    pub dockings: watch::Receiver<Arc<Vec<Docking>>>,
 }
 
 /// A property's stream of values.
@@ -78,81 +169,42 @@ fn given<T>(value: Option<T>, command: &str, parameter: &str) -> Result<T, Statu
 }
 
 impl Control {
-    /// Runs `command` through the core and waits for its one answer.
-    async fn execute(&self, command: Command, user: Option<String>) -> Result<(), Failure> {
+    /// Runs `command` through the core (carrying `lease`, the token of the lock the call names)
+    /// and waits for its one answer.
+    async fn execute(
+        &self,
+        command: Command,
+        lease: Option<String>,
+        user: Option<String>,
+    ) -> Result<(), Failure> {
         command.check()?;
-        let id = format!(
-            "sila-{}-{}",
-            self.prefix,
-            self.next.fetch_add(1, Ordering::Relaxed)
-        );
-        let quoted = format!("\"{id}\"");
-        // Subscribed before the command goes in, so its answer cannot come first.
-        let mut live = self.feed.subscribe();
-        let input = MqttInput::Command {
-            payload: command.to_json(&id).into(),
-            received: Instant::now(),
-            retained: false,
-            origin: Origin::new(Interface::Sila, user),
-        };
-        match self.commands.try_send(input) {
-            Ok(()) => {}
-            Err(mpsc::error::TrySendError::Full(_)) => {
-                return Err(Failure::NotAllowed(
-                    "the gateway's command queue for SiLA clients is full; try again".into(),
-                ))
-            }
-            Err(mpsc::error::TrySendError::Closed(_)) => {
-                return Err(Failure::NoAnswer("the gateway is stopping".into()))
-            }
-        }
-        let answer = async {
-            loop {
-                match live.recv().await {
-                    Ok(p) => {
-                        let answer =
-                            matches!(p.kind, Kind::Event("command_result" | "command_rejected"));
-                        if answer && p.json.contains(&quoted) {
-                            if let Some(o) = outcome(&p.json, &id) {
-                                return o;
-                            }
-                        }
-                    }
-                    // Its answer may be among the missed ones: the wait then ends at its limit.
-                    Err(RecvError::Lagged(_)) => {}
-                    Err(RecvError::Closed) => {
-                        return Err(Failure::NoAnswer("the gateway is stopping".into()))
-                    }
-                }
-            }
-        };
-        tokio::select! {
-            r = tokio::time::timeout(self.answer_wait, answer) => r.unwrap_or_else(|_| {
-                Err(Failure::NoAnswer(format!(
-                    "the gateway's core gave no answer within {} ms; the command {id} may still \
-                     be carried out (its command_result on MQTT tells)",
-                    self.answer_wait.as_millis()
-                )))
-            }),
-            // A stopping gateway answers no more; the call must not hold up its shutdown.
-            () = self.cancel.cancelled() => {
-                Err(Failure::NoAnswer("the gateway is stopping".into()))
-            }
-        }
+        let (id, json) = self
+            .gateway
+            .ask(|id| command.to_json(id, lease.as_deref()), user)
+            .await?;
+        outcome(&json, &id).unwrap_or_else(|| {
+            Err(Failure::NoAnswer(format!(
+                "the gateway answered the command {id} with {json}"
+            )))
+        })
     }
 
     /// [`Control::execute`] with its failure as the SiLA error.
-    async fn run(&self, command: Command, user: Option<String>) -> Result<(), Status> {
+    async fn run<T>(&self, command: Command, request: &Request<T>) -> Result<(), Status> {
         let name = command.identifier();
-        self.execute(command, user).await.map_err(|f| match f {
-            Failure::Invalid { parameter, why } => {
-                validation_error(ISLAND_CONTROL, name, parameter, &why)
-            }
-            f => match f.error_identifier() {
-                Some(e) => defined_error(ISLAND_CONTROL, e, f.message()),
-                None => undefined_error(f.message()),
-            },
-        })
+        let lease = self.locks.lease_of(request)?;
+        let user = vouched(request);
+        self.execute(command, lease, user)
+            .await
+            .map_err(|f| match f {
+                Failure::Invalid { parameter, why } => {
+                    validation_error(ISLAND_CONTROL, name, parameter, &why)
+                }
+                f => match f.error_identifier() {
+                    Some(e) => defined_error(ISLAND_CONTROL, e, f.message()),
+                    None => undefined_error(f.message()),
+                },
+            })
     }
 
     /// A property's stream: the current value, then every change, until the gateway stops.
@@ -163,7 +215,7 @@ impl Control {
     {
         let s = WatchStream::new(rx.clone())
             .map(move |v| Ok(to(v.as_slice())))
-            .take_until(self.cancel.clone().cancelled_owned());
+            .take_until(self.gateway.cancel.clone().cancelled_owned());
         Box::pin(s)
     }
 }
@@ -214,7 +266,7 @@ fn dockings(dockings: &[Docking]) -> pb::SubscribeDockingsResponses {
 
 /// The identity a SiLA call carries (docs/audit.md): `local` for a client on this host, none
 /// otherwise (client certificates are not asked for).
-fn vouched<T>(request: &Request<T>) -> Option<String> {
+pub fn vouched<T>(request: &Request<T>) -> Option<String> {
     let peer = request.remote_addr()?;
     peer.ip().is_loopback().then(|| "local".to_owned())
 }
@@ -225,8 +277,7 @@ impl pb::island_control_server::IslandControl for Control {
         &self,
         request: Request<pb::SetLightParameters>,
     ) -> Result<Response<pb::SetLightResponses>, Status> {
-        let user = vouched(&request);
-        let p = request.into_inner();
+        let p = request.get_ref().clone();
         let c = "SetLight";
         let command = Command::SetLight {
             element: given(p.element_id, c, "ElementId")?.value,
@@ -235,7 +286,7 @@ impl pb::island_control_server::IslandControl for Control {
             blink_period: given(p.blink_period, c, "BlinkPeriod")?.value,
             blink_duty: given(p.blink_duty, c, "BlinkDuty")?.value,
         };
-        self.run(command, user).await?;
+        self.run(command, &request).await?;
         Ok(Response::new(pb::SetLightResponses {}))
     }
 
@@ -243,14 +294,13 @@ impl pb::island_control_server::IslandControl for Control {
         &self,
         request: Request<pb::SetPowerParameters>,
     ) -> Result<Response<pb::SetPowerResponses>, Status> {
-        let user = vouched(&request);
-        let p = request.into_inner();
+        let p = request.get_ref().clone();
         let c = "SetPower";
         let command = Command::SetPower {
             element: given(p.element_id, c, "ElementId")?.value,
             on: given(p.on, c, "On")?.value,
         };
-        self.run(command, user).await?;
+        self.run(command, &request).await?;
         Ok(Response::new(pb::SetPowerResponses {}))
     }
 
@@ -258,15 +308,14 @@ impl pb::island_control_server::IslandControl for Control {
         &self,
         request: Request<pb::BeepParameters>,
     ) -> Result<Response<pb::BeepResponses>, Status> {
-        let user = vouched(&request);
-        let p = request.into_inner();
+        let p = request.get_ref().clone();
         let c = "Beep";
         let command = Command::Beep {
             element: given(p.element_id, c, "ElementId")?.value,
             frequency: given(p.frequency, c, "Frequency")?.value,
             count: given(p.count, c, "Count")?.value,
         };
-        self.run(command, user).await?;
+        self.run(command, &request).await?;
         Ok(Response::new(pb::BeepResponses {}))
     }
 
@@ -274,14 +323,13 @@ impl pb::island_control_server::IslandControl for Control {
         &self,
         request: Request<pb::IdentifyParameters>,
     ) -> Result<Response<pb::IdentifyResponses>, Status> {
-        let user = vouched(&request);
-        let p = request.into_inner();
+        let p = request.get_ref().clone();
         let c = "Identify";
         let command = Command::Identify {
             element: given(p.element_id, c, "ElementId")?.value,
             seconds: given(p.seconds, c, "Seconds")?.value,
         };
-        self.run(command, user).await?;
+        self.run(command, &request).await?;
         Ok(Response::new(pb::IdentifyResponses {}))
     }
 

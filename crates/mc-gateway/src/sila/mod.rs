@@ -1,7 +1,8 @@
 //! The SiLA 2 server (`docs/sila.md`): the island as a lab-automation server that orchestrators
 //! discover and drive. gRPC (tonic) with the code generated from the vendored protos in `sila/`
 //! ([`proto`]); the features `SiLAService` ([`service`]) and our `IslandControl` ([`control`]),
-//! whose definitions (`sila/features/*.sila.xml`) are served verbatim.
+//! whose definitions (`sila/features/*.sila.xml`) are served verbatim; `LockController`
+//! ([`lock`]) maps SiLA's server lock onto a gateway lease on the whole island.
 //!
 //! `IslandControl`'s commands take the island view's path into the core: the JSON command of the
 //! MQTT API ([`command`]) on an input of their own (so they count as [`Interface::Sila`]), their
@@ -17,6 +18,7 @@ pub mod command;
 pub mod control;
 pub mod identity;
 pub mod island;
+pub mod lock;
 pub mod service;
 pub mod tls;
 
@@ -64,6 +66,13 @@ pub mod proto {
                             tonic::include_proto!("sila2.org.silastandard.core.silaservice.v1");
                         }
                     }
+                    /// `LockController`.
+                    pub mod lockcontroller {
+                        /// Version 1.
+                        pub mod v1 {
+                            tonic::include_proto!("sila2.org.silastandard.core.lockcontroller.v1");
+                        }
+                    }
                 }
             }
         }
@@ -86,6 +95,7 @@ pub mod proto {
     }
     pub use sila2::de::ihex::bench::islandcontrol::v1 as island_control;
     pub use sila2::org::silastandard as framework;
+    pub use sila2::org::silastandard::core::lockcontroller::v1 as lock_controller;
     pub use sila2::org::silastandard::core::silaservice::v1 as sila_service;
 }
 
@@ -93,6 +103,10 @@ pub mod proto {
 pub const SILA_SERVICE_FDL: &str = include_str!("../../sila/features/SiLAService.sila.xml");
 /// `IslandControl`'s feature definition, served verbatim.
 pub const ISLAND_CONTROL_FDL: &str = include_str!("../../sila/features/IslandControl.sila.xml");
+/// `LockController`'s feature definition, served verbatim.
+pub const LOCK_CONTROLLER_FDL: &str = include_str!("../../sila/features/LockController.sila.xml");
+/// `LockController`'s fully qualified identifier.
+pub const LOCK_CONTROLLER: &str = "org.silastandard/core/LockController/v1";
 /// `SiLAService`'s fully qualified identifier.
 pub const SILA_SERVICE: &str = "org.silastandard/core/SiLAService/v1";
 /// `IslandControl`'s fully qualified identifier.
@@ -254,6 +268,7 @@ impl Sila {
     pub fn spawn(self, parts: Parts, tasks: &mut JoinSet<()>, cancel: CancellationToken) {
         let (elements_tx, elements) = watch::channel(Arc::new(Vec::new()));
         let (dockings_tx, dockings) = watch::channel(Arc::new(Vec::new()));
+        let views = parts.views.clone();
         tasks.spawn(model(
             parts.feed.clone(),
             parts.views,
@@ -287,15 +302,25 @@ impl Sila {
         }
         let prefix: String = self.identity.uuid.chars().take(8).collect();
         let service = service::Service::new(self.identity, self.identity_file, self.description);
-        let control = control::Control {
+        let gateway = Arc::new(control::Gateway {
             feed: parts.feed,
             commands: parts.commands,
-            elements,
-            dockings,
             prefix,
             next: Default::default(),
             answer_wait: self.answer_wait,
             cancel: cancel.clone(),
+        });
+        let locks = Arc::new(lock::Locks::default());
+        let lock = lock::LockControl {
+            gateway: gateway.clone(),
+            locks: locks.clone(),
+            views,
+        };
+        let control = control::Control {
+            gateway,
+            locks,
+            elements,
+            dockings,
         };
         let incoming =
             tonic::transport::server::TcpIncoming::from(self.listener).with_nodelay(Some(true));
@@ -316,6 +341,9 @@ impl Sila {
             .add_service(proto::sila_service::si_la_service_server::SiLaServiceServer::new(service))
             .add_service(
                 proto::island_control::island_control_server::IslandControlServer::new(control),
+            )
+            .add_service(
+                proto::lock_controller::lock_controller_server::LockControllerServer::new(lock),
             )
             .serve_with_incoming_shutdown(incoming, cancel.cancelled_owned());
         tasks.spawn(async move {

@@ -10,16 +10,18 @@ use super::{
     defined_error,
     identity::{self, Identity},
     proto::{framework, sila_service as pb},
-    validation_error, ISLAND_CONTROL, ISLAND_CONTROL_FDL, SILA_SERVICE, SILA_SERVICE_FDL,
+    validation_error, ISLAND_CONTROL, ISLAND_CONTROL_FDL, LOCK_CONTROLLER, LOCK_CONTROLLER_FDL,
+    SILA_SERVICE, SILA_SERVICE_FDL,
 };
 
 /// The server type: what kind of device this is (`[A-Z][a-zA-Z0-9]*`).
 pub const SERVER_TYPE: &str = "IhexIsland";
 
 /// Every implemented feature with its definition.
-pub const FEATURES: [(&str, &str); 2] = [
+pub const FEATURES: [(&str, &str); 3] = [
     (SILA_SERVICE, SILA_SERVICE_FDL),
     (ISLAND_CONTROL, ISLAND_CONTROL_FDL),
+    (LOCK_CONTROLLER, LOCK_CONTROLLER_FDL),
 ];
 
 /// The `SiLAService` feature.

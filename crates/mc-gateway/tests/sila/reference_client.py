@@ -123,7 +123,12 @@ def first(host, sila_port, ca: Path, mqtt_port, sila_dir: Path, name, server_uui
     check(svc.ServerUUID.get() == server_uuid, "the UUID")
     features = svc.ImplementedFeatures.get()
     check(
-        features == ["org.silastandard/core/SiLAService/v1", "de.ihex/bench/IslandControl/v1"],
+        features
+        == [
+            "org.silastandard/core/SiLAService/v1",
+            "de.ihex/bench/IslandControl/v1",
+            "org.silastandard/core/LockController/v1",
+        ],
         f"features {features}",
     )
     # Served verbatim: byte for byte the repository's definition.
@@ -211,8 +216,51 @@ def first(host, sila_port, ca: Path, mqtt_port, sila_dir: Path, name, server_uui
     sub.cancel()
     print(f"ok: Dockings {now} -> {docked} -> {undocked}")
 
+    lock(client, events)
+
     svc.SetServerName(name)
     check(svc.ServerName.get() == name, "the new name")
+
+
+def lock(client, events):
+    """LockController: a lock is a lease on the whole island, honoured by SiLA and MQTT alike."""
+    lc, ic = client.LockController, client.IslandControl
+    check(lc.IsLocked.get() is False, "locked before LockServer")
+    lc.LockServer(LockIdentifier="run-7", Timeout=60)
+    check(lc.IsLocked.get() is True, "not locked after LockServer")
+    mine = [lc.LockIdentifier("run-7")]
+
+    def light(color, metadata=None):
+        ic.SetLight(ElementId="111", Color=color, Brightness=50, BlinkPeriod=0, BlinkDuty=50, metadata=metadata)
+
+    expect_error(lambda: light("blue"), "NotAllowed", "111 is leased by sila:")
+    expect_error(lambda: light("blue", [lc.LockIdentifier("other")]), "InvalidLockIdentifier", "another lock")
+    light("green", mine)
+    got = {e.ElementId: e for e in ic.Elements.get()}["111"].Light
+    check(got == "steady #00ff00 128", f"111's light after SetLight with the lock: {got!r}")
+    # An MQTT client without the token is refused meanwhile, naming the holder.
+    events.publish("CommandsTopic", {"cmd": "led", "node": "111", "color": "blue", "request_id": "mqtt-locked"})
+    refused = events.expect(
+        "the MQTT command's refusal",
+        lambda e: e.get("payload", {}).get("request_id") == "mqtt-locked" if isinstance(e.get("payload"), dict) else False,
+    )
+    check(
+        refused["event"] == "command_rejected" and "leased by sila:" in refused["payload"]["reason"],
+        f"the MQTT command while locked: {refused}",
+    )
+    expect_error(lambda: lc.LockServer(LockIdentifier="run-8", Timeout=60), "ServerAlreadyLocked", "already locked")
+    expect_error(lambda: lc.UnlockServer(LockIdentifier="other"), "InvalidLockIdentifier", "not the one")
+    lc.UnlockServer(LockIdentifier="run-7")
+    check(lc.IsLocked.get() is False, "locked after UnlockServer")
+    expect_error(lambda: lc.UnlockServer(LockIdentifier="run-7"), "ServerNotLocked", "not locked")
+    light("red")
+    events.publish("CommandsTopic", {"cmd": "led", "node": "111", "color": "red", "request_id": "mqtt-free"})
+    ok = events.expect(
+        "the MQTT command's result",
+        lambda e: e.get("payload", {}).get("request_id") == "mqtt-free" if isinstance(e.get("payload"), dict) else False,
+    )
+    check(ok["event"] == "command_result" and ok["payload"]["result"] == "ok", f"the MQTT command after unlock: {ok}")
+    print(f"ok: LockController: locked, refused without the identifier ({refused['payload']['reason']!r}), accepted with it, unlocked")
 
 
 def again(host, sila_port, ca: Path, server_uuid, name):
