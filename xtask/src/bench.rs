@@ -56,6 +56,9 @@ pub struct BenchArgs {
     /// Skip the island view's latency (the demo gateway on the host).
     #[arg(long)]
     no_web: bool,
+    /// Skip the SiLA server's round trip and memory (the demo gateway on the host).
+    #[arg(long)]
+    no_sila: bool,
     /// Skip the firmware update of a simulated island (the demo gateway on the host).
     #[arg(long)]
     no_fw: bool,
@@ -63,7 +66,7 @@ pub struct BenchArgs {
     /// live part in the same VM boot).
     #[arg(long, conflicts_with = "only_islands")]
     no_islands: bool,
-    /// Run islands per broker alone (no baseline, callgrind, firmware, live, web or fw part).
+    /// Run islands per broker alone (no baseline, callgrind, firmware, live, web, sila or fw part).
     #[arg(long)]
     only_islands: bool,
     /// Islands per broker: gateway + sim-node pairs, on vcan0.. (at most 16).
@@ -367,14 +370,20 @@ fn live(runs: &[CanRun], files: &[PathBuf], bench: &Path, args: &BenchArgs) -> R
 /// simulated island, web view), optimised, for the parts that run on this machine: the island
 /// view's event stream and a firmware update of the simulated island have nothing to do with CAN,
 /// so no VM is needed.
-fn demo_gateway() -> Result<PathBuf> {
+///
+/// With it, the host's `ihex-bench` with its default features (the SiLA client), which the musl
+/// build for the VM leaves out; built in the same run, so the gateway's features do not change.
+fn demo_gateway() -> Result<(PathBuf, PathBuf)> {
     cmd::run(cmd::cargo().current_dir(cmd::root()).args([
         "build",
         "--release",
         "-p",
         "mc-gateway",
+        "-p",
+        "ihex-bench",
     ]))?;
-    Ok(cmd::target_dir().join("release").join("mc-gateway"))
+    let release = cmd::target_dir().join("release");
+    Ok((release.join("mc-gateway"), release.join("ihex-bench")))
 }
 
 /// `ihex-bench VERB --gateway GATEWAY --out OUT` (the island view: `web`; the firmware update: `fw`).
@@ -402,6 +411,7 @@ pub fn run(args: BenchArgs, firmware_dir: &Path) -> Result<()> {
         "baseline-callgrind.json",
         "islands.json",
         "web.json",
+        "sila.json",
         "fw.json",
     ] {
         let _ = fs::remove_file(dir.join(f));
@@ -563,7 +573,8 @@ fn measure_host(
     Ok(())
 }
 
-/// The parts that run the demo gateway on the host: the island view and the firmware update.
+/// The parts that run the demo gateway on the host: the island view, the SiLA server and the
+/// firmware update.
 fn on_host_demo(args: &BenchArgs, bench: &Path, dir: &Path, missing: &mut Vec<String>) {
     let parts = [
         (
@@ -573,25 +584,38 @@ fn on_host_demo(args: &BenchArgs, bench: &Path, dir: &Path, missing: &mut Vec<St
             "web.json",
             "--no-web",
         ),
+        (
+            args.no_sila,
+            "sila",
+            "SiLA round trip and memory",
+            "sila.json",
+            "--no-sila",
+        ),
         (args.no_fw, "fw", "firmware update", "fw.json", "--no-fw"),
     ];
     if parts.iter().any(|(skip, ..)| !skip) {
         match demo_gateway() {
-            Ok(gateway) => {
+            Ok((gateway, host_bench)) => {
                 for (skip, verb, what, file, flag) in parts {
                     if skip {
                         missing.push(format!("{what}: {flag}"));
                         continue;
                     }
                     println!("\n==> xtask bench: {what} (the demo gateway on this machine)");
+                    let bench = if verb == "sila" { &host_bench } else { bench };
                     if let Err(e) = on_demo(bench, verb, &gateway, &dir.join(file)) {
                         missing.push(format!("{what}: {e:#}"));
                     }
                 }
             }
-            Err(e) => missing.push(format!("island view and firmware update: {e:#}")),
+            Err(e) => missing.push(format!(
+                "island view, SiLA server and firmware update: {e:#}"
+            )),
         }
     } else {
-        missing.push("island view latency and firmware update: --no-web --no-fw".into());
+        missing.push(
+            "island view latency, SiLA server and firmware update: --no-web --no-sila --no-fw"
+                .into(),
+        );
     }
 }

@@ -19,10 +19,20 @@ pub fn total_instructions(out: &str) -> Option<u64> {
         .and_then(|v| v.split_whitespace().next()?.parse().ok())
 }
 
-fn measure(exe: &Path, path: &str, n: u64, dir: &Path) -> Result<u64> {
+/// The audit writer's inline entry point in the `audited` workload: counting only inside it
+/// separates what the writer thread pays from what the command path pays.
+const WRITER: &str = "*AuditWriter*write_waiting*";
+
+/// Instructions of `n` iterations of `path`; only inside functions matching `only` when given
+/// (callgrind's `--toggle-collect`: everything they call is counted, nothing else).
+fn measure_in(exe: &Path, path: &str, n: u64, dir: &Path, only: Option<&str>) -> Result<u64> {
     let out = dir.join(format!("callgrind.{path}.{n}.{}", std::process::id()));
-    let status = Command::new("valgrind")
-        .args(["--tool=callgrind", "--quiet"])
+    let mut valgrind = Command::new("valgrind");
+    valgrind.args(["--tool=callgrind", "--quiet"]);
+    if let Some(f) = only {
+        valgrind.arg(format!("--toggle-collect={f}"));
+    }
+    let status = valgrind
         .arg(format!("--callgrind-out-file={}", out.display()))
         .arg(exe)
         .args(["workload", "--path", path, "--n", &n.to_string()])
@@ -38,9 +48,23 @@ fn measure(exe: &Path, path: &str, n: u64, dir: &Path) -> Result<u64> {
     total_instructions(&text).ok_or_else(|| anyhow!("no instruction total in {}", out.display()))
 }
 
+fn measure(exe: &Path, path: &str, n: u64, dir: &Path) -> Result<u64> {
+    measure_in(exe, path, n, dir, None)
+}
+
 fn path_cost(exe: &Path, path: &str, n: u64, dir: &Path) -> Result<PathCost> {
-    let a = measure(exe, path, n, dir)?;
-    let b = measure(exe, path, 2 * n, dir)?;
+    path_cost_in(exe, path, n, dir, None)
+}
+
+fn path_cost_in(
+    exe: &Path,
+    path: &str,
+    n: u64,
+    dir: &Path,
+    only: Option<&str>,
+) -> Result<PathCost> {
+    let a = measure_in(exe, path, n, dir, only)?;
+    let b = measure_in(exe, path, 2 * n, dir, only)?;
     Ok(PathCost {
         n,
         instructions_n: a,
@@ -59,6 +83,10 @@ pub fn run(n: u64) -> Result<Callgrind> {
     let command_leased = path_cost(&exe, "command-leased", n, &dir)?;
     let command_answered = Some(path_cost(&exe, "answered", n, &dir)?);
     let command_audited = Some(path_cost(&exe, "audited", n, &dir)?);
+    let audit_writer = path_cost_in(&exe, "audited", n, &dir, Some(WRITER))?;
+    if audit_writer.per_frame <= 0.0 {
+        bail!("callgrind counted nothing inside {WRITER}: was the audit writer inlined?");
+    }
     Ok(Callgrind {
         command_leased: Some(command_leased),
         repeatable: again == can_to_event.instructions_n,
@@ -66,6 +94,7 @@ pub fn run(n: u64) -> Result<Callgrind> {
         command_to_frame,
         command_answered,
         command_audited,
+        audit_writer: Some(audit_writer),
         binary: format!(
             "{} ({})",
             exe.file_name().unwrap_or_default().to_string_lossy(),

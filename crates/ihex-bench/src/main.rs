@@ -12,6 +12,8 @@ mod callgrind;
 mod fw;
 mod islands;
 mod live;
+#[cfg(feature = "sila")]
+mod sila;
 mod web;
 
 #[derive(Parser)]
@@ -125,6 +127,22 @@ enum Cmd {
         #[arg(long)]
         out: Option<PathBuf>,
     },
+    /// The SiLA server: `SetLight` against the same LED command over MQTT on the demo gateway, and
+    /// the gateway's memory with the server off, idle and with 100 subscribed clients.
+    Sila {
+        /// The mc-gateway binary, built with its default features (demo and sila).
+        #[arg(long)]
+        gateway: PathBuf,
+        /// Probes of each interface (after the warm-up).
+        #[arg(long, default_value_t = 300)]
+        probes: usize,
+        /// Pause after each probe, ms.
+        #[arg(long, default_value_t = 10)]
+        gap_ms: u64,
+        /// Write the figures (JSON) here.
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
     /// Firmware update of a simulated island: the demo gateway with N static elements, a
     /// test-signed image uploaded over MQTT, `fw_update` to all and to one; LED commands and a
     /// docking during the update.
@@ -179,7 +197,7 @@ enum Cmd {
         #[arg(long)]
         out: Option<PathBuf>,
     },
-    /// Combine live.json, callgrind.json, firmware.json, islands.json, web.json and fw.json of DIR (and the baseline's
+    /// Combine live.json, callgrind.json, firmware.json, islands.json, web.json, sila.json and fw.json of DIR (and the baseline's
     /// baseline-commit.txt, baseline-live.json, baseline-callgrind.json when present) into
     /// results.json, the plots and the table.
     Report {
@@ -285,6 +303,23 @@ fn main() -> Result<()> {
                 web: Some(w),
                 ..Default::default()
             })?;
+        }
+        #[cfg(feature = "sila")]
+        Cmd::Sila {
+            gateway,
+            probes,
+            gap_ms,
+            out,
+        } => {
+            let r = sila::run(&gateway, probes, std::time::Duration::from_millis(gap_ms))?;
+            finish(r, out, None, |r| report::Results {
+                sila: Some(r),
+                ..Default::default()
+            })?;
+        }
+        #[cfg(not(feature = "sila"))]
+        Cmd::Sila { .. } => {
+            anyhow::bail!("this ihex-bench was built without its `sila` feature")
         }
         Cmd::Fw {
             gateway,
@@ -396,6 +431,12 @@ fn main() -> Result<()> {
             match read("web.json") {
                 Some(b) => r.web = Some(serde_json::from_slice(&b).context("web.json")?),
                 None => r.missing.push("island view latency (no web.json)".into()),
+            }
+            match read("sila.json") {
+                Some(b) => r.sila = Some(serde_json::from_slice(&b).context("sila.json")?),
+                None => r
+                    .missing
+                    .push("SiLA round trip and memory (no sila.json)".into()),
             }
             if let Some(b) = read("missing.json") {
                 let more: Vec<String> = serde_json::from_slice(&b).context("missing.json")?;

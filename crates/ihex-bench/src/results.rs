@@ -187,6 +187,32 @@ pub struct WebResults {
     pub page_minus_mqtt: Summary,
 }
 
+/// The SiLA server's round trip and memory (`ihex-bench sila`, the demo gateway on the host).
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+pub struct SilaResults {
+    /// Probes of each interface measured (after the warm-up).
+    pub probes: usize,
+    /// SiLA probes that failed or took longer than 2 s.
+    pub sila_lost: usize,
+    /// MQTT probes whose `command_result` was not `ok` within 2 s.
+    pub mqtt_lost: usize,
+    /// `IslandControl.SetLight` called → its response (the element acknowledged, its state changed).
+    pub sila_round_trip: Summary,
+    /// The same LED command published on MQTT → its `command_result` at an MQTT subscriber,
+    /// alternating with the SiLA probes on the same gateway.
+    pub mqtt_round_trip: Summary,
+    /// Subscribed SiLA clients (each its own connection) in the last memory figure.
+    pub clients: usize,
+    /// Of them, those that received a new element state after the last commands.
+    pub clients_updated: usize,
+    /// Gateway memory (VmHWM, VmRSS in KiB) with `--sila off`, after the same MQTT commands.
+    pub memory_off_kib: (u64, u64),
+    /// With the SiLA server on and no SiLA client yet.
+    pub memory_idle_kib: (u64, u64),
+    /// With the SiLA server on, after the probes, with [`SilaResults::clients`] subscribed clients.
+    pub memory_clients_kib: (u64, u64),
+}
+
 /// A firmware update of a simulated island (`ihex-bench fw`, the demo gateway on the host).
 #[derive(Clone, Debug, Default, Serialize, Deserialize)]
 pub struct FwResults {

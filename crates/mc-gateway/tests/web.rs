@@ -562,6 +562,20 @@ async fn the_island_view_follows_the_bench() {
     // Its result is 111's last command, though it did not come from the page.
     until(&c, one_second, "the MQTT command's result in the list",
         "document.querySelector(\"#elements tr[data-node='111'] td.result\").textContent === 'led: ok'").await;
+    // The same from a per-user topic: the broker vouches for `alice` (its ACL lets only her publish
+    // there); the `user` field is only claimed. Both show beside 111 and on the timeline.
+    bus.publish(
+        "ihex/cmd/alice",
+        QoS::AtLeastOnce,
+        false,
+        r##"{"cmd":"led","node":"111","color":"#00ff00","user":"lab-robot"}"##,
+    )
+    .await
+    .unwrap();
+    until(&c, one_second, "the per-user command's origin in the list",
+        "document.querySelector(\"#elements tr[data-node='111'] td.result\").textContent === 'led: ok · via mqtt by alice, claimed lab-robot'").await;
+    until(&c, one_second, "the per-user command's origin on the timeline",
+        "[...document.querySelectorAll(\"#timeline li[data-event='command_result'] .what\")].some(w => w.textContent === 'led → 111: ok · via mqtt by alice, claimed lab-robot')").await;
     shoot(&c, "led.png").await;
 
     // A command given on the page reaches the simulated node and its result shows beside it.
@@ -584,7 +598,7 @@ async fn the_island_view_follows_the_bench() {
         &c,
         Duration::from_secs(2),
         "the command's result",
-        "document.getElementById('details-result').textContent === 'led: ok'",
+        "document.getElementById('details-result').textContent === 'led: ok · via web by local'",
     )
     .await;
     let state = expect_mqtt(&mut rx, "112's state turning blue", |t, v| {
@@ -600,7 +614,7 @@ async fn the_island_view_follows_the_bench() {
     )
     .await;
     until(&c, one_second, "the result in the list",
-        "document.querySelector(\"#elements tr[data-node='112'] td.result\").textContent === 'led: ok'").await;
+        "document.querySelector(\"#elements tr[data-node='112'] td.result\").textContent === 'led: ok · via web by local'").await;
     // The relay of 111 switched off from the page; the node acknowledges (its state says so).
     click(&c, &on_map("111")).await;
     click(&c, "#relay-off").await;
@@ -608,7 +622,7 @@ async fn the_island_view_follows_the_bench() {
         &c,
         Duration::from_secs(2),
         "power: ok",
-        "document.getElementById('details-result').textContent === 'power: ok'",
+        "document.getElementById('details-result').textContent === 'power: ok · via web by local'",
     )
     .await;
     expect_mqtt(&mut rx, "111's relay off", |t, v| {
@@ -723,7 +737,7 @@ async fn the_island_view_follows_the_bench() {
         &c,
         one_second,
         "112's result again",
-        "document.getElementById('details-result').textContent === 'led: ok'",
+        "document.getElementById('details-result').textContent === 'led: ok · via web by local'",
     )
     .await;
     shoot(&c, "island-view.png").await;

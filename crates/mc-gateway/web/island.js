@@ -442,6 +442,12 @@
     for (const list of [p.acked, p.missing]) if (Array.isArray(list)) ids.push(...list);
     return [...new Set(ids)];
   }
+  // Where a command came from (`origin` on command_result / command_rejected): the interface, the
+  // identity something vouches for, and a name the sender only claimed, marked as such.
+  function originText(o) {
+    if (!o || typeof o !== 'object') return '';
+    return ' · via ' + o.interface + (o.user ? ' by ' + o.user : '') + (o.claimed ? ', claimed ' + o.claimed : '');
+  }
   function summary(ev) {
     const p = ev.payload || {};
     switch (ev.event) {
@@ -450,8 +456,8 @@
       case 'node_online': return p.id + (p.first_seen ? ' online' : ' back online') + (p.role ? ' (' + p.role + ')' : '');
       case 'node_lost': return p.id + ' lost: ' + p.missed + ' health checks missed';
       case 'node_rebooted': return p.id + ' rebooted (' + p.reset + '), version ' + p.version;
-      case 'command_result': return p.cmd + ' → ' + p.node + ': ' + p.result + (p.reason ? ' (' + p.reason + ')' : '');
-      case 'command_rejected': return 'rejected: ' + p.reason;
+      case 'command_result': return p.cmd + ' → ' + p.node + ': ' + p.result + (p.reason ? ' (' + p.reason + ')' : '') + originText(p.origin);
+      case 'command_rejected': return 'rejected: ' + p.reason + originText(p.origin);
       case 'fault': return p.node + ': ' + p.message;
       case 'bus_error': return p.message;
       case 'dock_failed': return 'docking on ' + p.node + ' port ' + p.port + ' failed: ' + p.reason;
@@ -582,7 +588,7 @@
     const mine = p.request_id && S.pending.has(p.request_id) ? S.pending.get(p.request_id) : null;
     if (mine !== null) S.pending.delete(p.request_id);
     if (ev.event === 'command_rejected') {
-      if (mine !== null) S.results.set(mine, { text: 'rejected: ' + p.reason, kind: 'failed' });
+      if (mine !== null) S.results.set(mine, { text: 'rejected: ' + p.reason + originText(p.origin), kind: 'failed' });
       return;
     }
     if (ev.event === 'procedure_ended' && mine !== null) {
@@ -590,7 +596,7 @@
       return;
     }
     if (ev.event !== 'command_result') return;
-    const said = (result, reason) => ({ text: p.cmd + ': ' + result + (reason ? ' (' + reason + ')' : ''),
+    const said = (result, reason) => ({ text: p.cmd + ': ' + result + (reason ? ' (' + reason + ')' : '') + originText(p.origin),
       kind: result === 'ok' ? 'ok' : 'failed' });
     if (p.node && p.node !== 'all') {
       S.results.set(p.node, said(p.result, p.reason));
