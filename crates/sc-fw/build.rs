@@ -337,7 +337,7 @@ fn memory_x() -> String {
          CCM RAM is not used. KEPT (the top of SRAM, at the same address as in the bootloader's\n   \
          memory.x) is outside RAM, so no start-up clears it. */\n\
          MEMORY\n{{\n  FLASH : ORIGIN = {:#010x}, LENGTH = {}\n  RAM : ORIGIN = {:#010x}, LENGTH = {}\n  \
-         KEPT : ORIGIN = {:#010x}, LENGTH = {}\n}}\n\
+         KEPT : ORIGIN = {:#010x}, LENGTH = {}\n}}\n",
         l.active.start,
         l.active.end(),
         ihex_image::HEADER_BLOCK,
