@@ -270,6 +270,15 @@ mod tests {
     use super::*;
 
     #[test]
+    fn kept_ram_is_the_top_of_sram_outside_program_ram() {
+        let (kept, prog) = (F303RE.kept_ram(), F303RE.program_ram());
+        assert_eq!((kept.start, kept.len), (0x2000_FFC0, 64));
+        assert!(F303RE.ram.contains(&kept) && F303RE.ram.contains(&prog));
+        assert!(!kept.overlaps(&prog));
+        assert_eq!(prog.end(), kept.start);
+    }
+
+    #[test]
     fn the_f303re_layout_holds() {
         assert_eq!(F303RE.check(), Ok(()));
         assert_eq!(F303RE.app_start(), 0x0800_7200);
