@@ -23,6 +23,7 @@ cases=(
   "missing signal|s.replace('name = \"relay\"', 'name = \"relay_old\"')|signal \`relay\` (GPIO) is missing"
   "EXTI line mismatch|s.replace('exti = 5', 'exti = 4')|EXTI line"
   "config page inside a partition|s.replace('config_page_addr = 0x0807_F800', 'config_page_addr = 0x0804_7000')|must be the layout's config page"
+  "relay moved away from the bootloader's pin|s.replace('pin = \"PB5\"', 'pin = \"PB6\"')|but the bootloader keeps it on as PB5 active high"
   "wrong peripheral for a signal|s.replace('peripheral = \"TIM3\"\nfunction = \"CH1\"\naf = 2', 'peripheral = \"TIM16\"\nfunction = \"CH1\"\naf = 1')|but sc-fw drives it as TIM3 CH1"
 )
 for c in "${cases[@]}"; do

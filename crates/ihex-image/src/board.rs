@@ -144,6 +144,9 @@ pub struct Layout {
 
 const KIB: u32 = 1024;
 
+/// Bytes at the top of RAM kept across a system reset ([`Layout::kept_ram`]).
+pub const KEPT_RAM_LEN: u32 = 64;
+
 /// The STM32F303RE layout (module docs).
 pub const F303RE: Layout = Layout {
     flash: Region {
@@ -183,6 +186,25 @@ impl Layout {
     /// Where the payload (the application's vector table) runs: the active slot + [`HEADER_BLOCK`].
     pub const fn app_start(&self) -> u32 {
         self.active.start + HEADER_BLOCK as u32
+    }
+
+    /// The top [`KEPT_RAM_LEN`] bytes of RAM, outside both programs' `.data`/`.bss`/stack, so neither
+    /// start-up clears them: the application leaves a block there before a reset it asks for and
+    /// the bootloader and the next application read it (SRAM keeps its content through a system
+    /// reset, not through a power cut). Both linker scripts place it at this same address.
+    pub const fn kept_ram(&self) -> Region {
+        Region {
+            start: self.ram.end() - KEPT_RAM_LEN,
+            len: KEPT_RAM_LEN,
+        }
+    }
+
+    /// The RAM each program links into: [`Layout::ram`] without [`Layout::kept_ram`].
+    pub const fn program_ram(&self) -> Region {
+        Region {
+            start: self.ram.start,
+            len: self.ram.len - KEPT_RAM_LEN,
+        }
     }
 
     /// The largest image (header block + payload) a slot takes.
@@ -246,6 +268,15 @@ impl Layout {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn kept_ram_is_the_top_of_sram_outside_program_ram() {
+        let (kept, prog) = (F303RE.kept_ram(), F303RE.program_ram());
+        assert_eq!((kept.start, kept.len), (0x2000_FFC0, 64));
+        assert!(F303RE.ram.contains(&kept) && F303RE.ram.contains(&prog));
+        assert!(!kept.overlaps(&prog));
+        assert_eq!(prog.end(), kept.start);
+    }
 
     #[test]
     fn the_f303re_layout_holds() {

@@ -206,7 +206,7 @@ pub use actuator::{Actuators, BuzzerOutput, LedOutput};
 pub use node::{
     Config, FirmwareIdentity, FlashError, Node, Output, Retained, UpdateConfig, CHUNK_LEN,
     DEBOUNCE_MS, HANDSHAKE_SETTLE_MS, IDENTIFY_BUZZER, IDENTIFY_LED, MAX_IMAGE_LEN, RESET_DELAY_MS,
-    TRIAL_CONFIRM_MS, UART_IDLE_RESET_MS,
+    RETAINED_WORDS, TRIAL_CONFIRM_MS, UART_IDLE_RESET_MS,
 };
 pub use queue::OUTPUT_QUEUE_LEN;
 pub use time::Millis;

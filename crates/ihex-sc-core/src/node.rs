@@ -2,9 +2,11 @@
 
 mod command;
 mod ident;
+mod retained;
 mod state;
 mod update;
 
+pub use retained::RETAINED_WORDS;
 pub use update::{
     FlashError, UpdateConfig, CHUNK_LEN, MAX_IMAGE_LEN, RESET_DELAY_MS, TRIAL_CONFIRM_MS,
 };
@@ -61,8 +63,8 @@ pub struct FirmwareIdentity {
 
 /// What a static element keeps of its docks across a reset it asked for itself (an update's swap
 /// or revert): the relay, the confirmed ports and their links. The adapter saves it when the node
-/// asks for [`Output::Reset`] (the firmware in RTC backup registers, which survive a system reset
-/// but not a power cut; the simulator in its board) and hands it back with [`Node::restore`] after
+/// asks for [`Output::Reset`] (the firmware as a [`Retained::encode`] block in no-init RAM, which
+/// survives a system reset but not a power cut; the simulator in its board) and hands it back with [`Node::restore`] after
 /// that reset only, so a docked mobile element keeps its power and its docking through the update.
 #[derive(Clone, Copy, PartialEq, Eq, Debug, Default)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]

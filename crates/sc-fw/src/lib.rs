@@ -17,5 +17,6 @@ pub mod event;
 pub mod image;
 pub mod record;
 pub mod reset;
+pub mod retained;
 pub mod tasks;
 pub mod update;

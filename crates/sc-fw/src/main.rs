@@ -17,7 +17,7 @@ use ihex_proto::{BootRole, Port, Uid};
 use ihex_sc_core::Node;
 use ihex_sc_fw::board::{self, ExtiIrqs};
 use ihex_sc_fw::tasks::{self, led::PWM_HZ, node::now};
-use ihex_sc_fw::{can as sc_can, clock, config, image, reset, take_board, update};
+use ihex_sc_fw::{can as sc_can, clock, config, image, reset, retained, take_board, update};
 use static_cell::StaticCell;
 use {defmt_rtt as _, panic_probe as _};
 
@@ -41,12 +41,16 @@ static UART_RX_BUF: StaticCell<[u8; 64]> = StaticCell::new();
 async fn main(spawner: Spawner) {
     let p = embassy_stm32::init(clock::config());
     let reset = reset::take_reset_reason();
+    let kept = retained::take(reset);
     let b = take_board!(p);
 
-    // First of all: the relay is driven off (it was already off through reset by its pull-down).
+    // First of all: the relay is driven off (it was already off through reset by its pull-down),
+    // unless this start follows a reset the node asked for with the relay on: then the bootloader
+    // drove it on again and it stays on without a gap.
+    let relay_on = kept.is_some_and(|k| k.relay);
     let relay = Output::new(
         b.relay,
-        if board::RELAY_ACTIVE_LOW {
+        if relay_on != board::RELAY_ACTIVE_LOW {
             Level::High
         } else {
             Level::Low
@@ -186,6 +190,17 @@ async fn main(spawner: Spawner) {
         },
         now(),
     ));
+    if let Some(kept) = kept {
+        // The closed loops first, as `Node::restore` wants (the loop tasks report them again,
+        // which changes nothing), so a still-docked port is kept at the restore's check.
+        for (i, (pin, &active_low)) in loops.iter().zip(&loop_active_low).enumerate() {
+            if pin.is_low() == active_low {
+                node.handle_loop_level(unwrap!(Port::new(i as u8)), true, now());
+            }
+        }
+        info!("relay kept across the software reset: {}", kept);
+        node.restore(kept, now());
+    }
 
     let status_led = Output::new(b.status_led, Level::Low, Speed::Low);
     spawner.spawn(unwrap!(tasks::watchdog::watchdog(p.IWDG, status_led)));

@@ -340,7 +340,7 @@ struct Element {
     firmware: FirmwareIdentity,
     /// Why it starts next time (a reset the node asked for is a software reset).
     next_reset: ResetReason,
-    /// What its backup registers hold across the reset it asked for (relay, confirmed docks):
+    /// What its kept RAM block holds across the reset it asked for (relay, confirmed docks):
     /// restored at the next boot if that is the software reset, lost with a power cut.
     retained: Option<Retained>,
 }
@@ -650,7 +650,7 @@ impl Island {
                 node.handle_loop_level(port, closed, now);
             }
         }
-        // The bootloader drove the relay from the backup registers before the swap, so the
+        // The bootloader drove the relay from the kept RAM block before the swap, so the
         // docked mobile element never lost its power (docs/firmware.md, "Reset and the relay").
         if let Some(r) = retained {
             node.restore(r, now);
@@ -766,7 +766,7 @@ impl Island {
 
     /// The node asked for a reset (to swap an update in, or to revert one on trial): it starts
     /// again through its bootloader, as after a software reset. Its relay and confirmed docks are
-    /// kept across it ([`Retained`]), as the firmware keeps them in its backup registers.
+    /// kept across it ([`Retained`]), as the firmware keeps them in its kept RAM block.
     fn reset(&mut self, name: NodeId) {
         let Some(e) = self.elements.get_mut(&name) else {
             return;

@@ -10,7 +10,11 @@
 //!   the old image back (revert) and start it.
 //!
 //! The application starts at the active slot + `HEADER_BLOCK` (the signed image header sits in
-//! front of it). Nothing else is touched: no clocks (the chip runs on its reset HSI clock), no
+//! front of it). Before anything else it reads the block the application may have left in the kept
+//! top of SRAM (`ihex_sc_core::Retained`): after a software reset, if the block is valid and says
+//! the relay was on, it drives the dock relay (PB5, active high; the firmware's build checks the pin
+//! map says so) on again, so a docked mobile element keeps its power through the swap. It leaves the
+//! block for the application. Apart from that pin and its port's clock nothing is touched: no clocks (the chip runs on its reset HSI clock), no
 //! interrupts, no time driver, so the application starts from a reset-like state. A flash error
 //! panics, and a panic resets the chip, which retries the same step.
 //!
@@ -28,16 +32,25 @@ use defmt_rtt as _;
 use embassy_boot_stm32::{BootLoader, BootLoaderConfig, State};
 use embassy_embedded_hal::flash::partition::BlockingPartition;
 use embassy_stm32::flash::Flash;
+use embassy_stm32::pac::gpio::vals::Moder;
+use embassy_stm32::pac::{GPIOB, RCC};
 use embassy_sync::blocking_mutex::raw::NoopRawMutex;
 use embassy_sync::blocking_mutex::Mutex;
-use ihex_image::board::{Region, F303RE};
+use ihex_image::board::{Region, F303RE, KEPT_RAM_LEN};
+use ihex_sc_core::{Retained, RETAINED_WORDS};
 
 /// Copy buffer of the swap: one page.
 const PAGE: usize = 2048;
 const _: () = assert!(PAGE as u32 == F303RE.page);
+const _: () = assert!(RETAINED_WORDS * 4 <= KEPT_RAM_LEN as usize);
+
+/// The dock relay's pin on port B (hw/pinmap.toml `relay`; sc-fw's build script fails if it moves).
+const RELAY_PIN: usize = 5;
 
 #[entry]
 fn main() -> ! {
+    // First: a few µs after the reset pulse, well inside the relay's drop-out time.
+    keep_relay();
     // Only the flash is used, and it needs no set-up: no `embassy_stm32::init`, so the application
     // finds the chip as after a reset.
     let p = unsafe { embassy_stm32::Peripherals::steal() };
@@ -77,6 +90,33 @@ fn main() -> ! {
     // SAFETY: `app` holds a vector table whose stack pointer lies in RAM and whose reset vector
     // points into the active slot; `load` sets VTOR to it and jumps.
     unsafe { bl.load(app) }
+}
+
+/// Drives the relay on again if the application asked for this reset with the relay on.
+fn keep_relay() {
+    let csr = RCC.csr().read();
+    // Only a software reset: the application clears these flags at every start, so after its
+    // `SYSRESETREQ` only SFTRSTF is set (a power-on or watchdog reset also raises others).
+    if !csr.sftrstf() || csr.porrstf() || csr.iwdgrstf() || csr.wwdgrstf() || csr.lpwrrstf() {
+        return;
+    }
+    let mut block = [0u32; RETAINED_WORDS];
+    for (i, w) in block.iter_mut().enumerate() {
+        // SAFETY: the kept RAM is word-aligned SRAM outside this program's `.data`/`.bss`/stack
+        // (build.rs leaves it out of RAM); any bit pattern is a valid `u32`.
+        *w = unsafe {
+            core::ptr::read_volatile((F303RE.kept_ram().start as usize + 4 * i) as *const u32)
+        };
+    }
+    if Retained::decode(&block).is_some_and(|r| r.relay) {
+        RCC.ahbenr().modify(|w| w.set_gpioben(true));
+        // Level first, then output mode: the pin goes from floating straight to high.
+        GPIOB.bsrr().write(|w| w.set_bs(RELAY_PIN, true));
+        GPIOB
+            .moder()
+            .modify(|w| w.set_moder(RELAY_PIN, Moder::OUTPUT));
+        info!("bootloader: relay kept on across the software reset");
+    }
 }
 
 /// A vector table at `app`: initial stack pointer inside RAM, reset handler (Thumb) inside the slot.

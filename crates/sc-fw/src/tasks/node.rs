@@ -177,8 +177,10 @@ async fn drain(node: &mut Node, io: &mut Io<'_>) {
                 node.handle_fw_confirmed(r, now());
             }
             Output::Reset => {
-                // The core waited for its last frames to leave; the bootloader takes it from here.
+                // The core waited for its last frames to leave; the bootloader takes it from here,
+                // keeping the relay on if the block says so.
                 info!("update: reset");
+                crate::retained::write(&node.retained());
                 cortex_m::peripheral::SCB::sys_reset();
             }
         }
