@@ -587,7 +587,10 @@ fn retained_block(s: &mut Suite) {
             }
         }
     }
-    s.check("Retained block: every single-bit flip refused", flipped == 0);
+    s.check(
+        "Retained block: every single-bit flip refused",
+        flipped == 0,
+    );
     // A xorshift stream standing in for the SRAM content after a power cut.
     let mut x = 0x2545_F491u32;
     let mut decoded = 0;
