@@ -57,10 +57,13 @@ async fn a_sila_command_is_one_frame_its_ack_and_the_answer() {
         loop {
             let f = sock.read_frame().await.expect("read a frame");
             let Some(raw) = raw_id(&f) else { continue };
-            if raw == 0x0D11_1000 || raw == 0x0700_0111 {
+            // Only Acks of a LedSet: 111 also acknowledges the gateway's own frames of the
+            // island's start (its dock link), which may still be on the bus.
+            let led_ack = raw == 0x0700_0111 && f.data().first() == Some(&0x0D);
+            if raw == 0x0D11_1000 || led_ack {
                 seen.push((raw, f.data().to_vec()));
             }
-            if raw == 0x0700_0111 && f.data().first() == Some(&0x0D) {
+            if led_ack {
                 return seen;
             }
         }
