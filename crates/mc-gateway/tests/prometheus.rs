@@ -13,7 +13,7 @@
 
 use std::{
     io::{BufRead, BufReader, Read, Write},
-    net::{SocketAddr, TcpListener, TcpStream},
+    net::{SocketAddr, TcpStream},
     path::{Path, PathBuf},
     process::{Child, Command, Stdio},
     time::{Duration, Instant},
@@ -21,19 +21,12 @@ use std::{
 
 use ihex_tests::{
     mqtt::{options, Client, Seen},
+    net::free_port,
     time::scaled,
 };
 use serde_json::Value;
 
 const BIN: &str = env!("CARGO_BIN_EXE_mc-gateway");
-
-fn free_port() -> u16 {
-    TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
 
 fn root() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
