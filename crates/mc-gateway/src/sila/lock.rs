@@ -1,8 +1,8 @@
 //! `LockController` (`org.silastandard/core/LockController/v1`): a SiLA client's lock on the server
 //! is a gateway lease on the whole island, taken and released through the same command path as
 //! MQTT's `lease` and `release`. The lease's token stays inside the server, found by the client's
-//! lock identifier; `IslandControl`'s commands carry it when their call's `LockIdentifier`
-//! metadata names the lock. `IsLocked` is true while the island holds any lease, whoever took it.
+//! lock identifier; the commands of `IslandControl`, `FirmwareUpdate` and `CancelController`
+//! carry it when their call's `LockIdentifier` metadata names the lock. `IsLocked` is true while the island holds any lease, whoever took it.
 
 use std::sync::{Arc, Mutex};
 
@@ -16,7 +16,8 @@ use super::{
     control::{vouched, Gateway},
     defined_error,
     proto::{framework, lock_controller as pb},
-    sila_error, undefined_error, validation_error, ISLAND_CONTROL, LOCK_CONTROLLER,
+    sila_error, undefined_error, validation_error, CANCEL_CONTROLLER, FIRMWARE_UPDATE,
+    ISLAND_CONTROL, LOCK_CONTROLLER,
 };
 use crate::feed::{self, ViewRequest};
 
@@ -258,9 +259,12 @@ impl pb::lock_controller_server::LockController for LockControl {
     ) -> Result<Response<pb::GetFcpAffectedByMetadataLockIdentifierResponses>, Status> {
         Ok(Response::new(
             pb::GetFcpAffectedByMetadataLockIdentifierResponses {
-                affected_calls: vec![framework::String {
-                    value: ISLAND_CONTROL.to_owned(),
-                }],
+                affected_calls: [ISLAND_CONTROL, FIRMWARE_UPDATE, CANCEL_CONTROLLER]
+                    .into_iter()
+                    .map(|f| framework::String {
+                        value: f.to_owned(),
+                    })
+                    .collect(),
             },
         ))
     }
