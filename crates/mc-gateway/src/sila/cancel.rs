@@ -37,8 +37,11 @@ impl CancelControl {
     /// Sends `fw_cancel` (with the lease of the lock the call names) and reads its answer:
     /// `Ok(false)` when no update was running any more.
     async fn fw_cancel<T>(&self, request: &Request<T>) -> Result<bool, Status> {
-        let lease = self.locks.lease_of(request)?;
         let user = vouched(request);
+        let lease = self
+            .locks
+            .lease_for(request, &self.gateway, user.clone())
+            .await?;
         let (_, answer) = self
             .gateway
             .ask(

@@ -493,8 +493,11 @@ impl pb::firmware_update_server::FirmwareUpdate for FirmwareUpdate {
         &self,
         request: Request<pb::UpdateFirmwareParameters>,
     ) -> Result<Response<framework::CommandConfirmation>, Status> {
-        let lease = self.locks.lease_of(&request)?;
         let user = vouched(&request);
+        let lease = self
+            .locks
+            .lease_for(&request, &self.gateway, user.clone())
+            .await?;
         let p = request.into_inner();
         let image = given(p.image, "Image")?;
         let elements = given(p.elements, "Elements")?;

@@ -267,6 +267,17 @@ def lock(client, events):
     check(ok["event"] == "command_result" and ok["payload"]["result"] == "ok", f"the MQTT command after unlock: {ok}")
     print(f"ok: LockController: locked, refused without the identifier ({refused['payload']['reason']!r}), accepted with it, unlocked")
 
+    # The lock's Timeout counts from the last call with its identifier: calls keep it, silence ends it.
+    lc.LockServer(LockIdentifier="run-9", Timeout=2)
+    for _ in range(4):
+        time.sleep(1.1)
+        light("green", [lc.LockIdentifier("run-9")])
+    check(lc.IsLocked.get() is True, "the lock ended although calls with its identifier kept coming")
+    time.sleep(3)
+    check(lc.IsLocked.get() is False, "the lock outlived its Timeout without calls")
+    expect_error(lambda: lc.UnlockServer(LockIdentifier="run-9"), "ServerNotLocked", "already ended")
+    print("ok: LockController: the Timeout counts from the last call with the lock identifier")
+
 
 def firmware(host, sila_port, ca: Path, mqtt_port, small: Path, big: Path):
     """FirmwareUpdate over SiLA, its progress and result, its fw_report on MQTT, and CancelController."""
