@@ -297,6 +297,13 @@ impl Sila {
         self.addr
     }
 
+    /// Where clients reach it, for people: `grpcs://ADDR:PORT`, or `grpc://ADDR:PORT` in
+    /// plaintext.
+    pub fn url(&self) -> String {
+        let scheme = if self.tls.is_some() { "grpcs" } else { "grpc" };
+        format!("{scheme}://{}", self.addr)
+    }
+
     /// Serves SiLA clients and keeps the island model current on `tasks` until `cancel`.
     pub fn spawn(self, parts: Parts, tasks: &mut JoinSet<()>, cancel: CancellationToken) {
         let (elements_tx, elements) = watch::channel(Arc::new(Vec::new()));
