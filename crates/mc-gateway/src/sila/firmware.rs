@@ -264,11 +264,10 @@ impl Execution {
                 let share = (sum as f64 / (100.0 * self.percent.len() as f64)).min(0.99);
                 self.state.progress = share.to_bits();
                 let elapsed = now.saturating_duration_since(self.started);
-                self.state.remaining = if share > 0.0 {
-                    elapsed.mul_f64((1.0 - share) / share)
-                } else {
-                    Duration::ZERO
-                };
+                // At the rate so far; nothing while no element has any of it yet.
+                self.state.remaining =
+                    Duration::try_from_secs_f64(elapsed.as_secs_f64() * (1.0 - share) / share)
+                        .unwrap_or(Duration::ZERO);
                 true
             }
             Some("fw_report") => {
