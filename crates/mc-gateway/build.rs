@@ -28,11 +28,13 @@ fn main() {
 /// The SiLA protos, compiled in order (each after what it imports).
 #[cfg(feature = "sila")]
 fn sila() {
-    const PROTOS: [&str; 4] = [
+    const PROTOS: [&str; 6] = [
         "sila/proto/SiLAFramework.proto",
         "sila/proto/SiLAService.proto",
         "sila/proto/LockController.proto",
         "sila/proto/IslandControl.proto",
+        "sila/proto/FirmwareUpdate.proto",
+        "sila/proto/CancelController.proto",
     ];
     for p in PROTOS {
         println!("cargo:rerun-if-changed={p}");

@@ -224,6 +224,10 @@ impl Gateway {
         #[cfg(not(feature = "web"))]
         let (web_in, view_url): (_, Option<String>) = (None, None);
         #[cfg(feature = "sila")]
+        let sila_url = sila.as_ref().map(crate::sila::Sila::url);
+        #[cfg(not(feature = "sila"))]
+        let sila_url: Option<String> = None;
+        #[cfg(feature = "sila")]
         let sila_in = match (sila, &feed, &views_tx) {
             (Some(sila), Some(feed), Some(views_tx)) => {
                 let (sila_tx, sila_in) = mpsc::channel(crate::sila::SILA_INPUTS);
@@ -243,9 +247,15 @@ impl Gateway {
         let can_tx = link.spawn(TRANSMIT_WINDOW, can_in_tx, &mut tasks, cancel.clone());
         tasks.spawn(mqtt.run(pub_rx, mqtt_in_tx, cancel.clone()));
         #[cfg(feature = "demo")]
-        demo.spawn(&config, &mut tasks, cancel.clone(), view_url.as_deref());
+        demo.spawn(
+            &config,
+            &mut tasks,
+            cancel.clone(),
+            view_url.as_deref(),
+            sila_url.as_deref(),
+        );
         #[cfg(not(feature = "demo"))]
-        let _ = view_url;
+        let _ = (view_url, sila_url);
         info!(
             island = config.island.as_deref().unwrap_or("none"),
             broker = %config.mqtt.broker,

@@ -110,6 +110,38 @@ fn client(args: &[&str]) -> String {
     out
 }
 
+/// Two images of the simulated firmware, written to `dir`: a small one (updated to its end) and
+/// a large one (cancelled); the reference client uploads them over MQTT and updates 111 and 112.
+fn firmware(dir: &Path, ca: &str, broker: u16, sila: u16) {
+    let key = ihex_image::SigningKey::test_key();
+    let write = |name: &str, version, len| {
+        let firmware = ihex_image::sim::SimFirmware { confirms: true };
+        let image = ihex_image::sim::sim_image(version, firmware, len, &key).unwrap();
+        let path = dir.join(name);
+        std::fs::write(&path, image).unwrap();
+        path.to_str().unwrap().to_owned()
+    };
+    let small = write(
+        "sila-9.0.0.img",
+        ihex_image::FirmwareVersion::new(9, 0, 0),
+        4 * 1024,
+    );
+    let big = write(
+        "sila-9.1.0.img",
+        ihex_image::FirmwareVersion::new(9, 1, 0),
+        120 * 1024,
+    );
+    client(&[
+        "firmware",
+        "127.0.0.1",
+        &sila.to_string(),
+        ca,
+        &broker.to_string(),
+        &small,
+        &big,
+    ]);
+}
+
 #[test]
 #[ignore = "needs the Python environment with sila2 (cargo xtask test makes it)"]
 fn the_reference_client_drives_the_island() {
@@ -138,6 +170,7 @@ fn the_reference_client_drives_the_island() {
         name,
         uuid,
     ]);
+    firmware(state.path(), ca, broker, sila);
     drop(gw);
 
     let cert = std::fs::read(ca).unwrap();

@@ -10,6 +10,8 @@ use ihex_tests::free_port;
 use mc_gateway::{
     config::Options,
     sila::proto::{
+        cancel_controller::{self as cancel_pb, cancel_controller_client::CancelControllerClient},
+        firmware_update::{self as fw_pb, firmware_update_client::FirmwareUpdateClient},
         framework,
         island_control::{self as pb, island_control_client::IslandControlClient},
     },
@@ -180,6 +182,60 @@ async fn bad_input_is_answered_and_the_server_keeps_serving() {
         framework::si_la_error::Error::DefinedExecutionError(d) => assert_eq!(
             d.error_identifier,
             "de.ihex/bench/IslandControl/v1/DefinedExecutionError/UnknownElement"
+        ),
+        other => panic!("{other:?}"),
+    }
+    // FirmwareUpdate: a missing parameter and an image name that is a path (the reference client
+    // checks the pattern itself; the server does too), then executions that do not exist.
+    let mut fw = FirmwareUpdateClient::new(ch.clone());
+    let update = |image: &str, elements: Option<&str>| fw_pb::UpdateFirmwareParameters {
+        image: text(image),
+        elements: elements.and_then(text),
+    };
+    for (params, parameter) in [
+        (update("a.img", None), "Elements"),
+        (update("../a.img", Some("111")), "Image"),
+    ] {
+        let e = fw.update_firmware(params).await.unwrap_err();
+        match sila_error(&e) {
+            framework::si_la_error::Error::ValidationError(v) => assert_eq!(
+                v.parameter,
+                format!(
+                    "de.ihex/bench/FirmwareUpdate/v1/Command/UpdateFirmware/Parameter/{parameter}"
+                )
+            ),
+            other => panic!("{other:?}"),
+        }
+    }
+    let nobody = framework::CommandExecutionUuid {
+        value: "00000000-0000-4000-8000-000000000000".into(),
+    };
+    let invalid_uuid = |e: &tonic::Status| match sila_error(e) {
+        framework::si_la_error::Error::FrameworkError(f) => assert_eq!(
+            f.error_type,
+            framework::framework_error::ErrorType::InvalidCommandExecutionUuid as i32
+        ),
+        other => panic!("{other:?}"),
+    };
+    invalid_uuid(&fw.update_firmware_result(nobody.clone()).await.unwrap_err());
+    invalid_uuid(&fw.update_firmware_info(nobody.clone()).await.unwrap_err());
+    invalid_uuid(
+        &fw.update_firmware_intermediate(nobody.clone())
+            .await
+            .unwrap_err(),
+    );
+    let e = CancelControllerClient::new(ch.clone())
+        .cancel_command(cancel_pb::CancelCommandParameters {
+            command_execution_uuid: Some(cancel_pb::DataTypeUuid {
+                uuid: text(&nobody.value),
+            }),
+        })
+        .await
+        .unwrap_err();
+    match sila_error(&e) {
+        framework::si_la_error::Error::DefinedExecutionError(d) => assert_eq!(
+            d.error_identifier,
+            "org.silastandard/core.commands/CancelController/v1/DefinedExecutionError/InvalidCommandExecutionUUID"
         ),
         other => panic!("{other:?}"),
     }

@@ -599,6 +599,7 @@ fn cmd_and_node(s: &Sent) -> Option<(String, String)> {
         Command::Forget { id } => Some(("forget".into(), id.to_string())),
         Command::List
         | Command::FwUpdate { .. }
+        | Command::FwCancel
         | Command::Lease { .. }
         | Command::Renew { .. }
         | Command::Release

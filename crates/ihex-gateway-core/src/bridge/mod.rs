@@ -68,6 +68,8 @@ use timer::Timer;
 /// The part of the [`TRANSMIT_WINDOW`] a firmware update's frames may fill: a command that comes
 /// while they are out is handed on at once, never behind a full window of update frames.
 pub const FW_WINDOW: usize = TRANSMIT_WINDOW / 2;
+/// The `reason` `fw_report` gives the elements an `fw_cancel` stopped (outcome `failed`).
+pub const FW_CANCELLED: &str = "cancelled by fw_cancel";
 
 /// Tunables of the bridge (the CLI/TOML configuration fills these in).
 #[derive(Clone, Debug)]
@@ -449,6 +451,10 @@ impl Bridge {
                 let token = req.lease.as_deref();
                 return self.request_fw_update(request_id, image, nodes, force, token);
             }
+            Command::FwCancel => {
+                self.fw_cancel(request_id, req.lease.as_deref(), now);
+                Ok(())
+            }
             cmd @ (Command::Lease { .. }
             | Command::Renew { .. }
             | Command::Release
@@ -497,6 +503,7 @@ impl Bridge {
             Command::Forget { id } => Target::Node(*id),
             Command::List
             | Command::FwUpdate { .. }
+            | Command::FwCancel
             | Command::Lease { .. }
             | Command::Renew { .. }
             | Command::Release
@@ -836,6 +843,35 @@ impl Bridge {
         self.set_now(now);
         self.fw.cancel(reason, now, &mut self.out);
         self.finish_input(now);
+    }
+
+    /// `fw_cancel`: stops the running update like [`Bridge::cancel_fw_update`], answered with
+    /// `command_result` `ok` before its `fw_report` (every element not done yet `failed`, reason
+    /// `cancelled by fw_cancel`). Refused when no update runs, while its image is still read, and
+    /// when a lease holds one of its elements not done yet and the command lacks its token.
+    fn fw_cancel(&mut self, request_id: Option<String>, lease: Option<&str>, now: Instant) {
+        let open = match self.fw.open_nodes() {
+            Some(open) => open,
+            None if self.fw.busy() => return self.reject(request_id, CommandError::FwLoading),
+            None => return self.reject(request_id, CommandError::FwNotRunning),
+        };
+        for id in open {
+            if let Err(e) = self.lease_table.check(id, lease, &self.clock, now) {
+                return self.reject(request_id, e.into());
+            }
+        }
+        self.out.emit(Event::CommandResult(CommandResult {
+            request_id,
+            cmd: "fw_cancel".into(),
+            node: Target::All,
+            result: Outcome::Ok,
+            reason: None,
+            acked: None,
+            refused: None,
+            missing: None,
+            origin: self.origin.for_answer(),
+        }));
+        self.fw.cancel(FW_CANCELLED, now, &mut self.out);
     }
 
     /// True while a firmware update is loading or running.

@@ -20,7 +20,7 @@ use json::{Arena, Json, Quote};
 
 /// Every command name, for error messages.
 pub const COMMAND_NAMES: &str =
-    "led, buzzer, power, identify, assign, forget, list, fw_update, lease, renew, release, break_lease, procedure, procedure_cancel";
+    "led, buzzer, power, identify, assign, forget, list, fw_update, fw_cancel, lease, renew, release, break_lease, procedure, procedure_cancel";
 
 /// Default buzzer tone when a command gives none, in Hz.
 pub const DEFAULT_FREQ_HZ: u16 = 2000;
@@ -115,6 +115,15 @@ pub enum CommandError {
     /// `fw_update` while another update is loading or running.
     #[error("fw_update: an update is running; wait for its fw_report")]
     FwBusy,
+    /// `fw_cancel` with no update running.
+    #[error("fw_cancel: no firmware update is running (the fw_report of the last one says how it ended)")]
+    FwNotRunning,
+    /// `fw_cancel` while the update's image is still being read (before its `command_result`).
+    #[error(
+        "fw_cancel: the update is still reading its image; send fw_cancel again once its \
+         command_result is out"
+    )]
+    FwLoading,
     /// A lease refuses the command, or a lease command was refused.
     #[error(transparent)]
     Lease(#[from] crate::lease::LeaseError),
@@ -206,6 +215,9 @@ pub enum Command {
         /// Let the nodes take an older version than theirs.
         force: bool,
     },
+    /// `fw_cancel`: stop the running firmware update (its `fw_report` says which elements it
+    /// stopped).
+    FwCancel,
     /// `lease`: hold elements (or the island) so that only commands with the token reach them.
     Lease {
         /// Who holds it.
@@ -258,6 +270,7 @@ impl Command {
             Command::Forget { .. } => "forget",
             Command::List => "list",
             Command::FwUpdate { .. } => "fw_update",
+            Command::FwCancel => "fw_cancel",
             Command::Lease { .. } => "lease",
             Command::Renew { .. } => "renew",
             Command::Release => "release",
@@ -450,6 +463,10 @@ fn command(cmd: &str, members: &[(&str, Json<'_>)]) -> Result<Command, CommandEr
             FW_UPDATE_FIELDS,
             "",
         )?),
+        "fw_cancel" => {
+            Fields::new("fw_cancel", "", members, &[], "")?;
+            Ok(Command::FwCancel)
+        }
         "lease" => lease(&Fields::new("lease", "", members, LEASE_FIELDS, "")?),
         "renew" => {
             let f = Fields::new("renew", "", members, &["seconds"], "")?;

@@ -63,6 +63,13 @@ impl FwUpdates {
         self.loading || !self.loads.is_empty() || self.sender.is_some()
     }
 
+    /// The elements of the running update not done yet; `None` when no update runs (none, or
+    /// one still reading its image).
+    pub(crate) fn open_nodes(&self) -> Option<Vec<NodeId>> {
+        let s = self.sender.as_ref().filter(|s| !s.is_finished())?;
+        Some(s.open_nodes().collect())
+    }
+
     /// An `fw_update`: starts at once with the uploaded image of that name, else asks the
     /// adapter for the file.
     pub(crate) fn request(&mut self, load: FwLoad, now: Instant, out: &mut Outputs) {
@@ -517,5 +524,102 @@ mod tests {
             .unwrap()
             .starts_with("unknown node 5"));
         assert!(b.poll_fw_load().is_none());
+    }
+
+    #[test]
+    fn fw_cancel_stops_the_update_and_answers_once() {
+        let (mut b, t0) = with_nodes(&[2, 0x111]);
+        let out = command(&mut b, json!({"cmd":"fw_cancel","request_id":"c0"}), t0);
+        assert_eq!(
+            out.one("command_rejected")["reason"],
+            "fw_cancel: no firmware update is running (the fw_report of the last one says how it ended)"
+        );
+        // While the image file is read, nothing is sent yet: asked to try again.
+        command(
+            &mut b,
+            json!({"cmd":"fw_update","image":"f.ihex","nodes":"2"}),
+            t0,
+        );
+        let load = b.poll_fw_load().unwrap();
+        let out = command(&mut b, json!({"cmd":"fw_cancel","request_id":"c1"}), t0);
+        assert!(out.one("command_rejected")["reason"]
+            .as_str()
+            .unwrap()
+            .starts_with("fw_cancel: the update is still reading its image"));
+        b.handle_fw_image(load, Err("no such file".into()), t0);
+        drain(&mut b);
+
+        b.handle_fw_upload("up.ihex", image_bytes(), false, t0);
+        drain(&mut b);
+        let cmd = json!({"cmd":"fw_update","image":"up.ihex","nodes":"2,111","request_id":"u"});
+        assert_eq!(
+            command(&mut b, cmd, t0).one("command_result")["result"],
+            "ok"
+        );
+        let out = command(&mut b, json!({"cmd":"fw_cancel","request_id":"c2"}), t0);
+        let result = out.one("command_result");
+        assert_eq!(
+            (&result["cmd"], &result["result"], &result["request_id"]),
+            (&json!("fw_cancel"), &json!("ok"), &json!("c2"))
+        );
+        let report = out.one("fw_report");
+        assert_eq!(report["request_id"], "u", "the update's report");
+        for n in report["nodes"].as_array().unwrap() {
+            assert_eq!(
+                (&n["outcome"], &n["reason"]),
+                (&json!("failed"), &json!(crate::bridge::FW_CANCELLED)),
+                "{report}"
+            );
+        }
+        // The nodes were told to drop the transfer.
+        let aborts: Vec<_> = out
+            .sent
+            .iter()
+            .filter(|p| {
+                matches!(
+                    p.msg,
+                    Message::FwEnd {
+                        action: ihex_proto::FwAction::Abort,
+                        ..
+                    }
+                )
+            })
+            .map(|p| p.dest)
+            .collect();
+        assert_eq!(aborts, vec![id(2), id(0x111)]);
+        assert!(!b.fw_update_running());
+        let out = command(&mut b, json!({"cmd":"fw_cancel","request_id":"c3"}), t0);
+        assert_eq!(out.one("command_rejected")["request_id"], "c3");
+    }
+
+    #[test]
+    fn fw_cancel_honours_leases_on_the_updates_elements() {
+        let (mut b, t0) = with_nodes(&[2, 0x111]);
+        let out = command(
+            &mut b,
+            json!({"cmd":"lease","owner":"run-42","nodes":"111","seconds":60}),
+            t0,
+        );
+        let token = out.one("lease_granted")["token"]
+            .as_str()
+            .unwrap()
+            .to_owned();
+        b.handle_fw_upload("up.ihex", image_bytes(), false, t0);
+        drain(&mut b);
+        let cmd = json!({"cmd":"fw_update","image":"up.ihex","nodes":"2,111","lease":token});
+        assert_eq!(
+            command(&mut b, cmd, t0).one("command_result")["result"],
+            "ok"
+        );
+        // Someone without the token may not stop the leased element's update.
+        let out = command(&mut b, json!({"cmd":"fw_cancel"}), t0);
+        assert!(out.one("command_rejected")["reason"]
+            .as_str()
+            .unwrap()
+            .starts_with("111 is leased by run-42"));
+        assert!(b.fw_update_running());
+        let out = command(&mut b, json!({"cmd":"fw_cancel","lease":token}), t0);
+        assert_eq!(out.one("command_result")["result"], "ok");
+        assert_eq!(out.one("fw_report")["nodes"].as_array().unwrap().len(), 2);
     }
 }

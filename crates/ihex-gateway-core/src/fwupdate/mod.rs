@@ -433,6 +433,14 @@ impl FwSender {
         self.nodes.keys().copied()
     }
 
+    /// The nodes without an outcome yet.
+    pub fn open_nodes(&self) -> impl Iterator<Item = NodeId> + '_ {
+        self.nodes
+            .iter()
+            .filter(|(_, n)| n.stage != Stage::Done)
+            .map(|(id, _)| *id)
+    }
+
     /// True once the report has been emitted: the sender has nothing more to do.
     pub fn is_finished(&self) -> bool {
         self.finished

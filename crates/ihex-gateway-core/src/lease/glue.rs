@@ -58,10 +58,12 @@ impl Bridge {
             Command::Assign { new_id: id, .. } | Command::Forget { id } => {
                 t.check(*id, token, c, now)
             }
-            // `fw_update` skips leased elements one by one (`lease_skips`); the lease commands
-            // act on leases themselves.
+            // `fw_update` skips leased elements one by one (`lease_skips`), `fw_cancel` checks
+            // the running update's elements (`fw_cancel`); the lease commands act on leases
+            // themselves.
             Command::List
             | Command::FwUpdate { .. }
+            | Command::FwCancel
             | Command::Lease { .. }
             | Command::Renew { .. }
             | Command::Release

@@ -69,17 +69,38 @@ fn dock_example(desc: &IslandDesc) -> Option<DockExample> {
     })
 }
 
-/// The banner for `desc` (loaded from `file`, or the built-in island), the broker at `host:port`,
-/// the island view at `view_url` when it runs, the JSON log in `log` when there is one.
-pub fn banner(
-    topics: &Topics,
-    host: &str,
-    port: u16,
-    desc: &IslandDesc,
-    file: Option<&Path>,
-    view_url: Option<&str>,
-    log: Option<&Path>,
-) -> String {
+/// What the banner describes.
+pub struct Banner<'a> {
+    /// The gateway's topics.
+    pub topics: &'a Topics,
+    /// The embedded broker's address.
+    pub host: &'a str,
+    /// The embedded broker's port.
+    pub port: u16,
+    /// The simulated island.
+    pub desc: &'a IslandDesc,
+    /// The island file it was loaded from (`None`: the built-in island).
+    pub file: Option<&'a Path>,
+    /// The island view's address, when it runs.
+    pub view_url: Option<&'a str>,
+    /// The SiLA server's address (`grpcs://…`, or `grpc://…` in plaintext), when it runs.
+    pub sila_url: Option<&'a str>,
+    /// The JSON log file, when there is one.
+    pub log: Option<&'a Path>,
+}
+
+/// The banner for what `b` describes.
+pub fn banner(b: &Banner<'_>) -> String {
+    let Banner {
+        topics,
+        host,
+        port,
+        desc,
+        file,
+        view_url,
+        sila_url,
+        log,
+    } = *b;
     let b = format!("-h {host} -p {port}");
     let (events, cmds, sim) = (&topics.events, &topics.commands, &topics.sim);
     let states = format!("{}/+/state", topics.node_state_root);
@@ -152,6 +173,12 @@ pub fn banner(
     let _ = writeln!(t);
     if let Some(url) = view_url {
         let _ = writeln!(t, "See the island live in a browser: {url}");
+    }
+    if let Some(url) = sila_url {
+        let _ = writeln!(
+            t,
+            "Lab orchestrators reach it as a SiLA 2 server at {url} (found over mDNS; docs/sila.md)"
+        );
     }
     let _ = writeln!(t, "Watch every event:");
     let _ = writeln!(t, "  mosquitto_sub {b} -t '{events}' -v");
@@ -261,21 +288,36 @@ mod tests {
     fn the_banner_uses_the_configured_topics() {
         let topics = Topics::new(Some("lab"), "CommandsTopic", "EventsTopic", "a", "n");
         let desc = IslandDesc::parse(super::super::BUILTIN_ISLAND).unwrap();
-        let text = banner(&topics, "127.0.0.1", 1884, &desc, None, None, None);
+        let plain = Banner {
+            topics: &topics,
+            host: "127.0.0.1",
+            port: 1884,
+            desc: &desc,
+            file: None,
+            view_url: None,
+            sila_url: None,
+            log: None,
+        };
+        let text = banner(&plain);
         assert!(!text.contains("browser"), "{text}");
+        assert!(!text.contains("SiLA"), "{text}");
         assert!(text.contains("No JSON log file"), "{text}");
         assert!(
             text.contains("ihex-provision fw demo-image --version 0.2.0 && ihex-provision fw update sim-fw-0.2.0.img --broker 127.0.0.1:1884 --island lab"),
             "{text}"
         );
-        let text = banner(
-            &topics,
-            "127.0.0.1",
-            1884,
-            &desc,
-            None,
-            Some("http://127.0.0.1:8080/"),
-            Some(Path::new("/var/log/ihex/mc-gateway.2026-11-25.jsonl")),
+        let text = banner(&Banner {
+            view_url: Some("http://127.0.0.1:8080/"),
+            sila_url: Some("grpcs://127.0.0.1:50052"),
+            log: Some(Path::new("/var/log/ihex/mc-gateway.2026-11-25.jsonl")),
+            ..plain
+        });
+        assert!(
+            text.contains(
+                "Lab orchestrators reach it as a SiLA 2 server at grpcs://127.0.0.1:50052 (found \
+                 over mDNS; docs/sila.md)\n"
+            ),
+            "{text}"
         );
         assert!(
             text.contains(&format!(
@@ -317,15 +359,16 @@ mod tests {
         );
         let topics = Topics::seed();
         for (file, desc) in islands {
-            let text = banner(
-                &topics,
-                "127.0.0.1",
-                1883,
-                &desc,
-                file.as_deref(),
-                None,
-                None,
-            );
+            let text = banner(&Banner {
+                topics: &topics,
+                host: "127.0.0.1",
+                port: 1883,
+                desc: &desc,
+                file: file.as_deref(),
+                view_url: None,
+                sila_url: None,
+                log: None,
+            });
             let island = Island::start(&desc, Link::Mem(MemBus::new())).unwrap();
             let payload = |line: &str| {
                 line.split(" -m '")

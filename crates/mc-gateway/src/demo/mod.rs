@@ -174,13 +174,14 @@ impl Demo {
     }
 
     /// Starts the island's control client and prints the banner (embedded broker + island), with
-    /// the island view's address when it runs.
+    /// the island view's and the SiLA server's addresses when they run.
     pub fn spawn(
         &mut self,
         config: &Config,
         tasks: &mut JoinSet<()>,
         cancel: CancellationToken,
         view_url: Option<&str>,
+        sila_url: Option<&str>,
     ) {
         let (Some(island), Some((desc, file))) = (&mut self.island, &self.desc) else {
             return;
@@ -190,15 +191,17 @@ impl Demo {
         }
         if let Some(listen) = self.broker {
             let log = crate::log::current_file(&config.log, time::OffsetDateTime::now_utc());
-            let text = banner::banner(
-                &config.topics,
-                &listen.ip().to_string(),
-                listen.port(),
+            let host = listen.ip().to_string();
+            let text = banner::banner(&banner::Banner {
+                topics: &config.topics,
+                host: &host,
+                port: listen.port(),
                 desc,
-                file.as_deref(),
+                file: file.as_deref(),
                 view_url,
-                log.as_deref(),
-            );
+                sila_url,
+                log: log.as_deref(),
+            });
             println!("{text}");
         }
     }

@@ -192,8 +192,11 @@ impl Control {
     /// [`Control::execute`] with its failure as the SiLA error.
     async fn run<T>(&self, command: Command, request: &Request<T>) -> Result<(), Status> {
         let name = command.identifier();
-        let lease = self.locks.lease_of(request)?;
         let user = vouched(request);
+        let lease = self
+            .locks
+            .lease_for(request, &self.gateway, user.clone())
+            .await?;
         self.execute(command, lease, user)
             .await
             .map_err(|f| match f {

@@ -1,10 +1,15 @@
 //! `LockController` (`org.silastandard/core/LockController/v1`): a SiLA client's lock on the server
 //! is a gateway lease on the whole island, taken and released through the same command path as
 //! MQTT's `lease` and `release`. The lease's token stays inside the server, found by the client's
-//! lock identifier; `IslandControl`'s commands carry it when their call's `LockIdentifier`
-//! metadata names the lock. `IsLocked` is true while the island holds any lease, whoever took it.
+//! lock identifier; the commands of `IslandControl`, `FirmwareUpdate` and `CancelController`
+//! carry it when their call's `LockIdentifier` metadata names the lock; such a call also renews
+//! the lease for the lock's `Timeout` (SiLA's timeout counts from the last call with the lock
+//! identifier). `IsLocked` is true while the island holds any lease, whoever took it.
 
-use std::sync::{Arc, Mutex};
+use std::{
+    sync::{Arc, Mutex},
+    time::{Duration, Instant},
+};
 
 use prost::Message;
 use serde_json::{json, Value};
@@ -16,7 +21,8 @@ use super::{
     control::{vouched, Gateway},
     defined_error,
     proto::{framework, lock_controller as pb},
-    sila_error, undefined_error, validation_error, ISLAND_CONTROL, LOCK_CONTROLLER,
+    sila_error, undefined_error, validation_error, CANCEL_CONTROLLER, FIRMWARE_UPDATE,
+    ISLAND_CONTROL, LOCK_CONTROLLER,
 };
 use crate::feed::{self, ViewRequest};
 
@@ -28,11 +34,18 @@ pub const LOCK_IDENTIFIER_HEADER: &str =
 /// The longest lease the gateway grants, s (`Timeout` 0, "no timeout", gets it).
 const LONGEST: i64 = 86_400;
 
-/// The lock a SiLA client holds: its identifier and the lease's token.
+/// How long after a renewal a call with the lock identifier renews the lease again (a burst of
+/// calls renews it once).
+const RENEW_AFTER: Duration = Duration::from_secs(1);
+
+/// The lock a SiLA client holds: its identifier, the lease's token, its time to live and when
+/// it was last given that time.
 #[derive(Clone, Debug)]
 struct Held {
     identifier: String,
     token: String,
+    seconds: i64,
+    renewed: Instant,
 }
 
 /// The lock taken through this server, if any (one: the lock is on the whole island).
@@ -46,6 +59,49 @@ impl Locks {
 
     fn set(&self, held: Option<Held>) {
         *self.0.lock().unwrap_or_else(|e| e.into_inner()) = held;
+    }
+
+    /// [`Locks::lease_of`], and the lease renewed for the lock's `Timeout` from now (through the
+    /// command path, as `user`) when the call names the lock and it was not renewed within the
+    /// last second. A renewal the gateway refuses (the lease ended meanwhile) is left for the
+    /// command itself to tell.
+    pub async fn lease_for<T>(
+        &self,
+        request: &Request<T>,
+        gateway: &Gateway,
+        user: Option<String>,
+    ) -> Result<Option<String>, Status> {
+        let Some(token) = self.lease_of(request)? else {
+            return Ok(None);
+        };
+        let seconds = {
+            let mut held = self.0.lock().unwrap_or_else(|e| e.into_inner());
+            match held.as_mut() {
+                Some(h) if h.token == token && h.renewed.elapsed() >= RENEW_AFTER => {
+                    h.renewed = Instant::now();
+                    Some(h.seconds)
+                }
+                _ => None,
+            }
+        };
+        if let Some(seconds) = seconds {
+            let renewed = gateway
+                .ask(
+                    |id| {
+                        json!({"cmd": "renew", "lease": token, "seconds": seconds,
+                               "request_id": id})
+                        .to_string()
+                    },
+                    user,
+                )
+                .await;
+            if let Ok((_, json)) = renewed {
+                if answer(&json).0 != "lease_granted" {
+                    tracing::debug!(answer = %json, "the SiLA lock's lease was not renewed");
+                }
+            }
+        }
+        Ok(Some(token))
     }
 
     /// The lease token the call's `LockIdentifier` metadata names: `None` without the metadata,
@@ -173,7 +229,12 @@ impl pb::lock_controller_server::LockController for LockControl {
         match answer(&json) {
             (e, p) if e == "lease_granted" => {
                 let token = p["token"].as_str().unwrap_or_default().to_owned();
-                self.locks.set(Some(Held { identifier, token }));
+                self.locks.set(Some(Held {
+                    identifier,
+                    token,
+                    seconds,
+                    renewed: Instant::now(),
+                }));
                 Ok(Response::new(pb::LockServerResponses {}))
             }
             (_, p) => Err(defined_error(
@@ -258,9 +319,12 @@ impl pb::lock_controller_server::LockController for LockControl {
     ) -> Result<Response<pb::GetFcpAffectedByMetadataLockIdentifierResponses>, Status> {
         Ok(Response::new(
             pb::GetFcpAffectedByMetadataLockIdentifierResponses {
-                affected_calls: vec![framework::String {
-                    value: ISLAND_CONTROL.to_owned(),
-                }],
+                affected_calls: [ISLAND_CONTROL, FIRMWARE_UPDATE, CANCEL_CONTROLLER]
+                    .into_iter()
+                    .map(|f| framework::String {
+                        value: f.to_owned(),
+                    })
+                    .collect(),
             },
         ))
     }

@@ -1,8 +1,9 @@
 //! The SiLA 2 server (`docs/sila.md`): the island as a lab-automation server that orchestrators
 //! discover and drive. gRPC (tonic) with the code generated from the vendored protos in `sila/`
-//! ([`proto`]); the features `SiLAService` ([`service`]) and our `IslandControl` ([`control`]),
-//! whose definitions (`sila/features/*.sila.xml`) are served verbatim; `LockController`
-//! ([`lock`]) maps SiLA's server lock onto a gateway lease on the whole island.
+//! ([`proto`]); the features `SiLAService` ([`service`]) and our `IslandControl` ([`control`]) and
+//! `FirmwareUpdate` ([`firmware`]), whose definitions (`sila/features/*.sila.xml`) are served
+//! verbatim; `LockController` ([`lock`]) maps SiLA's server lock onto a gateway lease on the whole
+//! island, `CancelController` ([`cancel`]) stops the running firmware update.
 //!
 //! `IslandControl`'s commands take the island view's path into the core: the JSON command of the
 //! MQTT API ([`command`]) on an input of their own (so they count as [`Interface::Sila`]), their
@@ -14,8 +15,10 @@
 //! [`Interface::Sila`]: ihex_gateway_core::origin::Interface::Sila
 
 pub mod announce;
+pub mod cancel;
 pub mod command;
 pub mod control;
+pub mod firmware;
 pub mod identity;
 pub mod island;
 pub mod lock;
@@ -73,6 +76,18 @@ pub mod proto {
                             tonic::include_proto!("sila2.org.silastandard.core.lockcontroller.v1");
                         }
                     }
+                    /// `sila2.org.silastandard.core.commands.*`.
+                    pub mod commands {
+                        /// `CancelController`.
+                        pub mod cancelcontroller {
+                            /// Version 1.
+                            pub mod v1 {
+                                tonic::include_proto!(
+                                    "sila2.org.silastandard.core.commands.cancelcontroller.v1"
+                                );
+                            }
+                        }
+                    }
                 }
             }
         }
@@ -89,12 +104,21 @@ pub mod proto {
                             tonic::include_proto!("sila2.de.ihex.bench.islandcontrol.v1");
                         }
                     }
+                    /// `FirmwareUpdate`.
+                    pub mod firmwareupdate {
+                        /// Version 1.
+                        pub mod v1 {
+                            tonic::include_proto!("sila2.de.ihex.bench.firmwareupdate.v1");
+                        }
+                    }
                 }
             }
         }
     }
+    pub use sila2::de::ihex::bench::firmwareupdate::v1 as firmware_update;
     pub use sila2::de::ihex::bench::islandcontrol::v1 as island_control;
     pub use sila2::org::silastandard as framework;
+    pub use sila2::org::silastandard::core::commands::cancelcontroller::v1 as cancel_controller;
     pub use sila2::org::silastandard::core::lockcontroller::v1 as lock_controller;
     pub use sila2::org::silastandard::core::silaservice::v1 as sila_service;
 }
@@ -105,6 +129,15 @@ pub const SILA_SERVICE_FDL: &str = include_str!("../../sila/features/SiLAService
 pub const ISLAND_CONTROL_FDL: &str = include_str!("../../sila/features/IslandControl.sila.xml");
 /// `LockController`'s feature definition, served verbatim.
 pub const LOCK_CONTROLLER_FDL: &str = include_str!("../../sila/features/LockController.sila.xml");
+/// `FirmwareUpdate`'s feature definition, served verbatim.
+pub const FIRMWARE_UPDATE_FDL: &str = include_str!("../../sila/features/FirmwareUpdate.sila.xml");
+/// `CancelController`'s feature definition, served verbatim.
+pub const CANCEL_CONTROLLER_FDL: &str =
+    include_str!("../../sila/features/CancelController.sila.xml");
+/// `FirmwareUpdate`'s fully qualified identifier.
+pub const FIRMWARE_UPDATE: &str = "de.ihex/bench/FirmwareUpdate/v1";
+/// `CancelController`'s fully qualified identifier.
+pub const CANCEL_CONTROLLER: &str = "org.silastandard/core.commands/CancelController/v1";
 /// `LockController`'s fully qualified identifier.
 pub const LOCK_CONTROLLER: &str = "org.silastandard/core/LockController/v1";
 /// `SiLAService`'s fully qualified identifier.
@@ -264,6 +297,13 @@ impl Sila {
         self.addr
     }
 
+    /// Where clients reach it, for people: `grpcs://ADDR:PORT`, or `grpc://ADDR:PORT` in
+    /// plaintext.
+    pub fn url(&self) -> String {
+        let scheme = if self.tls.is_some() { "grpcs" } else { "grpc" };
+        format!("{scheme}://{}", self.addr)
+    }
+
     /// Serves SiLA clients and keeps the island model current on `tasks` until `cancel`.
     pub fn spawn(self, parts: Parts, tasks: &mut JoinSet<()>, cancel: CancellationToken) {
         let (elements_tx, elements) = watch::channel(Arc::new(Vec::new()));
@@ -316,6 +356,17 @@ impl Sila {
             locks: locks.clone(),
             views,
         };
+        let executions = Arc::new(firmware::Executions::default());
+        let firmware = firmware::FirmwareUpdate {
+            gateway: gateway.clone(),
+            locks: locks.clone(),
+            executions: executions.clone(),
+        };
+        let cancel_control = cancel::CancelControl {
+            gateway: gateway.clone(),
+            locks: locks.clone(),
+            executions,
+        };
         let control = control::Control {
             gateway,
             locks,
@@ -344,6 +395,14 @@ impl Sila {
             )
             .add_service(
                 proto::lock_controller::lock_controller_server::LockControllerServer::new(lock),
+            )
+            .add_service(
+                proto::firmware_update::firmware_update_server::FirmwareUpdateServer::new(firmware),
+            )
+            .add_service(
+                proto::cancel_controller::cancel_controller_server::CancelControllerServer::new(
+                    cancel_control,
+                ),
             )
             .serve_with_incoming_shutdown(incoming, cancel.cancelled_owned());
         tasks.spawn(async move {

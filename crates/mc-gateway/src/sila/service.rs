@@ -10,7 +10,8 @@ use super::{
     defined_error,
     identity::{self, Identity},
     proto::{framework, sila_service as pb},
-    validation_error, ISLAND_CONTROL, ISLAND_CONTROL_FDL, LOCK_CONTROLLER, LOCK_CONTROLLER_FDL,
+    validation_error, CANCEL_CONTROLLER, CANCEL_CONTROLLER_FDL, FIRMWARE_UPDATE,
+    FIRMWARE_UPDATE_FDL, ISLAND_CONTROL, ISLAND_CONTROL_FDL, LOCK_CONTROLLER, LOCK_CONTROLLER_FDL,
     SILA_SERVICE, SILA_SERVICE_FDL,
 };
 
@@ -18,10 +19,12 @@ use super::{
 pub const SERVER_TYPE: &str = "IhexIsland";
 
 /// Every implemented feature with its definition.
-pub const FEATURES: [(&str, &str); 3] = [
+pub const FEATURES: [(&str, &str); 5] = [
     (SILA_SERVICE, SILA_SERVICE_FDL),
     (ISLAND_CONTROL, ISLAND_CONTROL_FDL),
     (LOCK_CONTROLLER, LOCK_CONTROLLER_FDL),
+    (FIRMWARE_UPDATE, FIRMWARE_UPDATE_FDL),
+    (CANCEL_CONTROLLER, CANCEL_CONTROLLER_FDL),
 ];
 
 /// The `SiLAService` feature.

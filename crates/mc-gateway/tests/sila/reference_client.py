@@ -7,6 +7,9 @@
       The whole tour against a fresh demo gateway (its simulated island): found by mDNS by its UUID
       (and verified with the certificate its announcement carries), then over TLS trusting the
       certificate file CA; renames the server NAME.
+  reference_client.py firmware HOST SILA_PORT CA MQTT_PORT SMALL BIG
+      FirmwareUpdate and CancelController: uploads the image files SMALL and BIG over MQTT, updates
+      111 and 112 with SMALL to its end, then starts BIG and cancels it.
   reference_client.py again HOST SILA_PORT CA UUID NAME
       After a restart: the same UUID and the name the first run gave.
 
@@ -128,6 +131,8 @@ def first(host, sila_port, ca: Path, mqtt_port, sila_dir: Path, name, server_uui
             "org.silastandard/core/SiLAService/v1",
             "de.ihex/bench/IslandControl/v1",
             "org.silastandard/core/LockController/v1",
+            "de.ihex/bench/FirmwareUpdate/v1",
+            "org.silastandard/core.commands/CancelController/v1",
         ],
         f"features {features}",
     )
@@ -262,6 +267,106 @@ def lock(client, events):
     check(ok["event"] == "command_result" and ok["payload"]["result"] == "ok", f"the MQTT command after unlock: {ok}")
     print(f"ok: LockController: locked, refused without the identifier ({refused['payload']['reason']!r}), accepted with it, unlocked")
 
+    # The lock's Timeout counts from the last call with its identifier: calls keep it, silence ends it.
+    lc.LockServer(LockIdentifier="run-9", Timeout=2)
+    for _ in range(4):
+        time.sleep(1.1)
+        light("green", [lc.LockIdentifier("run-9")])
+    check(lc.IsLocked.get() is True, "the lock ended although calls with its identifier kept coming")
+    time.sleep(3)
+    check(lc.IsLocked.get() is False, "the lock outlived its Timeout without calls")
+    expect_error(lambda: lc.UnlockServer(LockIdentifier="run-9"), "ServerNotLocked", "already ended")
+    print("ok: LockController: the Timeout counts from the last call with the lock identifier")
+
+
+def firmware(host, sila_port, ca: Path, mqtt_port, small: Path, big: Path):
+    """FirmwareUpdate over SiLA, its progress and result, its fw_report on MQTT, and CancelController."""
+    from sila2.client import SilaClient
+    from sila2.framework import CommandExecutionStatus
+
+    events = Events(host, mqtt_port)
+    client = SilaClient(host, sila_port, root_certs=ca.read_bytes())
+    fu, cc = client.FirmwareUpdate, client.CancelController
+    for image in (small, big):
+        events.c.publish(f"ihex/fw/upload/{image.name}", image.read_bytes(), qos=1).wait_for_publish(WAIT)
+        events.expect(
+            f"the upload of {image.name}",
+            lambda e, n=image.name: e.get("event") == "fw_upload" and e["payload"].get("name") == n,
+        )
+    expect_error(lambda: fu.UpdateFirmware(Image="nothing.img", Elements="111,112"), "ImageNotUsable", "nothing.img")
+    expect_error(lambda: fu.UpdateFirmware(Image=small.name, Elements="111,5"), "UnknownElement", "unknown node 5")
+    expect_error(
+        lambda: cc.CancelCommand(CommandExecutionUUID=str(uuid.uuid4())), "InvalidCommandExecutionUUID", "not known"
+    )
+
+    # An update to its end: progress as intermediate responses, the outcomes as the result.
+    run = fu.UpdateFirmware(Image=small.name, Elements="111,112")
+    progress = queue.Queue()
+    sub = run.subscribe_to_intermediate_responses()
+    sub.add_callback(progress.put)
+    try:
+        first_step = progress.get(timeout=WAIT)
+    except queue.Empty:
+        raise AssertionError(f"no intermediate response within {WAIT} s") from None
+    check(
+        first_step.ElementId in ("111", "112") and 0 <= first_step.Percent <= 100,
+        f"the first intermediate response {first_step}",
+    )
+    deadline = time.monotonic() + 120
+    while not run.done:
+        check(time.monotonic() < deadline, f"the update did not finish within 120 s: {run.status} {run.progress}")
+        time.sleep(0.1)
+    steps = [first_step]
+    while not progress.empty():
+        steps.append(progress.get())
+    check(run.status == CommandExecutionStatus.finishedSuccessfully, f"status {run.status}")
+    check(run.progress == 1.0, f"progress at the end {run.progress}")
+    outcomes = {(o.ElementId, o.Outcome, o.Version, o.Reason) for o in run.get_responses().Outcomes}
+    check(outcomes == {("111", "updated", "9.0.0", ""), ("112", "updated", "9.0.0", "")}, f"outcomes {outcomes}")
+    report = events.expect("the update's fw_report", lambda e: e.get("event") == "fw_report")
+    check(str(report["payload"]["request_id"]).startswith("sila-"), f"the fw_report of the SiLA update: {report}")
+    check(
+        {(n["node"], n["outcome"]) for n in report["payload"]["nodes"]} == {("111", "updated"), ("112", "updated")},
+        f"fw_report {report}",
+    )
+    print(f"ok: UpdateFirmware {small.name}: {len(steps)} progress values ({steps[0]} ...), result {sorted(outcomes)}")
+
+    # A second update, cancelled: the execution finishes with the error Cancelled, and so says fw_report.
+    run = fu.UpdateFirmware(Image=big.name, Elements="111,112")
+    expect_error(lambda: fu.UpdateFirmware(Image=small.name, Elements="111"), "UpdateRunning", "running")
+    sub = run.subscribe_to_intermediate_responses()
+    started = queue.Queue()
+    sub.add_callback(started.put)
+    try:
+        started.get(timeout=WAIT)
+    except queue.Empty:
+        raise AssertionError(f"no progress of the second update within {WAIT} s") from None
+    cc.CancelCommand(CommandExecutionUUID=str(run.execution_uuid))
+    cancel = events.expect(
+        "fw_cancel's command_result",
+        lambda e: e.get("event") == "command_result" and e["payload"].get("cmd") == "fw_cancel",
+    )
+    check(
+        cancel["payload"]["result"] == "ok" and cancel["payload"].get("origin", {}).get("interface") == "sila",
+        f"fw_cancel's answer {cancel}",
+    )
+    report = events.expect("the cancelled update's fw_report", lambda e: e.get("event") == "fw_report")
+    reasons = {(n["node"], n["outcome"], n["reason"]) for n in report["payload"]["nodes"]}
+    check(
+        reasons == {("111", "failed", "cancelled by fw_cancel"), ("112", "failed", "cancelled by fw_cancel")},
+        f"the cancelled update's fw_report {report}",
+    )
+    wait_for("the cancelled execution's end", lambda: run.done)
+    check(run.status == CommandExecutionStatus.finishedWithError, f"status after cancel {run.status}")
+    expect_error(run.get_responses, "Cancelled", "cancelled")
+    expect_error(
+        lambda: cc.CancelCommand(CommandExecutionUUID=str(run.execution_uuid)),
+        "InvalidCommandExecutionUUID",
+        "already finished",
+    )
+    cc.CancelAll()  # nothing runs: nothing to do
+    print(f"ok: CancelController: {big.name} cancelled, fw_report {sorted(reasons)}")
+
 
 def again(host, sila_port, ca: Path, server_uuid, name):
     from sila2.client import SilaClient
@@ -279,6 +384,8 @@ def main(argv):
         definitions(Path(argv[2]))
     elif mode == "first":
         first(argv[2], int(argv[3]), Path(argv[4]), int(argv[5]), Path(argv[6]), argv[7], argv[8])
+    elif mode == "firmware":
+        firmware(argv[2], int(argv[3]), Path(argv[4]), int(argv[5]), Path(argv[6]), Path(argv[7]))
     elif mode == "again":
         again(argv[2], int(argv[3]), Path(argv[4]), argv[5], argv[6])
     else:
