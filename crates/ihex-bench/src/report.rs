@@ -45,6 +45,11 @@ pub struct Callgrind {
     /// its own thread in the gateway); the rest is the command path's.
     #[serde(default)]
     pub audit_writer: Option<PathCost>,
+    /// [`Callgrind::command_answered`] by phase: each counted only inside its functions
+    /// (callgrind's `--toggle-collect`, inclusive of what they call), in the order a command
+    /// meets them. The rest is the workload's own loop and what no phase names.
+    #[serde(default)]
+    pub command_phases: Vec<(String, PathCost)>,
     /// A second run of the CAN → event `n` workload gave the same count.
     pub repeatable: bool,
     /// The binary that was measured (build profile and target).
@@ -590,6 +595,29 @@ pub fn table(r: &Results) -> String {
                 crate::workload::LEASES,
                 l.per_frame,
                 if added <= 5.0 { "pass" } else { "FAIL" }
+            );
+        }
+        if let (Some(all), false) = (&c.command_answered, c.command_phases.is_empty()) {
+            let _ = writeln!(
+                o,
+                "  answered command by phase (inclusive; socket reads and writes are the kernel's: see the context switches)"
+            );
+            let mut named = 0.0;
+            for (phase, cost) in &c.command_phases {
+                named += cost.per_frame;
+                let _ = writeln!(
+                    o,
+                    "    {phase:<34} {:>7.0}  ({:>4.1} %)",
+                    cost.per_frame,
+                    cost.per_frame / all.per_frame * 100.0
+                );
+            }
+            let _ = writeln!(
+                o,
+                "    {:<34} {:>7.0}  ({:>4.1} %)",
+                "the rest (loop, unnamed)",
+                all.per_frame - named,
+                (all.per_frame - named) / all.per_frame * 100.0
             );
         }
         if let (Some(off), Some(on)) = (&c.command_answered, &c.command_audited) {
@@ -1302,6 +1330,41 @@ mod tests {
             t.contains("peak RSS < 10 MiB                       pass"),
             "{t}"
         );
+    }
+
+    #[test]
+    fn issue_34_prints_the_layout_the_bare_baselines_and_its_goals() {
+        let mut l = sample();
+        l.broker_layout = "Mosquitto elsewhere, at 10.0.2.2:1883".into();
+        l.mqtt_to_can_cps = 500.0;
+        l.can_to_mqtt_fps = 1000.0;
+        l.mqtt_bare = Some(crate::results::MqttBare {
+            ingress_mps: 1000.0,
+            egress_mps: 2000.0,
+            ..Default::default()
+        });
+        l.bare.cpu_ms_per_1k = 100.0;
+        l.cpu_ms_per_1k_commands = 110.0;
+        l.share_commands = Some(CpuShare {
+            gateway_switches: 1500.0,
+            gateway_voluntary: 1200.0,
+            ..Default::default()
+        });
+        let r = Results {
+            live: Some(l),
+            ..Default::default()
+        };
+        let t = table(&r);
+        for line in [
+            "broker: Mosquitto elsewhere, at 10.0.2.2:1883 (every live figure below)",
+            "0.50x bare MQTT ingress (1000 msg/s)",
+            "0.50x bare MQTT egress (2000 msg/s)",
+            "CPU per 1,000 acked commands <= 1.2x a raw frame forward  pass  (110.0 vs 100.0 ms: 1.10x)",
+            "at most about one gateway wake-up per command  FAIL  (1500 context switches per 1,000 commands, 1200 voluntary)",
+            "mosquitto not counted (elsewhere)",
+        ] {
+            assert!(t.contains(line), "missing {line:?} in\n{t}");
+        }
     }
 
     #[test]

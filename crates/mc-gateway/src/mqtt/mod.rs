@@ -322,12 +322,10 @@ impl MqttTask {
         let mut publications_open = true;
         // An input handed over by the `inputs.reserve()` branch (the core's channel was full).
         let mut handed = 0;
-        loop {
-            // Everything queued between two polls leaves in one write: requests and publications
-            // are queued first, then `poll()` (cancel-safe) writes them while waiting for the broker.
-            let Some(delivered) = deliver(&mut session, &inputs) else {
-                break;
-            };
+        // Everything queued between two polls leaves in one write: requests and publications are
+        // queued first, then `poll()` (cancel-safe) writes them while waiting for the broker.
+        // The loop ends when the core is gone.
+        while let Some(delivered) = deliver(&mut session, &inputs) {
             if std::mem::take(&mut handed) + delivered > 0 {
                 // The core takes what was just handed to it in its own turn, which runs now, before
                 // this task writes: what it publishes in that turn (the answers of acks read with
