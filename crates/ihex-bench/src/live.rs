@@ -228,21 +228,31 @@ struct Responder {
     thread: JoinHandle<u64>,
 }
 
+/// Every `LedSet` the responder read: when, and its command index ([`led_index`]). The command
+/// trials count frames from here instead of from a reader of their own, so that a command costs
+/// the benchmark one CAN read, not two (the load generator shares the gateway's CPU).
+type Seen = Receiver<(Instant, u32)>;
+
 impl Responder {
-    fn start(iface: &str, notes: &mut Vec<String>) -> Result<Responder> {
+    fn start(iface: &str, notes: &mut Vec<String>) -> Result<(Responder, Seen)> {
         let sock = open_can(iface, notes)?;
         sock.set_filters(&[led_filter()])?;
         let stop = Arc::new(AtomicBool::new(false));
         let st = stop.clone();
+        let (seen_tx, seen) = mpsc::channel();
         let thread = std::thread::spawn(move || {
             let mut acked = 0u64;
             while !st.load(Ordering::Relaxed) {
                 let Ok(f) = sock.read_frame_timeout(Duration::from_millis(200)) else {
                     continue;
                 };
+                let t = Instant::now();
                 let Ok(p) = Packet::from_frame(&f) else {
                     continue;
                 };
+                if let Some(i) = led_index(&p) {
+                    let _ = seen_tx.send((t, i));
+                }
                 if let Message::LedSet { seq, .. } = p.msg {
                     let ack = Packet::report(
                         p.dest,
@@ -260,7 +270,7 @@ impl Responder {
             }
             acked
         });
-        Ok(Responder { stop, thread })
+        Ok((Responder { stop, thread }, seen))
     }
 
     fn stop(self) -> u64 {
@@ -746,6 +756,8 @@ struct Bench {
     next_index: u32,
     /// Next command index (never reused: every command stays pending at the gateway).
     next_cmd: u32,
+    /// The `LedSet` frames the responder read, once it runs.
+    seen: Option<Seen>,
     notes: Vec<String>,
 }
 
@@ -938,28 +950,14 @@ impl Bench {
 
     fn command_run(&mut self, count: usize, rate: f64) -> Result<Trial> {
         self.settle()?;
-        let rx = open_can(&self.s.iface, &mut self.notes)?;
-        rx.set_filters(&[led_filter()])?;
+        let seen = self
+            .seen
+            .as_ref()
+            .ok_or_else(|| anyhow!("command trial without the responder"))?;
+        while seen.try_recv().is_ok() {}
         let base = self.next_cmd;
         self.next_cmd += count as u32;
         let want: HashSet<u32> = (0..count as u32).map(|k| (base + k) & 0xffff).collect();
-        let reader = std::thread::spawn(move || -> (usize, Option<Instant>) {
-            let mut got = HashSet::new();
-            let mut last = None;
-            while got.len() < want.len() {
-                match rx.read_frame_timeout(Duration::from_secs(2)) {
-                    Ok(f) => {
-                        let t = Instant::now();
-                        let i = Packet::from_frame(&f).ok().as_ref().and_then(led_index);
-                        if i.is_some_and(|i| want.contains(&i) && got.insert(i)) {
-                            last = Some(t);
-                        }
-                    }
-                    Err(_) => break,
-                }
-            }
-            (got.len(), last)
-        });
         self.mqtt.drain();
         let cpu0 = CpuSnapshot::take(self.gw.pid(), self.broker)?;
         let client = self.mqtt.client.clone();
@@ -980,9 +978,16 @@ impl Bench {
             (count, t0.elapsed().as_secs_f64())
         };
         let t_end = Instant::now();
-        let (received, last) = reader
-            .join()
-            .map_err(|_| anyhow!("command reader panicked"))?;
+        let (mut got, mut last) = (HashSet::new(), None);
+        while got.len() < want.len() {
+            let Ok((t, i)) = seen.recv_timeout(Duration::from_secs(2)) else {
+                break;
+            };
+            if want.contains(&i) && got.insert(i) {
+                last = Some(t);
+            }
+        }
+        let received = got.len();
         // Every command's answer: the bench acked each frame as its node, so each must end in a
         // `command_result` ok on EventsTopic. The gateway's CPU is read once they are in, so it
         // includes publishing them.
@@ -1364,6 +1369,7 @@ pub fn run(s: Settings) -> Result<LiveResults> {
         broker: broker_pid,
         next_index: 0,
         next_cmd: 0,
+        seen: None,
         notes,
     };
 
@@ -1381,7 +1387,8 @@ pub fn run(s: Settings) -> Result<LiveResults> {
     }
     std::thread::sleep(Duration::from_millis(500));
     b.next_index = u32::from(NODES);
-    let responder = Responder::start(&s.iface, &mut b.notes)?;
+    let (responder, seen) = Responder::start(&s.iface, &mut b.notes)?;
+    b.seen = Some(seen);
 
     // Which phase sets the gateway's peak: its VmHWM after each.
     let mut peaks: Vec<(&str, u64)> = vec![("start", memory_kib(b.gw.pid())?.0)];
