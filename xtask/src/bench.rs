@@ -15,8 +15,8 @@ use std::process::Command;
 use std::sync::mpsc;
 use std::time::Duration;
 
-use anyhow::{anyhow, bail, Result};
-use clap::Args;
+use anyhow::{anyhow, bail, Context, Result};
+use clap::{Args, ValueEnum};
 
 use crate::cmd;
 use crate::fwsize;
@@ -86,6 +86,31 @@ pub struct BenchArgs {
     /// Measure this gateway only.
     #[arg(long)]
     no_baseline: bool,
+    /// Measure this already built static gateway binary as the baseline instead of building
+    /// `--baseline` (the live part only; its file name labels it).
+    #[arg(long, conflicts_with = "no_baseline")]
+    baseline_gateway: Option<PathBuf>,
+    /// Run the live part alone (no callgrind, procedure, audit, firmware, islands, web, sila or fw
+    /// part).
+    #[arg(long, conflicts_with_all = ["no_live", "only_islands"])]
+    only_live: bool,
+    /// Where the live part's Mosquitto runs when the live part runs in the microVM: on the host
+    /// (reached from the VM at 10.0.2.2, so it does not share the gateway's vCPU; one fresh broker
+    /// per gateway measured) or in the VM beside the gateway. `both` measures this gateway in both
+    /// layouts (the second into `live-vm.json`). With native vcan the broker is always beside it.
+    #[arg(long, value_enum, default_value_t = BrokerPlace::Host)]
+    broker: BrokerPlace,
+}
+
+/// Where the live part's broker runs (`--broker`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum BrokerPlace {
+    /// On the host, reached from the microVM over its user-mode network.
+    Host,
+    /// In the microVM, sharing its vCPU with the gateway and the benchmark.
+    Vm,
+    /// This gateway in both layouts.
+    Both,
 }
 
 /// The commit whose figures issue 15 quotes ("today's"): the gateway before its core split.
@@ -228,6 +253,56 @@ struct CanRun {
     name: &'static str,
     args: Vec<String>,
     out: PathBuf,
+    /// In the microVM, give it a fresh Mosquitto on the host (`--broker 10.0.2.2:PORT`).
+    host_broker: bool,
+}
+
+/// A Mosquitto on the host for one run in the microVM: on a free loopback port, which the VM's
+/// user-mode network reaches at 10.0.2.2; the live part's configuration (unlimited queues,
+/// `set_tcp_nodelay` unless `nagle`). Stopped when dropped.
+struct HostBroker {
+    child: std::process::Child,
+    port: u16,
+}
+
+impl HostBroker {
+    fn start(bin: &Path, dir: &Path, nagle: bool) -> Result<HostBroker> {
+        let port = TcpListener::bind((Ipv4Addr::LOCALHOST, 0))?
+            .local_addr()?
+            .port();
+        let conf = dir.join(format!("mosquitto-host-{port}.conf"));
+        fs::write(
+            &conf,
+            format!(
+                "listener {port} 127.0.0.1\nallow_anonymous true\npersistence false\nuser root\n\
+                 max_queued_messages 0\nmax_inflight_messages 0\nset_tcp_nodelay {}\n\
+                 log_dest stderr\nlog_type error\n",
+                !nagle
+            ),
+        )?;
+        let child = Command::new(bin)
+            .arg("-c")
+            .arg(&conf)
+            .stdin(std::process::Stdio::null())
+            .stdout(std::process::Stdio::null())
+            .spawn()
+            .with_context(|| format!("starting {}", bin.display()))?;
+        let broker = HostBroker { child, port };
+        for _ in 0..100 {
+            if std::net::TcpStream::connect((Ipv4Addr::LOCALHOST, port)).is_ok() {
+                return Ok(broker);
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        bail!("the host's mosquitto did not listen on port {port} within 5 s")
+    }
+}
+
+impl Drop for HostBroker {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
 }
 
 fn islands_args(gateway: &Path, sim_node: &Path, args: &BenchArgs) -> Vec<String> {
@@ -319,6 +394,9 @@ fn live(runs: &[CanRun], files: &[PathBuf], bench: &Path, args: &BenchArgs) -> R
     // Each run sends its results back over the user-mode network (10.0.2.2 is our loopback).
     let mut programs = Vec::new();
     let mut results = Vec::new();
+    // Stopped when the VM is done (dropped at the end of this function).
+    let mut brokers = Vec::new();
+    let conf_dir = cmd::target_dir().join("bench");
     for run in runs {
         let listener = TcpListener::bind((Ipv4Addr::LOCALHOST, 0))?;
         let port = listener.local_addr()?.port();
@@ -330,6 +408,13 @@ fn live(runs: &[CanRun], files: &[PathBuf], bench: &Path, args: &BenchArgs) -> R
             "--report".into(),
             format!("10.0.2.2:{port}"),
         ]);
+        if run.host_broker {
+            // A fresh broker per run: the retained state documents of one gateway's run would
+            // be read back by the next gateway.
+            let b = HostBroker::start(&mosquitto, &conf_dir, args.mosquitto_nagle)?;
+            program_args.extend(["--broker".into(), format!("10.0.2.2:{}", b.port)]);
+            brokers.push(b);
+        }
         programs.push(Program {
             name: run.name.into(),
             path: bench.to_path_buf(),
@@ -345,6 +430,7 @@ fn live(runs: &[CanRun], files: &[PathBuf], bench: &Path, args: &BenchArgs) -> R
         files: files.to_vec(),
     };
     let outcomes = vm.run(&payload)?;
+    drop(brokers);
     for ((name, rx, out), o) in results.into_iter().zip(&outcomes) {
         if o.code != 0 {
             failed.push(format!("{name} failed in the VM (exit {})", o.code));
@@ -403,6 +489,7 @@ pub fn run(args: BenchArgs, firmware_dir: &Path) -> Result<()> {
     fs::create_dir_all(&dir)?;
     for f in [
         "live.json",
+        "live-vm.json",
         "callgrind.json",
         "firmware.json",
         "missing.json",
@@ -419,7 +506,19 @@ pub fn run(args: BenchArgs, firmware_dir: &Path) -> Result<()> {
     let (gateway, bench, sim_node) = build()?;
     let mut missing = Vec::new();
     let only = args.only_islands;
-    let baseline = if args.no_baseline || only {
+    let baseline = if let Some(path) = &args.baseline_gateway {
+        let label = path
+            .file_name()
+            .map_or_else(|| "prebuilt".into(), |n| n.to_string_lossy().into_owned());
+        fs::write(dir.join("baseline-commit.txt"), &label)?;
+        // Copied in at its host path like this build's gateway; no benchmark of its own.
+        Some(BaselineBuild {
+            commit: label,
+            gateway: fs::canonicalize(path)
+                .with_context(|| format!("--baseline-gateway {}", path.display()))?,
+            bench: PathBuf::new(),
+        })
+    } else if args.no_baseline || only || args.only_live {
         None
     } else {
         println!("\n==> xtask bench: build the baseline {}", args.baseline);
@@ -437,6 +536,8 @@ pub fn run(args: BenchArgs, firmware_dir: &Path) -> Result<()> {
 
     if only {
         missing.push("instruction counts, firmware sizes, live: --only-islands".into());
+    } else if args.only_live {
+        missing.push("instruction counts, procedure, audit, firmware sizes: --only-live".into());
     } else {
         measure_host(
             &args,
@@ -452,21 +553,32 @@ pub fn run(args: BenchArgs, firmware_dir: &Path) -> Result<()> {
     if args.no_live {
         missing.push("live benchmark: --no-live".into());
     } else if !only {
+        let on_host = args.broker != BrokerPlace::Vm;
         runs.push(CanRun {
             name: "ihex-bench live",
             args: live_args(&gateway, &args),
             out: dir.join("live.json"),
+            host_broker: on_host,
         });
         if let Some(b) = &baseline {
             runs.push(CanRun {
                 name: "ihex-bench live (baseline)",
                 args: live_args(&b.gateway, &args),
                 out: dir.join("baseline-live.json"),
+                host_broker: on_host,
+            });
+        }
+        if args.broker == BrokerPlace::Both {
+            runs.push(CanRun {
+                name: "ihex-bench live (broker in the VM)",
+                args: live_args(&gateway, &args),
+                out: dir.join("live-vm.json"),
+                host_broker: false,
             });
         }
     }
-    if args.no_islands {
-        missing.push("islands per broker: --no-islands".into());
+    if args.no_islands || args.only_live {
+        missing.push("islands per broker: --no-islands or --only-live".into());
     } else if args.island_count > vcan::COUNT {
         missing.push(format!(
             "islands per broker: --island-count {} (the VM has vcan0..{})",
@@ -478,6 +590,7 @@ pub fn run(args: BenchArgs, firmware_dir: &Path) -> Result<()> {
             name: "ihex-bench islands",
             args: islands_args(&gateway, &sim_node, &args),
             out: dir.join("islands.json"),
+            host_broker: false,
         });
     }
     let mut machine = "SocketCAN part not run".to_string();
@@ -494,8 +607,11 @@ pub fn run(args: BenchArgs, firmware_dir: &Path) -> Result<()> {
             Err(e) => missing.push(format!("SocketCAN part: {e:#}")),
         }
     }
-    if only {
-        missing.push("island view latency and firmware update: --only-islands".into());
+    if only || args.only_live {
+        missing.push(
+            "island view latency, SiLA server and firmware update: --only-islands or --only-live"
+                .into(),
+        );
     } else {
         on_host_demo(&args, &bench, &dir, &mut missing);
     }
@@ -533,7 +649,7 @@ fn measure_host(
         if let Err(e) = cmd::run(&mut c) {
             missing.push(format!("callgrind: {e:#}"));
         }
-        if let Some(b) = baseline {
+        if let Some(b) = baseline.filter(|b| !b.bench.as_os_str().is_empty()) {
             // Its own workload: the same definition of a bridged frame, on its own bridge API.
             let mut c = Command::new(&b.bench);
             c.args(["callgrind", "--n", &args.callgrind_n.to_string(), "--out"])

@@ -23,13 +23,46 @@ pub fn total_instructions(out: &str) -> Option<u64> {
 /// separates what the writer thread pays from what the command path pays.
 const WRITER: &str = "*AuditWriter*write_waiting*";
 
+/// The phases of an answered command (the `answered` workload), each as the functions it is
+/// counted in, in the order a command meets them: what the gateway's core task does between
+/// reading the command from the MQTT task and handing its `command_result` back to it.
+const PHASES: [(&str, &[&str]); 6] = [
+    (
+        "parse + core (command)",
+        &["*Bridge*handle_delivered_command*"],
+    ),
+    (
+        "frame out (poll, encode)",
+        &["*Bridge*poll_transmit*", "*Packet*encode*"],
+    ),
+    // `handle_transmitted` itself is inlined into the caller: its two steps are counted.
+    (
+        "echo (frame confirmed)",
+        &["*Bridge*release*", "*Bridge*on_frame_fate*"],
+    ),
+    ("ack (node's answer)", &["*Bridge*handle_packet*"]),
+    (
+        "publish: take from the core",
+        &["*Bridge*poll_publication*"],
+    ),
+    (
+        "publish: topic + JSON",
+        &["*Topics*resolve*", "*PayloadWriter*write*"],
+    ),
+];
+
 /// Instructions of `n` iterations of `path`; only inside functions matching `only` when given
 /// (callgrind's `--toggle-collect`: everything they call is counted, nothing else).
 fn measure_in(exe: &Path, path: &str, n: u64, dir: &Path, only: Option<&str>) -> Result<u64> {
+    measure_only(exe, path, n, dir, only.as_slice())
+}
+
+/// [`measure_in`] counting inside any of the functions matching `only` (all when empty).
+fn measure_only(exe: &Path, path: &str, n: u64, dir: &Path, only: &[&str]) -> Result<u64> {
     let out = dir.join(format!("callgrind.{path}.{n}.{}", std::process::id()));
     let mut valgrind = Command::new("valgrind");
     valgrind.args(["--tool=callgrind", "--quiet"]);
-    if let Some(f) = only {
+    for f in only {
         valgrind.arg(format!("--toggle-collect={f}"));
     }
     let status = valgrind
@@ -84,6 +117,18 @@ pub fn run(n: u64) -> Result<Callgrind> {
     let command_answered = Some(path_cost(&exe, "answered", n, &dir)?);
     let command_audited = Some(path_cost(&exe, "audited", n, &dir)?);
     let audit_writer = path_cost_in(&exe, "audited", n, &dir, Some(WRITER))?;
+    let mut command_phases = Vec::new();
+    for (phase, functions) in PHASES {
+        let a = measure_only(&exe, "answered", n, &dir, functions)?;
+        let b = measure_only(&exe, "answered", 2 * n, &dir, functions)?;
+        let cost = PathCost {
+            n,
+            instructions_n: a,
+            instructions_2n: b,
+            per_frame: (b as f64 - a as f64) / n as f64,
+        };
+        command_phases.push((phase.to_owned(), cost));
+    }
     if audit_writer.per_frame <= 0.0 {
         bail!("callgrind counted nothing inside {WRITER}: was the audit writer inlined?");
     }
@@ -95,6 +140,7 @@ pub fn run(n: u64) -> Result<Callgrind> {
         command_answered,
         command_audited,
         audit_writer: Some(audit_writer),
+        command_phases,
         binary: format!(
             "{} ({})",
             exe.file_name().unwrap_or_default().to_string_lossy(),

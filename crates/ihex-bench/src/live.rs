@@ -27,7 +27,7 @@ use rumqttc::{Client, Event as MqttEvent, MqttOptions, Packet as MqttPacket, QoS
 use socketcan::{CanFilter, CanFrame, CanSocket, EmbeddedFrame, Socket, SocketOptions};
 
 use ihex_bench::bus::{Limit, PairLimit};
-use ihex_bench::results::{Bare, CpuShare, LiveResults, Trial};
+use ihex_bench::results::{Bare, CpuShare, LiveResults, MqttBare, Trial};
 use ihex_bench::stats::Summary;
 
 /// Bitrate of the island bus.
@@ -64,6 +64,10 @@ pub struct Settings {
     /// Leave Mosquitto's default `set_tcp_nodelay false` (Nagle on its sockets) instead of turning
     /// it off; with Nagle, command → frame takes a delayed-ACK period (~40 ms) once commands are acked.
     pub mosquitto_nagle: bool,
+    /// A broker already running elsewhere (the host's Mosquitto, seen from the microVM at
+    /// 10.0.2.2), used instead of starting one here: it does not share the gateway's CPU, and
+    /// its CPU is not counted.
+    pub broker: Option<SocketAddr>,
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -224,21 +228,31 @@ struct Responder {
     thread: JoinHandle<u64>,
 }
 
+/// Every `LedSet` the responder read: when, and its command index ([`led_index`]). The command
+/// trials count frames from here instead of from a reader of their own, so that a command costs
+/// the benchmark one CAN read, not two (the load generator shares the gateway's CPU).
+type Seen = Receiver<(Instant, u32)>;
+
 impl Responder {
-    fn start(iface: &str, notes: &mut Vec<String>) -> Result<Responder> {
+    fn start(iface: &str, notes: &mut Vec<String>) -> Result<(Responder, Seen)> {
         let sock = open_can(iface, notes)?;
         sock.set_filters(&[led_filter()])?;
         let stop = Arc::new(AtomicBool::new(false));
         let st = stop.clone();
+        let (seen_tx, seen) = mpsc::channel();
         let thread = std::thread::spawn(move || {
             let mut acked = 0u64;
             while !st.load(Ordering::Relaxed) {
                 let Ok(f) = sock.read_frame_timeout(Duration::from_millis(200)) else {
                     continue;
                 };
+                let t = Instant::now();
                 let Ok(p) = Packet::from_frame(&f) else {
                     continue;
                 };
+                if let Some(i) = led_index(&p) {
+                    let _ = seen_tx.send((t, i));
+                }
                 if let Message::LedSet { seq, .. } = p.msg {
                     let ack = Packet::report(
                         p.dest,
@@ -256,7 +270,7 @@ impl Responder {
             }
             acked
         });
-        Ok(Responder { stop, thread })
+        Ok((Responder { stop, thread }, seen))
     }
 
     fn stop(self) -> u64 {
@@ -314,11 +328,13 @@ fn bare_pair(iface: &str, n: usize, rounds: usize, notes: &mut Vec<String>) -> R
         }
         (got, last)
     });
+    let cpu0 = cpu_ms(std::process::id())?;
     let t0 = Instant::now();
     for _ in 0..n {
         write(&tx, &f)?;
     }
     let (received, last) = reader.join().map_err(|_| anyhow!("bare reader panicked"))?;
+    let cpu_ms_per_1k = (cpu_ms(std::process::id())? - cpu0) * 1000.0 / received.max(1) as f64;
     let secs = last.map_or(f64::INFINITY, |l| (l - t0).as_secs_f64());
     let rate_fps = received as f64 / secs;
 
@@ -354,6 +370,7 @@ fn bare_pair(iface: &str, n: usize, rounds: usize, notes: &mut Vec<String>) -> R
         received,
         rtt: Summary::of(rtt),
         process_rtt: process_round_trip(rounds)?,
+        cpu_ms_per_1k,
     })
 }
 
@@ -645,21 +662,27 @@ pub(crate) fn cpu_ms(pid: u32) -> Result<f64> {
 /// Context switches of `pid` so far, voluntary and not, summed over its threads (threads that
 /// have ended no longer count: the gateway and Mosquitto keep theirs).
 pub(crate) fn switches(pid: u32) -> Result<u64> {
-    let mut sum = 0;
+    let (voluntary, preempted) = switches_split(pid)?;
+    Ok(voluntary + preempted)
+}
+
+/// [`switches`] in its two parts: voluntary (a thread blocked: it had nothing to do) and not
+/// (preempted by another runnable process).
+pub(crate) fn switches_split(pid: u32) -> Result<(u64, u64)> {
+    let (mut voluntary, mut preempted) = (0, 0);
     for task in std::fs::read_dir(format!("/proc/{pid}/task"))? {
         let Ok(status) = std::fs::read_to_string(task?.path().join("status")) else {
             continue; // the thread ended meanwhile
         };
         for line in status.lines() {
-            if let Some(n) = line
-                .strip_prefix("voluntary_ctxt_switches:")
-                .or_else(|| line.strip_prefix("nonvoluntary_ctxt_switches:"))
-            {
-                sum += n.trim().parse::<u64>()?;
+            if let Some(n) = line.strip_prefix("voluntary_ctxt_switches:") {
+                voluntary += n.trim().parse::<u64>()?;
+            } else if let Some(n) = line.strip_prefix("nonvoluntary_ctxt_switches:") {
+                preempted += n.trim().parse::<u64>()?;
             }
         }
     }
-    Ok(sum)
+    Ok((voluntary, preempted))
 }
 
 /// CPU times of the three processes of a live trial (and the gateway's and broker's context
@@ -669,16 +692,19 @@ struct CpuSnapshot {
     gateway: (f64, f64),
     broker: f64,
     bench: f64,
-    switches: (u64, u64),
+    /// The gateway's voluntary and preempted switches, the broker's (all).
+    switches: (u64, u64, u64),
 }
 
 impl CpuSnapshot {
-    fn take(gateway: u32, broker: u32) -> Result<CpuSnapshot> {
+    /// `broker` is `None` when it runs elsewhere (not counted: 0).
+    fn take(gateway: u32, broker: Option<u32>) -> Result<CpuSnapshot> {
+        let (voluntary, preempted) = switches_split(gateway)?;
         Ok(CpuSnapshot {
             gateway: cpu_times(gateway)?,
-            broker: cpu_ms(broker)?,
+            broker: broker.map_or(Ok(0.0), cpu_ms)?,
             bench: cpu_ms(std::process::id())?,
-            switches: (switches(gateway)?, switches(broker)?),
+            switches: (voluntary, preempted, broker.map_or(Ok(0), switches)?),
         })
     }
 
@@ -694,8 +720,12 @@ impl CpuSnapshot {
             gateway_system: (now.gateway.1 - self.gateway.1) * per_1k,
             broker: (now.broker - self.broker) * per_1k,
             bench: (now.bench - self.bench) * per_1k,
-            gateway_switches: now.switches.0.saturating_sub(self.switches.0) as f64 * per_1k,
-            broker_switches: now.switches.1.saturating_sub(self.switches.1) as f64 * per_1k,
+            gateway_switches: (now.switches.0 + now.switches.1)
+                .saturating_sub(self.switches.0 + self.switches.1)
+                as f64
+                * per_1k,
+            gateway_voluntary: now.switches.0.saturating_sub(self.switches.0) as f64 * per_1k,
+            broker_switches: now.switches.2.saturating_sub(self.switches.2) as f64 * per_1k,
         }
     }
 }
@@ -721,11 +751,13 @@ struct Bench {
     can: CanSocket,
     mqtt: Mqtt,
     gw: Proc,
-    /// Mosquitto's process id.
-    broker: u32,
+    /// Mosquitto's process id (`None`: it runs elsewhere).
+    broker: Option<u32>,
     next_index: u32,
     /// Next command index (never reused: every command stays pending at the gateway).
     next_cmd: u32,
+    /// The `LedSet` frames the responder read, once it runs.
+    seen: Option<Seen>,
     notes: Vec<String>,
 }
 
@@ -816,38 +848,7 @@ impl Bench {
         ceiling: f64,
         trial: fn(&mut Self, f64) -> Result<Trial>,
     ) -> Result<(f64, Vec<Trial>)> {
-        let mut trials = Vec::new();
-        let (mut good, mut bad) = (0.0f64, f64::NAN);
-        let mut r = start;
-        while r <= ceiling * 2.0 {
-            let t = trial(self, r)?;
-            let ok = t.sustained();
-            trials.push(t);
-            if ok {
-                good = r;
-                r *= 2.0;
-            } else {
-                bad = r;
-                break;
-            }
-        }
-        if bad.is_finite() {
-            for _ in 0..4 {
-                let mid = (good + bad) / 2.0;
-                if good > 0.0 && (bad - good) / good < 0.1 {
-                    break;
-                }
-                let t = trial(self, mid)?;
-                let ok = t.sustained();
-                trials.push(t);
-                if ok {
-                    good = mid;
-                } else {
-                    bad = mid;
-                }
-            }
-        }
-        Ok((good, trials))
+        search(start, ceiling, |r| trial(self, r))
     }
 
     /// The latency series, interleaved: each round takes one probe of each (the MQTT loop only
@@ -949,28 +950,14 @@ impl Bench {
 
     fn command_run(&mut self, count: usize, rate: f64) -> Result<Trial> {
         self.settle()?;
-        let rx = open_can(&self.s.iface, &mut self.notes)?;
-        rx.set_filters(&[led_filter()])?;
+        let seen = self
+            .seen
+            .as_ref()
+            .ok_or_else(|| anyhow!("command trial without the responder"))?;
+        while seen.try_recv().is_ok() {}
         let base = self.next_cmd;
         self.next_cmd += count as u32;
         let want: HashSet<u32> = (0..count as u32).map(|k| (base + k) & 0xffff).collect();
-        let reader = std::thread::spawn(move || -> (usize, Option<Instant>) {
-            let mut got = HashSet::new();
-            let mut last = None;
-            while got.len() < want.len() {
-                match rx.read_frame_timeout(Duration::from_secs(2)) {
-                    Ok(f) => {
-                        let t = Instant::now();
-                        let i = Packet::from_frame(&f).ok().as_ref().and_then(led_index);
-                        if i.is_some_and(|i| want.contains(&i) && got.insert(i)) {
-                            last = Some(t);
-                        }
-                    }
-                    Err(_) => break,
-                }
-            }
-            (got.len(), last)
-        });
         self.mqtt.drain();
         let cpu0 = CpuSnapshot::take(self.gw.pid(), self.broker)?;
         let client = self.mqtt.client.clone();
@@ -991,9 +978,16 @@ impl Bench {
             (count, t0.elapsed().as_secs_f64())
         };
         let t_end = Instant::now();
-        let (received, last) = reader
-            .join()
-            .map_err(|_| anyhow!("command reader panicked"))?;
+        let (mut got, mut last) = (HashSet::new(), None);
+        while got.len() < want.len() {
+            let Ok((t, i)) = seen.recv_timeout(Duration::from_secs(2)) else {
+                break;
+            };
+            if want.contains(&i) && got.insert(i) {
+                last = Some(t);
+            }
+        }
+        let received = got.len();
         // Every command's answer: the bench acked each frame as its node, so each must end in a
         // `command_result` ok on EventsTopic. The gateway's CPU is read once they are in, so it
         // includes publishing them.
@@ -1086,6 +1080,156 @@ impl Bench {
     }
 }
 
+/// Steps the rate up from `start` by doubling (up to twice `ceiling`), then bisects between the
+/// last sustained and the first failed rate (up to 4 steps, stopping at 10 % resolution).
+fn search(
+    start: f64,
+    ceiling: f64,
+    mut trial: impl FnMut(f64) -> Result<Trial>,
+) -> Result<(f64, Vec<Trial>)> {
+    let mut trials = Vec::new();
+    let (mut good, mut bad) = (0.0f64, f64::NAN);
+    let mut r = start;
+    while r <= ceiling * 2.0 {
+        let t = trial(r)?;
+        let ok = t.sustained();
+        trials.push(t);
+        if ok {
+            good = r;
+            r *= 2.0;
+        } else {
+            bad = r;
+            break;
+        }
+    }
+    if bad.is_finite() {
+        for _ in 0..4 {
+            let mid = (good + bad) / 2.0;
+            if good > 0.0 && (bad - good) / good < 0.1 {
+                break;
+            }
+            let t = trial(mid)?;
+            let ok = t.sustained();
+            trials.push(t);
+            if ok {
+                good = mid;
+            } else {
+                bad = mid;
+            }
+        }
+    }
+    Ok((good, trials))
+}
+
+/// Topic of the bare MQTT path's ingress messages (the gateway's commands' way), and of its
+/// egress messages (the events' way); the gateway uses neither.
+const BARE_IN: &str = "ihex-bench/bare/in";
+const BARE_OUT: &str = "ihex-bench/bare/out";
+
+/// Message `k` of a bare MQTT trial: its index in decimal, padded with spaces to `len` bytes (the
+/// size of the gateway's message on that way).
+fn bare_message(k: u32, len: usize) -> Vec<u8> {
+    let mut m = k.to_string().into_bytes();
+    m.resize(len.max(m.len()), b' ');
+    m
+}
+
+/// One trial of the bare MQTT path: `rate × trial_secs` QoS 1 messages of `len` bytes published
+/// by `from` on `topic`, counted at `to` (distinct indices; read until all came or none for 2 s).
+fn bare_mqtt_trial(
+    from: &Mqtt,
+    to: &Mqtt,
+    topic: &str,
+    len: usize,
+    rate: f64,
+    trial_secs: f64,
+) -> Result<Trial> {
+    let count = ((rate * trial_secs) as usize).clamp(200, 100_000);
+    std::thread::sleep(Duration::from_millis(300));
+    to.drain();
+    let (sent, secs) = paced(count, rate, None, |k| {
+        from.client
+            .publish(topic, QoS::AtLeastOnce, false, bare_message(k, len))?;
+        Ok(())
+    })?;
+    let t_end = Instant::now();
+    let mut got = HashSet::new();
+    let mut last = None;
+    while got.len() < sent {
+        let Some((t, tp, payload)) = to.recv(Duration::from_secs(2)) else {
+            break;
+        };
+        let k = std::str::from_utf8(&payload)
+            .ok()
+            .and_then(|p| p.trim_end().parse::<u32>().ok());
+        if let (true, Some(k)) = (tp == topic, k) {
+            if (k as usize) < sent && got.insert(k) {
+                last = Some(t);
+            }
+        }
+    }
+    let received = got.len();
+    let t = Trial {
+        offered_fps: rate,
+        sent_fps: sent as f64 / secs,
+        sent,
+        received,
+        loss: 1.0 - received as f64 / sent as f64,
+        lag_ms: last.map_or(f64::NAN, |l| {
+            l.saturating_duration_since(t_end).as_secs_f64() * 1e3
+        }),
+        ..Trial::default()
+    };
+    println!(
+        "bench: bare MQTT {topic} {:>8.0} msg/s offered, {:>8.0} sent, {}/{} received, lag {:.0} ms{}",
+        t.offered_fps,
+        t.sent_fps,
+        t.received,
+        t.sent,
+        t.lag_ms,
+        if t.sustained() { "" } else { "  (not sustained)" }
+    );
+    Ok(t)
+}
+
+/// The bare MQTT path through the broker at `addr`, both ways, before the gateway starts: a second
+/// client of this process plays the gateway's part (subscribed to the ingress topic, publishing on
+/// the egress topic), `main` the benchmark's (publishing commands, reading events).
+fn bare_mqtt(main: &Mqtt, addr: SocketAddr, trial_secs: f64) -> Result<MqttBare> {
+    let peer = Mqtt::connect_as("ihex-bench-peer", addr, &[BARE_IN])?;
+    // Both subscriptions in place before the first message (a round through each).
+    for (m, topic) in [(&peer, BARE_IN), (main, BARE_OUT)] {
+        let mut ok = false;
+        for _ in 0..50 {
+            m.client.publish(topic, QoS::AtLeastOnce, false, "ready")?;
+            if m.wait_topic(topic, b"ready", Duration::from_millis(200)) {
+                ok = true;
+                break;
+            }
+        }
+        if !ok {
+            bail!("bare MQTT: no message came back on {topic} within 10 s");
+        }
+    }
+    // The sizes of the gateway's own messages on each way.
+    let command_len = led_command(0xffff).len();
+    let event_len = r#"{"event":"node_rebooted","payload":{"id":"256","reset":"other_253","version":"1.0","role":"static"}}"#.len();
+    println!("bench: bare MQTT ingress ({command_len}-byte messages)");
+    let (ingress_mps, ingress_trials) = search(250.0, 16_000.0, |r| {
+        bare_mqtt_trial(main, &peer, BARE_IN, command_len, r, trial_secs)
+    })?;
+    println!("bench: bare MQTT egress ({event_len}-byte messages)");
+    let (egress_mps, egress_trials) = search(250.0, 16_000.0, |r| {
+        bare_mqtt_trial(&peer, main, BARE_OUT, event_len, r, trial_secs)
+    })?;
+    Ok(MqttBare {
+        ingress_mps,
+        egress_mps,
+        ingress_trials,
+        egress_trials,
+    })
+}
+
 /// One latency series being collected: its samples and the probes that got no answer.
 struct Series {
     name: &'static str,
@@ -1162,15 +1306,40 @@ pub fn run(s: Settings) -> Result<LiveResults> {
         bare.rate_fps, bare.received, bare.sent, bare.rtt.p50_us
     );
 
-    let (broker, addr) = start_mosquitto(&s.mosquitto, &dir, s.mosquitto_nagle, "")?;
+    // `_broker` lives as long as the run: dropping it stops the broker.
+    let (_broker, broker_pid, addr, broker_layout) = match s.broker {
+        Some(addr) => (
+            None,
+            None,
+            addr,
+            format!("Mosquitto elsewhere, at {addr} (not on these CPUs; its CPU is not counted)"),
+        ),
+        None => {
+            let (p, addr) = start_mosquitto(&s.mosquitto, &dir, s.mosquitto_nagle, "")?;
+            let pid = p.pid();
+            (
+                Some(p),
+                Some(pid),
+                addr,
+                "Mosquitto here, sharing the CPUs with the gateway and the benchmark".to_owned(),
+            )
+        }
+    };
+    println!("bench: {broker_layout}");
     let mqtt = Mqtt::connect(
         addr,
         &[
             "EventsTopic",
             "ihex/gateway/availability",
             "ihex-bench/loop",
+            BARE_OUT,
         ],
     )?;
+    let mqtt_bare = bare_mqtt(&mqtt, addr, s.trial_secs)?;
+    println!(
+        "bench: bare MQTT ingress {:.0} msg/s, egress {:.0} msg/s (zero loss)",
+        mqtt_bare.ingress_mps, mqtt_bare.egress_mps
+    );
     let mut gw = start_gateway(&s.gateway, &s.iface, addr, &dir)?;
     let gw_log = || std::fs::read_to_string(dir.join("gateway.log")).unwrap_or_default();
     let mut waited = 0;
@@ -1197,9 +1366,10 @@ pub fn run(s: Settings) -> Result<LiveResults> {
         can,
         mqtt,
         gw,
-        broker: broker.child.id(),
+        broker: broker_pid,
         next_index: 0,
         next_cmd: 0,
+        seen: None,
         notes,
     };
 
@@ -1217,7 +1387,8 @@ pub fn run(s: Settings) -> Result<LiveResults> {
     }
     std::thread::sleep(Duration::from_millis(500));
     b.next_index = u32::from(NODES);
-    let responder = Responder::start(&s.iface, &mut b.notes)?;
+    let (responder, seen) = Responder::start(&s.iface, &mut b.notes)?;
+    b.seen = Some(seen);
 
     // Which phase sets the gateway's peak: its VmHWM after each.
     let mut peaks: Vec<(&str, u64)> = vec![("start", memory_kib(b.gw.pid())?.0)];
@@ -1283,6 +1454,8 @@ pub fn run(s: Settings) -> Result<LiveResults> {
     }
     let r = LiveResults {
         environment,
+        broker_layout,
+        mqtt_bare: Some(mqtt_bare),
         cpus,
         bare,
         trials,

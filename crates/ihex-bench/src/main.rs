@@ -42,7 +42,8 @@ enum WorkPath {
 
 #[derive(Subcommand)]
 enum Cmd {
-    /// The live benchmark: mc-gateway between SocketCAN and a Mosquitto it starts.
+    /// The live benchmark: mc-gateway between SocketCAN and a Mosquitto it starts (or the one
+    /// at `--broker`).
     Live {
         /// SocketCAN interface.
         #[arg(long, default_value = "vcan0")]
@@ -65,6 +66,10 @@ enum Cmd {
         /// Keep Mosquitto's default Nagle algorithm (set_tcp_nodelay false) on its sockets.
         #[arg(long)]
         mosquitto_nagle: bool,
+        /// Use the Mosquitto already running at this address (in the microVM: the host's, at
+        /// 10.0.2.2:PORT) instead of starting one here; its CPU is then not counted.
+        #[arg(long)]
+        broker: Option<std::net::SocketAddr>,
         /// Send the results as a JSON line to this TCP address (the host's xtask).
         #[arg(long)]
         report: Option<String>,
@@ -242,6 +247,7 @@ fn main() -> Result<()> {
             trial_secs,
             commands,
             mosquitto_nagle,
+            broker,
             report,
             out,
         } => {
@@ -253,6 +259,7 @@ fn main() -> Result<()> {
                 trial_secs,
                 commands,
                 mosquitto_nagle,
+                broker,
             })?;
             finish(r, out, report, |r| report::Results {
                 live: Some(r),
@@ -375,6 +382,9 @@ fn main() -> Result<()> {
             match read("live.json") {
                 Some(b) => r.live = Some(serde_json::from_slice(&b).context("live.json")?),
                 None => r.missing.push("live benchmark (no live.json)".into()),
+            }
+            if let Some(b) = read("live-vm.json") {
+                r.live_broker_in_vm = Some(serde_json::from_slice(&b).context("live-vm.json")?);
             }
             match read("callgrind.json") {
                 Some(b) => {

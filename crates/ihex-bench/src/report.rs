@@ -45,6 +45,11 @@ pub struct Callgrind {
     /// its own thread in the gateway); the rest is the command path's.
     #[serde(default)]
     pub audit_writer: Option<PathCost>,
+    /// [`Callgrind::command_answered`] by phase: each counted only inside its functions
+    /// (callgrind's `--toggle-collect`, inclusive of what they call), in the order a command
+    /// meets them. The rest is the workload's own loop and what no phase names.
+    #[serde(default)]
+    pub command_phases: Vec<(String, PathCost)>,
     /// A second run of the CAN → event `n` workload gave the same count.
     pub repeatable: bool,
     /// The binary that was measured (build profile and target).
@@ -73,6 +78,10 @@ pub struct Results {
     pub machine: String,
     /// The live benchmark, if it ran.
     pub live: Option<LiveResults>,
+    /// The same gateway's live benchmark with the broker in the microVM beside it
+    /// (`cargo xtask bench --broker both`), if it ran.
+    #[serde(default)]
+    pub live_broker_in_vm: Option<LiveResults>,
     /// Instruction counts, if valgrind was available.
     pub callgrind: Option<Callgrind>,
     /// Firmware images, if a release build was found.
@@ -145,6 +154,26 @@ fn throughput_goals(o: &mut String, r: &Results) {
             l.mqtt_to_can_cps,
             l.mqtt_to_can_cps / pair,
             pair
+        );
+    }
+    if let Some(s) = &l.share_commands {
+        let _ = writeln!(
+            o,
+            "  (issue 34) at most about one gateway wake-up per command  {}  ({:.0} context switches per 1,000 commands, {:.0} voluntary)",
+            pass(s.gateway_switches <= 1000.0),
+            s.gateway_switches,
+            s.gateway_voluntary
+        );
+    }
+    if l.bare.cpu_ms_per_1k > 0.0 {
+        let ratio = l.cpu_ms_per_1k_commands / l.bare.cpu_ms_per_1k;
+        let _ = writeln!(
+            o,
+            "  (issue 34) CPU per 1,000 acked commands <= 1.2x a raw frame forward  {}  ({:.1} vs {:.1} ms: {:.2}x)",
+            pass(ratio <= 1.2),
+            l.cpu_ms_per_1k_commands,
+            l.bare.cpu_ms_per_1k,
+            ratio
         );
     }
     match base.and_then(|b| b.live.as_ref()) {
@@ -319,7 +348,7 @@ fn share_line(what: &str, s: &CpuShare, cpus: usize) -> String {
     format!(
         "{what:<9} gateway {:>6.0} (user {:.0} + system {:.0})  mosquitto {:>6.0}  bench {:>6.0}  \
          -> all three allow at most {:.0}/s\n            \
-         context switches per 1,000: gateway {:.0}, mosquitto {:.0}",
+         context switches per 1,000: gateway {:.0} ({:.0} voluntary), mosquitto {}",
         s.gateway_user + s.gateway_system,
         s.gateway_user,
         s.gateway_system,
@@ -327,7 +356,12 @@ fn share_line(what: &str, s: &CpuShare, cpus: usize) -> String {
         s.bench,
         s.ceiling(cpus),
         s.gateway_switches,
-        s.broker_switches
+        s.gateway_voluntary,
+        if s.broker == 0.0 && s.broker_switches == 0.0 {
+            "not counted (elsewhere)".to_owned()
+        } else {
+            format!("{:.0}", s.broker_switches)
+        }
     )
 }
 
@@ -349,6 +383,9 @@ pub fn table(r: &Results) -> String {
     let _ = writeln!(o, "iHEX benchmark — {}", r.machine);
     if let Some(l) = &r.live {
         let _ = writeln!(o, "environment: {}", l.environment);
+        if !l.broker_layout.is_empty() {
+            let _ = writeln!(o, "broker: {} (every live figure below)", l.broker_layout);
+        }
         let _ = writeln!(
             o,
             "\nthroughput                                 value      ratio"
@@ -373,6 +410,18 @@ pub fn table(r: &Results) -> String {
             "  bare SocketCAN pair (burst)          {:>9.0} fps   ({}/{} frames)",
             bare, l.bare.received, l.bare.sent
         );
+        if let Some(m) = &l.mqtt_bare {
+            let _ = writeln!(
+                o,
+                "  bare MQTT ingress, zero loss         {:>9.0} msg/s (command-sized, QoS 1, client -> broker -> client)",
+                m.ingress_mps
+            );
+            let _ = writeln!(
+                o,
+                "  bare MQTT egress, zero loss          {:>9.0} msg/s (event-sized, QoS 1, client -> broker -> client)",
+                m.egress_mps
+            );
+        }
         let _ = writeln!(
             o,
             "  CAN->MQTT sustained, zero loss       {:>9.0} fps   {:.2}x bare, {:.2}x bus ({:.0} fps worst-stuffed {}-byte), {:.2}x best case ({:.0})",
@@ -384,6 +433,14 @@ pub fn table(r: &Results) -> String {
             l.can_to_mqtt_fps / lim.fps_best,
             lim.fps_best
         );
+        if let Some(m) = l.mqtt_bare.as_ref().filter(|m| m.egress_mps > 0.0) {
+            let _ = writeln!(
+                o,
+                "      {:.2}x bare MQTT egress ({:.0} msg/s)",
+                l.can_to_mqtt_fps / m.egress_mps,
+                m.egress_mps
+            );
+        }
         let _ = writeln!(
             o,
             "  CAN->MQTT at 2x ({:.0} fps offered)  loss {:>5.1} %, lag {:.0} ms",
@@ -403,6 +460,14 @@ pub fn table(r: &Results) -> String {
             l.mqtt_to_can_cps / pair.pps_best,
             pair.pps_best
         );
+        if let Some(m) = l.mqtt_bare.as_ref().filter(|m| m.ingress_mps > 0.0) {
+            let _ = writeln!(
+                o,
+                "      {:.2}x bare MQTT ingress ({:.0} msg/s)",
+                l.mqtt_to_can_cps / m.ingress_mps,
+                m.ingress_mps
+            );
+        }
         let _ = writeln!(
             o,
             "  MQTT->CAN burst of {} commands      {:>9.0} cmd/s ({}/{} as frames){}",
@@ -471,6 +536,14 @@ pub fn table(r: &Results) -> String {
             "  CPU per 1,000 background frames      {:>8.1} ms",
             l.cpu_ms_per_1k_background
         );
+        if l.bare.cpu_ms_per_1k > 0.0 {
+            let _ = writeln!(
+                o,
+                "  CPU per 1,000 raw frames forwarded   {:>8.1} ms (bare pair: one write + one read each; commands {:.2}x)",
+                l.bare.cpu_ms_per_1k,
+                l.cpu_ms_per_1k_commands / l.bare.cpu_ms_per_1k
+            );
+        }
         let _ = writeln!(
             o,
             "  peak RSS (VmHWM)                     {:>8.1} MiB (RSS {:.1} MiB once online, {:.1} MiB at the end)",
@@ -522,6 +595,29 @@ pub fn table(r: &Results) -> String {
                 crate::workload::LEASES,
                 l.per_frame,
                 if added <= 5.0 { "pass" } else { "FAIL" }
+            );
+        }
+        if let (Some(all), false) = (&c.command_answered, c.command_phases.is_empty()) {
+            let _ = writeln!(
+                o,
+                "  answered command by phase (inclusive; socket reads and writes are the kernel's: see the context switches)"
+            );
+            let mut named = 0.0;
+            for (phase, cost) in &c.command_phases {
+                named += cost.per_frame;
+                let _ = writeln!(
+                    o,
+                    "    {phase:<34} {:>7.0}  ({:>4.1} %)",
+                    cost.per_frame,
+                    cost.per_frame / all.per_frame * 100.0
+                );
+            }
+            let _ = writeln!(
+                o,
+                "    {:<34} {:>7.0}  ({:>4.1} %)",
+                "the rest (loop, unnamed)",
+                all.per_frame - named,
+                (all.per_frame - named) / all.per_frame * 100.0
             );
         }
         if let (Some(off), Some(on)) = (&c.command_answered, &c.command_audited) {
@@ -650,6 +746,20 @@ pub fn table(r: &Results) -> String {
     }
     comparison(&mut o, r);
     throughput_goals(&mut o, r);
+    if let Some(vm) = &r.live_broker_in_vm {
+        let other = Results {
+            machine: r.machine.clone(),
+            live: Some(vm.clone()),
+            ..Default::default()
+        };
+        let _ = writeln!(
+            o,
+            "
+---- the same gateway, the other layout ----
+{}",
+            table(&other)
+        );
+    }
     if let Some(i) = &r.islands {
         islands_table(&mut o, i);
     }
@@ -1156,6 +1266,7 @@ mod tests {
             broker: 700.0,
             bench: 700.0,
             gateway_switches: 1062.0,
+            gateway_voluntary: 900.0,
             broker_switches: 2500.0,
         };
         assert_eq!(s.total(), 2000.0);
@@ -1168,7 +1279,9 @@ mod tests {
         );
         assert!(line.contains("at most 500/s\n"), "{line}");
         assert!(
-            line.ends_with("context switches per 1,000: gateway 1062, mosquitto 2500"),
+            line.ends_with(
+                "context switches per 1,000: gateway 1062 (900 voluntary), mosquitto 2500"
+            ),
             "{line}"
         );
         let mut l = sample();
@@ -1217,6 +1330,41 @@ mod tests {
             t.contains("peak RSS < 10 MiB                       pass"),
             "{t}"
         );
+    }
+
+    #[test]
+    fn issue_34_prints_the_layout_the_bare_baselines_and_its_goals() {
+        let mut l = sample();
+        l.broker_layout = "Mosquitto elsewhere, at 10.0.2.2:1883".into();
+        l.mqtt_to_can_cps = 500.0;
+        l.can_to_mqtt_fps = 1000.0;
+        l.mqtt_bare = Some(crate::results::MqttBare {
+            ingress_mps: 1000.0,
+            egress_mps: 2000.0,
+            ..Default::default()
+        });
+        l.bare.cpu_ms_per_1k = 100.0;
+        l.cpu_ms_per_1k_commands = 110.0;
+        l.share_commands = Some(CpuShare {
+            gateway_switches: 1500.0,
+            gateway_voluntary: 1200.0,
+            ..Default::default()
+        });
+        let r = Results {
+            live: Some(l),
+            ..Default::default()
+        };
+        let t = table(&r);
+        for line in [
+            "broker: Mosquitto elsewhere, at 10.0.2.2:1883 (every live figure below)",
+            "0.50x bare MQTT ingress (1000 msg/s)",
+            "0.50x bare MQTT egress (2000 msg/s)",
+            "CPU per 1,000 acked commands <= 1.2x a raw frame forward  pass  (110.0 vs 100.0 ms: 1.10x)",
+            "at most about one gateway wake-up per command  FAIL  (1500 context switches per 1,000 commands, 1200 voluntary)",
+            "mosquitto not counted (elsewhere)",
+        ] {
+            assert!(t.contains(line), "missing {line:?} in\n{t}");
+        }
     }
 
     #[test]

@@ -50,7 +50,11 @@ pub struct CpuShare {
     /// wake-up.
     #[serde(default)]
     pub gateway_switches: f64,
-    /// The same for Mosquitto.
+    /// Of `gateway_switches`, the voluntary ones (the gateway blocked: one per time its thread
+    /// parked with nothing to do); the rest were preemptions by another process.
+    #[serde(default)]
+    pub gateway_voluntary: f64,
+    /// The same for Mosquitto (0 when the broker runs elsewhere and is not counted).
     #[serde(default)]
     pub broker_switches: f64,
 }
@@ -91,6 +95,30 @@ pub struct Bare {
     /// the cost of two process switches, which every bridged frame makes several of.
     #[serde(default)]
     pub process_rtt: Summary,
+    /// CPU of the benchmark process (writer and reader thread) per 1,000 frames of the burst, ms:
+    /// the cost of forwarding a raw frame (one write, one read), the yardstick of the gateway's CPU
+    /// per 1,000 commands.
+    #[serde(default)]
+    pub cpu_ms_per_1k: f64,
+}
+
+/// The bare MQTT path of the same run: two clients of the benchmark through the broker the
+/// gateway uses, QoS 1, no gateway. Each direction is the gateway's side of it played by a
+/// second client, so the ratio of the gateway's rate to it is the share the gateway leaves of
+/// what the broker link gives.
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+pub struct MqttBare {
+    /// Ingress (commands' way): the benchmark's main client publishes command-sized messages,
+    /// a second client subscribed in the gateway's place receives them. Highest zero-loss
+    /// rate, messages/s.
+    pub ingress_mps: f64,
+    /// Egress (events' way): the second client publishes event-sized messages in the gateway's
+    /// place, the main client receives them. Highest zero-loss rate, messages/s.
+    pub egress_mps: f64,
+    /// Every ingress trial.
+    pub ingress_trials: Vec<Trial>,
+    /// Every egress trial.
+    pub egress_trials: Vec<Trial>,
 }
 
 /// Everything the live run measures.
@@ -98,6 +126,13 @@ pub struct Bare {
 pub struct LiveResults {
     /// Kernel, CPU count and model as seen where the run happened.
     pub environment: String,
+    /// Where the broker ran: started beside the gateway, or elsewhere at an address (the host's
+    /// Mosquitto seen from the microVM).
+    #[serde(default)]
+    pub broker_layout: String,
+    /// The bare MQTT path through the same broker, when measured.
+    #[serde(default)]
+    pub mqtt_bare: Option<MqttBare>,
     /// CPUs online where the run happened.
     pub cpus: usize,
     /// The bare SocketCAN pair.

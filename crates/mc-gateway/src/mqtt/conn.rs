@@ -14,7 +14,15 @@
 //! ([`Connection::close`]). rumqttc's state is reached only through [`super::rumqttc_state`].
 
 use std::{
-    future::Future, io, os::fd::AsRawFd, os::fd::RawFd, pin::Pin, task::Poll, time::Duration,
+    future::Future,
+    io,
+    os::fd::AsRawFd,
+    os::fd::RawFd,
+    pin::Pin,
+    sync::atomic::{AtomicU64, Ordering},
+    sync::Arc,
+    task::Poll,
+    time::Duration,
 };
 
 use bytes::{Buf, Bytes, BytesMut};
@@ -76,6 +84,9 @@ pub struct Connection {
     /// still be on its way). `None` before any subscription, and over TLS, whose records the
     /// kernel counts and whose partial records the TLS layer holds.
     smallest_publish: Option<u16>,
+    /// Successful writes to the broker's socket, over every connection: each a system call and,
+    /// with `TCP_NODELAY`, a segment that wakes the broker.
+    writes: Arc<AtomicU64>,
 }
 
 enum Link {
@@ -128,7 +139,13 @@ impl Connection {
             broken: None,
             replies_due: 0,
             smallest_publish: None,
+            writes: Arc::default(),
         }
+    }
+
+    /// Counts the writes to the broker's socket in `counter` from now on.
+    pub fn count_writes_in(&mut self, counter: Arc<AtomicU64>) {
+        self.writes = counter;
     }
 
     /// Connected (a CONNACK accepted and no error since).
@@ -290,7 +307,8 @@ impl Connection {
                     self.smallest_publish,
                     self.options.inflight(),
                 ));
-                let io = std::future::poll_fn(|cx| up.poll_io(cx)).await?;
+                let writes = &self.writes;
+                let io = std::future::poll_fn(|cx| up.poll_io(cx, writes)).await?;
                 match io {
                     Io::Closed => Err(ConnectionError::MqttState(StateError::ConnectionAborted)),
                     Io::Flushed => {
@@ -358,14 +376,20 @@ impl Up {
         }
     }
 
-    /// Writes and flushes everything queued, then waits for input.
-    fn poll_io(&mut self, cx: &mut std::task::Context<'_>) -> Poll<Result<Io, ConnectionError>> {
+    /// Writes and flushes everything queued (counting the writes in `writes`), then waits for
+    /// input.
+    fn poll_io(
+        &mut self,
+        cx: &mut std::task::Context<'_>,
+        writes: &AtomicU64,
+    ) -> Poll<Result<Io, ConnectionError>> {
         while !self.write.is_empty() {
             match Pin::new(&mut self.stream).poll_write(cx, &self.write) {
                 Poll::Ready(Ok(0)) => return Poll::Ready(Ok(Io::Closed)),
                 Poll::Ready(Ok(n)) => {
                     self.write.advance(n);
                     self.unflushed = true;
+                    writes.fetch_add(1, Ordering::Relaxed);
                 }
                 Poll::Ready(Err(e)) => return Poll::Ready(Err(e.into())),
                 Poll::Pending => break,

@@ -129,6 +129,9 @@ pub struct MqttStats {
     pub publications_dropped: AtomicU64,
     /// Failed connection attempts since the last successful one.
     pub failed_attempts: AtomicU64,
+    /// Writes to the broker's socket (each a system call and a TCP segment that wakes the
+    /// broker): how well acknowledgements and publications are batched.
+    pub writes: Arc<AtomicU64>,
     /// Why the last attempt failed, or the connection broke; `None` while connected.
     last_error: Mutex<Option<String>>,
 }
@@ -303,6 +306,7 @@ impl MqttTask {
         cancel: CancellationToken,
     ) {
         let mut conn = Connection::new(self.options.clone(), MAX_OUTGOING, CONNECT_TIMEOUT);
+        conn.count_writes_in(self.stats.writes.clone());
         let tls = !matches!(self.options.transport(), rumqttc::Transport::Tcp);
         let timing = Timing {
             keep_alive: self.options.keep_alive(),
@@ -316,11 +320,24 @@ impl MqttTask {
             timing,
         );
         let mut publications_open = true;
-        loop {
-            // Everything queued between two polls leaves in one write: requests and publications
-            // are queued first, then `poll()` (cancel-safe) writes them while waiting for the broker.
-            if !deliver(&mut session, &inputs) {
-                break;
+        // An input handed over by the `inputs.reserve()` branch (the core's channel was full).
+        let mut handed = 0;
+        // Everything queued between two polls leaves in one write: requests and publications are
+        // queued first, then `poll()` (cancel-safe) writes them while waiting for the broker.
+        // The loop ends when the core is gone.
+        while let Some(delivered) = deliver(&mut session, &inputs) {
+            if std::mem::take(&mut handed) + delivered > 0 {
+                // The core takes what was just handed to it in its own turn, which runs now, before
+                // this task writes: what it publishes in that turn (the answers of acks read with
+                // the commands, a command's rejection) leaves in the same write as the commands'
+                // PUBACKs instead of in a second one.
+                tokio::task::yield_now().await;
+                while publications_open && session.wants_publications() {
+                    let Ok(p) = publications.try_recv() else {
+                        break;
+                    };
+                    session.handle_publication(p);
+                }
             }
             carry_out(&mut session, &mut conn);
             let deadline = session.poll_timeout().map(tokio::time::Instant::from_std);
@@ -344,6 +361,7 @@ impl MqttTask {
                     let Ok(permit) = permit else { break };
                     if let Some(input) = session.poll_input() {
                         permit.send(input);
+                        handed += 1;
                     }
                 }
                 _ = sleep_until(deadline) => session.handle_timeout(Instant::now()),
@@ -427,20 +445,22 @@ impl MqttTask {
     }
 }
 
-/// Hands the core the inputs it has room for; false once the core is gone.
-fn deliver(session: &mut Session, inputs: &mpsc::Sender<MqttInput>) -> bool {
+/// Hands the core the inputs it has room for: how many; `None` once the core is gone.
+fn deliver(session: &mut Session, inputs: &mpsc::Sender<MqttInput>) -> Option<usize> {
+    let mut delivered = 0;
     while session.has_input() {
         match inputs.try_reserve() {
             Ok(permit) => {
                 if let Some(input) = session.poll_input() {
                     permit.send(input);
+                    delivered += 1;
                 }
             }
             Err(mpsc::error::TrySendError::Full(())) => break,
-            Err(mpsc::error::TrySendError::Closed(())) => return false,
+            Err(mpsc::error::TrySendError::Closed(())) => return None,
         }
     }
-    true
+    Some(delivered)
 }
 
 /// Queues the session's requests, then its publications while the connection takes them.
@@ -629,6 +649,74 @@ mod tests {
             let b = tokio::time::timeout_at(deadline, seen.recv()).await;
             bytes.extend(b.expect("PUBACK after the core took the command").unwrap());
         }
+        cancel.cancel();
+        drop(pub_tx);
+        run.await.unwrap();
+    }
+
+    /// A command whose answer the core publishes in the turn that took it: the command's PUBACK and
+    /// the answer leave in one write (one system call, one segment waking the broker), not two.
+    #[tokio::test]
+    async fn a_puback_and_what_the_core_publishes_in_the_same_turn_share_a_write() {
+        use tokio::io::{AsyncReadExt, AsyncWriteExt};
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let port = listener.local_addr().unwrap().port();
+        let (go_tx, go) = tokio::sync::oneshot::channel::<()>();
+        let (seen_tx, mut seen) = mpsc::unbounded_channel::<Vec<u8>>();
+        tokio::spawn(async move {
+            let (mut s, _) = listener.accept().await.unwrap();
+            let mut buf = [0u8; 4096];
+            let _ = s.read(&mut buf).await; // CONNECT
+            s.write_all(&[0x20, 0x02, 0x00, 0x00]).await.unwrap(); // CONNACK accepted
+            let (mut r, mut w) = s.into_split();
+            tokio::spawn(async move {
+                while let Ok(n) = r.read(&mut buf).await {
+                    if n == 0 || seen_tx.send(buf[..n].to_vec()).is_err() {
+                        break;
+                    }
+                }
+            });
+            go.await.unwrap();
+            // A QoS 1 PUBLISH of `{}` on CommandsTopic, packet id 7.
+            let mut p = vec![0x32, 19, 0x00, 13];
+            p.extend_from_slice(b"CommandsTopic");
+            p.extend_from_slice(&[0x00, 0x07, b'{', b'}']);
+            w.write_all(&p).await.unwrap();
+            std::future::pending::<()>().await;
+        });
+        let mut t = task();
+        t.options = MqttOptions::new("batch", "127.0.0.1", port);
+        t.options.set_manual_acks(true);
+        let writes = t.stats.writes.clone();
+        let (pub_tx, pub_rx) = mpsc::channel(4);
+        let (in_tx, mut in_rx) = mpsc::channel(4);
+        let cancel = CancellationToken::new();
+        let run = tokio::spawn(t.run(pub_rx, in_tx, cancel.clone()));
+        assert_eq!(in_rx.recv().await, Some(MqttInput::Connected));
+        // Subscriptions and `online` written; nothing else is due.
+        tokio::time::sleep(Duration::from_millis(300)).await;
+        let before = writes.load(Ordering::Relaxed);
+        go_tx.send(()).unwrap();
+        match in_rx.recv().await {
+            Some(MqttInput::Command { payload, .. }) => assert_eq!(&payload[..], b"{}"),
+            other => panic!("{other:?}"),
+        }
+        // The core's answer, in the turn that took the command.
+        pub_tx.send(publication(1)).await.unwrap();
+        let puback = [0x40, 0x02, 0x00, 0x07];
+        let mut bytes = Vec::new();
+        let deadline = tokio::time::Instant::now() + Duration::from_secs(5);
+        while !(bytes.windows(4).any(|w| w == puback)
+            && bytes.windows(11).any(|w| w == b"EventsTopic"))
+        {
+            let b = tokio::time::timeout_at(deadline, seen.recv()).await;
+            bytes.extend(b.expect("the PUBACK and the answer").unwrap());
+        }
+        assert_eq!(
+            writes.load(Ordering::Relaxed) - before,
+            1,
+            "the PUBACK and the answer took more than one write: {bytes:02x?}"
+        );
         cancel.cancel();
         drop(pub_tx);
         run.await.unwrap();
