@@ -373,6 +373,7 @@ impl Core {
             let deadline = tokio::time::Instant::from_std(self.bridge.poll_timeout());
             let publications_waiting = self.bridge.publications_waiting();
             let wants_commands = self.bridge.wants_commands();
+            let mut due = false;
             // Unbiased on purpose: a timer that is always due must not starve the inputs, nor a
             // flood of frames the timers.
             tokio::select! {
@@ -390,15 +391,18 @@ impl Core {
                     error!(%why, "stopping the gateway");
                     return Err(GatewayError::Task(why));
                 }
-                _ = tokio::time::sleep_until(deadline) => self.bridge.handle_timeout(Instant::now()),
+                _ = tokio::time::sleep_until(deadline) => {
+                    // After a stall (a loaded host, a paused VM) the deadline and the frames read
+                    // during it are ready at once; the yield lets the receive task read what the
+                    // socket holds (tokio polls its drivers before a yielded task runs again).
+                    tokio::task::yield_now().await;
+                    due = true;
+                }
                 Some(input) = can_in.recv() => {
                     on_can(&mut self.bridge, input);
                     // Every frame already waiting, in one turn of the loop: the turn itself (its
                     // timer, the outputs handed on) costs more than a frame.
-                    for _ in 1..BATCH {
-                        let Ok(input) = can_in.try_recv() else { break };
-                        on_can(&mut self.bridge, input);
-                    }
+                    take_frames(&mut self.bridge, &mut can_in);
                 }
                 req = self.views.next() => {
                     let seq = self.feed.as_ref().map_or(0, |f| f.seq());
@@ -426,6 +430,11 @@ impl Core {
                 _ = self.pub_tx.reserve(), if publications_waiting => {}
             }
             self.take_waiting(&mut can_in, &mut mqtt_in);
+            if due {
+                // After the echoes and acks that came before it: a command whose node answered
+                // during a stall is not reported `timeout`.
+                self.bridge.handle_timeout(Instant::now());
+            }
         }
         if self.bridge.procedures_running() {
             // Best effort, like the update's: lights off and `procedure_ended` if the tasks run.
@@ -458,10 +467,7 @@ impl Core {
         can_in: &mut mpsc::Receiver<CanInput>,
         mqtt_in: &mut mpsc::Receiver<MqttInput>,
     ) {
-        for _ in 0..BATCH {
-            let Ok(input) = can_in.try_recv() else { break };
-            on_can(&mut self.bridge, input);
-        }
+        take_frames(&mut self.bridge, can_in);
         for _ in 0..BATCH {
             if !self.bridge.wants_commands() {
                 break;
@@ -562,6 +568,14 @@ impl Core {
 }
 
 /// One input from the CAN tasks into the bridge.
+/// Takes up to `BATCH` frames already waiting on the CAN input.
+fn take_frames(bridge: &mut Bridge, can_in: &mut mpsc::Receiver<CanInput>) {
+    for _ in 0..BATCH {
+        let Ok(input) = can_in.try_recv() else { break };
+        on_can(bridge, input);
+    }
+}
+
 fn on_can(bridge: &mut Bridge, input: CanInput) {
     let now = Instant::now();
     match input {
@@ -651,5 +665,139 @@ fn outbound(
         topic: topics.resolve(publication.topic()),
         payload,
         retain: publication.retain(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use ihex_proto::{AckResult, BootRole, Kind, Message, NodeId, Packet, ResetReason};
+
+    use super::*;
+
+    /// A stall (the process not scheduled for longer than the command timeout) while a window of
+    /// commands was on the bus and its node's acks came in: when the loop runs again, its timer
+    /// and those acks are ready together, and the acks must count first. Before, the loop's
+    /// unbiased `select!` usually took the timer first and answered those commands `timeout`
+    /// (then read the node's state back) although their acks were waiting.
+    #[test]
+    fn acks_read_during_a_stall_count_before_its_timeouts() {
+        let rt = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .unwrap();
+        for round in 0..6 {
+            for result in rt.block_on(commands_across_a_stall()) {
+                assert_eq!(result["result"], "ok", "round {round}: {result}");
+            }
+        }
+    }
+
+    /// `TRANSMIT_WINDOW` LED commands to a known node, their frames written (echoed) at once and
+    /// acknowledged by a task whose timer falls due while the runtime's only thread is blocked
+    /// past the command timeout. Every `command_result`.
+    async fn commands_across_a_stall() -> Vec<serde_json::Value> {
+        let node = NodeId::new(0x111).unwrap();
+        let (can_tx, mut can_rx) = mpsc::channel(TRANSMIT_WINDOW);
+        let (pub_tx, mut pub_rx) = mpsc::channel(PUBLICATIONS);
+        let (can_in_tx, can_in) = mpsc::channel(CAN_INPUTS);
+        let (mqtt_in_tx, mqtt_in) = mpsc::channel(MQTT_INPUTS);
+        let mut config = ihex_gateway_core::BridgeConfig::default();
+        // Only the commands' frames on the bus.
+        config.health_period = Duration::from_secs(3600);
+        let core = Core {
+            bridge: Bridge::new(config, Instant::now()),
+            can_tx,
+            pub_tx,
+            topics: Topics::seed(),
+            text: PayloadWriter::default(),
+            feed: None,
+            views: ViewRequests::default(),
+            stats: Arc::default(),
+            fw_dir: None,
+            meter: CommandMeter::new(Counted::default()),
+            audit: None,
+        };
+        let inputs = Inputs {
+            can: can_in,
+            mqtt: mqtt_in,
+            web: None,
+            sila: None,
+        };
+        let cancel = CancellationToken::new();
+        let core = tokio::spawn({
+            let cancel = cancel.clone();
+            async move {
+                let mut tasks = JoinSet::new();
+                tasks.spawn(std::future::pending());
+                core.run(inputs, &mut tasks, &cancel).await
+            }
+        });
+        let from_node = move |msg| {
+            CanInput::Packet(Packet {
+                src: node,
+                dest: NodeId::GATEWAY,
+                msg,
+            })
+        };
+        let event = |p: Outbound| -> serde_json::Value {
+            serde_json::from_slice(&p.payload).unwrap_or_default()
+        };
+        let boot_up = Message::BootUp {
+            version: ihex_proto::PROTOCOL_VERSION,
+            role: BootRole::Static,
+            ports: 6,
+            reset: ResetReason::PowerOn,
+        };
+        can_in_tx.send(from_node(boot_up)).await.unwrap();
+        while event(pub_rx.recv().await.unwrap())["event"] != "node_online" {}
+        let n = TRANSMIT_WINDOW;
+        for i in 0..n {
+            let command =
+                format!(r#"{{"cmd":"led","node":"111","color":"red","request_id":"{i}"}}"#);
+            let input = MqttInput::Command {
+                payload: command.into(),
+                received: Instant::now(),
+                retained: false,
+                origin: Default::default(),
+            };
+            mqtt_in_tx.send(input).await.unwrap();
+        }
+        // Every frame is written at once (its echo); the LED frames' acks are held.
+        let mut acks = Vec::new();
+        while acks.len() < n {
+            let t = can_rx.recv().await.unwrap();
+            if let Message::LedSet { seq, .. } = t.packet.msg {
+                acks.push(Message::Ack {
+                    kind: Kind::LedSet,
+                    seq,
+                    result: AckResult::Ok,
+                    detail: 0,
+                });
+            }
+            let echo = CanInput::Transmitted(t.packet);
+            can_in_tx.send(echo).await.unwrap();
+        }
+        // Sent by a task (as the CAN receive task reads frames) woken by a timer that falls due
+        // during the stall, in the same turn as the core's deadlines.
+        let node_side = tokio::spawn(async move {
+            tokio::time::sleep(Duration::from_millis(100)).await;
+            for ack in acks {
+                can_in_tx.send(from_node(ack)).await.unwrap();
+            }
+        });
+        tokio::task::yield_now().await;
+        // The stall: this thread is the runtime's only one.
+        std::thread::sleep(Duration::from_millis(700));
+        let mut results = Vec::new();
+        while results.len() < n {
+            let v = event(pub_rx.recv().await.unwrap());
+            if v["event"] == "command_result" {
+                results.push(v["payload"].clone());
+            }
+        }
+        cancel.cancel();
+        core.await.unwrap().unwrap();
+        node_side.await.unwrap();
+        results
     }
 }
