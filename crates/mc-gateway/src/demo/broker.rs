@@ -2,7 +2,7 @@
 //! builds its own runtimes). rumqttd's default configuration accepts no client at all and it has no
 //! ready signal, so this module sets real limits, checks the port first for a clear error, and waits
 //! until a TCP connect succeeds. It never turns Nagle's algorithm off either, so this module does
-//! that on its listening socket (see [`no_nagle`]).
+//! that on its listening socket (`no_nagle`).
 
 use std::{
     collections::HashSet,
