@@ -43,6 +43,8 @@ fn sila() {
     tonic_prost_build::configure()
         .build_client(true)
         .build_server(true)
+        // prost's codec with buffers sized for SiLA's messages (`src/sila/codec.rs`).
+        .codec_path("crate::sila::codec::SilaCodec")
         .compile_fds(fds)
         .expect("generating the SiLA gRPC code");
 }

@@ -825,6 +825,10 @@ fn sila_table(o: &mut String, s: &SilaResults) {
         ("SiLA off".to_string(), s.memory_off_kib),
         ("SiLA on, idle".to_string(), s.memory_idle_kib),
         (
+            format!("SiLA on, {} connections", s.clients),
+            s.memory_connected_kib,
+        ),
+        (
             format!(
                 "SiLA on, {} clients ({} updated)",
                 s.clients, s.clients_updated
@@ -833,6 +837,16 @@ fn sila_table(o: &mut String, s: &SilaResults) {
         ),
     ] {
         let _ = writeln!(o, "  {name:<34} {:>8.1} {:>8.1}", mib(hwm), mib(rss));
+    }
+    if s.clients > 0 && s.memory_connected_kib.1 > 0 {
+        // Resident memory, not the peak: what each connection and each subscription holds.
+        let per = |a: u64, b: u64| (a as f64 - b as f64) / s.clients as f64;
+        let _ = writeln!(
+            o,
+            "  per client, KiB (VmRSS)            {:>8.1} connection {:>8.1} subscription",
+            per(s.memory_connected_kib.1, s.memory_idle_kib.1),
+            per(s.memory_clients_kib.1, s.memory_connected_kib.1)
+        );
     }
     let added = mib(s.memory_clients_kib.0) - mib(s.memory_off_kib.0);
     let _ = writeln!(

@@ -244,6 +244,10 @@ pub struct SilaResults {
     pub memory_off_kib: (u64, u64),
     /// With the SiLA server on and no SiLA client yet.
     pub memory_idle_kib: (u64, u64),
+    /// With the SiLA server on, after the probes, with [`SilaResults::clients`] clients connected
+    /// (each its own HTTP/2 connection) but not yet subscribed.
+    #[serde(default)]
+    pub memory_connected_kib: (u64, u64),
     /// With the SiLA server on, after the probes, with [`SilaResults::clients`] subscribed clients.
     pub memory_clients_kib: (u64, u64),
 }

@@ -7,7 +7,7 @@
 //!   `command_result` at an MQTT subscriber, on the same gateway in the same run.
 //! * Memory (`VmHWM`, `VmRSS`): a gateway with `--sila off`, and one with the server on, each after
 //!   the same MQTT commands; the latter again after the probes with [`CLIENTS`] clients, each on its
-//!   own connection, subscribed to `ElementStates` and sent new states.
+//!   own connection, first only connected, then subscribed to `ElementStates` and sent new states.
 
 use std::net::{Ipv4Addr, SocketAddr};
 use std::path::Path;
@@ -215,11 +215,16 @@ pub fn run(bin: &Path, probes: usize, gap: Duration) -> Result<SilaResults> {
     }
     on.gateway.check_alive()?;
 
-    // Each client on its own connection, subscribed, its first value read.
-    let mut streams = Vec::with_capacity(CLIENTS);
+    // Each client on its own connection (the memory of the connections alone first), then
+    // subscribed, its first value read.
+    let mut clients = Vec::with_capacity(CLIENTS);
     for _ in 0..CLIENTS {
+        clients.push(IslandControlClient::new(rt.block_on(on.channel())?));
+    }
+    let memory_connected_kib = on.settled_memory()?;
+    let mut streams = Vec::with_capacity(CLIENTS);
+    for c in &mut clients {
         let mut s = rt.block_on(async {
-            let mut c = IslandControlClient::new(on.channel().await?);
             let mut s = c
                 .subscribe_element_states(pb::SubscribeElementStatesParameters {})
                 .await?
@@ -245,6 +250,7 @@ pub fn run(bin: &Path, probes: usize, gap: Duration) -> Result<SilaResults> {
     on.gateway.check_alive()?;
     let (hwm, rss) = memory_kib(on.gateway.pid())?;
     drop(streams);
+    drop(clients);
     let _ = std::fs::remove_dir_all(&dir);
     Ok(SilaResults {
         probes,
@@ -256,6 +262,7 @@ pub fn run(bin: &Path, probes: usize, gap: Duration) -> Result<SilaResults> {
         clients_updated,
         memory_off_kib,
         memory_idle_kib,
+        memory_connected_kib,
         memory_clients_kib: (hwm.max(memory_before.0), rss),
     })
 }

@@ -64,3 +64,50 @@ pub fn statvfs(p: &std::path::Path) -> std::io::Result<(u64, u64)> {
     let frsize = s.f_frsize as u64;
     Ok((s.f_bavail as u64 * frsize, s.f_blocks as u64 * frsize))
 }
+
+/// Turns Nagle's algorithm off (`TCP_NODELAY`) on TCP socket `fd`; on a listening socket, every
+/// connection it accepts from then on inherits the setting (Linux). `fd` must be a socket of this
+/// process; a closed or foreign descriptor is the kernel's error, not undefined behaviour.
+#[cfg(feature = "demo")]
+pub fn set_nodelay(fd: RawFd) -> io::Result<()> {
+    let value: libc::c_int = 1;
+    // SAFETY: as in `set_rcvlowat`: the pointer is to `value`, a live `c_int` of the size passed,
+    // read during the call only.
+    let r = unsafe {
+        libc::setsockopt(
+            fd,
+            libc::IPPROTO_TCP,
+            libc::TCP_NODELAY,
+            (&value as *const libc::c_int).cast(),
+            std::mem::size_of::<libc::c_int>() as libc::socklen_t,
+        )
+    };
+    if r == 0 {
+        Ok(())
+    } else {
+        Err(io::Error::last_os_error())
+    }
+}
+
+/// Whether Nagle's algorithm is off (`TCP_NODELAY`) on TCP socket `fd` (tests check what was set).
+#[cfg(all(test, feature = "demo"))]
+pub fn nodelay(fd: RawFd) -> io::Result<bool> {
+    let mut value: libc::c_int = 0;
+    let mut len = std::mem::size_of::<libc::c_int>() as libc::socklen_t;
+    // SAFETY: as in `rcvlowat`: both pointers are to live locals of the sizes passed, written
+    // during the call only.
+    let r = unsafe {
+        libc::getsockopt(
+            fd,
+            libc::IPPROTO_TCP,
+            libc::TCP_NODELAY,
+            (&mut value as *mut libc::c_int).cast(),
+            &mut len,
+        )
+    };
+    if r == 0 {
+        Ok(value != 0)
+    } else {
+        Err(io::Error::last_os_error())
+    }
+}

@@ -16,6 +16,7 @@
 
 pub mod announce;
 pub mod cancel;
+pub mod codec;
 pub mod command;
 pub mod control;
 pub mod firmware;
@@ -146,6 +147,16 @@ pub const SILA_SERVICE: &str = "org.silastandard/core/SiLAService/v1";
 pub const ISLAND_CONTROL: &str = "de.ihex/bench/IslandControl/v1";
 /// Commands from SiLA clients waiting for the core.
 pub const SILA_INPUTS: usize = 64;
+/// Calls one client connection may have open at once (each subscription is one for as long as
+/// it lasts). tonic's default is no limit; 128 leaves room for any one orchestrator's
+/// subscriptions while bounding what a single connection can make the gateway hold.
+pub const STREAMS_PER_CONNECTION: u32 = 128;
+/// The HTTP/2 flow-control window the server offers each call: how much a client may send it
+/// before the server has read it. SiLA parameters are small; hyper's default (1 MiB) would let
+/// every call park a mebibyte in the gateway. 64 KiB is HTTP/2's own initial window.
+const STREAM_WINDOW: u32 = 64 * 1024;
+/// The same for a whole connection (all its calls together).
+const CONNECTION_WINDOW: u32 = 256 * 1024;
 /// How much longer than the command timeout a command waits for its answer (the core answers
 /// every command within its timeout; this covers a core busy with a burst).
 const ANSWER_MARGIN: Duration = Duration::from_secs(5);
@@ -375,7 +386,13 @@ impl Sila {
         };
         let incoming =
             tonic::transport::server::TcpIncoming::from(self.listener).with_nodelay(Some(true));
-        let mut builder = tonic::transport::Server::builder();
+        // Flow control with fixed windows (adaptive windows grow them to the bandwidth-delay
+        // product, which on a LAN buys nothing for messages this small).
+        let mut builder = tonic::transport::Server::builder()
+            .initial_stream_window_size(STREAM_WINDOW)
+            .initial_connection_window_size(CONNECTION_WINDOW)
+            .http2_adaptive_window(Some(false))
+            .max_concurrent_streams(STREAMS_PER_CONNECTION);
         if let Some(pem) = &self.tls {
             let identity = tonic::transport::Identity::from_pem(&pem.cert, &pem.key);
             let config = tonic::transport::ServerTlsConfig::new().identity(identity);
