@@ -8,15 +8,39 @@ use std::{io, os::fd::RawFd};
 /// once `bytes` have arrived (or the connection ended). `fd` must be a socket the caller owns; a
 /// closed or foreign descriptor is the kernel's error, not undefined behaviour.
 pub fn set_rcvlowat(fd: RawFd, bytes: u16) -> io::Result<()> {
-    let value = libc::c_int::from(bytes);
+    set_int(fd, libc::SOL_SOCKET, libc::SO_RCVLOWAT, bytes.into())
+}
+
+/// The receive low-water mark of socket `fd`, as the kernel has it (tests check what was set).
+#[cfg(test)]
+pub fn rcvlowat(fd: RawFd) -> io::Result<libc::c_int> {
+    get_int(fd, libc::SOL_SOCKET, libc::SO_RCVLOWAT)
+}
+
+/// Turns Nagle's algorithm off (`TCP_NODELAY`) on TCP socket `fd`; on a listening socket, every
+/// connection it accepts from then on inherits the setting (Linux). `fd` must be a socket of this
+/// process; a closed or foreign descriptor is the kernel's error, not undefined behaviour.
+#[cfg(feature = "demo")]
+pub fn set_nodelay(fd: RawFd) -> io::Result<()> {
+    set_int(fd, libc::IPPROTO_TCP, libc::TCP_NODELAY, 1)
+}
+
+/// Whether Nagle's algorithm is off (`TCP_NODELAY`) on TCP socket `fd` (tests check what was set).
+#[cfg(all(test, feature = "demo"))]
+pub fn nodelay(fd: RawFd) -> io::Result<bool> {
+    get_int(fd, libc::IPPROTO_TCP, libc::TCP_NODELAY).map(|v| v != 0)
+}
+
+/// `setsockopt` of one `c_int`.
+fn set_int(fd: RawFd, level: libc::c_int, name: libc::c_int, value: libc::c_int) -> io::Result<()> {
     // SAFETY: `setsockopt` reads exactly `size_of::<c_int>()` bytes from the pointer, which points
     // to `value`, a live `c_int` on this stack frame; the call does not keep the pointer. An
     // invalid `fd` is reported as EBADF/ENOTSOCK, no memory is touched for it.
     let r = unsafe {
         libc::setsockopt(
             fd,
-            libc::SOL_SOCKET,
-            libc::SO_RCVLOWAT,
+            level,
+            name,
             (&value as *const libc::c_int).cast(),
             std::mem::size_of::<libc::c_int>() as libc::socklen_t,
         )
@@ -28,9 +52,9 @@ pub fn set_rcvlowat(fd: RawFd, bytes: u16) -> io::Result<()> {
     }
 }
 
-/// The receive low-water mark of socket `fd`, as the kernel has it (tests check what was set).
+/// `getsockopt` of one `c_int`.
 #[cfg(test)]
-pub fn rcvlowat(fd: RawFd) -> io::Result<libc::c_int> {
+fn get_int(fd: RawFd, level: libc::c_int, name: libc::c_int) -> io::Result<libc::c_int> {
     let mut value: libc::c_int = 0;
     let mut len = std::mem::size_of::<libc::c_int>() as libc::socklen_t;
     // SAFETY: `getsockopt` writes at most `len` bytes (the size of `value`, a live `c_int` on this
@@ -38,8 +62,8 @@ pub fn rcvlowat(fd: RawFd) -> io::Result<libc::c_int> {
     let r = unsafe {
         libc::getsockopt(
             fd,
-            libc::SOL_SOCKET,
-            libc::SO_RCVLOWAT,
+            level,
+            name,
             (&mut value as *mut libc::c_int).cast(),
             &mut len,
         )
@@ -63,51 +87,4 @@ pub fn statvfs(p: &std::path::Path) -> std::io::Result<(u64, u64)> {
     }
     let frsize = s.f_frsize as u64;
     Ok((s.f_bavail as u64 * frsize, s.f_blocks as u64 * frsize))
-}
-
-/// Turns Nagle's algorithm off (`TCP_NODELAY`) on TCP socket `fd`; on a listening socket, every
-/// connection it accepts from then on inherits the setting (Linux). `fd` must be a socket of this
-/// process; a closed or foreign descriptor is the kernel's error, not undefined behaviour.
-#[cfg(feature = "demo")]
-pub fn set_nodelay(fd: RawFd) -> io::Result<()> {
-    let value: libc::c_int = 1;
-    // SAFETY: as in `set_rcvlowat`: the pointer is to `value`, a live `c_int` of the size passed,
-    // read during the call only.
-    let r = unsafe {
-        libc::setsockopt(
-            fd,
-            libc::IPPROTO_TCP,
-            libc::TCP_NODELAY,
-            (&value as *const libc::c_int).cast(),
-            std::mem::size_of::<libc::c_int>() as libc::socklen_t,
-        )
-    };
-    if r == 0 {
-        Ok(())
-    } else {
-        Err(io::Error::last_os_error())
-    }
-}
-
-/// Whether Nagle's algorithm is off (`TCP_NODELAY`) on TCP socket `fd` (tests check what was set).
-#[cfg(all(test, feature = "demo"))]
-pub fn nodelay(fd: RawFd) -> io::Result<bool> {
-    let mut value: libc::c_int = 0;
-    let mut len = std::mem::size_of::<libc::c_int>() as libc::socklen_t;
-    // SAFETY: as in `rcvlowat`: both pointers are to live locals of the sizes passed, written
-    // during the call only.
-    let r = unsafe {
-        libc::getsockopt(
-            fd,
-            libc::IPPROTO_TCP,
-            libc::TCP_NODELAY,
-            (&mut value as *mut libc::c_int).cast(),
-            &mut len,
-        )
-    };
-    if r == 0 {
-        Ok(value != 0)
-    } else {
-        Err(io::Error::last_os_error())
-    }
 }
