@@ -4,9 +4,13 @@
 
 mod gateway_support;
 
+use std::time::Duration;
+
 use gateway_support::{id, Rig};
 use ihex_proto::Rgb;
 use ihex_sc_core::BuzzerOutput;
+use ihex_tests::broker::{Mosquitto, Setup};
+use ihex_tests::mqtt;
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn every_command_reaches_the_right_node() {
@@ -160,5 +164,83 @@ async fn bad_input_is_rejected_and_the_gateway_keeps_serving() {
         rig.island.actuators(id("111")).await.unwrap().led.duty,
         Rgb::new(255, 255, 255)
     );
+    rig.shutdown().await;
+}
+
+/// A burst of QoS 1 commands larger than the MQTT task's intake (1,024 inputs), from a broker with
+/// an unlimited in-flight window (Mosquitto's `max_inflight_messages 0`: the burst arrives whole),
+/// while the core takes commands a few at a time (a 16-frame transmit queue: it takes them while
+/// fewer than 8 frames wait): none is shed, every command is
+/// answered exactly once.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_burst_beyond_the_intake_is_answered_whole() {
+    const BURST: usize = 5000;
+    let broker = Mosquitto::start_with(&Setup {
+        global: "max_inflight_messages 0\nmax_queued_messages 0\n".into(),
+        ..Setup::default()
+    })
+    .expect("start mosquitto");
+    let mut rig = Rig::start_with_broker(broker, "burst", |o| o.tx_queue = Some(16)).await;
+    let events = rig.events();
+    // A publisher whose own window lets the whole burst reach the broker at once.
+    let mut options = mqtt::options(rig.addr, "burst-publisher");
+    options.set_inflight(u16::MAX);
+    let publisher = mqtt::Client::subscribe_on_connect(options, &[]);
+    let nodes = ["111", "112", "2"];
+    for i in 0..BURST {
+        let json = format!(
+            r#"{{"cmd":"led","node":"{}","color":[{},{},0],"request_id":"b{i}"}}"#,
+            nodes[i % nodes.len()],
+            i & 0xff,
+            i >> 8
+        );
+        publisher.publish(&rig.gateway.commands(), json).await;
+    }
+    let deadline = tokio::time::Instant::now() + ihex_tests::time::scaled(Duration::from_secs(60));
+    let mut answers = Vec::new();
+    while answers.len() < BURST && tokio::time::Instant::now() < deadline {
+        tokio::time::sleep(Duration::from_millis(200)).await;
+        answers = rig
+            .client
+            .drain()
+            .iter()
+            .filter(|m| m.topic == events)
+            .map(|m| m.json())
+            .filter(|v| v["event"] == "command_result")
+            .filter(|v| {
+                v["payload"]["request_id"]
+                    .as_str()
+                    .is_some_and(|r| r.starts_with('b'))
+            })
+            .collect();
+    }
+    let mut ids: Vec<&str> = answers
+        .iter()
+        .map(|v| v["payload"]["request_id"].as_str().unwrap_or_default())
+        .collect();
+    let mut expected: Vec<String> = (0..BURST).map(|i| format!("b{i}")).collect();
+    let others: Vec<String> = rig
+        .client
+        .drain()
+        .iter()
+        .filter(|m| m.topic == events)
+        .map(|m| m.json())
+        .filter(|v| v["event"] != "command_result")
+        .map(|v| v.to_string())
+        .collect();
+    assert_eq!(
+        ids.len(),
+        BURST,
+        "{} of {BURST} commands answered; the first missing: {:?}; the other events: {others:#?}",
+        ids.len(),
+        expected.iter().find(|e| !ids.contains(&e.as_str()))
+    );
+    // Answers come as the nodes ack, so not in the order published.
+    ids.sort_unstable();
+    expected.sort_unstable();
+    assert_eq!(ids, expected, "each answered once");
+    for a in &answers {
+        assert_eq!(a["payload"]["result"], "ok", "{a}");
+    }
     rig.shutdown().await;
 }

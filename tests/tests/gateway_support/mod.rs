@@ -189,6 +189,17 @@ impl Rig {
         rig
     }
 
+    /// [`Rig::start_on`] with more gateway options set by `tweak`.
+    pub async fn start_with_broker(
+        broker: Mosquitto,
+        name: &str,
+        tweak: impl FnOnce(&mut Options),
+    ) -> Rig {
+        let mut rig = Rig::start_at_with(broker.addr(), name, tweak).await;
+        rig.broker = Some(broker);
+        rig
+    }
+
     /// [`Rig::start_at`] with more gateway options set by `tweak`.
     pub async fn start_at_with(
         addr: std::net::SocketAddr,

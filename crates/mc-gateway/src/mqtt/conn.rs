@@ -268,6 +268,12 @@ impl Connection {
         }
     }
 
+    /// The next event [`Connection::poll`] would return without reading or writing: what the last
+    /// read brought and is not handed out yet. `None` once all of it was.
+    pub fn next_read(&mut self) -> Option<Event> {
+        self.next_event()
+    }
+
     /// The next event: a notice (the ConnAck of a new connection, a DISCONNECT written), else the
     /// next incoming packet the state has buffered (its outgoing notices are dropped: the caller
     /// knows what it queued).

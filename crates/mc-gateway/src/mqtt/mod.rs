@@ -365,19 +365,29 @@ impl MqttTask {
                     }
                 }
                 _ = sleep_until(deadline) => session.handle_timeout(Instant::now()),
-                ev = conn.poll(), if wants_link => match ev {
-                    Ok(Event::Incoming(packet)) => session.handle_incoming(packet, Instant::now()),
-                    Ok(Event::Outgoing(_)) => {}
-                    Err(e) => {
-                        let why = explain(&e, &self.broker, tls);
-                        let back = conn.take_back().into_iter().map(|p| Outbound {
-                            topic: p.topic,
-                            payload: p.payload,
-                            retain: p.retain,
-                        });
-                        session.handle_connection_lost(&e.to_string(), why, back.collect(), Instant::now());
+                ev = conn.poll(), if wants_link => {
+                    // Every packet of the read, in this turn: a burst of commands reads as thousands
+                    // of packets at once, and the broker's acknowledgements behind them must not
+                    // wait a turn of this loop each (the session would take the link for dead).
+                    let mut next = Some(ev);
+                    while let Some(ev) = next.take() {
+                        match ev {
+                            Ok(Event::Incoming(packet)) => session.handle_incoming(packet, Instant::now()),
+                            Ok(Event::Outgoing(_)) => {}
+                            Err(e) => {
+                                let why = explain(&e, &self.broker, tls);
+                                let back = conn.take_back().into_iter().map(|p| Outbound {
+                                    topic: p.topic,
+                                    payload: p.payload,
+                                    retain: p.retain,
+                                });
+                                session.handle_connection_lost(&e.to_string(), why, back.collect(), Instant::now());
+                                break;
+                            }
+                        }
+                        next = conn.next_read().map(Ok);
                     }
-                },
+                }
             }
         }
         self.stats.connected.store(false, Ordering::Relaxed);

@@ -84,8 +84,12 @@ impl State {
     }
 
     /// After a connection broke: the publications the broker had not acknowledged, oldest first,
-    /// and a clean state for the next connection (no ping awaited, nothing in flight).
+    /// then the one a collision held back (never sent), and a clean state for the next connection
+    /// (no ping awaited, nothing in flight, no collision). `clean()` leaves the collision, whose
+    /// packet id the next connection would never acknowledge: kept, it would stop publishing for
+    /// good.
     pub fn take_back(&mut self) -> Vec<Publish> {
+        let collided = self.0.collision.take();
         self.0
             .clean()
             .into_iter()
@@ -93,6 +97,42 @@ impl State {
                 Request::Publish(p) => Some(p),
                 _ => None,
             })
+            .chain(collided)
             .collect()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rumqttc::{PubAck, QoS};
+
+    fn publish(state: &mut State, payload: &'static str) -> Option<Packet> {
+        let p = Publish::new("t", QoS::AtLeastOnce, payload);
+        state.handle_outgoing(Request::Publish(p)).unwrap()
+    }
+
+    #[test]
+    fn a_collision_at_a_broken_connection_is_taken_back_and_cleared() {
+        let mut state = State::new(2, true);
+        assert!(publish(&mut state, "a").is_some());
+        assert!(publish(&mut state, "b").is_some());
+        // The broker acknowledges the second first: the next packet id (1) is still in flight.
+        state
+            .handle_incoming(Incoming::PubAck(PubAck::new(2)))
+            .unwrap();
+        assert!(
+            publish(&mut state, "c").is_none(),
+            "held back by the collision"
+        );
+        assert!(state.collided());
+        let back: Vec<_> = state.take_back().into_iter().map(|p| p.payload).collect();
+        assert_eq!(
+            back,
+            ["a", "c"],
+            "the unacknowledged one, then the collided one"
+        );
+        assert!(!state.collided(), "the next connection may publish");
+        assert_eq!(state.inflight(), 0);
     }
 }

@@ -7,10 +7,13 @@
 //! The rules:
 //! - **Commands wait for the core, acknowledged only once it took them** (manual acks), and only on
 //!   the connection they came on: an ack from an older connection is void on a newer one (the
-//!   broker sends an unacknowledged QoS 1 command again). QoS 0 commands, which MQTT cannot hold
-//!   back, wait here up to [`HELD_MAX`]; beyond that they are shed and counted
-//!   ([`MqttStats::commands_shed`]). An empty message on the command topic (how MQTT clears a
-//!   retained message) is no command: ignored, not answered.
+//!   broker sends an unacknowledged QoS 1 command again). QoS 1 commands wait here however many the
+//!   broker sends without their acks (its in-flight window: Mosquitto's `max_inflight_messages`,
+//!   20 by default, unlimited at 0), up to [`HELD_MAX_ACKED`], more than MQTT's 16-bit packet
+//!   identifiers let a broker have unacknowledged: they are never shed. QoS 0 commands, which MQTT
+//!   cannot hold back, wait here while fewer than [`HELD_MAX`] inputs do; beyond that they are shed
+//!   and counted ([`MqttStats::commands_shed`]). An empty message on the command topic (how MQTT
+//!   clears a retained message) is no command: ignored, not answered.
 //! - **The retained-state window**: every ConnAck subscribes the state topics to hand the core the
 //!   documents an earlier run left ([`MqttInput::RetainedState`]); the first live message there
 //!   (this run's own publications coming back) ends that subscription.
@@ -54,6 +57,10 @@ pub const WARN_MAX: Duration = Duration::from_secs(300);
 pub const STAGING: usize = 64;
 /// Commands received and not yet taken by the core, beyond which QoS 0 commands are shed.
 pub const HELD_MAX: usize = 1024;
+/// Inputs held beyond which even a QoS 1 command is shed (acknowledged, counted): the other
+/// inputs' bound plus every packet identifier a broker can have unacknowledged on one connection,
+/// so a broker that follows the protocol never reaches it.
+pub const HELD_MAX_ACKED: usize = HELD_MAX + u16::MAX as usize;
 /// The keep-alive by default: the broker publishes the last will 15 s after a gateway went silent
 /// (power cut, cable pulled), the gateway's ping every 10 s bounds how long an idle dead link goes
 /// unnoticed (keep-alive + [`DEFAULT_ACK_TIMEOUT`]), and both ends still ride out a stall of 5 s
@@ -606,9 +613,16 @@ impl Session {
     }
 
     /// Keeps a command (or another input) for the core, unacknowledged; sheds it beyond
-    /// [`HELD_MAX`].
+    /// [`HELD_MAX`] (QoS 0) or [`HELD_MAX_ACKED`] (QoS 1).
     fn hold(&mut self, h: Held) {
-        if self.held.len() < HELD_MAX {
+        // A QoS 1 command held back costs the broker a place in its in-flight window, which
+        // bounds how many come; shedding it would break the one answer every command gets.
+        let bound = if h.ack.is_some() {
+            HELD_MAX_ACKED
+        } else {
+            HELD_MAX
+        };
+        if self.held.len() < bound {
             self.held.push_back(h);
             return;
         }

@@ -174,13 +174,13 @@ fn commands_wait_for_the_core_and_only_qos0_floods_are_shed() {
     }
     assert_eq!(s.held(), HELD_MAX);
     assert_eq!(drain(&mut s), [], "held commands are not acknowledged");
-    // Beyond the limit a command is shed, counted and (QoS 1) acknowledged, so it does not hold a
-    // place of the broker's window.
+    // Beyond the limit a QoS 0 command is shed and counted; a QoS 1 command is still held (the
+    // broker's window bounds those), unacknowledged.
     s.handle_publish(command(0, QoS::AtMostOnce, b"{}"), t0);
     s.handle_publish(command(5000, QoS::AtLeastOnce, b"{}"), t0);
-    assert_eq!(s.stats.commands_shed.load(Ordering::Relaxed), 2);
-    assert_eq!(s.held(), HELD_MAX);
-    assert_eq!(drain(&mut s), [Request::Ack(5000)]);
+    assert_eq!(s.stats.commands_shed.load(Ordering::Relaxed), 1);
+    assert_eq!(s.held(), HELD_MAX + 1);
+    assert_eq!(drain(&mut s), []);
     assert_eq!(
         s.stats.commands.load(Ordering::Relaxed),
         HELD_MAX as u64 + 2
@@ -189,7 +189,33 @@ fn commands_wait_for_the_core_and_only_qos0_floods_are_shed() {
     s.handle_connection_lost("reset", "reset".into(), Vec::new(), t0);
     s.handle_timeout(t0 + RECONNECT_MIN);
     s.handle_connack(t0 + RECONNECT_MIN);
-    assert_eq!(s.held(), HELD_MAX + 1);
+    assert_eq!(s.held(), HELD_MAX + 2);
+}
+
+#[test]
+fn qos1_commands_are_held_up_to_what_packet_identifiers_allow() {
+    let t0 = Instant::now();
+    let mut s = connected(t0);
+    // A broker with an unlimited in-flight window (Mosquitto's `max_inflight_messages 0`) sends a
+    // burst whole: every command waits for the core, none is shed.
+    for n in 1..=u16::MAX {
+        s.handle_publish(command(n, QoS::AtLeastOnce, b"{}"), t0);
+    }
+    assert_eq!(s.held(), u16::MAX as usize);
+    assert_eq!(s.stats.commands_shed.load(Ordering::Relaxed), 0);
+    assert_eq!(drain(&mut s), []);
+    // Only a broker reusing identifiers it was never given back gets past that: shed, acknowledged.
+    for n in 0..HELD_MAX as u16 {
+        s.handle_publish(command(n + 1, QoS::AtLeastOnce, b"{}"), t0);
+    }
+    assert_eq!(s.held(), HELD_MAX_ACKED);
+    assert_eq!(s.stats.commands_shed.load(Ordering::Relaxed), 0);
+    s.handle_publish(command(1, QoS::AtLeastOnce, b"{}"), t0);
+    assert_eq!(s.stats.commands_shed.load(Ordering::Relaxed), 1);
+    assert_eq!(drain(&mut s), [Request::Ack(1)]);
+    // Taken by the core, each is acknowledged.
+    assert_eq!(s.poll_input().map(|_| ()), Some(()));
+    assert_eq!(drain(&mut s), [Request::Ack(1)]);
 }
 
 #[test]
