@@ -21,7 +21,7 @@ use clap::{Args, ValueEnum};
 use crate::cmd;
 use crate::fwsize;
 use crate::vcan::{self, Mode, VmSettings, MUSL};
-use crate::vm::{Payload, Program};
+use crate::vm::{NetDevice, Payload, Program};
 
 /// Options of `cargo xtask bench`.
 #[derive(Args, Clone, Debug)]
@@ -100,6 +100,14 @@ pub struct BenchArgs {
     /// layouts (the second into `live-vm.json`). With native vcan the broker is always beside it.
     #[arg(long, value_enum, default_value_t = BrokerPlace::Host)]
     broker: BrokerPlace,
+    /// With the broker on the host: publish the MQTT -> CAN trials' commands (and the bare ingress
+    /// messages) from the benchmark in the VM, sharing the gateway's vCPU, instead of from a load
+    /// generator beside the host's broker.
+    #[arg(long)]
+    load_in_vm: bool,
+    /// The microVM's network card, which every MQTT packet to and from the host's broker crosses.
+    #[arg(long, value_enum, default_value_t = NetDevice::Virtio)]
+    vm_net: NetDevice,
 }
 
 /// Where the live part's broker runs (`--broker`).
@@ -259,10 +267,12 @@ struct CanRun {
 
 /// A Mosquitto on the host for one run in the microVM: on a free loopback port, which the VM's
 /// user-mode network reaches at 10.0.2.2; the live part's configuration (unlimited queues,
-/// `set_tcp_nodelay` unless `nagle`). Stopped when dropped.
+/// `set_tcp_nodelay` unless `nagle`). With it, when asked, the run's MQTT load generator
+/// (`ihex-bench loadgen`). Both stopped when dropped.
 struct HostBroker {
     child: std::process::Child,
     port: u16,
+    loadgen: Option<std::process::Child>,
 }
 
 impl HostBroker {
@@ -287,7 +297,11 @@ impl HostBroker {
             .stdout(std::process::Stdio::null())
             .spawn()
             .with_context(|| format!("starting {}", bin.display()))?;
-        let broker = HostBroker { child, port };
+        let broker = HostBroker {
+            child,
+            port,
+            loadgen: None,
+        };
         for _ in 0..100 {
             if std::net::TcpStream::connect((Ipv4Addr::LOCALHOST, port)).is_ok() {
                 return Ok(broker);
@@ -296,12 +310,26 @@ impl HostBroker {
         }
         bail!("the host's mosquitto did not listen on port {port} within 5 s")
     }
+
+    /// Starts `bench loadgen` at this broker (the run finds it with `live --remote-load`).
+    fn start_loadgen(&mut self, bench: &Path) -> Result<()> {
+        let child = Command::new(bench)
+            .args(["loadgen", "--broker", &format!("127.0.0.1:{}", self.port)])
+            .stdin(std::process::Stdio::null())
+            .stdout(std::process::Stdio::null())
+            .spawn()
+            .with_context(|| format!("starting {} loadgen", bench.display()))?;
+        self.loadgen = Some(child);
+        Ok(())
+    }
 }
 
 impl Drop for HostBroker {
     fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
+        for child in self.loadgen.iter_mut().chain([&mut self.child]) {
+            let _ = child.kill();
+            let _ = child.wait();
+        }
     }
 }
 
@@ -390,7 +418,8 @@ fn live(runs: &[CanRun], files: &[PathBuf], bench: &Path, args: &BenchArgs) -> R
         smp: args.smp.max(1),
         memory_mb: 1024,
     };
-    let vm = vcan::test_vm(settings)?;
+    let mut vm = vcan::test_vm(settings)?;
+    vm.net_device = Some(args.vm_net);
     // Each run sends its results back over the user-mode network (10.0.2.2 is our loopback).
     let mut programs = Vec::new();
     let mut results = Vec::new();
@@ -411,8 +440,12 @@ fn live(runs: &[CanRun], files: &[PathBuf], bench: &Path, args: &BenchArgs) -> R
         if run.host_broker {
             // A fresh broker per run: the retained state documents of one gateway's run would
             // be read back by the next gateway.
-            let b = HostBroker::start(&mosquitto, &conf_dir, args.mosquitto_nagle)?;
+            let mut b = HostBroker::start(&mosquitto, &conf_dir, args.mosquitto_nagle)?;
             program_args.extend(["--broker".into(), format!("10.0.2.2:{}", b.port)]);
+            if !args.load_in_vm {
+                b.start_loadgen(bench)?;
+                program_args.push("--remote-load".into());
+            }
             brokers.push(b);
         }
         programs.push(Program {
@@ -446,8 +479,9 @@ fn live(runs: &[CanRun], files: &[PathBuf], bench: &Path, args: &BenchArgs) -> R
         bail!("{}", failed.join("; "));
     }
     Ok(format!(
-        "QEMU TCG microVM, {} vCPU, Debian kernel, on a {}",
+        "QEMU TCG microVM, {} vCPU, {:?} network card, Debian kernel, on a {}",
         settings.smp,
+        args.vm_net,
         host_cpu()
     ))
 }

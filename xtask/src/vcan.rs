@@ -22,7 +22,7 @@ pub const COUNT: usize = 16;
 pub const MUSL: &str = "x86_64-unknown-linux-musl";
 
 /// Modules the VM loads (dependencies are resolved with modinfo).
-const MODULES: [&str; 5] = ["can", "can-raw", "can-dev", "vcan", "e1000"];
+const MODULES: [&str; 4] = ["can", "can-raw", "can-dev", "vcan"];
 
 /// How the user wants the SocketCAN tests run (`IHEX_VCAN` or `--vm`).
 #[derive(Clone, Copy, PartialEq, Eq, Debug)]

@@ -48,8 +48,9 @@ pub struct Vm {
     pub busybox: PathBuf,
     /// Modules to load, by name; dependencies are added first.
     pub modules: Vec<String>,
-    /// QEMU network device model for user-mode networking (guest 10.0.2.15, host 10.0.2.2).
-    pub net_device: Option<String>,
+    /// Network card for user-mode networking (guest 10.0.2.15, host 10.0.2.2); its driver's
+    /// modules are loaded with [`Vm::modules`].
+    pub net_device: Option<NetDevice>,
     /// Shell lines `/init` runs after loading the modules (create interfaces, export variables).
     pub boot_script: String,
     /// Host programs copied to the same paths with the shared libraries `ldd` lists.
@@ -65,6 +66,32 @@ pub struct Vm {
     /// Strip debug info from payload programs (with `strip`, when installed) to keep the initrd
     /// small; panics still name file and line.
     pub strip: bool,
+}
+
+/// The guest's network card (the guest names it `eth0` either way).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum NetDevice {
+    /// An emulated Intel e1000: every packet costs register accesses and interrupts, which TCG
+    /// emulates slowly on the vCPU.
+    E1000,
+    /// A paravirtual virtio-net card: packets pass through shared rings, with few exits.
+    Virtio,
+}
+
+impl NetDevice {
+    fn qemu_model(self) -> &'static str {
+        match self {
+            NetDevice::E1000 => "e1000",
+            NetDevice::Virtio => "virtio-net-pci",
+        }
+    }
+
+    fn modules(self) -> &'static [&'static str] {
+        match self {
+            NetDevice::E1000 => &["e1000"],
+            NetDevice::Virtio => &["virtio_pci", "virtio_net"],
+        }
+    }
 }
 
 /// A program to run in the VM.
@@ -173,7 +200,7 @@ impl Vm {
             console: "ttyS0".into(),
             busybox,
             modules: Vec::new(),
-            net_device: Some("e1000".into()),
+            net_device: Some(NetDevice::E1000),
             boot_script: String::new(),
             host_programs: Vec::new(),
             memory_mb: 1024,
@@ -242,7 +269,13 @@ impl Vm {
             stack.pop();
             Ok(())
         }
-        for m in &self.modules {
+        let net = self.net_device.map_or(&[][..], NetDevice::modules);
+        for m in self
+            .modules
+            .iter()
+            .map(String::as_str)
+            .chain(net.iter().copied())
+        {
             visit(m, &mut order, &mut Vec::new(), &modinfo)?;
         }
         Ok(order.into_iter().map(|(_, p)| p).collect())
@@ -464,7 +497,7 @@ poweroff -f
                 "-netdev",
                 "user,id=n0",
                 "-device",
-                &format!("{dev},netdev=n0"),
+                &format!("{},netdev=n0", dev.qemu_model()),
             ]);
         }
         if interactive {

@@ -3,8 +3,10 @@
 //! a bare SocketCAN writer/reader pair measured in the same run as the kernel's own ceiling.
 //!
 //! Everything runs in one place (the microVM, or a host with native vcan) so that all processes
-//! share the same CPUs and clock. Timestamps are taken with [`Instant`] right after a read returns or
-//! right before a write/publish, in this process; the bare pair is timed the same way.
+//! share the same CPUs and clock, except, when asked, the broker and the load generator of the
+//! MQTT → CAN trials ([`crate::loadgen`]), which then run beside each other off the gateway's CPU.
+//! Timestamps are taken with [`Instant`] right after a read returns or right before a
+//! write/publish, in this process; the bare pair is timed the same way.
 
 use std::collections::HashSet;
 use std::io::{Read, Write};
@@ -21,7 +23,7 @@ use anyhow::{anyhow, bail, Context, Result};
 use ihex_gateway_core::event::{Event, Outcome};
 use ihex_proto::{
     AckResult, BootRole, HealthFlags, HealthReply, Kind, LedCommand, Message, NodeId, Packet,
-    ResetReason,
+    ResetReason, Rgb,
 };
 use rumqttc::{Client, Event as MqttEvent, MqttOptions, Packet as MqttPacket, QoS};
 use socketcan::{CanFilter, CanFrame, CanSocket, EmbeddedFrame, Socket, SocketOptions};
@@ -29,6 +31,9 @@ use socketcan::{CanFilter, CanFrame, CanSocket, EmbeddedFrame, Socket, SocketOpt
 use ihex_bench::bus::{Limit, PairLimit};
 use ihex_bench::results::{Bare, CpuShare, LiveResults, MqttBare, Trial};
 use ihex_bench::stats::Summary;
+
+use crate::forward;
+use crate::loadgen::{Load, Remote};
 
 /// Bitrate of the island bus.
 pub const BITRATE: u32 = 500_000;
@@ -68,6 +73,10 @@ pub struct Settings {
     /// 10.0.2.2), used instead of starting one here: it does not share the gateway's CPU, and
     /// its CPU is not counted.
     pub broker: Option<SocketAddr>,
+    /// Publish the commands and the bare ingress messages from `ihex-bench loadgen` beside the
+    /// broker (asked over the broker) instead of from this process, which then only writes and
+    /// reads CAN frames during those trials: the load generator is off the gateway's CPU.
+    pub remote_load: bool,
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -171,13 +180,31 @@ fn led_index(p: &Packet) -> Option<u32> {
 }
 
 /// The JSON `led` command of command index `i` (node `i % NODES`, colour `i & 0xffff`).
-fn led_command(i: u32) -> String {
+pub(crate) fn led_command(i: u32) -> String {
     format!(
         r#"{{"cmd":"led","node":"{}","color":[{},{},0]}}"#,
         node(i),
         i & 0xff,
         i >> 8 & 0xff
     )
+}
+
+/// The `LedSet` frame command `i` becomes (what the raw forward trial forwards in its place).
+pub(crate) fn led_frame(i: u32) -> Result<CanFrame> {
+    frame(&Packet::command(
+        node(i),
+        Message::LedSet {
+            seq: i as u8,
+            cmd: LedCommand::Steady {
+                color: Rgb {
+                    r: i as u8,
+                    g: (i >> 8) as u8,
+                    b: 0,
+                },
+                brightness: 255,
+            },
+        },
+    ))
 }
 
 fn led_filter() -> CanFilter {
@@ -192,7 +219,7 @@ fn led_filter() -> CanFilter {
 
 /// Reads answers until `want` `led` commands were answered `ok` or nothing came for `quiet`:
 /// the `ok` count, and the failed or rejected ones with the first reason seen.
-fn answers(mqtt: &Mqtt, want: usize, quiet: Duration) -> (usize, Option<String>) {
+pub(crate) fn answers(mqtt: &Mqtt, want: usize, quiet: Duration) -> (usize, Option<String>) {
     let (mut ok, mut n, mut first) = (0usize, 0usize, None);
     while ok < want {
         let Some((_, ev)) = mqtt.next_event(quiet) else {
@@ -475,7 +502,7 @@ impl Mqtt {
         })
     }
 
-    fn drain(&self) {
+    pub(crate) fn drain(&self) {
         while self.rx.try_recv().is_ok() {}
     }
 
@@ -758,18 +785,35 @@ struct Bench {
     next_cmd: u32,
     /// The `LedSet` frames the responder read, once it runs.
     seen: Option<Seen>,
+    /// The load generator beside the broker ([`Settings::remote_load`]).
+    remote: Option<Remote>,
+    /// Where the broker listens, as seen from here.
+    broker_addr: SocketAddr,
+    /// The plain forwarder, once it replaced the gateway ([`Bench::raw_forward`]): the trials
+    /// then feed and measure it.
+    forwarder: Option<Proc>,
     notes: Vec<String>,
 }
 
 impl Bench {
+    /// The process the trials measure: the gateway, or the forwarder in its place.
+    fn measured(&mut self) -> &mut Proc {
+        self.forwarder.as_mut().unwrap_or(&mut self.gw)
+    }
+
+    fn measured_pid(&self) -> u32 {
+        self.forwarder.as_ref().unwrap_or(&self.gw).pid()
+    }
+
     /// Waits (up to 5 s) until the gateway has used no CPU for 200 ms, so that a trial does not
     /// pay for the previous one's backlog.
     fn settle(&self) -> Result<()> {
         let deadline = Instant::now() + Duration::from_secs(5);
         loop {
-            let c0 = cpu_ms(self.gw.pid())?;
+            let pid = self.measured_pid();
+            let c0 = cpu_ms(pid)?;
             std::thread::sleep(Duration::from_millis(200));
-            if cpu_ms(self.gw.pid())? - c0 <= 1000.0 / USER_HZ || Instant::now() > deadline {
+            if cpu_ms(pid)? - c0 <= 1000.0 / USER_HZ || Instant::now() > deadline {
                 return Ok(());
             }
         }
@@ -959,25 +1003,44 @@ impl Bench {
         self.next_cmd += count as u32;
         let want: HashSet<u32> = (0..count as u32).map(|k| (base + k) & 0xffff).collect();
         self.mqtt.drain();
-        let cpu0 = CpuSnapshot::take(self.gw.pid(), self.broker)?;
-        let client = self.mqtt.client.clone();
-        let publish = |k: u32| -> Result<()> {
-            client.publish(
-                "CommandsTopic",
-                QoS::AtLeastOnce,
-                false,
-                led_command(base + k),
-            )?;
-            Ok(())
-        };
-        let (sent, secs) = if rate.is_finite() {
-            paced(count, rate, None, publish)?
-        } else {
+        let pid = self.measured_pid();
+        let cpu0 = CpuSnapshot::take(pid, self.broker)?;
+        let rate_or_burst = rate.is_finite().then_some(rate);
+        let raw = self.forwarder.is_some();
+        // Published here, or by the generator beside the broker, which also counts the answers
+        // (they come when the frames did, so the frames are read below from the responder's
+        // queue either way).
+        let (sent, secs, t_end, remote_answers) = if let Some(remote) = &mut self.remote {
             let t0 = Instant::now();
-            (0..count as u32).try_for_each(publish)?;
-            (count, t0.elapsed().as_secs_f64())
+            let load = if raw {
+                Load::Raw { base }
+            } else {
+                Load::Commands { base }
+            };
+            let done = remote.run(load, count, rate_or_burst)?;
+            let t_end = t0 + Duration::from_secs_f64(done.secs);
+            (done.sent, done.secs, t_end, Some((done.results, done.note)))
+        } else {
+            let client = self.mqtt.client.clone();
+            let publish = |k: u32| -> Result<()> {
+                let (topic, payload) = if raw {
+                    (forward::TOPIC, forward::message(&led_frame(base + k)?))
+                } else {
+                    ("CommandsTopic", led_command(base + k))
+                };
+                client.publish(topic, QoS::AtLeastOnce, false, payload)?;
+                Ok(())
+            };
+            let (sent, secs) = match rate_or_burst {
+                Some(rate) => paced(count, rate, None, publish)?,
+                None => {
+                    let t0 = Instant::now();
+                    (0..count as u32).try_for_each(publish)?;
+                    (count, t0.elapsed().as_secs_f64())
+                }
+            };
+            (sent, secs, Instant::now(), None)
         };
-        let t_end = Instant::now();
         let (mut got, mut last) = (HashSet::new(), None);
         while got.len() < want.len() {
             let Ok((t, i)) = seen.recv_timeout(Duration::from_secs(2)) else {
@@ -991,9 +1054,17 @@ impl Bench {
         // Every command's answer: the bench acked each frame as its node, so each must end in a
         // `command_result` ok on EventsTopic. The gateway's CPU is read once they are in, so it
         // includes publishing them.
-        let (results, note) = answers(&self.mqtt, sent, Duration::from_secs(2));
-        let cpu1 = CpuSnapshot::take(self.gw.pid(), self.broker)?;
-        self.gw.check_alive()?;
+        // A raw forward has no answers.
+        let (results, note) = match remote_answers {
+            _ if raw => (None, None),
+            Some((results, note)) => (Some(results), note),
+            None => {
+                let (results, note) = answers(&self.mqtt, sent, Duration::from_secs(2));
+                (Some(results), note)
+            }
+        };
+        let cpu1 = CpuSnapshot::take(pid, self.broker)?;
+        self.measured().check_alive()?;
         let t = Trial {
             offered_fps: rate,
             sent_fps: sent as f64 / secs,
@@ -1005,16 +1076,17 @@ impl Bench {
             }),
             gateway_cpu_ms: cpu1.gateway_ms() - cpu0.gateway_ms(),
             note,
-            results: Some(results),
+            results,
             share: Some(cpu0.share_since(&cpu1, received)),
         };
         println!(
-            "bench: MQTT->CAN {:>8.0} cmd/s offered, {:>8.0} sent, {}/{} frames, {} results ok, lag {:.0} ms{}{}",
+            "bench: MQTT->CAN {}{:>8.0} msg/s offered, {:>8.0} sent, {}/{} frames, {} results ok, lag {:.0} ms{}{}",
+            if raw { "raw forward " } else { "" },
             t.offered_fps,
             t.sent_fps,
             t.received,
             t.sent,
-            results,
+            results.map_or("no".into(), |r| r.to_string()),
             t.lag_ms,
             if t.sustained() {
                 ""
@@ -1028,6 +1100,39 @@ impl Bench {
         );
         std::thread::sleep(Duration::from_millis(300));
         Ok(t)
+    }
+
+    /// The raw forward trial, last: stops the gateway and starts [`forward`] in its place on the
+    /// same interface and broker, then sends it `count` frames at `rate` as the command trials
+    /// send commands (the same load generator, the same frame count at the responder).
+    fn raw_forward(&mut self, rate: f64, dir: &Path) -> Result<Trial> {
+        let _ = self.gw.child.kill();
+        let _ = self.gw.child.wait();
+        let mut c = Command::new(std::env::current_exe()?);
+        c.args(["forward", "--iface", &self.s.iface, "--broker"])
+            .arg(self.broker_addr.to_string());
+        self.forwarder = Some(Proc::spawn(
+            c,
+            &dir.join("forward.log"),
+            "ihex-bench forward",
+        )?);
+        // Subscribed once a frame comes through.
+        let mut ready = false;
+        for _ in 0..50 {
+            let t = self.command_run(1, f64::INFINITY)?;
+            if t.received == 1 {
+                ready = true;
+                break;
+            }
+        }
+        if !ready {
+            bail!(
+                "the raw forwarder forwarded nothing within 50 tries; its log: {}",
+                std::fs::read_to_string(dir.join("forward.log")).unwrap_or_default()
+            );
+        }
+        let count = ((rate * self.s.trial_secs) as usize).clamp(200, 6000);
+        self.command_run(count, rate)
     }
 
     /// Runs `f` while a background thread fills the bus with `HealthReply` frames at `rate`.
@@ -1123,21 +1228,29 @@ fn search(
 
 /// Topic of the bare MQTT path's ingress messages (the gateway's commands' way), and of its
 /// egress messages (the events' way); the gateway uses neither.
-const BARE_IN: &str = "ihex-bench/bare/in";
+pub(crate) const BARE_IN: &str = "ihex-bench/bare/in";
 const BARE_OUT: &str = "ihex-bench/bare/out";
 
 /// Message `k` of a bare MQTT trial: its index in decimal, padded with spaces to `len` bytes (the
 /// size of the gateway's message on that way).
-fn bare_message(k: u32, len: usize) -> Vec<u8> {
+pub(crate) fn bare_message(k: u32, len: usize) -> Vec<u8> {
     let mut m = k.to_string().into_bytes();
     m.resize(len.max(m.len()), b' ');
     m
 }
 
+/// Who publishes a bare MQTT trial's messages.
+enum BareFrom<'a> {
+    /// A client of this process.
+    Here(&'a Mqtt),
+    /// The load generator beside the broker (ingress only: it publishes on [`BARE_IN`]).
+    Remote(&'a mut Remote),
+}
+
 /// One trial of the bare MQTT path: `rate × trial_secs` QoS 1 messages of `len` bytes published
 /// by `from` on `topic`, counted at `to` (distinct indices; read until all came or none for 2 s).
 fn bare_mqtt_trial(
-    from: &Mqtt,
+    from: &mut BareFrom<'_>,
     to: &Mqtt,
     topic: &str,
     len: usize,
@@ -1147,12 +1260,25 @@ fn bare_mqtt_trial(
     let count = ((rate * trial_secs) as usize).clamp(200, 100_000);
     std::thread::sleep(Duration::from_millis(300));
     to.drain();
-    let (sent, secs) = paced(count, rate, None, |k| {
-        from.client
-            .publish(topic, QoS::AtLeastOnce, false, bare_message(k, len))?;
-        Ok(())
-    })?;
-    let t_end = Instant::now();
+    let (sent, secs, t_end) = match from {
+        BareFrom::Here(from) => {
+            let (sent, secs) = paced(count, rate, None, |k| {
+                from.client
+                    .publish(topic, QoS::AtLeastOnce, false, bare_message(k, len))?;
+                Ok(())
+            })?;
+            (sent, secs, Instant::now())
+        }
+        BareFrom::Remote(remote) => {
+            let t0 = Instant::now();
+            let done = remote.run(Load::Bare { len }, count, Some(rate))?;
+            (
+                done.sent,
+                done.secs,
+                t0 + Duration::from_secs_f64(done.secs),
+            )
+        }
+    };
     let mut got = HashSet::new();
     let mut last = None;
     while got.len() < sent {
@@ -1194,8 +1320,14 @@ fn bare_mqtt_trial(
 
 /// The bare MQTT path through the broker at `addr`, both ways, before the gateway starts: a second
 /// client of this process plays the gateway's part (subscribed to the ingress topic, publishing on
-/// the egress topic), `main` the benchmark's (publishing commands, reading events).
-fn bare_mqtt(main: &Mqtt, addr: SocketAddr, trial_secs: f64) -> Result<MqttBare> {
+/// the egress topic), `main` the benchmark's (publishing commands, reading events), or `remote`
+/// publishes the ingress messages when the commands come from there.
+fn bare_mqtt(
+    main: &Mqtt,
+    remote: Option<&mut Remote>,
+    addr: SocketAddr,
+    trial_secs: f64,
+) -> Result<MqttBare> {
     let peer = Mqtt::connect_as("ihex-bench-peer", addr, &[BARE_IN])?;
     // Both subscriptions in place before the first message (a round through each).
     for (m, topic) in [(&peer, BARE_IN), (main, BARE_OUT)] {
@@ -1215,12 +1347,23 @@ fn bare_mqtt(main: &Mqtt, addr: SocketAddr, trial_secs: f64) -> Result<MqttBare>
     let command_len = led_command(0xffff).len();
     let event_len = r#"{"event":"node_rebooted","payload":{"id":"256","reset":"other_253","version":"1.0","role":"static"}}"#.len();
     println!("bench: bare MQTT ingress ({command_len}-byte messages)");
+    let mut from = match remote {
+        Some(r) => BareFrom::Remote(r),
+        None => BareFrom::Here(main),
+    };
     let (ingress_mps, ingress_trials) = search(250.0, 16_000.0, |r| {
-        bare_mqtt_trial(main, &peer, BARE_IN, command_len, r, trial_secs)
+        bare_mqtt_trial(&mut from, &peer, BARE_IN, command_len, r, trial_secs)
     })?;
     println!("bench: bare MQTT egress ({event_len}-byte messages)");
     let (egress_mps, egress_trials) = search(250.0, 16_000.0, |r| {
-        bare_mqtt_trial(&peer, main, BARE_OUT, event_len, r, trial_secs)
+        bare_mqtt_trial(
+            &mut BareFrom::Here(&peer),
+            main,
+            BARE_OUT,
+            event_len,
+            r,
+            trial_secs,
+        )
     })?;
     Ok(MqttBare {
         ingress_mps,
@@ -1325,6 +1468,14 @@ pub fn run(s: Settings) -> Result<LiveResults> {
             )
         }
     };
+    let broker_layout = if s.remote_load {
+        format!(
+            "{broker_layout}; the commands and the bare ingress messages published beside it by \
+             `ihex-bench loadgen` (not on these CPUs; its CPU is not counted)"
+        )
+    } else {
+        broker_layout
+    };
     println!("bench: {broker_layout}");
     let mqtt = Mqtt::connect(
         addr,
@@ -1335,7 +1486,16 @@ pub fn run(s: Settings) -> Result<LiveResults> {
             BARE_OUT,
         ],
     )?;
-    let mqtt_bare = bare_mqtt(&mqtt, addr, s.trial_secs)?;
+    let mut remote = if s.remote_load {
+        let r = Remote::connect(addr)?;
+        println!(
+            "bench: commands and bare ingress messages come from the load generator at {addr}"
+        );
+        Some(r)
+    } else {
+        None
+    };
+    let mqtt_bare = bare_mqtt(&mqtt, remote.as_mut(), addr, s.trial_secs)?;
     println!(
         "bench: bare MQTT ingress {:.0} msg/s, egress {:.0} msg/s (zero loss)",
         mqtt_bare.ingress_mps, mqtt_bare.egress_mps
@@ -1370,6 +1530,9 @@ pub fn run(s: Settings) -> Result<LiveResults> {
         next_index: 0,
         next_cmd: 0,
         seen: None,
+        remote,
+        broker_addr: addr,
+        forwarder: None,
         notes,
     };
 
@@ -1414,6 +1577,10 @@ pub fn run(s: Settings) -> Result<LiveResults> {
 
     peaks.push(("CAN->MQTT rates", memory_kib(b.gw.pid())?.0));
     println!("bench: MQTT->CAN rate");
+    if b.remote.is_some() {
+        // The answers are counted by the generator: not delivered here too.
+        b.mqtt.client.unsubscribe("EventsTopic")?;
+    }
     let (cps, mut command_trials) = b.search(250.0, ceiling, Bench::command_trial)?;
     let cost = b.command_trial((cps * 0.8).max(100.0))?;
     let cpu_ms_per_1k_commands = cost.gateway_cpu_ms * 1000.0 / cost.received.max(1) as f64;
@@ -1425,6 +1592,12 @@ pub fn run(s: Settings) -> Result<LiveResults> {
     let burst_secs = burst.sent as f64 / burst.sent_fps + burst.lag_ms.max(0.0) / 1e3;
 
     peaks.push(("burst", memory_kib(b.gw.pid())?.0));
+    if b.remote.is_some() {
+        b.mqtt.client.subscribe("EventsTopic", QoS::AtLeastOnce)?;
+        // The subscription in place before the next probes (they time the events).
+        std::thread::sleep(Duration::from_secs(1));
+        b.mqtt.drain();
+    }
     let limit_background = Limit::new(BITRATE, frame(&background(0))?.data().len() as u8);
     let load_rate = limit_background.fps_worst;
     println!("bench: latency with the bus at {load_rate:.0} background frames/s");
@@ -1437,6 +1610,9 @@ pub fn run(s: Settings) -> Result<LiveResults> {
     b.gw.check_alive()?;
     let (hwm, rss) = memory_kib(b.gw.pid())?;
     peaks.push(("bus load", hwm));
+    let forward_rate = (cps * 0.8).max(100.0);
+    println!("bench: raw MQTT->CAN forward at {forward_rate:.0} msg/s (the gateway stopped)");
+    let raw_forward = b.raw_forward(forward_rate, &dir)?;
     let peaks: Vec<String> = peaks.iter().map(|(p, k)| format!("{p} {k}")).collect();
     b.notes.push(format!(
         "gateway VmHWM (KiB) after each phase: {}",
@@ -1476,6 +1652,7 @@ pub fn run(s: Settings) -> Result<LiveResults> {
         mqtt_loop,
         cpu_ms_per_1k_reports,
         cpu_ms_per_1k_commands,
+        raw_forward: Some(raw_forward),
         share_reports,
         share_commands,
         cpu_ms_per_1k_background,

@@ -9,9 +9,11 @@ use clap::{Parser, Subcommand, ValueEnum};
 use ihex_bench::{report, workload};
 
 mod callgrind;
+mod forward;
 mod fw;
 mod islands;
 mod live;
+mod loadgen;
 #[cfg(feature = "sila")]
 mod sila;
 mod web;
@@ -70,12 +72,33 @@ enum Cmd {
         /// 10.0.2.2:PORT) instead of starting one here; its CPU is then not counted.
         #[arg(long)]
         broker: Option<std::net::SocketAddr>,
+        /// Publish the MQTT -> CAN trials' commands and the bare ingress messages from the
+        /// `ihex-bench loadgen` serving at `--broker` (asked over the broker), not from here.
+        #[arg(long, requires = "broker")]
+        remote_load: bool,
         /// Send the results as a JSON line to this TCP address (the host's xtask).
         #[arg(long)]
         report: Option<String>,
         /// Write the results to this file.
         #[arg(long)]
         out: Option<PathBuf>,
+    },
+    /// A plain MQTT -> CAN forwarder (the raw forward the live part measures in the gateway's
+    /// place): each message `ID#DATA` on `ihex-bench/raw` written as that frame; runs until killed.
+    Forward {
+        /// SocketCAN interface.
+        #[arg(long, default_value = "vcan0")]
+        iface: String,
+        /// The broker.
+        #[arg(long)]
+        broker: std::net::SocketAddr,
+    },
+    /// The live part's MQTT load generator: publishes commands or bare messages at the broker
+    /// when the live part asks over it (`live --remote-load`); runs until killed.
+    Loadgen {
+        /// The broker both meet at.
+        #[arg(long)]
+        broker: std::net::SocketAddr,
     },
     /// Islands per broker: N gateways, each on its own SocketCAN interface (vcan0..) with a
     /// sim-node island, all on one Mosquitto; report frames and LED commands on every island,
@@ -248,6 +271,7 @@ fn main() -> Result<()> {
             commands,
             mosquitto_nagle,
             broker,
+            remote_load,
             report,
             out,
         } => {
@@ -260,6 +284,7 @@ fn main() -> Result<()> {
                 commands,
                 mosquitto_nagle,
                 broker,
+                remote_load,
             })?;
             finish(r, out, report, |r| report::Results {
                 live: Some(r),
@@ -340,6 +365,8 @@ fn main() -> Result<()> {
             })?;
         }
         Cmd::Echo => live::echo()?,
+        Cmd::Loadgen { broker } => loadgen::serve(broker)?,
+        Cmd::Forward { iface, broker } => forward::serve(&iface, broker)?,
         Cmd::Workload { path, n } => {
             let p = match path {
                 WorkPath::Can => workload::Path::CanToEvent,

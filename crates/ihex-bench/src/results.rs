@@ -146,6 +146,10 @@ pub struct LiveResults {
     /// Every MQTT → CAN trial (commands paced at a rate), in the order run.
     #[serde(default)]
     pub command_trials: Vec<Trial>,
+    /// The plain MQTT → CAN forwarder ([`crate`]'s `forward`) in the gateway's place, at the
+    /// command cost trial's rate: its CPU per 1,000 frames is what a raw frame forward costs.
+    #[serde(default)]
+    pub raw_forward: Option<Trial>,
     /// MQTT → CAN: highest command rate delivered as frames with zero loss, commands/s.
     pub mqtt_to_can_cps: f64,
     /// MQTT → CAN burst: commands published back to back.
@@ -202,6 +206,21 @@ pub struct LiveResults {
     pub limit_command_pair: PairLimit,
     /// Notes about the run (fallbacks taken, anomalies).
     pub notes: Vec<String>,
+}
+
+impl LiveResults {
+    /// CPU per 1,000 frames of a raw MQTT → CAN forward, ms: the plain forwarder's when it ran
+    /// and forwarded something, else the bare SocketCAN pair's (no MQTT in it). With which one.
+    pub fn raw_forward_cpu(&self) -> Option<(f64, &'static str)> {
+        match &self.raw_forward {
+            Some(f) if f.received > 0 => Some((
+                f.gateway_cpu_ms * 1000.0 / f.received as f64,
+                "plain MQTT->CAN forwarder",
+            )),
+            _ => (self.bare.cpu_ms_per_1k > 0.0)
+                .then_some((self.bare.cpu_ms_per_1k, "bare SocketCAN pair")),
+        }
+    }
 }
 
 /// The island view's latency (`ihex-bench web`, the demo gateway on the host).
