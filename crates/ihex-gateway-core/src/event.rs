@@ -35,11 +35,16 @@ pub struct Version(pub u8, pub u8);
 
 impl Version {
     /// `"major.minor"` in `buf`.
-    pub(crate) fn text(self, buf: &mut [u8; 7]) -> &str {
+    fn text(self, buf: &mut [u8; 7]) -> &str {
+        std::str::from_utf8(self.digits(buf)).unwrap_or_default()
+    }
+
+    /// [`Version::text`]'s ASCII bytes, for writers that need no `str`.
+    pub(crate) fn digits(self, buf: &mut [u8; 7]) -> &[u8] {
         let dot = ihex_proto::write_decimal(self.0, buf, 0);
         buf[dot] = b'.';
         let len = ihex_proto::write_decimal(self.1, buf, dot + 1);
-        std::str::from_utf8(&buf[..len]).unwrap_or_default()
+        &buf[..len]
     }
 }
 
@@ -88,6 +93,11 @@ impl<'de> Deserialize<'de> for Version {
 /// formatting machinery: nearly every publication names a node, and `collect_str` was a tenth of
 /// an event's serialisation.
 pub(crate) fn hex(id: NodeId, buf: &mut [u8; 4]) -> &str {
+    std::str::from_utf8(hex_digits(id, buf)).unwrap_or_default()
+}
+
+/// [`hex`]'s ASCII bytes, for writers that need no `str`.
+pub(crate) fn hex_digits(id: NodeId, buf: &mut [u8; 4]) -> &[u8] {
     const DIGITS: &[u8; 16] = b"0123456789abcdef";
     let mut v = id.get();
     let mut i = buf.len();
@@ -99,7 +109,7 @@ pub(crate) fn hex(id: NodeId, buf: &mut [u8; 4]) -> &str {
             break;
         }
     }
-    std::str::from_utf8(&buf[i..]).unwrap_or_default()
+    &buf[i..]
 }
 
 impl<'de> Deserialize<'de> for HexId {

@@ -9,8 +9,8 @@
 use bytes::{BufMut, BytesMut};
 
 use crate::event::{
-    hex, BuzzerState, CommandResult, Firmware, HexId, LedState, Link, NodeState, Outcome, Refusal,
-    Reported, Role, Target,
+    hex_digits, BuzzerState, CommandResult, Firmware, HexId, LedState, Link, NodeState, Outcome,
+    Refusal, Reported, Role, Target,
 };
 use crate::origin::Origin;
 
@@ -110,7 +110,7 @@ pub(crate) fn write_node_state(s: &NodeState, out: &mut BytesMut) {
     w.opt_u64(ports.map(u64::from));
     w.raw(b",\"version\":");
     match version {
-        Some(v) => w.plain_str(v.text(&mut [0; 7])),
+        Some(v) => w.plain(v.digits(&mut [0; 7])),
         None => w.null(),
     }
     w.raw(b",\"firmware\":");
@@ -235,9 +235,14 @@ impl Writer<'_> {
 
     /// A string known to need no escaping, in quotes.
     fn plain_str(&mut self, s: &str) {
-        self.0.reserve(s.len() + 2);
+        self.plain(s.as_bytes());
+    }
+
+    /// [`Writer::plain_str`] of text as bytes.
+    fn plain(&mut self, text: &[u8]) {
+        self.0.reserve(text.len() + 2);
         self.0.put_u8(b'"');
-        self.0.extend_from_slice(s.as_bytes());
+        self.0.extend_from_slice(text);
         self.0.put_u8(b'"');
     }
 
@@ -249,7 +254,7 @@ impl Writer<'_> {
     }
 
     fn id(&mut self, id: HexId) {
-        self.plain_str(hex(id.0, &mut [0; 4]));
+        self.plain(hex_digits(id.0, &mut [0; 4]));
     }
 
     fn ids(&mut self, ids: &[HexId]) {
