@@ -36,10 +36,15 @@ pub struct Version(pub u8, pub u8);
 impl Version {
     /// `"major.minor"` in `buf`.
     fn text(self, buf: &mut [u8; 7]) -> &str {
+        std::str::from_utf8(self.digits(buf)).unwrap_or_default()
+    }
+
+    /// [`Version::text`]'s ASCII bytes, for writers that need no `str`.
+    pub(crate) fn digits(self, buf: &mut [u8; 7]) -> &[u8] {
         let dot = ihex_proto::write_decimal(self.0, buf, 0);
         buf[dot] = b'.';
         let len = ihex_proto::write_decimal(self.1, buf, dot + 1);
-        std::str::from_utf8(&buf[..len]).unwrap_or_default()
+        &buf[..len]
     }
 }
 
@@ -87,7 +92,12 @@ impl<'de> Deserialize<'de> for Version {
 /// `id` as its [`fmt::Display`] writes it (lower-case hex, no leading zeros), without the
 /// formatting machinery: nearly every publication names a node, and `collect_str` was a tenth of
 /// an event's serialisation.
-fn hex(id: NodeId, buf: &mut [u8; 4]) -> &str {
+pub(crate) fn hex(id: NodeId, buf: &mut [u8; 4]) -> &str {
+    std::str::from_utf8(hex_digits(id, buf)).unwrap_or_default()
+}
+
+/// [`hex`]'s ASCII bytes, for writers that need no `str`.
+pub(crate) fn hex_digits(id: NodeId, buf: &mut [u8; 4]) -> &[u8] {
     const DIGITS: &[u8; 16] = b"0123456789abcdef";
     let mut v = id.get();
     let mut i = buf.len();
@@ -99,7 +109,7 @@ fn hex(id: NodeId, buf: &mut [u8; 4]) -> &str {
             break;
         }
     }
-    std::str::from_utf8(&buf[i..]).unwrap_or_default()
+    &buf[i..]
 }
 
 impl<'de> Deserialize<'de> for HexId {
@@ -590,7 +600,7 @@ pub struct LedState {
 
 impl From<LedCommand> for LedState {
     fn from(cmd: LedCommand) -> Self {
-        let hex = |c: ihex_proto::Rgb| format!("#{}", ihex_proto::Hex(&[c.r, c.g, c.b]));
+        let hex = color_text;
         match cmd {
             LedCommand::Off => LedState {
                 mode: "off".into(),
@@ -620,6 +630,19 @@ impl From<LedCommand> for LedState {
             },
         }
     }
+}
+
+/// `#rrggbb` in lower-case hex, as `format!("#{}", Hex(&[r, g, b]))` writes it but without the
+/// formatting machinery (a third of taking an answered command's state document).
+fn color_text(c: ihex_proto::Rgb) -> String {
+    const DIGITS: &[u8; 16] = b"0123456789abcdef";
+    let mut text = String::with_capacity(7);
+    text.push('#');
+    for b in [c.r, c.g, c.b] {
+        text.push(char::from(DIGITS[usize::from(b >> 4)]));
+        text.push(char::from(DIGITS[usize::from(b & 0xf)]));
+    }
+    text
 }
 
 /// The buzzer state a node acknowledged.
@@ -765,6 +788,21 @@ mod tests {
 
     fn id(raw: u16) -> HexId {
         HexId(NodeId::new(raw).unwrap())
+    }
+
+    #[test]
+    fn colors_read_as_format_writes_them() {
+        for (r, g, b) in [
+            (0, 0, 0),
+            (0x12, 0xab, 0xff),
+            (255, 255, 255),
+            (1, 0x10, 0xf0),
+        ] {
+            let c = ihex_proto::Rgb::new(r, g, b);
+            let text = format!("#{}", ihex_proto::Hex(&[r, g, b]));
+            assert_eq!(color_text(c), text);
+            assert_eq!(text.len(), 7);
+        }
     }
 
     #[test]

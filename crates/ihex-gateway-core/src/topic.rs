@@ -117,7 +117,15 @@ impl Topics {
 
     /// The retained state topic of one node (`<root>/<id>/state`, id in lower-case hex like events).
     pub fn node_state(&self, id: NodeId) -> String {
-        format!("{}/{}/state", self.node_state_root, id)
+        // Without the formatting machinery: every state document is published on one of these.
+        let mut buf = [0; 4];
+        let id = crate::event::hex(id, &mut buf);
+        let mut name = String::with_capacity(self.node_state_root.len() + id.len() + 7);
+        name.push_str(&self.node_state_root);
+        name.push('/');
+        name.push_str(id);
+        name.push_str("/state");
+        name
     }
 
     /// The subscription of the upload topics (`<root>/+`).
@@ -259,6 +267,11 @@ mod tests {
         let id = NodeId::new(0x111).unwrap();
         assert_eq!(t.node_state_filter(), "lab-a/ihex/node/+/state");
         assert_eq!(t.parse_node_state(&t.node_state(id)), Some(id));
+        for raw in 1..=NodeId::MAX_RAW {
+            if let Some(id) = NodeId::new(raw) {
+                assert_eq!(t.node_state(id), format!("lab-a/ihex/node/{id}/state"));
+            }
+        }
         for other in [
             "ihex/node/111/state",
             "lab-a/ihex/node/111",

@@ -954,12 +954,13 @@ impl Bridge {
                     if !(changed || forced) {
                         continue;
                     }
-                    let Some(doc) = self.registry.get(id).map(|e| e.state(links, self.now)) else {
+                    let Some(entry) = self.registry.get(id) else {
                         continue;
                     };
+                    let doc = entry.state(links, self.now);
                     self.out.publish.count_state();
                     // Home Assistant's config and light state follow the document.
-                    if let (Some(ha), Some(entry)) = (&mut self.ha, self.registry.get(id)) {
+                    if let Some(ha) = &mut self.ha {
                         let follow = ha.on_state(&doc, entry, forced);
                         self.out
                             .publish

@@ -23,6 +23,7 @@ use ihex_proto::{NodeId, Packet};
 
 use crate::event::{self, Event, NodeState};
 use crate::ha::HaPublication;
+use crate::json_writer;
 use crate::topic::Topic;
 
 /// Frames handed to the adapter and not yet confirmed sent or failed: the most that can still
@@ -77,8 +78,12 @@ impl Publication {
     /// document, a Home Assistant config or light state), or nothing for [`Publication::Cleared`].
     pub fn write_payload(&self, out: &mut BytesMut) {
         match self {
+            // The two publications of every answered command: written by hand, the same bytes.
+            Publication::Event(Event::CommandResult(r)) => {
+                json_writer::write_command_result(r, out)
+            }
             Publication::Event(e) => event::write_json(e, out),
-            Publication::State(s) => event::write_json(s, out),
+            Publication::State(s) => json_writer::write_node_state(s, out),
             Publication::Ha(h) => h.write_payload(out),
             Publication::Leases(l) => event::write_json(l, out),
             Publication::Procedures(p) => event::write_json(p, out),
