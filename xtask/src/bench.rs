@@ -29,8 +29,10 @@ pub struct BenchArgs {
     /// Run the live part in the microVM even where native vcan exists (IHEX_VCAN=vm).
     #[arg(long)]
     vm: bool,
-    /// Virtual CPUs of the microVM (1 keeps latency figures meaningful under TCG).
-    #[arg(long, env = "IHEX_BENCH_SMP", default_value_t = 1)]
+    /// Virtual CPUs of the microVM. With 2 the nodes' side (the benchmark's responder) and the
+    /// kernel's work for it run beside the gateway, whose tasks share one thread; with 1 they take
+    /// the gateway's CPU, which then bounds the rates before the bus does.
+    #[arg(long, env = "IHEX_BENCH_SMP", default_value_t = 2)]
     smp: u32,
     /// Kill the VM after this many seconds (both gateways' live runs and islands per broker together).
     #[arg(long, default_value_t = 2400)]
