@@ -17,6 +17,7 @@ use std::{
     io::{BufRead, BufReader},
     path::{Path, PathBuf},
     process::{Child, Command, Output, Stdio},
+    time::{Duration, Instant},
 };
 
 use ihex_tests::net::free_port;
@@ -88,20 +89,44 @@ fn gateway(state: &Path, broker: u16, sila: u16) -> Process {
     gw
 }
 
+/// How long one run of the reference client may take (each takes seconds): a client that hangs
+/// is killed, and the test fails with what it printed so far instead of holding CI up.
+const CLIENT_LIMIT: Duration = Duration::from_secs(300);
+
 /// Runs the reference client script with `args`; its output, after it succeeded.
 fn client(args: &[&str]) -> String {
     let script = root().join("crates/mc-gateway/tests/sila/reference_client.py");
+    // Unbuffered (-u), so that a killed client's output so far is in the pipes.
+    let mut child = Command::new(python())
+        .arg("-u")
+        .arg(script)
+        .args(args)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let deadline = Instant::now() + CLIENT_LIMIT;
+    let mut killed = false;
+    while child.try_wait().unwrap().is_none() {
+        if Instant::now() > deadline {
+            let _ = child.kill();
+            killed = true;
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
     let Output {
         status,
         stdout,
         stderr,
-    } = Command::new(python())
-        .arg(script)
-        .args(args)
-        .output()
-        .unwrap();
+    } = child.wait_with_output().unwrap();
     let out = String::from_utf8_lossy(&stdout).into_owned();
     println!("{out}");
+    assert!(
+        !killed,
+        "reference client {args:?} still running after {CLIENT_LIMIT:?}, killed; its output:\n{out}\n{}",
+        String::from_utf8_lossy(&stderr)
+    );
     assert!(
         status.success(),
         "reference client {args:?} failed:\n{out}\n{}",
