@@ -854,18 +854,9 @@ impl Bench {
         let cpu1 = CpuSnapshot::take(self.gw.pid(), self.broker)?;
         self.gw.check_alive()?;
         let t = Trial {
-            offered_fps: rate,
-            sent_fps: sent as f64 / secs,
-            sent,
-            received,
-            loss: 1.0 - received as f64 / sent as f64,
-            lag_ms: last.map_or(f64::NAN, |l| {
-                l.saturating_duration_since(t_end).as_secs_f64() * 1e3
-            }),
             gateway_cpu_ms: cpu1.gateway_ms() - cpu0.gateway_ms(),
-            note: None,
-            results: None,
             share: Some(cpu0.share_since(&cpu1, received)),
+            ..counted(rate, sent, secs, received, last, t_end)
         };
         println!(
             "bench: CAN->MQTT {:>8.0} fps offered, {:>8.0} sent, {}/{} events, lag {:.0} ms{}",
@@ -1066,18 +1057,11 @@ impl Bench {
         let cpu1 = CpuSnapshot::take(pid, self.broker)?;
         self.measured().check_alive()?;
         let t = Trial {
-            offered_fps: rate,
-            sent_fps: sent as f64 / secs,
-            sent,
-            received,
-            loss: 1.0 - received as f64 / sent as f64,
-            lag_ms: last.map_or(f64::NAN, |l| {
-                l.saturating_duration_since(t_end).as_secs_f64() * 1e3
-            }),
             gateway_cpu_ms: cpu1.gateway_ms() - cpu0.gateway_ms(),
             note,
             results,
             share: Some(cpu0.share_since(&cpu1, received)),
+            ..counted(rate, sent, secs, received, last, t_end)
         };
         println!(
             "bench: MQTT->CAN {}{:>8.0} msg/s offered, {:>8.0} sent, {}/{} frames, {} results ok, lag {:.0} ms{}{}",
@@ -1182,6 +1166,29 @@ impl Bench {
                 Duration::from_secs(2),
             )
             .then(|| t0.elapsed().as_secs_f64() * 1e6))
+    }
+}
+
+/// A trial's counts: `sent` in `secs` at `rate` offered, `received` of them, the last at `last`
+/// (lag measured from `t_end`, when the sending ended); the rest default.
+fn counted(
+    rate: f64,
+    sent: usize,
+    secs: f64,
+    received: usize,
+    last: Option<Instant>,
+    t_end: Instant,
+) -> Trial {
+    Trial {
+        offered_fps: rate,
+        sent_fps: sent as f64 / secs,
+        sent,
+        received,
+        loss: 1.0 - received as f64 / sent as f64,
+        lag_ms: last.map_or(f64::NAN, |l| {
+            l.saturating_duration_since(t_end).as_secs_f64() * 1e3
+        }),
+        ..Trial::default()
     }
 }
 
@@ -1296,15 +1303,7 @@ fn bare_mqtt_trial(
     }
     let received = got.len();
     let t = Trial {
-        offered_fps: rate,
-        sent_fps: sent as f64 / secs,
-        sent,
-        received,
-        loss: 1.0 - received as f64 / sent as f64,
-        lag_ms: last.map_or(f64::NAN, |l| {
-            l.saturating_duration_since(t_end).as_secs_f64() * 1e3
-        }),
-        ..Trial::default()
+        ..counted(rate, sent, secs, received, last, t_end)
     };
     println!(
         "bench: bare MQTT {topic} {:>8.0} msg/s offered, {:>8.0} sent, {}/{} received, lag {:.0} ms{}",
