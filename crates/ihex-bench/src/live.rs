@@ -34,6 +34,7 @@ use ihex_bench::stats::Summary;
 
 use crate::forward;
 use crate::loadgen::{Load, Remote};
+use crate::stamp::{micros_between, Tap, Way};
 
 /// Bitrate of the island bus.
 pub const BITRATE: u32 = 500_000;
@@ -773,6 +774,26 @@ pub(crate) fn memory_kib(pid: u32) -> Result<(u64, u64)> {
 // ---------------------------------------------------------------------------------------------
 // The run
 
+/// Which latency series a phase takes (the command → frame series always).
+#[derive(Clone, Copy)]
+struct Probes {
+    /// The broker's own round trip.
+    mqtt_loop: bool,
+    /// Frame → event.
+    events: bool,
+    /// The kernel-stamped series beside the end-to-end ones ([`crate::stamp`]).
+    stamps: bool,
+}
+
+/// What one latency phase measured.
+struct Latency {
+    mqtt_loop: Option<Summary>,
+    frame_to_event: Option<Summary>,
+    cmd_to_frame: Summary,
+    frame_to_event_kernel: Option<Summary>,
+    cmd_to_frame_kernel: Option<Summary>,
+}
+
 struct Bench {
     s: Settings,
     can: CanSocket,
@@ -886,28 +907,44 @@ impl Bench {
         search(start, ceiling, |r| trial(self, r))
     }
 
-    /// The latency series, interleaved: each round takes one probe of each (the MQTT loop only
-    /// `with_loop`), 3 ms apart, so a VM that slows down or speeds up during the phase moves every
-    /// series alike — the gateway-added estimate subtracts their medians from each other.
-    /// Returns the MQTT loop (when asked for), frame → event and command → frame.
-    fn latency(
-        &mut self,
-        probes: usize,
-        with_loop: bool,
-    ) -> Result<(Option<Summary>, Summary, Summary)> {
+    /// The latency series `which` asks for, interleaved: each round takes one probe of each, 3 ms
+    /// apart, so a VM that slows down or speeds up during the phase moves every series alike — the
+    /// gateway-added estimate subtracts their medians from each other.
+    fn latency(&mut self, probes: usize, which: Probes) -> Result<Latency> {
         let rx = open_can(&self.s.iface, &mut self.notes)?;
         rx.set_filters(&[led_filter()])?;
+        rx.set_recv_timestamp(true)?;
+        let mut stamps = if which.stamps {
+            // The bench's own reports, as the bus carried them (CAN_RAW_LOOPBACK).
+            let reports = open_can(&self.s.iface, &mut self.notes)?;
+            reports.set_filters(&[kind_filter(&report(0))])?;
+            reports.set_recv_timestamp(true)?;
+            let tap = Tap::open(self.broker_addr.port())?;
+            // Timestamping is switched on for the whole machine when a socket first asks for it.
+            std::thread::sleep(Duration::from_millis(100));
+            Some((tap, reports))
+        } else {
+            None
+        };
         let mut mqtt_loop = Series::new("MQTT loop", probes);
         let mut to_event = Series::new("frame->event", probes);
         let mut to_frame = Series::new("cmd->frame", probes);
+        let mut to_event_k = Series::new("frame->event packet (kernel)", probes);
+        let mut to_frame_k = Series::new("command packet->frame (kernel)", probes);
         for k in 0..probes {
-            if with_loop {
+            if which.mqtt_loop {
                 mqtt_loop.add(self.loop_probe(k)?);
                 std::thread::sleep(Duration::from_millis(3));
             }
-            to_event.add(self.event_probe()?);
-            std::thread::sleep(Duration::from_millis(3));
-            to_frame.add(self.command_probe(&rx)?);
+            if which.events {
+                let (e2e, kernel) = self.event_probe(stamps.as_mut())?;
+                to_event.add(e2e);
+                to_event_k.add(kernel);
+                std::thread::sleep(Duration::from_millis(3));
+            }
+            let (e2e, kernel) = self.command_probe(&rx, stamps.as_mut().map(|(t, _)| t))?;
+            to_frame.add(e2e);
+            to_frame_k.add(kernel);
             std::thread::sleep(Duration::from_millis(3));
             if to_event.dead() || to_frame.dead() {
                 self.notes.push(format!(
@@ -918,58 +955,111 @@ impl Bench {
                 break;
             }
         }
-        let mqtt_loop = with_loop.then(|| mqtt_loop.finish(&mut self.notes));
-        Ok((
-            mqtt_loop,
-            to_event.finish(&mut self.notes),
-            to_frame.finish(&mut self.notes),
-        ))
+        let notes = &mut self.notes;
+        Ok(Latency {
+            mqtt_loop: which.mqtt_loop.then(|| mqtt_loop.finish(notes)),
+            frame_to_event: which.events.then(|| to_event.finish(notes)),
+            cmd_to_frame: to_frame.finish(notes),
+            frame_to_event_kernel: (which.events && which.stamps).then(|| to_event_k.finish(notes)),
+            cmd_to_frame_kernel: which.stamps.then(|| to_frame_k.finish(notes)),
+        })
     }
 
-    /// One `BootUp` frame to its `node_rebooted` event, µs (`None`: no event within 2 s).
-    fn event_probe(&mut self) -> Result<Option<f64>> {
+    /// One `BootUp` frame to its `node_rebooted` event, µs (`None`: no event within 2 s); with
+    /// `stamps`, also from the frame on the bus to the event's packet leaving for the broker.
+    fn event_probe(
+        &mut self,
+        stamps: Option<&mut (Tap, CanSocket)>,
+    ) -> Result<(Option<f64>, Option<f64>)> {
         self.mqtt.drain();
+        let mut stamps = stamps;
+        if let Some((tap, reports)) = stamps.as_mut() {
+            tap.drain()?;
+            reports.set_nonblocking(true)?;
+            while reports.read_frame().is_ok() {}
+            reports.set_nonblocking(false)?;
+        }
         let i = self.next_index;
         self.next_index = (self.next_index + 1) % INDEX_SPACE;
         let f = frame(&report(i))?;
         let t0 = Instant::now();
         write(&self.can, &f)?;
         let deadline = t0 + Duration::from_secs(2);
-        loop {
+        let e2e = loop {
             let left = deadline.saturating_duration_since(Instant::now());
             match self.mqtt.next_event(left) {
                 Some((t, v)) if report_index(&v) == Some(i) => {
-                    return Ok(Some((t - t0).as_secs_f64() * 1e6))
+                    break (t - t0).as_secs_f64() * 1e6;
                 }
                 Some(_) => {}
-                None => return Ok(None),
+                None => return Ok((None, None)),
             }
-        }
+        };
+        let Some((tap, reports)) = stamps else {
+            return Ok((Some(e2e), None));
+        };
+        reports.set_read_timeout(Duration::from_millis(200))?;
+        let on_bus = loop {
+            match reports.read_frame_with_timestamp() {
+                Ok((g, at)) if g.id() == f.id() && g.data() == f.data() => break Some(at),
+                Ok(_) => {}
+                Err(_) => break None,
+            }
+        };
+        let sent = tap.find(Way::ToBroker, b"node_rebooted", Duration::from_millis(200))?;
+        Ok((
+            Some(e2e),
+            on_bus.zip(sent).map(|(a, b)| micros_between(a, b)),
+        ))
     }
 
-    /// One `led` command to its `LedSet` frame on `rx`, µs (`None`: no frame within 2 s).
-    fn command_probe(&mut self, rx: &CanSocket) -> Result<Option<f64>> {
+    /// One `led` command (or, to the plain forwarder, its frame's message) to its `LedSet` frame
+    /// on `rx`, µs (`None`: no frame within 2 s); with `tap`, also from the command's packet
+    /// entering this machine to the frame on the bus.
+    fn command_probe(
+        &mut self,
+        rx: &CanSocket,
+        tap: Option<&mut Tap>,
+    ) -> Result<(Option<f64>, Option<f64>)> {
         let k = self.next_cmd;
         self.next_cmd += 1;
-        let payload = led_command(k);
+        let (topic, payload) = if self.forwarder.is_some() {
+            (forward::TOPIC, forward::message(&led_frame(k)?))
+        } else {
+            ("CommandsTopic", led_command(k))
+        };
+        let mut tap = tap;
+        if let Some(tap) = tap.as_mut() {
+            tap.drain()?;
+        }
         let t0 = Instant::now();
         self.mqtt
             .client
-            .publish("CommandsTopic", QoS::AtLeastOnce, false, payload)?;
+            .publish(topic, QoS::AtLeastOnce, false, payload.clone())?;
         let deadline = t0 + Duration::from_secs(2);
-        loop {
+        let (e2e, on_bus) = loop {
             let left = deadline.saturating_duration_since(Instant::now());
             if left.is_zero() {
-                return Ok(None);
+                return Ok((None, None));
             }
-            let Ok(f) = rx.read_frame_timeout(left) else {
-                return Ok(None);
+            rx.set_read_timeout(left)?;
+            let Ok((f, at)) = rx.read_frame_with_timestamp() else {
+                return Ok((None, None));
             };
             let t = Instant::now();
             if Packet::from_frame(&f).ok().as_ref().and_then(led_index) == Some(k & 0xffff) {
-                return Ok(Some((t - t0).as_secs_f64() * 1e6));
+                break ((t - t0).as_secs_f64() * 1e6, at);
             }
-        }
+        };
+        let Some(tap) = tap else {
+            return Ok((Some(e2e), None));
+        };
+        let arrived = tap.find(
+            Way::FromBroker,
+            payload.as_bytes(),
+            Duration::from_millis(200),
+        )?;
+        Ok((Some(e2e), arrived.map(|a| micros_between(a, on_bus))))
     }
 
     /// Publishes `count` commands at `rate` (or back to back when `rate` is infinite) and counts
@@ -1555,8 +1645,14 @@ pub fn run(s: Settings) -> Result<LiveResults> {
     // Which phase sets the gateway's peak: its VmHWM after each.
     let mut peaks: Vec<(&str, u64)> = vec![("start", memory_kib(b.gw.pid())?.0)];
     println!("bench: latency at idle");
-    let (mqtt_loop, frame_to_event_idle, cmd_to_frame_idle) = b.latency(s.probes, true)?;
-    let mqtt_loop = mqtt_loop.unwrap_or_default();
+    let idle = b.latency(
+        s.probes,
+        Probes {
+            mqtt_loop: true,
+            events: true,
+            stamps: true,
+        },
+    )?;
 
     peaks.push(("idle latency", memory_kib(b.gw.pid())?.0));
     println!("bench: CAN->MQTT rate search");
@@ -1602,8 +1698,15 @@ pub fn run(s: Settings) -> Result<LiveResults> {
     println!("bench: latency with the bus at {load_rate:.0} background frames/s");
     let ((frame_to_event_load, cmd_to_frame_load), load_sent_fps, cpu_ms_per_1k_background) = b
         .under_load(load_rate, |b| {
-            let (_, f, c) = b.latency(s.probes, false)?;
-            Ok((f, c))
+            let l = b.latency(
+                s.probes,
+                Probes {
+                    mqtt_loop: false,
+                    events: true,
+                    stamps: false,
+                },
+            )?;
+            Ok((l.frame_to_event.unwrap_or_default(), l.cmd_to_frame))
         })?;
 
     b.gw.check_alive()?;
@@ -1612,6 +1715,15 @@ pub fn run(s: Settings) -> Result<LiveResults> {
     let forward_rate = (cps * 0.8).max(100.0);
     println!("bench: raw MQTT->CAN forward at {forward_rate:.0} msg/s (the gateway stopped)");
     let raw_forward = b.raw_forward(forward_rate, &dir)?;
+    println!("bench: latency of the raw MQTT->CAN forward at idle");
+    let raw_idle = b.latency(
+        s.probes,
+        Probes {
+            mqtt_loop: false,
+            events: false,
+            stamps: true,
+        },
+    )?;
     let peaks: Vec<String> = peaks.iter().map(|(p, k)| format!("{p} {k}")).collect();
     b.notes.push(format!(
         "gateway VmHWM (KiB) after each phase: {}",
@@ -1642,13 +1754,17 @@ pub fn run(s: Settings) -> Result<LiveResults> {
         commands_delivered: burst.received,
         burst_cps: burst.received as f64 / burst_secs,
         burst_note: burst.note.clone(),
-        cmd_to_frame_idle,
-        frame_to_event_idle,
+        cmd_to_frame_idle: idle.cmd_to_frame,
+        frame_to_event_idle: idle.frame_to_event.unwrap_or_default(),
+        cmd_to_frame_idle_kernel: idle.cmd_to_frame_kernel,
+        frame_to_event_idle_kernel: idle.frame_to_event_kernel,
+        raw_cmd_to_frame_idle: Some(raw_idle.cmd_to_frame),
+        raw_cmd_to_frame_idle_kernel: raw_idle.cmd_to_frame_kernel,
         cmd_to_frame_load,
         frame_to_event_load,
         load_offered_fps: load_rate,
         load_sent_fps,
-        mqtt_loop,
+        mqtt_loop: idle.mqtt_loop.unwrap_or_default(),
         cpu_ms_per_1k_reports,
         cpu_ms_per_1k_commands,
         raw_forward: Some(raw_forward),

@@ -16,6 +16,7 @@ mod live;
 mod loadgen;
 #[cfg(feature = "sila")]
 mod sila;
+mod stamp;
 mod web;
 
 #[derive(Parser)]

@@ -166,6 +166,20 @@ pub struct LiveResults {
     pub cmd_to_frame_idle: Summary,
     /// Frame → event latency, idle bus.
     pub frame_to_event_idle: Summary,
+    /// What the gateway added to an idle command, in kernel timestamps: from the command's packet
+    /// entering the machine's network stack to its frame on the bus (`None`: not measured).
+    #[serde(default)]
+    pub cmd_to_frame_idle_kernel: Option<Summary>,
+    /// What the gateway added to an idle report, in kernel timestamps: from the frame on the bus
+    /// to the event's packet leaving for the broker.
+    #[serde(default)]
+    pub frame_to_event_idle_kernel: Option<Summary>,
+    /// The plain forwarder ([`LiveResults::raw_forward`]) at idle: message → frame, end to end.
+    #[serde(default)]
+    pub raw_cmd_to_frame_idle: Option<Summary>,
+    /// The plain forwarder at idle, in kernel timestamps as [`LiveResults::cmd_to_frame_idle_kernel`].
+    #[serde(default)]
+    pub raw_cmd_to_frame_idle_kernel: Option<Summary>,
     /// Command → frame latency with the bus at its physical frame rate.
     pub cmd_to_frame_load: Summary,
     /// Frame → event latency with the bus at its physical frame rate.
