@@ -44,6 +44,8 @@ pub struct Vm {
     pub modules_dir: PathBuf,
     /// Serial console device of the guest (`ttyS0`, `ttyAMA0`).
     pub console: String,
+    /// Kernel command-line arguments beyond the console and the quiet boot.
+    pub kernel_args: Vec<String>,
     /// A statically linked busybox for the guest's architecture.
     pub busybox: PathBuf,
     /// Modules to load, by name; dependencies are added first.
@@ -198,6 +200,11 @@ impl Vm {
             kernel,
             modules_dir,
             console: "ttyS0".into(),
+            // With two vCPUs the kernel finds TCG's TSCs unsynchronized (they are one host clock,
+            // read at slightly different moments) and falls back to the emulated HPET: every clock
+            // read of every process becomes a system call and a device access, where the target
+            // (a Raspberry Pi's arch timer) and any desktop read the clock in user space (vDSO).
+            kernel_args: vec!["tsc=reliable".into()],
             busybox,
             modules: Vec::new(),
             net_device: Some(NetDevice::E1000),
@@ -486,8 +493,12 @@ poweroff -f
             .args([
                 "-append",
                 &format!(
-                    "console={} quiet loglevel=3 panic=-1{}",
+                    "console={} quiet loglevel=3 panic=-1{}{}",
                     self.console,
+                    self.kernel_args
+                        .iter()
+                        .map(|a| format!(" {a}"))
+                        .collect::<String>(),
                     if interactive { " ihex.shell" } else { "" }
                 ),
             ])
