@@ -13,7 +13,7 @@
 //! frame it cannot send. The core hands it at most `ihex_gateway_core::bridge::TRANSMIT_WINDOW`
 //! frames not yet confirmed, so few frames are ever beyond recall.
 
-use std::{future::Future, io, sync::Arc, time::Duration};
+use std::{future::Future, io, os::fd::AsRawFd, sync::Arc, time::Duration};
 
 use embedded_can::{Frame as _, Id};
 use ihex_gateway_core::{BusEvent, Transmit};
@@ -21,15 +21,20 @@ use ihex_proto::{
     filter::{self, Filter},
     DecodeError, NodeId, Packet,
 };
-use socketcan::{CanFilter, CanFrame, SocketOptions};
+use socketcan::{CanFilter, CanFrame, Socket as _, SocketOptions};
 use tokio::{
+    io::{unix::AsyncFd, Interest},
     sync::{mpsc, watch, Notify},
     task::JoinSet,
 };
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, info, warn};
 
-use crate::error::CanError;
+use crate::{error::CanError, sys};
+
+/// The gateway's SocketCAN socket: non-blocking, in tokio's reactor. The receive task reads it a
+/// batch at a time ([`sys::recv_can_frames`]), the transmit task writes it a frame at a time.
+type Socket = AsyncFd<socketcan::CanSocket>;
 
 /// `CAN_ERR_BUSOFF` (linux/can/error.h): the controller went bus-off.
 pub const CAN_ERR_BUSOFF: u32 = 0x0000_0040;
@@ -190,11 +195,11 @@ struct SocketSetup {
 
 impl SocketSetup {
     /// Opens and configures the socket. `Ok(None)` means "not now" (interface missing or down).
-    fn open(&self) -> Result<Option<socketcan::tokio::CanSocket>, CanError> {
+    fn open(&self) -> Result<Option<Socket>, CanError> {
         if !interface_up(&self.iface) {
             return Ok(None);
         }
-        let sock = match socketcan::tokio::CanSocket::open(&self.iface) {
+        let sock = match socketcan::CanSocket::open(&self.iface) {
             Ok(s) => s,
             Err(e) => {
                 debug!(iface = %self.iface, error = %e, "cannot open CAN interface yet");
@@ -216,6 +221,8 @@ impl SocketSetup {
         sock.set_recv_own_msgs(true)
             .map_err(opt("CAN_RAW_RECV_OWN_MSGS"))?;
         let got = set_receive_buffer(&sock, self.rx_buffer);
+        sock.set_nonblocking(true).map_err(opt("O_NONBLOCK"))?;
+        let sock = sys::register_can(sock).map_err(opt("the reactor's registration (epoll)"))?;
         info!(iface = %self.iface, rx_buffer = got, asked = self.rx_buffer, join = self.plan.join,
               software_check = self.plan.software_check, "CAN interface open");
         Ok(Some(sock))
@@ -225,7 +232,7 @@ impl SocketSetup {
 /// Asks for `bytes` of receive buffer: `SO_RCVBUFFORCE` (needs CAP_NET_ADMIN, ignores
 /// `net.core.rmem_max`) first, `SO_RCVBUF` (capped by rmem_max) otherwise. The default buffer loses
 /// frames at high rates. Returns what the kernel granted (it doubles the value for bookkeeping).
-fn set_receive_buffer(sock: &socketcan::tokio::CanSocket, bytes: usize) -> usize {
+fn set_receive_buffer(sock: &socketcan::CanSocket, bytes: usize) -> usize {
     let val = bytes.min(i32::MAX as usize) as i32;
     if sock
         .set_socket_option_int(libc::SOL_SOCKET, libc::SO_RCVBUFFORCE, val)
@@ -273,9 +280,9 @@ fn interface_drops(iface: &str) -> u64 {
 #[tracing::instrument(name = "can_rx", skip_all, fields(iface = %setup.iface))]
 async fn receive_socket(
     setup: SocketSetup,
-    mut first: Option<Arc<socketcan::tokio::CanSocket>>,
+    mut first: Option<Arc<Socket>>,
     inputs: mpsc::Sender<CanInput>,
-    link: watch::Sender<Option<Arc<socketcan::tokio::CanSocket>>>,
+    link: watch::Sender<Option<Arc<Socket>>>,
     failed: Arc<Notify>,
     cancel: CancellationToken,
 ) {
@@ -325,8 +332,9 @@ async fn receive_socket(
         // The socket's pending error (ENETDOWN on link down) goes to whichever call sees it
         // first, often a write in the transmit task: so a failed write, a failed read and a
         // periodic look at the interface flags all lead here.
+        let mut batch = [socketcan::frame::can_frame_default(); sys::CAN_BATCH];
         let why = loop {
-            let frame = tokio::select! {
+            let read = tokio::select! {
                 _ = cancel.cancelled() => return,
                 _ = failed.notified() => break "a write failed with a link error".to_owned(),
                 _ = check.tick() => {
@@ -344,19 +352,21 @@ async fn receive_socket(
                     }
                     continue;
                 }
-                r = sock.read_frame() => r,
+                r = read_batch(&sock, &mut batch) => r,
             };
-            match frame {
-                Ok(frame) => {
-                    let Some(input) = classify(&frame, &setup.filters, setup.plan.software_check)
-                    else {
-                        continue;
-                    };
-                    if inputs.send(input).await.is_err() {
-                        return;
-                    }
-                }
+            let n = match read {
+                Ok(n) => n,
                 Err(e) => break e.to_string(),
+            };
+            for raw in &batch[..n] {
+                let frame = CanFrame::from(*raw);
+                let Some(input) = classify(&frame, &setup.filters, setup.plan.software_check)
+                else {
+                    continue;
+                };
+                if inputs.send(input).await.is_err() {
+                    return;
+                }
             }
         };
         warn!(%why, "CAN interface lost; reopening");
@@ -364,6 +374,27 @@ async fn receive_socket(
         // Reported here, so the reopen loop must not report it again.
         down = true;
         let _ = inputs.send(CanInput::Bus(BusEvent::InterfaceDown)).await;
+    }
+}
+
+/// Waits until `sock` is readable and reads the frames waiting, one system call for up to `batch`
+/// of them (a busy bus costs one call per batch, not per frame): how many are at the front of
+/// `batch`. Cancel-safe: the frames are read in the same poll that returns them.
+async fn read_batch(sock: &Socket, batch: &mut [libc::can_frame]) -> io::Result<usize> {
+    loop {
+        let mut ready = sock.readable().await?;
+        match ready.try_io(|s| sys::recv_can_frames(s.as_raw_fd(), batch)) {
+            Ok(Ok((n, filled))) => {
+                // A batch with room left emptied the queue: the reactor's next edge says when
+                // more came, without a read that would only answer EAGAIN first.
+                if !filled {
+                    ready.clear_ready();
+                }
+                return Ok(n);
+            }
+            Ok(Err(e)) => return Err(e),
+            Err(_would_block) => {}
+        }
     }
 }
 
@@ -448,7 +479,7 @@ trait Writer: Send + 'static {
 
 /// Writes on the SocketCAN socket of the moment.
 struct SocketWriter {
-    link: watch::Receiver<Option<Arc<socketcan::tokio::CanSocket>>>,
+    link: watch::Receiver<Option<Arc<Socket>>>,
 }
 
 impl Writer for SocketWriter {
@@ -460,7 +491,11 @@ impl Writer for SocketWriter {
         let Some(sock) = self.link.borrow().clone() else {
             return Err(WriteError::Failed("CAN interface down".into(), false));
         };
-        write_retrying(|| sock.write_frame(frame), not_after).await
+        write_retrying(
+            || sock.async_io(Interest::WRITABLE, |s| s.write_frame(&frame)),
+            not_after,
+        )
+        .await
     }
 
     fn echoes(&self) -> bool {

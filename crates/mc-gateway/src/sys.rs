@@ -1,6 +1,7 @@
 //! The system calls neither std nor tokio offer: the MQTT connection's socket options (each a plain
-//! `setsockopt`/`getsockopt` of one `c_int`) and the doctor's free-space query (`statvfs`). The one
-//! place of the crate allowed `unsafe` (`#![deny(unsafe_code)]` everywhere else).
+//! `setsockopt`/`getsockopt` of one `c_int`), the CAN socket's registration with tokio's reactor
+//! and its batched read (`recvmmsg`), and the doctor's free-space query (`statvfs`). The one place of the crate allowed `unsafe`
+//! (`#![deny(unsafe_code)]` everywhere else).
 
 use std::{io, os::fd::RawFd};
 
@@ -29,6 +30,63 @@ pub fn set_nodelay(fd: RawFd) -> io::Result<()> {
 #[cfg(all(test, feature = "demo"))]
 pub fn nodelay(fd: RawFd) -> io::Result<bool> {
     get_int(fd, libc::IPPROTO_TCP, libc::TCP_NODELAY).map(|v| v != 0)
+}
+
+/// Registers a CAN socket with tokio's reactor (the current runtime's).
+pub fn register_can(
+    sock: socketcan::CanSocket,
+) -> io::Result<tokio::io::unix::AsyncFd<socketcan::CanSocket>> {
+    // SAFETY: `CanSocket` owns its descriptor (an `OwnedFd`): it stays open and the same while the
+    // socket lives, which the `AsyncFd` owns from here until it is dropped, and `as_raw_fd` always
+    // returns it.
+    unsafe { tokio::io::unix::AsyncFd::register(sock) }.map_err(|e| e.into_parts().1)
+}
+
+/// Frames one [`recv_can_frames`] call reads at most.
+pub const CAN_BATCH: usize = 32;
+
+/// Reads the classic CAN frames waiting on raw CAN socket `fd`, up to `frames.len()` (at most
+/// [`CAN_BATCH`]), in one `recvmmsg` call that does not wait: how many frames were kept, at the
+/// front of `frames`, and whether the call filled every place (then more may be waiting).
+/// `WouldBlock` when none was waiting. A datagram that is not one `can_frame` (the socket is not
+/// set up for CAN FD) is dropped. `fd` must be a socket of this process; a closed or foreign
+/// descriptor is the kernel's error.
+pub fn recv_can_frames(fd: RawFd, frames: &mut [libc::can_frame]) -> io::Result<(usize, bool)> {
+    const MTU: usize = std::mem::size_of::<libc::can_frame>();
+    let n = frames.len().min(CAN_BATCH);
+    // SAFETY: all-zero is a valid `iovec` and `mmsghdr` (null pointers, zero lengths).
+    let mut iov: [libc::iovec; CAN_BATCH] = unsafe { std::mem::zeroed() };
+    let mut msgs: [libc::mmsghdr; CAN_BATCH] = unsafe { std::mem::zeroed() };
+    for ((v, m), f) in iov.iter_mut().zip(msgs.iter_mut()).zip(frames.iter_mut()) {
+        v.iov_base = (f as *mut libc::can_frame).cast();
+        v.iov_len = MTU;
+        m.msg_hdr.msg_iov = v;
+        m.msg_hdr.msg_iovlen = 1;
+    }
+    // SAFETY: the first `n` headers each point to one live iovec, which points to one live
+    // `can_frame` of `frames` (exclusively borrowed) and gives its exact size: the kernel writes at
+    // most that many bytes there and the message lengths into `msgs`, all of which outlive the
+    // call; no name or control buffers are given. Nothing keeps the pointers after it returns.
+    let r = unsafe {
+        libc::recvmmsg(
+            fd,
+            msgs.as_mut_ptr(),
+            n as _,
+            libc::MSG_DONTWAIT as _,
+            std::ptr::null_mut(),
+        )
+    };
+    if r < 0 {
+        return Err(io::Error::last_os_error());
+    }
+    let mut kept = 0;
+    for i in 0..r as usize {
+        if msgs[i].msg_len as usize == MTU && msgs[i].msg_hdr.msg_flags & libc::MSG_TRUNC == 0 {
+            frames[kept] = frames[i];
+            kept += 1;
+        }
+    }
+    Ok((kept, r as usize == n))
 }
 
 /// `setsockopt` of one `c_int`.
@@ -87,4 +145,40 @@ pub fn statvfs(p: &std::path::Path) -> std::io::Result<(u64, u64)> {
     }
     let frsize = s.f_frsize as u64;
     Ok((s.f_bavail as u64 * frsize, s.f_blocks as u64 * frsize))
+}
+
+#[cfg(test)]
+mod tests {
+    use std::os::{fd::AsRawFd, unix::net::UnixDatagram};
+
+    use super::*;
+
+    /// Any datagram socket takes `recvmmsg` (the host running the tests has no CAN): frames in
+    /// order, a batch at a time, a datagram of another size dropped, then `WouldBlock`.
+    #[test]
+    fn can_frames_are_read_a_batch_at_a_time_and_odd_datagrams_dropped() {
+        let (tx, rx) = UnixDatagram::pair().unwrap();
+        for i in 0..6u8 {
+            let mut f = [0u8; 16];
+            f[0] = i;
+            f[4] = 1;
+            f[8] = 0xa0 | i;
+            tx.send(&f).unwrap();
+        }
+        tx.send(&[1, 2, 3]).unwrap();
+        let mut frames = [socketcan::frame::can_frame_default(); 4];
+        assert_eq!(
+            recv_can_frames(rx.as_raw_fd(), &mut frames).unwrap(),
+            (4, true)
+        );
+        let got: Vec<(u32, u8)> = frames.iter().map(|f| (f.can_id, f.data[0])).collect();
+        assert_eq!(got, [(0, 0xa0), (1, 0xa1), (2, 0xa2), (3, 0xa3)]);
+        assert_eq!(
+            recv_can_frames(rx.as_raw_fd(), &mut frames).unwrap(),
+            (2, false)
+        );
+        assert_eq!((frames[0].can_id, frames[1].data[0]), (4, 0xa5));
+        let e = recv_can_frames(rx.as_raw_fd(), &mut frames).unwrap_err();
+        assert_eq!(e.kind(), io::ErrorKind::WouldBlock);
+    }
 }
