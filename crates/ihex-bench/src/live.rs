@@ -35,7 +35,10 @@ use ihex_bench::stats::Summary;
 use crate::forward;
 use crate::loadgen::{Load, Remote};
 use crate::stamp::{micros_between, Tap, Way};
+use crate::trace::{self, Trace};
 
+/// Idle commands traced by the kernel ([`Bench::trace_idle`]) for the gateway and the forwarder.
+const TRACED: usize = 5;
 /// Bitrate of the island bus.
 pub const BITRATE: u32 = 500_000;
 /// Nodes the benchmark makes known to the gateway (ids 1..=NODES).
@@ -965,6 +968,54 @@ impl Bench {
         })
     }
 
+    /// `n` idle commands to the measured process under the kernel's trace ([`crate::trace`]):
+    /// one note per command, with when the process was woken, ran and wrote the frame.
+    fn trace_idle(&mut self, n: usize) -> Result<Vec<String>> {
+        let who = if self.forwarder.is_some() {
+            "plain forwarder"
+        } else {
+            "gateway"
+        };
+        let pid = self.measured_pid();
+        let rx = open_can(&self.s.iface, &mut self.notes)?;
+        rx.set_filters(&[led_filter()])?;
+        rx.set_recv_timestamp(true)?;
+        let t = Trace::start(pid)?;
+        for k in 0..n {
+            std::thread::sleep(Duration::from_millis(20));
+            t.mark(&format!("ihex-probe {k} sent"))?;
+            self.command_probe(&rx, None)?;
+            t.mark(&format!("ihex-probe {k} frame"))?;
+        }
+        let text = t.stop()?;
+        let us = |t: Option<f64>| t.map_or("-".to_owned(), |t| format!("{t:.0}"));
+        Ok(trace::probes(&text, pid)
+            .iter()
+            .enumerate()
+            .map(|(k, p)| {
+                format!(
+                    "kernel trace, {who}, idle command {k} (us after the publish): woken {}, \
+                     running {}, frame written {}; its system calls before: {}",
+                    us(p.woken_us),
+                    us(p.running_us),
+                    us(p.frame_us),
+                    p.calls.join(" ")
+                )
+            })
+            .collect())
+    }
+
+    /// [`Bench::trace_idle`] into the notes, or why there is no trace.
+    fn traced(&mut self, n: usize) {
+        println!("bench: kernel trace of {n} idle commands");
+        match self.trace_idle(n) {
+            Ok(lines) => self.notes.extend(lines),
+            Err(e) => self
+                .notes
+                .push(format!("no kernel trace of idle commands: {e:#}")),
+        }
+    }
+
     /// One `BootUp` frame to its `node_rebooted` event, µs (`None`: no event within 2 s); with
     /// `stamps`, also from the frame on the bus to the event's packet leaving for the broker.
     fn event_probe(
@@ -1655,6 +1706,7 @@ pub fn run(s: Settings) -> Result<LiveResults> {
     )?;
 
     peaks.push(("idle latency", memory_kib(b.gw.pid())?.0));
+    b.traced(TRACED);
     println!("bench: CAN->MQTT rate search");
     let ceiling = bare.rate_fps.max(1000.0);
     let (best, mut trials) = b.search(250.0, ceiling, Bench::trial)?;
@@ -1724,6 +1776,7 @@ pub fn run(s: Settings) -> Result<LiveResults> {
             stamps: true,
         },
     )?;
+    b.traced(TRACED);
     let peaks: Vec<String> = peaks.iter().map(|(p, k)| format!("{p} {k}")).collect();
     b.notes.push(format!(
         "gateway VmHWM (KiB) after each phase: {}",

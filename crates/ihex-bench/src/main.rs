@@ -17,6 +17,7 @@ mod loadgen;
 #[cfg(feature = "sila")]
 mod sila;
 mod stamp;
+mod trace;
 mod web;
 
 #[derive(Parser)]

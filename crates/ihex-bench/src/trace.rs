@@ -1,0 +1,194 @@
+//! The kernel's trace (ftrace, through tracefs) of a few idle commands through the measured
+//! process: when it was woken, when it ran, which system calls it made and when it wrote the
+//! command's frame. No profiler runs in the microVM; this says where an idle command's time goes.
+
+use std::fs;
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use anyhow::{bail, Context, Result};
+
+const ROOT: &str = "/sys/kernel/tracing";
+const EVENTS: [&str; 4] = [
+    "raw_syscalls/sys_enter",
+    "raw_syscalls/sys_exit",
+    "sched/sched_switch",
+    "sched/sched_wakeup",
+];
+
+/// A trace running for one process.
+pub(crate) struct Trace {
+    root: PathBuf,
+}
+
+impl Trace {
+    /// Starts tracing the system calls and scheduling of process `pid` (mounting tracefs when it
+    /// is not yet), on the monotonic clock.
+    pub(crate) fn start(pid: u32) -> Result<Trace> {
+        let root = PathBuf::from(ROOT);
+        if !root.join("trace").exists() {
+            let ok = Command::new("mount")
+                .args(["-t", "tracefs", "nodev", ROOT])
+                .status()
+                .is_ok_and(|s| s.success());
+            if !ok || !root.join("trace").exists() {
+                bail!("no tracefs at {ROOT} (mount -t tracefs nodev {ROOT} failed)");
+            }
+        }
+        let t = Trace { root };
+        t.write("tracing_on", "0")?;
+        t.write("trace", "")?;
+        t.write("trace_clock", "mono")?;
+        t.write("buffer_size_kb", "8192")?;
+        t.write("set_event_pid", &pid.to_string())?;
+        for e in EVENTS {
+            t.write(&format!("events/{e}/enable"), "1")?;
+        }
+        t.write("tracing_on", "1")?;
+        Ok(t)
+    }
+
+    /// Writes `text` into the trace (`trace_marker`), between the traced process's events.
+    pub(crate) fn mark(&self, text: &str) -> Result<()> {
+        self.write("trace_marker", text)
+    }
+
+    /// Stops tracing, switches the events off and returns the trace.
+    pub(crate) fn stop(self) -> Result<String> {
+        self.write("tracing_on", "0")?;
+        let text = fs::read_to_string(self.root.join("trace")).context("reading the trace")?;
+        for e in EVENTS {
+            self.write(&format!("events/{e}/enable"), "0")?;
+        }
+        self.write("set_event_pid", "")?;
+        self.write("trace", "")?;
+        Ok(text)
+    }
+
+    fn write(&self, file: &str, text: &str) -> Result<()> {
+        let p: &Path = &self.root.join(file);
+        fs::write(p, text).with_context(|| format!("writing {text:?} to {}", p.display()))
+    }
+}
+
+/// One probe of the trace, between the markers `ihex-probe K sent` and `ihex-probe K frame`:
+/// times in µs from the first marker.
+#[derive(Debug, Default, PartialEq)]
+pub(crate) struct Probe {
+    /// The process was woken (`sched_wakeup`).
+    pub woken_us: Option<f64>,
+    /// It began to run (`sched_switch` to it).
+    pub running_us: Option<f64>,
+    /// It entered the `write` or `sendto` of a 16-byte frame.
+    pub frame_us: Option<f64>,
+    /// Its system calls up to the frame's write, by name.
+    pub calls: Vec<&'static str>,
+}
+
+/// The probes of `trace` for process `pid`.
+pub(crate) fn probes(trace: &str, pid: u32) -> Vec<Probe> {
+    let me = format!("-{pid} ");
+    let woken = format!(" pid={pid} ");
+    let mut out = Vec::new();
+    let mut open: Option<(f64, Probe)> = None;
+    for line in trace.lines().filter(|l| !l.starts_with('#')) {
+        let Some((ts, what)) = timestamp_and_event(line) else {
+            continue;
+        };
+        if what.contains("ihex-probe ") && what.trim_end().ends_with(" sent") {
+            open = Some((ts, Probe::default()));
+            continue;
+        }
+        let Some((t0, p)) = open.as_mut() else {
+            continue;
+        };
+        let at = (ts - *t0) * 1e6;
+        if what.contains("ihex-probe ") && what.trim_end().ends_with(" frame") {
+            out.push(std::mem::take(p));
+            open = None;
+        } else if p.frame_us.is_some() {
+        } else if what.starts_with("sched_wakeup:") && what.contains(&woken) {
+            p.woken_us.get_or_insert(at);
+        } else if what.starts_with("sched_switch:") && what.contains(&format!("next_pid={pid} ")) {
+            p.running_us.get_or_insert(at);
+        } else if line.contains(&me) {
+            if let Some(args) = what.strip_prefix("sys_enter: NR ") {
+                let (nr, rest) = args.split_once(' ').unwrap_or((args, ""));
+                let nr: u32 = nr.parse().unwrap_or(u32::MAX);
+                p.calls.push(name(nr));
+                // write or send of 0x10 bytes (one `can_frame`): the frame.
+                if (nr == 1 || nr == 44) && rest.split(", ").nth(2) == Some("10") {
+                    p.frame_us = Some(at);
+                }
+            }
+        }
+    }
+    out
+}
+
+/// The timestamp (s) and the event text of a trace line: `task-pid [cpu] flags  ts: event`.
+fn timestamp_and_event(line: &str) -> Option<(f64, &str)> {
+    let (head, event) = line.split_once(": ")?;
+    let ts = head.rsplit(' ').next()?.parse().ok()?;
+    Some((ts, event.trim_start()))
+}
+
+/// The x86_64 name of system call `nr`, for the calls a gateway makes around a command.
+fn name(nr: u32) -> &'static str {
+    match nr {
+        0 => "read",
+        1 => "write",
+        7 => "poll",
+        20 => "writev",
+        44 => "sendto",
+        45 => "recvfrom",
+        46 => "sendmsg",
+        47 => "recvmsg",
+        54 => "setsockopt",
+        202 => "futex",
+        228 => "clock_gettime",
+        232 => "epoll_wait",
+        233 => "epoll_ctl",
+        281 => "epoll_pwait",
+        299 => "recvmmsg",
+        307 => "sendmmsg",
+        _ => "other",
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const TRACE: &str = "\
+# tracer: nop
+#
+   ihex-bench-90  [000] .....  100.000000: tracing_mark_write: ihex-probe 3 sent
+  <idle>-0       [001] d.s..  100.000400: sched_wakeup: comm=mc-gateway pid=77 prio=120 target_cpu=001
+  <idle>-0       [001] d....  100.000500: sched_switch: prev_comm=swapper/1 prev_pid=0 prev_prio=120 prev_state=R ==> next_comm=mc-gateway next_pid=77 next_prio=120
+  mc-gateway-77  [001] .....  100.000600: sys_exit: NR 232 = 1
+  mc-gateway-77  [001] .....  100.000700: sys_enter: NR 45 (7, 55d0, 1000, 40, 0, 0)
+  mc-gateway-77  [001] .....  100.001100: sys_enter: NR 1 (5, 7ffd, 10, 0, 0, 0)
+  mc-gateway-77  [001] .....  100.001300: sys_enter: NR 44 (7, 55d0, 4, 40, 0, 0)
+   ihex-bench-90  [000] .....  100.002000: tracing_mark_write: ihex-probe 3 frame
+";
+
+    #[test]
+    fn a_probe_gives_the_wake_up_the_run_the_calls_and_the_frame() {
+        let p = probes(TRACE, 77);
+        assert_eq!(p.len(), 1);
+        let close = |a: Option<f64>, b: f64| (a.unwrap() - b).abs() < 0.01;
+        assert!(close(p[0].woken_us, 400.0), "{p:?}");
+        assert!(close(p[0].running_us, 500.0), "{p:?}");
+        assert!(close(p[0].frame_us, 1100.0), "{p:?}");
+        // The PUBACK's sendto after the frame is not counted.
+        assert_eq!(p[0].calls, ["recvfrom", "write"]);
+    }
+
+    #[test]
+    fn another_process_and_an_unfinished_probe_give_nothing() {
+        assert_eq!(probes(TRACE, 78)[0].calls.len(), 0);
+        let cut = TRACE.lines().take(7).collect::<Vec<_>>().join("\n");
+        assert!(probes(&cut, 77).is_empty());
+    }
+}
