@@ -296,7 +296,31 @@ impl Gateway {
             web: web_in,
             sila: sila_in,
         };
-        let result = core.run(inputs, &mut tasks, &cancel).await;
+        // The core is a task of its own, not this future: tokio's current-thread scheduler polls
+        // the future it blocks on only after a poll of its I/O driver, so a command the MQTT task
+        // handed over waited for an `epoll_wait`, and its frame for the MQTT task's next write.
+        let mut core = tokio::spawn(core.run(inputs, cancel.clone()));
+        let joined = |r: Result<Result<(), GatewayError>, tokio::task::JoinError>| {
+            r.unwrap_or_else(|e| Err(GatewayError::Task(e.to_string())))
+        };
+        let result = tokio::select! {
+            r = &mut core => joined(r),
+            r = tasks.join_next() => {
+                if cancel.is_cancelled() {
+                    // Tasks end on cancellation; the core ends too, after its last publications.
+                    joined(core.await)
+                } else {
+                    // No task ends on its own while the gateway runs.
+                    let why = match r {
+                        Some(Err(e)) => e.to_string(),
+                        _ => "a gateway task ended early".to_owned(),
+                    };
+                    error!(%why, "stopping the gateway");
+                    core.abort();
+                    Err(GatewayError::Task(why))
+                }
+            }
+        };
 
         cancel.cancel();
         let mut failure = result.err();
@@ -356,12 +380,7 @@ async fn next_of<T>(rx: &mut Option<mpsc::Receiver<T>>) -> T {
 }
 
 impl Core {
-    async fn run(
-        mut self,
-        inputs: Inputs,
-        tasks: &mut JoinSet<()>,
-        cancel: &CancellationToken,
-    ) -> Result<(), GatewayError> {
+    async fn run(mut self, inputs: Inputs, cancel: CancellationToken) -> Result<(), GatewayError> {
         let Inputs {
             can: mut can_in,
             mqtt: mut mqtt_in,
@@ -378,19 +397,6 @@ impl Core {
             // flood of frames the timers.
             tokio::select! {
                 _ = cancel.cancelled() => break,
-                r = tasks.join_next() => {
-                    if cancel.is_cancelled() {
-                        // Tasks end on cancellation; the caller joins the rest.
-                        break;
-                    }
-                    // No task ends on its own while the gateway runs.
-                    let why = match r {
-                        Some(Err(e)) => e.to_string(),
-                        _ => "a gateway task ended early".to_owned(),
-                    };
-                    error!(%why, "stopping the gateway");
-                    return Err(GatewayError::Task(why));
-                }
                 _ = tokio::time::sleep_until(deadline) => {
                     // After a stall (a loaded host, a paused VM) the deadline and the frames read
                     // during it are ready at once; the yield lets the receive task read what the
@@ -733,14 +739,7 @@ mod tests {
             sila: None,
         };
         let cancel = CancellationToken::new();
-        let core = tokio::spawn({
-            let cancel = cancel.clone();
-            async move {
-                let mut tasks = JoinSet::new();
-                tasks.spawn(std::future::pending());
-                core.run(inputs, &mut tasks, &cancel).await
-            }
-        });
+        let core = tokio::spawn(core.run(inputs, cancel.clone()));
         let from_node = move |msg| {
             CanInput::Packet(Packet {
                 src: node,
