@@ -914,9 +914,7 @@ impl Bench {
     /// apart, so a VM that slows down or speeds up during the phase moves every series alike — the
     /// gateway-added estimate subtracts their medians from each other.
     fn latency(&mut self, probes: usize, which: Probes) -> Result<Latency> {
-        let rx = open_can(&self.s.iface, &mut self.notes)?;
-        rx.set_filters(&[led_filter()])?;
-        rx.set_recv_timestamp(true)?;
+        let rx = self.led_socket()?;
         let mut stamps = if which.stamps {
             // The bench's own reports, as the bus carried them (CAN_RAW_LOOPBACK).
             let reports = open_can(&self.s.iface, &mut self.notes)?;
@@ -968,6 +966,15 @@ impl Bench {
         })
     }
 
+    /// A socket reading the `LedSet` frames on the bus, with their kernel timestamps: where the
+    /// command probes see their frames.
+    fn led_socket(&mut self) -> Result<CanSocket> {
+        let rx = open_can(&self.s.iface, &mut self.notes)?;
+        rx.set_filters(&[led_filter()])?;
+        rx.set_recv_timestamp(true)?;
+        Ok(rx)
+    }
+
     /// `n` idle commands to the measured process under the kernel's trace ([`crate::trace`]):
     /// one note per command, with when the process was woken, ran and wrote the frame.
     fn trace_idle(&mut self, n: usize) -> Result<Vec<String>> {
@@ -977,9 +984,7 @@ impl Bench {
             "gateway"
         };
         let pid = self.measured_pid();
-        let rx = open_can(&self.s.iface, &mut self.notes)?;
-        rx.set_filters(&[led_filter()])?;
-        rx.set_recv_timestamp(true)?;
+        let rx = self.led_socket()?;
         let t = Trace::start(pid)?;
         for k in 0..n {
             std::thread::sleep(Duration::from_millis(20));
@@ -1020,10 +1025,9 @@ impl Bench {
     /// `stamps`, also from the frame on the bus to the event's packet leaving for the broker.
     fn event_probe(
         &mut self,
-        stamps: Option<&mut (Tap, CanSocket)>,
+        mut stamps: Option<&mut (Tap, CanSocket)>,
     ) -> Result<(Option<f64>, Option<f64>)> {
         self.mqtt.drain();
-        let mut stamps = stamps;
         if let Some((tap, reports)) = stamps.as_mut() {
             tap.drain()?;
             reports.set_nonblocking(true)?;
@@ -1070,7 +1074,7 @@ impl Bench {
     fn command_probe(
         &mut self,
         rx: &CanSocket,
-        tap: Option<&mut Tap>,
+        mut tap: Option<&mut Tap>,
     ) -> Result<(Option<f64>, Option<f64>)> {
         let k = self.next_cmd;
         self.next_cmd += 1;
@@ -1079,7 +1083,6 @@ impl Bench {
         } else {
             ("CommandsTopic", led_command(k))
         };
-        let mut tap = tap;
         if let Some(tap) = tap.as_mut() {
             tap.drain()?;
         }
@@ -1443,9 +1446,7 @@ fn bare_mqtt_trial(
         }
     }
     let received = got.len();
-    let t = Trial {
-        ..counted(rate, sent, secs, received, last, t_end)
-    };
+    let t = counted(rate, sent, secs, received, last, t_end);
     println!(
         "bench: bare MQTT {topic} {:>8.0} msg/s offered, {:>8.0} sent, {}/{} received, lag {:.0} ms{}",
         t.offered_fps,

@@ -107,6 +107,8 @@ pub(crate) fn probes(trace: &str, pid: u32) -> Vec<Probe> {
             out.push(std::mem::take(p));
             open = None;
         } else if p.frame_us.is_some() {
+            // What the process did after the frame is not the probe's.
+            continue;
         } else if what.starts_with("sched_wakeup:") && what.contains(&woken) {
             p.woken_us.get_or_insert(at);
         } else if what.starts_with("sched_switch:") && what.contains(&format!("next_pid={pid} ")) {
