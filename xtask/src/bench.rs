@@ -356,6 +356,8 @@ fn live_args(gateway: &Path, args: &BenchArgs) -> Vec<String> {
         "live".into(),
         "--iface".into(),
         "vcan0".into(),
+        "--forward-iface".into(),
+        "vcan1".into(),
         "--gateway".into(),
         gateway.to_string_lossy().into_owned(),
         "--probes".into(),

@@ -29,7 +29,7 @@ use rumqttc::{Client, Event as MqttEvent, MqttOptions, Packet as MqttPacket, QoS
 use socketcan::{CanFilter, CanFrame, CanSocket, EmbeddedFrame, Socket, SocketOptions};
 
 use ihex_bench::bus::{Limit, PairLimit};
-use ihex_bench::results::{Bare, CpuShare, LiveResults, MqttBare, Trial};
+use ihex_bench::results::{Bare, CostRound, CpuShare, LiveResults, MqttBare, Trial};
 use ihex_bench::stats::Summary;
 
 use crate::forward;
@@ -39,6 +39,8 @@ use crate::trace::{self, Trace};
 
 /// Idle commands traced by the kernel ([`Bench::trace_idle`]) for the gateway and the forwarder.
 const TRACED: usize = 5;
+/// Rounds of the command cost comparison: a gateway trial, then a forwarder trial ([`CostRound`]).
+const COST_ROUNDS: usize = 5;
 /// Bitrate of the island bus.
 pub const BITRATE: u32 = 500_000;
 /// Nodes the benchmark makes known to the gateway (ids 1..=NODES).
@@ -60,6 +62,8 @@ const USER_HZ: f64 = 100.0;
 pub struct Settings {
     /// SocketCAN interface (vcan0).
     pub iface: String,
+    /// The plain forwarder's interface (vcan1): its frames stay off the gateway's bus.
+    pub forward_iface: String,
     /// The `mc-gateway` binary.
     pub gateway: PathBuf,
     /// The `mosquitto` binary (started on a free loopback port).
@@ -253,7 +257,8 @@ pub(crate) fn answers(mqtt: &Mqtt, want: usize, quiet: Duration) -> (usize, Opti
 }
 
 /// The nodes' side of commands: acks every LedSet addressed to a known node, as an SC does, so the
-/// gateway's pending-command table stays as small as on a real island.
+/// gateway's pending-command table stays as small as on a real island. Without acks it only counts
+/// (the plain forwarder's bus, where nothing waits for an answer).
 struct Responder {
     stop: Arc<AtomicBool>,
     thread: JoinHandle<u64>,
@@ -265,7 +270,7 @@ struct Responder {
 type Seen = Receiver<(Instant, u32)>;
 
 impl Responder {
-    fn start(iface: &str, notes: &mut Vec<String>) -> Result<(Responder, Seen)> {
+    fn start(iface: &str, ack: bool, notes: &mut Vec<String>) -> Result<(Responder, Seen)> {
         let sock = open_can(iface, notes)?;
         sock.set_filters(&[led_filter()])?;
         let stop = Arc::new(AtomicBool::new(false));
@@ -284,7 +289,10 @@ impl Responder {
                 if let Some(i) = led_index(&p) {
                     let _ = seen_tx.send((t, i));
                 }
-                if let Message::LedSet { seq, .. } = p.msg {
+                let Message::LedSet { seq, .. } = p.msg else {
+                    continue;
+                };
+                if ack {
                     let ack = Packet::report(
                         p.dest,
                         Message::Ack {
@@ -813,20 +821,52 @@ struct Bench {
     remote: Option<Remote>,
     /// Where the broker listens, as seen from here.
     broker_addr: SocketAddr,
-    /// The plain forwarder, once it replaced the gateway ([`Bench::raw_forward`]): the trials
-    /// then feed and measure it.
-    forwarder: Option<Proc>,
+    /// The plain forwarder, once started ([`Bench::start_forwarder`]).
+    forwarder: Option<Forwarder>,
+    /// Whom the command trials and probes address: the gateway, or the forwarder.
+    target: Target,
     notes: Vec<String>,
 }
 
+/// Whom the command trials, probes and traces address.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Target {
+    Gateway,
+    Forwarder,
+}
+
+/// The plain forwarder running beside the gateway, on a bus of its own.
+struct Forwarder {
+    proc: Proc,
+    /// Its interface ([`Settings::forward_iface`]).
+    iface: String,
+    /// Its frames, counted as the responder counts the gateway's (nothing acks them).
+    counter: Responder,
+    seen: Seen,
+}
+
 impl Bench {
-    /// The process the trials measure: the gateway, or the forwarder in its place.
+    /// The process the trials measure.
     fn measured(&mut self) -> &mut Proc {
-        self.forwarder.as_mut().unwrap_or(&mut self.gw)
+        match (self.target, &mut self.forwarder) {
+            (Target::Forwarder, Some(f)) => &mut f.proc,
+            _ => &mut self.gw,
+        }
     }
 
     fn measured_pid(&self) -> u32 {
-        self.forwarder.as_ref().unwrap_or(&self.gw).pid()
+        match (self.target, &self.forwarder) {
+            (Target::Forwarder, Some(f)) => f.proc.pid(),
+            _ => self.gw.pid(),
+        }
+    }
+
+    /// The bus the measured process writes its frames to.
+    fn measured_iface(&self) -> String {
+        match (self.target, &self.forwarder) {
+            (Target::Forwarder, Some(f)) => f.iface.clone(),
+            _ => self.s.iface.clone(),
+        }
     }
 
     /// Waits (up to 5 s) until the gateway has used no CPU for 200 ms, so that a trial does not
@@ -969,7 +1009,7 @@ impl Bench {
     /// A socket reading the `LedSet` frames on the bus, with their kernel timestamps: where the
     /// command probes see their frames.
     fn led_socket(&mut self) -> Result<CanSocket> {
-        let rx = open_can(&self.s.iface, &mut self.notes)?;
+        let rx = open_can(&self.measured_iface(), &mut self.notes)?;
         rx.set_filters(&[led_filter()])?;
         rx.set_recv_timestamp(true)?;
         Ok(rx)
@@ -978,10 +1018,9 @@ impl Bench {
     /// `n` idle commands to the measured process under the kernel's trace ([`crate::trace`]):
     /// one note per command, with when the process was woken, ran and wrote the frame.
     fn trace_idle(&mut self, n: usize) -> Result<Vec<String>> {
-        let who = if self.forwarder.is_some() {
-            "plain forwarder"
-        } else {
-            "gateway"
+        let who = match self.target {
+            Target::Forwarder => "plain forwarder",
+            Target::Gateway => "gateway",
         };
         let pid = self.measured_pid();
         let rx = self.led_socket()?;
@@ -1078,7 +1117,7 @@ impl Bench {
     ) -> Result<(Option<f64>, Option<f64>)> {
         let k = self.next_cmd;
         self.next_cmd += 1;
-        let (topic, payload) = if self.forwarder.is_some() {
+        let (topic, payload) = if self.target == Target::Forwarder {
             (forward::TOPIC, forward::message(&led_frame(k)?))
         } else {
             ("CommandsTopic", led_command(k))
@@ -1129,10 +1168,12 @@ impl Bench {
 
     fn command_run(&mut self, count: usize, rate: f64) -> Result<Trial> {
         self.settle()?;
-        let seen = self
-            .seen
-            .as_ref()
-            .ok_or_else(|| anyhow!("command trial without the responder"))?;
+        // The measured process's frames as read (by the responder, or the forwarder's counter).
+        let seen = match (self.target, &self.forwarder) {
+            (Target::Forwarder, Some(f)) => Some(&f.seen),
+            _ => self.seen.as_ref(),
+        }
+        .ok_or_else(|| anyhow!("command trial without the responder"))?;
         while seen.try_recv().is_ok() {}
         let base = self.next_cmd;
         self.next_cmd += count as u32;
@@ -1141,7 +1182,7 @@ impl Bench {
         let pid = self.measured_pid();
         let cpu0 = CpuSnapshot::take(pid, self.broker)?;
         let rate_or_burst = rate.is_finite().then_some(rate);
-        let raw = self.forwarder.is_some();
+        let raw = self.target == Target::Forwarder;
         // Published here, or by the generator beside the broker, which also counts the answers
         // (they come when the frames did, so the frames are read below from the responder's
         // queue either way).
@@ -1230,37 +1271,75 @@ impl Bench {
         Ok(t)
     }
 
-    /// The raw forward trial, last: stops the gateway and starts [`forward`] in its place on the
-    /// same interface and broker, then sends it `count` frames at `rate` as the command trials
-    /// send commands (the same load generator, the same frame count at the responder).
-    fn raw_forward(&mut self, rate: f64, dir: &Path) -> Result<Trial> {
-        let _ = self.gw.child.kill();
-        let _ = self.gw.child.wait();
+    /// Starts [`forward`] beside the gateway, on its own interface and the same broker, and waits
+    /// until it forwards. The gateway stays up and idle: the trials then alternate between them
+    /// ([`Bench::cost_rounds`]).
+    fn start_forwarder(&mut self, dir: &Path) -> Result<()> {
+        let iface = self.s.forward_iface.clone();
         let mut c = Command::new(std::env::current_exe()?);
-        c.args(["forward", "--iface", &self.s.iface, "--broker"])
+        c.args(["forward", "--iface", &iface, "--broker"])
             .arg(self.broker_addr.to_string());
-        self.forwarder = Some(Proc::spawn(
-            c,
-            &dir.join("forward.log"),
-            "ihex-bench forward",
-        )?);
+        let proc = Proc::spawn(c, &dir.join("forward.log"), "ihex-bench forward")?;
+        let (counter, seen) = Responder::start(&iface, false, &mut self.notes)
+            .with_context(|| format!("the plain forwarder's bus (--forward-iface {iface})"))?;
+        self.forwarder = Some(Forwarder {
+            proc,
+            iface,
+            counter,
+            seen,
+        });
         // Subscribed once a frame comes through.
-        let mut ready = false;
-        for _ in 0..50 {
-            let t = self.command_run(1, f64::INFINITY)?;
-            if t.received == 1 {
-                ready = true;
-                break;
+        let ready = self.addressing(Target::Forwarder, |b| {
+            for _ in 0..50 {
+                if b.command_run(1, f64::INFINITY)?.received == 1 {
+                    return Ok(true);
+                }
             }
-        }
+            Ok(false)
+        })?;
         if !ready {
             bail!(
                 "the raw forwarder forwarded nothing within 50 tries; its log: {}",
                 std::fs::read_to_string(dir.join("forward.log")).unwrap_or_default()
             );
         }
-        let count = ((rate * self.s.trial_secs) as usize).clamp(200, 6000);
-        self.command_run(count, rate)
+        Ok(())
+    }
+
+    /// Runs `f` with the trials and probes addressed to `target`, then to the gateway again.
+    fn addressing<T>(
+        &mut self,
+        target: Target,
+        f: impl FnOnce(&mut Self) -> Result<T>,
+    ) -> Result<T> {
+        self.target = target;
+        let out = f(self);
+        self.target = Target::Gateway;
+        out
+    }
+
+    /// [`COST_ROUNDS`] rounds of a gateway command trial and a forwarder trial at `rate`, one
+    /// after the other; returns them with every trial, gateway and forwarder alternately.
+    fn cost_rounds(&mut self, rate: f64) -> Result<(Vec<CostRound>, Vec<Trial>)> {
+        let per_1k = |t: &Trial| t.gateway_cpu_ms * 1000.0 / t.received.max(1) as f64;
+        let (mut rounds, mut trials) = (Vec::new(), Vec::new());
+        for round in 1..=COST_ROUNDS {
+            let gateway = self.command_trial(rate)?;
+            let forward = self.addressing(Target::Forwarder, |b| b.command_trial(rate))?;
+            let r = CostRound {
+                gateway_ms: per_1k(&gateway),
+                forward_ms: per_1k(&forward),
+            };
+            println!(
+                "bench: cost round {round}/{COST_ROUNDS}: gateway {:.0} ms, forwarder {:.0} ms per 1,000 ({:.2}x)",
+                r.gateway_ms,
+                r.forward_ms,
+                r.ratio()
+            );
+            rounds.push(r);
+            trials.extend([gateway, forward]);
+        }
+        Ok((rounds, trials))
     }
 
     /// Runs `f` while a background thread fills the bus with `HealthReply` frames at `rate`.
@@ -1674,6 +1753,7 @@ pub fn run(s: Settings) -> Result<LiveResults> {
         remote,
         broker_addr: addr,
         forwarder: None,
+        target: Target::Gateway,
         notes,
     };
 
@@ -1691,7 +1771,7 @@ pub fn run(s: Settings) -> Result<LiveResults> {
     }
     std::thread::sleep(Duration::from_millis(500));
     b.next_index = u32::from(NODES);
-    let (responder, seen) = Responder::start(&s.iface, &mut b.notes)?;
+    let (responder, seen) = Responder::start(&s.iface, true, &mut b.notes)?;
     b.seen = Some(seen);
 
     // Which phase sets the gateway's peak: its VmHWM after each.
@@ -1730,10 +1810,6 @@ pub fn run(s: Settings) -> Result<LiveResults> {
         b.mqtt.client.unsubscribe("EventsTopic")?;
     }
     let (cps, mut command_trials) = b.search(250.0, ceiling, Bench::command_trial)?;
-    let cost = b.command_trial((cps * 0.8).max(100.0))?;
-    let cpu_ms_per_1k_commands = cost.gateway_cpu_ms * 1000.0 / cost.received.max(1) as f64;
-    let share_commands = cost.share;
-    command_trials.push(cost);
     peaks.push(("MQTT->CAN rates", memory_kib(b.gw.pid())?.0));
     println!("bench: MQTT->CAN burst of {} commands", s.commands);
     let burst = b.command_trial(f64::INFINITY)?;
@@ -1765,25 +1841,50 @@ pub fn run(s: Settings) -> Result<LiveResults> {
     b.gw.check_alive()?;
     let (hwm, rss) = memory_kib(b.gw.pid())?;
     peaks.push(("bus load", hwm));
-    let forward_rate = (cps * 0.8).max(100.0);
-    println!("bench: raw MQTT->CAN forward at {forward_rate:.0} msg/s (the gateway stopped)");
-    let raw_forward = b.raw_forward(forward_rate, &dir)?;
+    // Cost: the gateway and the plain forwarder alternately, at 80 % of the sustained rate.
+    let cost_rate = (cps * 0.8).max(100.0);
+    println!(
+        "bench: MQTT->CAN cost at {cost_rate:.0} msg/s, the gateway and a plain forwarder \
+         (on {}) alternately, {COST_ROUNDS} rounds",
+        s.forward_iface
+    );
+    b.start_forwarder(&dir)?;
+    let (cost_rounds, cost_trials) = b.cost_rounds(cost_rate)?;
+    // The gateway's figures from its median round (by CPU), the forwarder's last trial for its
+    // counts; the ratio is the rounds' own ([`LiveResults::cost_ratio`]).
+    let mut by_cpu: Vec<usize> = (0..cost_rounds.len()).collect();
+    by_cpu.sort_by(|&i, &j| {
+        cost_rounds[i]
+            .gateway_ms
+            .total_cmp(&cost_rounds[j].gateway_ms)
+    });
+    let median = by_cpu[(by_cpu.len() - 1) / 2];
+    let cpu_ms_per_1k_commands = cost_rounds[median].gateway_ms;
+    let share_commands = cost_trials[2 * median].share;
+    let raw_forward = cost_trials.last().cloned();
+    command_trials.extend(cost_trials.into_iter().step_by(2));
     println!("bench: latency of the raw MQTT->CAN forward at idle");
-    let raw_idle = b.latency(
-        s.probes,
-        Probes {
-            mqtt_loop: false,
-            events: false,
-            stamps: true,
-        },
-    )?;
-    b.traced(TRACED);
+    let raw_idle = b.addressing(Target::Forwarder, |b| {
+        let l = b.latency(
+            s.probes,
+            Probes {
+                mqtt_loop: false,
+                events: false,
+                stamps: true,
+            },
+        )?;
+        b.traced(TRACED);
+        Ok(l)
+    })?;
     let peaks: Vec<String> = peaks.iter().map(|(p, k)| format!("{p} {k}")).collect();
     b.notes.push(format!(
         "gateway VmHWM (KiB) after each phase: {}",
         peaks.join(", ")
     ));
     let acked = responder.stop();
+    if let Some(f) = b.forwarder.take() {
+        f.counter.stop();
+    }
     b.notes.push(format!(
         "the bench acked {acked} LedSet commands as their nodes (each ack -> one command_result)"
     ));
@@ -1821,7 +1922,8 @@ pub fn run(s: Settings) -> Result<LiveResults> {
         mqtt_loop: idle.mqtt_loop.unwrap_or_default(),
         cpu_ms_per_1k_reports,
         cpu_ms_per_1k_commands,
-        raw_forward: Some(raw_forward),
+        raw_forward,
+        cost_rounds,
         share_reports,
         share_commands,
         cpu_ms_per_1k_background,

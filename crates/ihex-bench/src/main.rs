@@ -52,6 +52,10 @@ enum Cmd {
         /// SocketCAN interface.
         #[arg(long, default_value = "vcan0")]
         iface: String,
+        /// The plain forwarder's SocketCAN interface (the yardstick of the command cost runs
+        /// beside the gateway, on a bus of its own).
+        #[arg(long, default_value = "vcan1")]
+        forward_iface: String,
         /// The mc-gateway binary.
         #[arg(long)]
         gateway: PathBuf,
@@ -266,6 +270,7 @@ fn main() -> Result<()> {
     match Cli::parse().command {
         Cmd::Live {
             iface,
+            forward_iface,
             gateway,
             mosquitto,
             probes,
@@ -279,6 +284,7 @@ fn main() -> Result<()> {
         } => {
             let r = live::run(live::Settings {
                 iface,
+                forward_iface,
                 gateway,
                 mosquitto,
                 probes,

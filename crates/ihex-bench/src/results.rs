@@ -146,10 +146,15 @@ pub struct LiveResults {
     /// Every MQTT → CAN trial (commands paced at a rate), in the order run.
     #[serde(default)]
     pub command_trials: Vec<Trial>,
-    /// The plain MQTT → CAN forwarder ([`crate`]'s `forward`) in the gateway's place, at the
-    /// command cost trial's rate: its CPU per 1,000 frames is what a raw frame forward costs.
+    /// The plain MQTT → CAN forwarder ([`crate`]'s `forward`) beside the gateway, at the command
+    /// cost trial's rate (its last trial): its CPU per 1,000 frames is what a raw frame forward
+    /// costs.
     #[serde(default)]
     pub raw_forward: Option<Trial>,
+    /// The command cost trials: the gateway's and the plain forwarder's, alternately in the same
+    /// boot at the same rate (empty in results from before they were measured so).
+    #[serde(default)]
+    pub cost_rounds: Vec<CostRound>,
     /// MQTT → CAN: highest command rate delivered as frames with zero loss, commands/s.
     pub mqtt_to_can_cps: f64,
     /// MQTT → CAN burst: commands published back to back.
@@ -222,10 +227,73 @@ pub struct LiveResults {
     pub notes: Vec<String>,
 }
 
+/// One round of the command cost comparison: a gateway command trial, then a plain forwarder
+/// trial at the same rate, one after the other. A round's ratio compares two trials minutes
+/// closer than two halves of a run, so the machine's drift (the host's other load slows the
+/// vCPUs and is charged to whatever runs) cancels in it.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct CostRound {
+    /// Gateway CPU per 1,000 acknowledged commands, ms.
+    pub gateway_ms: f64,
+    /// Plain forwarder CPU per 1,000 frames, ms.
+    pub forward_ms: f64,
+}
+
+impl CostRound {
+    /// Gateway / forwarder.
+    pub fn ratio(&self) -> f64 {
+        self.gateway_ms / self.forward_ms
+    }
+}
+
+/// The cost rounds' verdict: the median of their ratios, and the lowest and highest.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CostRatio {
+    /// Median of the rounds' ratios.
+    pub median: f64,
+    /// Lowest ratio.
+    pub min: f64,
+    /// Highest ratio.
+    pub max: f64,
+    /// Rounds counted (those where both processes used CPU).
+    pub rounds: usize,
+}
+
 impl LiveResults {
+    /// The median and range of the cost rounds' ratios (`None`: no round measured both).
+    pub fn cost_ratio(&self) -> Option<CostRatio> {
+        let mut r: Vec<f64> = self
+            .cost_rounds
+            .iter()
+            .filter(|c| c.gateway_ms > 0.0 && c.forward_ms > 0.0)
+            .map(CostRound::ratio)
+            .collect();
+        r.sort_by(f64::total_cmp);
+        Some(CostRatio {
+            median: crate::stats::percentile(&r, 50.0),
+            min: *r.first()?,
+            max: *r.last()?,
+            rounds: r.len(),
+        })
+    }
+
     /// CPU per 1,000 frames of a raw MQTT → CAN forward, ms: the plain forwarder's when it ran
-    /// and forwarded something, else the bare SocketCAN pair's (no MQTT in it). With which one.
+    /// and forwarded something (the median of the cost rounds when there were rounds), else the
+    /// bare SocketCAN pair's (no MQTT in it). With which one.
     pub fn raw_forward_cpu(&self) -> Option<(f64, &'static str)> {
+        let mut rounds: Vec<f64> = self
+            .cost_rounds
+            .iter()
+            .map(|c| c.forward_ms)
+            .filter(|&ms| ms > 0.0)
+            .collect();
+        if !rounds.is_empty() {
+            rounds.sort_by(f64::total_cmp);
+            return Some((
+                crate::stats::percentile(&rounds, 50.0),
+                "plain MQTT->CAN forwarder, median of the rounds",
+            ));
+        }
         match &self.raw_forward {
             Some(f) if f.received > 0 => Some((
                 f.gateway_cpu_ms * 1000.0 / f.received as f64,
