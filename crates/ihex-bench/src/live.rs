@@ -36,6 +36,7 @@ use crate::forward;
 use crate::loadgen::{Load, Remote};
 use crate::stamp::{micros_between, Tap, Way};
 use crate::trace::{self, Trace};
+use crate::watchdog::Watchdog;
 
 /// Idle commands traced by the kernel ([`Bench::trace_idle`]) for the gateway and the forwarder.
 const TRACED: usize = 5;
@@ -55,7 +56,7 @@ const SO_RCVBUFFORCE: i32 = 33;
 const SO_RCVBUF: i32 = 8;
 const SOL_SOCKET: i32 = 1;
 /// Clock ticks per second of `/proc/PID/stat` (USER_HZ, 100 on every Linux architecture we target).
-const USER_HZ: f64 = 100.0;
+pub(crate) const USER_HZ: f64 = 100.0;
 
 /// Settings of one live run.
 #[derive(Clone, Debug)]
@@ -1031,7 +1032,13 @@ impl Bench {
             self.command_probe(&rx, None)?;
             t.mark(&format!("ihex-probe {k} frame"))?;
         }
+        let t0 = Instant::now();
         let text = t.stop()?;
+        println!(
+            "bench: kernel trace: {} KiB read in {:.0} ms",
+            text.len() / 1024,
+            t0.elapsed().as_secs_f64() * 1e3
+        );
         let us = |t: Option<f64>| t.map_or("-".to_owned(), |t| format!("{t:.0}"));
         Ok(trace::probes(&text, pid)
             .iter()
@@ -1039,9 +1046,11 @@ impl Bench {
             .map(|(k, p)| {
                 format!(
                     "kernel trace, {who}, idle command {k} (us after the publish): woken {}, \
-                     running {}, frame written {}; its system calls before: {}",
+                     running {}, last read returned {}, frame written {}; its system calls \
+                     before: {}",
                     us(p.woken_us),
                     us(p.running_us),
+                    us(p.read_us),
                     us(p.frame_us),
                     p.calls.join(" ")
                 )
@@ -1655,6 +1664,8 @@ pub(crate) fn environment() -> (String, usize) {
 pub fn run(s: Settings) -> Result<LiveResults> {
     let (environment, cpus) = environment();
     println!("bench: {environment}");
+    // No phase takes minutes: one that does is written out, thread by thread.
+    let dog = Watchdog::start(Duration::from_secs(240));
     let mut notes = Vec::new();
     if s.mosquitto_nagle {
         notes.push("Mosquitto ran with its default set_tcp_nodelay false (Nagle)".into());
@@ -1777,6 +1788,7 @@ pub fn run(s: Settings) -> Result<LiveResults> {
     // Which phase sets the gateway's peak: its VmHWM after each.
     let mut peaks: Vec<(&str, u64)> = vec![("start", memory_kib(b.gw.pid())?.0)];
     println!("bench: latency at idle");
+    dog.phase("latency at idle", &[b.gw.pid()]);
     let idle = b.latency(
         s.probes,
         Probes {
@@ -1787,8 +1799,10 @@ pub fn run(s: Settings) -> Result<LiveResults> {
     )?;
 
     peaks.push(("idle latency", memory_kib(b.gw.pid())?.0));
+    dog.phase("kernel trace", &[b.gw.pid()]);
     b.traced(TRACED);
     println!("bench: CAN->MQTT rate search");
+    dog.phase("CAN->MQTT rate search", &[b.gw.pid()]);
     let ceiling = bare.rate_fps.max(1000.0);
     let (best, mut trials) = b.search(250.0, ceiling, Bench::trial)?;
     let at_double = if best > 0.0 {
@@ -1805,6 +1819,7 @@ pub fn run(s: Settings) -> Result<LiveResults> {
 
     peaks.push(("CAN->MQTT rates", memory_kib(b.gw.pid())?.0));
     println!("bench: MQTT->CAN rate");
+    dog.phase("MQTT->CAN rate search", &[b.gw.pid()]);
     if b.remote.is_some() {
         // The answers are counted by the generator: not delivered here too.
         b.mqtt.client.unsubscribe("EventsTopic")?;
@@ -1812,6 +1827,7 @@ pub fn run(s: Settings) -> Result<LiveResults> {
     let (cps, mut command_trials) = b.search(250.0, ceiling, Bench::command_trial)?;
     peaks.push(("MQTT->CAN rates", memory_kib(b.gw.pid())?.0));
     println!("bench: MQTT->CAN burst of {} commands", s.commands);
+    dog.phase("MQTT->CAN burst", &[b.gw.pid()]);
     let burst = b.command_trial(f64::INFINITY)?;
     let burst_secs = burst.sent as f64 / burst.sent_fps + burst.lag_ms.max(0.0) / 1e3;
 
@@ -1825,6 +1841,7 @@ pub fn run(s: Settings) -> Result<LiveResults> {
     let limit_background = Limit::new(BITRATE, frame(&background(0))?.data().len() as u8);
     let load_rate = limit_background.fps_worst;
     println!("bench: latency with the bus at {load_rate:.0} background frames/s");
+    dog.phase("latency with the bus full", &[b.gw.pid()]);
     let ((frame_to_event_load, cmd_to_frame_load), load_sent_fps, cpu_ms_per_1k_background) = b
         .under_load(load_rate, |b| {
             let l = b.latency(
@@ -1848,7 +1865,10 @@ pub fn run(s: Settings) -> Result<LiveResults> {
          (on {}) alternately, {COST_ROUNDS} rounds",
         s.forward_iface
     );
+    dog.phase("cost rounds", &[b.gw.pid()]);
     b.start_forwarder(&dir)?;
+    let forwarder = b.forwarder.as_ref().map_or(0, |f| f.proc.pid());
+    dog.phase("cost rounds", &[b.gw.pid(), forwarder]);
     let (cost_rounds, cost_trials) = b.cost_rounds(cost_rate)?;
     // The gateway's figures from its median round (by CPU), the forwarder's last trial for its
     // counts; the ratio is the rounds' own ([`LiveResults::cost_ratio`]).
@@ -1864,6 +1884,7 @@ pub fn run(s: Settings) -> Result<LiveResults> {
     let raw_forward = cost_trials.last().cloned();
     command_trials.extend(cost_trials.into_iter().step_by(2));
     println!("bench: latency of the raw MQTT->CAN forward at idle");
+    dog.phase("forwarder latency and trace", &[forwarder]);
     let raw_idle = b.addressing(Target::Forwarder, |b| {
         let l = b.latency(
             s.probes,
@@ -1888,6 +1909,16 @@ pub fn run(s: Settings) -> Result<LiveResults> {
     b.notes.push(format!(
         "the bench acked {acked} LedSet commands as their nodes (each ack -> one command_result)"
     ));
+    // What the gateway logged at `--log warn` during the run: nothing, when all went well.
+    let log = gw_log();
+    let lines: Vec<&str> = log.lines().collect();
+    if !lines.is_empty() {
+        b.notes.push(format!(
+            "the gateway logged {} lines at --log warn; the last ones: {}",
+            lines.len(),
+            lines[lines.len().saturating_sub(3)..].join(" | ")
+        ));
+    }
     let overflow = b.mqtt.overflow.load(Ordering::Relaxed);
     if overflow > 0 {
         b.notes.push(format!(

@@ -18,6 +18,7 @@ mod loadgen;
 mod sila;
 mod stamp;
 mod trace;
+mod watchdog;
 mod web;
 
 #[derive(Parser)]

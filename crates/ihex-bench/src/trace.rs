@@ -79,10 +79,14 @@ pub(crate) struct Probe {
     pub woken_us: Option<f64>,
     /// It began to run (`sched_switch` to it).
     pub running_us: Option<f64>,
+    /// Its last read of a socket before the frame returned (`recvfrom`, `read`, `recvmsg`,
+    /// `recvmmsg`): from here to the frame it ran in user space only.
+    pub read_us: Option<f64>,
     /// It entered the `write` or `sendto` of a 16-byte frame.
     pub frame_us: Option<f64>,
-    /// Its system calls up to the frame's write, by name.
-    pub calls: Vec<&'static str>,
+    /// Its system calls up to the frame's write, by name; a `write` or `sendto` with its file
+    /// descriptor and length (`write(5, 8)`: an eventfd wake-up, a log line is longer).
+    pub calls: Vec<String>,
 }
 
 /// The probes of `trace` for process `pid`.
@@ -114,12 +118,27 @@ pub(crate) fn probes(trace: &str, pid: u32) -> Vec<Probe> {
         } else if what.starts_with("sched_switch:") && what.contains(&format!("next_pid={pid} ")) {
             p.running_us.get_or_insert(at);
         } else if line.contains(&me) {
-            if let Some(args) = what.strip_prefix("sys_enter: NR ") {
+            if let Some(exit) = what.strip_prefix("sys_exit: NR ") {
+                let nr = exit.split(' ').next().and_then(|n| n.parse().ok());
+                if matches!(nr, Some(0 | 45 | 47 | 299)) {
+                    p.read_us = Some(at);
+                }
+            } else if let Some(args) = what.strip_prefix("sys_enter: NR ") {
                 let (nr, rest) = args.split_once(' ').unwrap_or((args, ""));
                 let nr: u32 = nr.parse().unwrap_or(u32::MAX);
-                p.calls.push(name(nr));
+                let arg = |i: usize| {
+                    rest.trim_start_matches('(')
+                        .trim_end_matches(')')
+                        .split(", ")
+                        .nth(i)
+                        .and_then(|a| u64::from_str_radix(a, 16).ok())
+                };
+                p.calls.push(match (nr, arg(0), arg(2)) {
+                    (1 | 44, Some(fd), Some(len)) => format!("{}({fd}, {len})", name(nr)),
+                    _ => name(nr).to_owned(),
+                });
                 // write or send of 0x10 bytes (one `can_frame`): the frame.
-                if (nr == 1 || nr == 44) && rest.split(", ").nth(2) == Some("10") {
+                if matches!((nr, arg(2)), (1 | 44, Some(16))) {
                     p.frame_us = Some(at);
                 }
             }
@@ -170,6 +189,7 @@ mod tests {
   <idle>-0       [001] d....  100.000500: sched_switch: prev_comm=swapper/1 prev_pid=0 prev_prio=120 prev_state=R ==> next_comm=mc-gateway next_pid=77 next_prio=120
   mc-gateway-77  [001] .....  100.000600: sys_exit: NR 232 = 1
   mc-gateway-77  [001] .....  100.000700: sys_enter: NR 45 (7, 55d0, 1000, 40, 0, 0)
+  mc-gateway-77  [001] .....  100.000800: sys_exit: NR 45 = 60
   mc-gateway-77  [001] .....  100.001100: sys_enter: NR 1 (5, 7ffd, 10, 0, 0, 0)
   mc-gateway-77  [001] .....  100.001300: sys_enter: NR 44 (7, 55d0, 4, 40, 0, 0)
    ihex-bench-90  [000] .....  100.002000: tracing_mark_write: ihex-probe 3 frame
@@ -182,9 +202,10 @@ mod tests {
         let close = |a: Option<f64>, b: f64| (a.unwrap() - b).abs() < 0.01;
         assert!(close(p[0].woken_us, 400.0), "{p:?}");
         assert!(close(p[0].running_us, 500.0), "{p:?}");
+        assert!(close(p[0].read_us, 800.0), "{p:?}");
         assert!(close(p[0].frame_us, 1100.0), "{p:?}");
         // The PUBACK's sendto after the frame is not counted.
-        assert_eq!(p[0].calls, ["recvfrom", "write"]);
+        assert_eq!(p[0].calls, ["recvfrom", "write(5, 16)"]);
     }
 
     #[test]
