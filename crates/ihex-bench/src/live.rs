@@ -1046,10 +1046,11 @@ impl Bench {
             .map(|(k, p)| {
                 format!(
                     "kernel trace, {who}, idle command {k} (us after the publish): woken {}, \
-                     running {}, last read returned {}, frame written {}; its system calls \
-                     before: {}",
+                     running {}, last read entered {} and returned {}, frame written {}; its \
+                     system calls before: {}",
                     us(p.woken_us),
                     us(p.running_us),
+                    us(p.read_entered_us),
                     us(p.read_us),
                     us(p.frame_us),
                     p.calls.join(" ")

@@ -9,12 +9,17 @@ use std::process::Command;
 use anyhow::{bail, Context, Result};
 
 const ROOT: &str = "/sys/kernel/tracing";
-const EVENTS: [&str; 4] = [
+const EVENTS: [&str; 5] = [
     "raw_syscalls/sys_enter",
     "raw_syscalls/sys_exit",
     "sched/sched_switch",
     "sched/sched_wakeup",
+    // A packet or frame handed to a device in the process's context: which calls transmit.
+    "net/net_dev_queue",
 ];
+
+/// The reads of a socket, by x86_64 number: `read`, `recvfrom`, `recvmsg`, `recvmmsg`.
+const READS: [u32; 4] = [0, 45, 47, 299];
 
 /// A trace running for one process.
 pub(crate) struct Trace {
@@ -79,8 +84,10 @@ pub(crate) struct Probe {
     pub woken_us: Option<f64>,
     /// It began to run (`sched_switch` to it).
     pub running_us: Option<f64>,
-    /// Its last read of a socket before the frame returned (`recvfrom`, `read`, `recvmsg`,
-    /// `recvmmsg`): from here to the frame it ran in user space only.
+    /// It entered its last read of a socket before the frame (`recvfrom`, `read`, `recvmsg`,
+    /// `recvmmsg`).
+    pub read_entered_us: Option<f64>,
+    /// That read returned: from here to the frame it ran in user space only.
     pub read_us: Option<f64>,
     /// It entered the `write` or `sendto` of a 16-byte frame.
     pub frame_us: Option<f64>,
@@ -118,9 +125,18 @@ pub(crate) fn probes(trace: &str, pid: u32) -> Vec<Probe> {
         } else if what.starts_with("sched_switch:") && what.contains(&format!("next_pid={pid} ")) {
             p.running_us.get_or_insert(at);
         } else if line.contains(&me) {
-            if let Some(exit) = what.strip_prefix("sys_exit: NR ") {
+            if let Some(queued) = what.strip_prefix("net_dev_queue: ") {
+                let field = |name: &str| {
+                    queued
+                        .split(' ')
+                        .find_map(|f| f.strip_prefix(name))
+                        .unwrap_or("?")
+                };
+                p.calls
+                    .push(format!("xmit({}, {})", field("dev="), field("len=")));
+            } else if let Some(exit) = what.strip_prefix("sys_exit: NR ") {
                 let nr = exit.split(' ').next().and_then(|n| n.parse().ok());
-                if matches!(nr, Some(0 | 45 | 47 | 299)) {
+                if nr.is_some_and(|nr| READS.contains(&nr)) {
                     p.read_us = Some(at);
                 }
             } else if let Some(args) = what.strip_prefix("sys_enter: NR ") {
@@ -137,6 +153,9 @@ pub(crate) fn probes(trace: &str, pid: u32) -> Vec<Probe> {
                     (1 | 44, Some(fd), Some(len)) => format!("{}({fd}, {len})", name(nr)),
                     _ => name(nr).to_owned(),
                 });
+                if READS.contains(&nr) {
+                    p.read_entered_us = Some(at);
+                }
                 // write or send of 0x10 bytes (one `can_frame`): the frame.
                 if matches!((nr, arg(2)), (1 | 44, Some(16))) {
                     p.frame_us = Some(at);
@@ -189,6 +208,7 @@ mod tests {
   <idle>-0       [001] d....  100.000500: sched_switch: prev_comm=swapper/1 prev_pid=0 prev_prio=120 prev_state=R ==> next_comm=mc-gateway next_pid=77 next_prio=120
   mc-gateway-77  [001] .....  100.000600: sys_exit: NR 232 = 1
   mc-gateway-77  [001] .....  100.000700: sys_enter: NR 45 (7, 55d0, 1000, 40, 0, 0)
+  mc-gateway-77  [001] .....  100.000750: net_dev_queue: dev=eth0 skbaddr=00000000c0ffee00 len=66
   mc-gateway-77  [001] .....  100.000800: sys_exit: NR 45 = 60
   mc-gateway-77  [001] .....  100.001100: sys_enter: NR 1 (5, 7ffd, 10, 0, 0, 0)
   mc-gateway-77  [001] .....  100.001300: sys_enter: NR 44 (7, 55d0, 4, 40, 0, 0)
@@ -202,10 +222,11 @@ mod tests {
         let close = |a: Option<f64>, b: f64| (a.unwrap() - b).abs() < 0.01;
         assert!(close(p[0].woken_us, 400.0), "{p:?}");
         assert!(close(p[0].running_us, 500.0), "{p:?}");
+        assert!(close(p[0].read_entered_us, 700.0), "{p:?}");
         assert!(close(p[0].read_us, 800.0), "{p:?}");
         assert!(close(p[0].frame_us, 1100.0), "{p:?}");
         // The PUBACK's sendto after the frame is not counted.
-        assert_eq!(p[0].calls, ["recvfrom", "write(5, 16)"]);
+        assert_eq!(p[0].calls, ["recvfrom", "xmit(eth0, 66)", "write(5, 16)"]);
     }
 
     #[test]
