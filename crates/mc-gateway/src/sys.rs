@@ -1,5 +1,5 @@
 //! The system calls neither std nor tokio offer: the MQTT connection's socket options (each a plain
-//! `setsockopt`/`getsockopt` of one `c_int`), the CAN socket's registration with tokio's reactor
+//! `setsockopt`/`getsockopt` of one `c_int`: the receive low-water mark, delayed ACKs, Nagle), the CAN socket's registration with tokio's reactor
 //! and its batched read (`recvmmsg`), and the doctor's free-space query (`statvfs`). The one place of the crate allowed `unsafe`
 //! (`#![deny(unsafe_code)]` everywhere else).
 
@@ -16,6 +16,21 @@ pub fn set_rcvlowat(fd: RawFd, bytes: u16) -> io::Result<()> {
 #[cfg(test)]
 pub fn rcvlowat(fd: RawFd) -> io::Result<libc::c_int> {
     get_int(fd, libc::SOL_SOCKET, libc::SO_RCVLOWAT)
+}
+
+/// Puts TCP socket `fd` into delayed-ACK mode (`TCP_QUICKACK` 0, Linux's "pingpong" mode): a read
+/// that empties the socket no longer sends a bare ACK at once for a small pushed segment; the ACK
+/// goes with the next data written (or when the delayed-ACK timer fires, which also ends the mode).
+/// `fd` must be a socket of this process; a closed or foreign descriptor is the kernel's error.
+pub fn delay_acks(fd: RawFd) -> io::Result<()> {
+    set_int(fd, libc::IPPROTO_TCP, libc::TCP_QUICKACK, 0)
+}
+
+/// Whether TCP socket `fd` acknowledges at once (`TCP_QUICKACK` as the kernel has it: false in
+/// delayed-ACK mode; tests check what was set).
+#[cfg(test)]
+pub fn quickack(fd: RawFd) -> io::Result<bool> {
+    get_int(fd, libc::IPPROTO_TCP, libc::TCP_QUICKACK).map(|v| v != 0)
 }
 
 /// Turns Nagle's algorithm off (`TCP_NODELAY`) on TCP socket `fd`; on a listening socket, every

@@ -22,7 +22,7 @@ use std::{
     sync::atomic::{AtomicU64, Ordering},
     sync::Arc,
     task::Poll,
-    time::Duration,
+    time::{Duration, Instant},
 };
 
 use bytes::{Buf, Bytes, BytesMut};
@@ -57,6 +57,12 @@ pub const WRITE_BATCH: usize = READ_CHUNK;
 const ACK_BATCH: u16 = 16;
 /// A PUBACK's encoded size: the fewest bytes on the wire per acknowledgement (TLS only adds).
 const PUBACK_LEN: u16 = 4;
+/// A quiet spell after which the next read first puts the socket back into delayed-ACK mode
+/// ([`Up::delay_acks`]). The kernel leaves that mode when its delayed-ACK timer fires, at least
+/// 40 ms after a segment came that nothing answered, such as the PUBACK of a `command_result`; a
+/// command read after that sent a bare ACK of its own at once, ahead of its frame, and its PUBACK
+/// went as a second packet. Reads closer together than this cost no system call.
+const ACK_QUIET: Duration = Duration::from_millis(10);
 
 /// One MQTT 3.1.1 client connection that reconnects when polled after a failure.
 pub struct Connection {
@@ -108,6 +114,9 @@ struct Up {
     write: BytesMut,
     /// Written to the stream but not flushed yet (TLS buffers).
     unflushed: bool,
+    /// When bytes were last read or delayed-ACK mode last renewed, whichever came later;
+    /// `None` once the system refused the mode.
+    acks_delayed_at: Option<Instant>,
 }
 
 /// What one round of I/O produced.
@@ -361,6 +370,25 @@ impl Up {
             read,
             write: BytesMut::with_capacity(READ_CHUNK),
             unflushed: false,
+            acks_delayed_at: Some(Instant::now()),
+        }
+    }
+
+    /// Puts the socket back into delayed-ACK mode before a read when neither a read nor a renewal
+    /// came within [`ACK_QUIET`], so that the read does not send a bare ACK: the command's
+    /// PUBACK, written after its frame, carries it. A system that refuses the option acknowledges
+    /// as before.
+    fn delay_acks(&mut self) {
+        if self.acks_delayed_at.is_none_or(|t| t.elapsed() < ACK_QUIET) {
+            return;
+        }
+        // `fd` is the TCP socket under `stream`, which lives as long as `self`.
+        match sockopt::delay_acks(self.fd) {
+            Ok(()) => self.acks_delayed_at = Some(Instant::now()),
+            Err(e) => {
+                tracing::debug!("TCP_QUICKACK refused ({e}): reads may acknowledge at once");
+                self.acks_delayed_at = None;
+            }
         }
     }
 
@@ -414,9 +442,15 @@ impl Up {
         if self.read.capacity() - self.read.len() < READ_CHUNK / 4 {
             self.read.reserve(READ_CHUNK);
         }
+        self.delay_acks();
         match tokio_util::io::poll_read_buf(Pin::new(&mut self.stream), cx, &mut self.read) {
             Poll::Ready(Ok(0)) => return Poll::Ready(Ok(Io::Closed)),
-            Poll::Ready(Ok(_)) => return Poll::Ready(Ok(Io::Read)),
+            Poll::Ready(Ok(_)) => {
+                if let Some(t) = &mut self.acks_delayed_at {
+                    *t = Instant::now();
+                }
+                return Poll::Ready(Ok(Io::Read));
+            }
             Poll::Ready(Err(e)) => return Poll::Ready(Err(e.into())),
             Poll::Pending => {}
         }
@@ -669,11 +703,35 @@ mod tests {
         }
     }
 
+    /// A read after a quiet spell first puts the socket into delayed-ACK mode: the read of a
+    /// command sends no bare ACK of its own, its PUBACK carries it.
+    #[tokio::test]
+    async fn a_read_after_a_quiet_spell_leaves_the_ack_to_the_reply() {
+        let (port, broker) = broker(None).await;
+        let mut conn = connected(MqttOptions::new("delayed-acks", "127.0.0.1", port)).await;
+        let quickack = |conn: &Connection| {
+            let Link::Up(up) = &conn.link else {
+                panic!("not connected")
+            };
+            sockopt::quickack(up.fd).unwrap()
+        };
+        assert!(quickack(&conn), "a new connection acknowledges at once");
+        tokio::time::sleep(ACK_QUIET * 2).await;
+        let (publish, _) = command("CommandsTopic", usize::MAX);
+        broker.send(publish).unwrap();
+        let ev = next(&mut conn).await;
+        assert!(
+            matches!(&ev, Event::Incoming(Incoming::Publish(p)) if p.topic == "CommandsTopic"),
+            "{ev:?}"
+        );
+        assert!(!quickack(&conn), "the read left the ACK to the reply");
+    }
+
     /// A QoS 0 PUBLISH of `topic`, empty, cut after `cut` bytes: (head, rest).
     fn command(topic: &str, cut: usize) -> (Vec<u8>, Vec<u8>) {
         let mut p = vec![0x30, 2 + topic.len() as u8, 0, topic.len() as u8];
         p.extend_from_slice(topic.as_bytes());
-        let rest = p.split_off(cut);
+        let rest = p.split_off(cut.min(p.len()));
         (p, rest)
     }
 
