@@ -55,6 +55,11 @@ pub struct BenchArgs {
     /// Keep Mosquitto's default Nagle algorithm on its sockets (to compare; see docs/benchmarks.md).
     #[arg(long)]
     mosquitto_nagle: bool,
+    /// Take the kernel's trace (ftrace) of five idle commands after each idle latency series.
+    /// Off by default: starting it has twice hung the microVM's kernel (a soft lockup in the
+    /// benchmark's system call, TCG with two vCPUs), which loses the whole run.
+    #[arg(long)]
+    trace: bool,
     /// Skip the island view's latency (the demo gateway on the host).
     #[arg(long)]
     no_web: bool,
@@ -367,6 +372,9 @@ fn live_args(gateway: &Path, args: &BenchArgs) -> Vec<String> {
     ];
     if args.mosquitto_nagle {
         v.push("--mosquitto-nagle".into());
+    }
+    if args.trace {
+        v.push("--trace".into());
     }
     v
 }

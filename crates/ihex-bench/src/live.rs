@@ -40,6 +40,8 @@ use crate::watchdog::Watchdog;
 
 /// Idle commands traced by the kernel ([`Bench::trace_idle`]) for the gateway and the forwarder.
 const TRACED: usize = 5;
+/// The pause before each traced idle command.
+const IDLE_GAP: Duration = Duration::from_millis(100);
 /// Rounds of the command cost comparison: a gateway trial, then a forwarder trial ([`CostRound`]).
 const COST_ROUNDS: usize = 5;
 /// Bitrate of the island bus.
@@ -78,6 +80,8 @@ pub struct Settings {
     /// Leave Mosquitto's default `set_tcp_nodelay false` (Nagle on its sockets) instead of turning
     /// it off; with Nagle, command → frame takes a delayed-ACK period (~40 ms) once commands are acked.
     pub mosquitto_nagle: bool,
+    /// Take the kernel's trace of idle commands ([`Bench::traced`]).
+    pub trace: bool,
     /// A broker already running elsewhere (the host's Mosquitto, seen from the microVM at
     /// 10.0.2.2), used instead of starting one here: it does not share the gateway's CPU, and
     /// its CPU is not counted.
@@ -1027,7 +1031,9 @@ impl Bench {
         let rx = self.led_socket()?;
         let t = Trace::start(pid)?;
         for k in 0..n {
-            std::thread::sleep(Duration::from_millis(20));
+            // Idle at the TCP level too: past the kernel's delayed-ACK timer (40 ms at least) of
+            // whatever the previous command left unanswered (its `command_result`'s PUBACK).
+            std::thread::sleep(IDLE_GAP);
             t.mark(&format!("ihex-probe {k} sent"))?;
             self.command_probe(&rx, None)?;
             t.mark(&format!("ihex-probe {k} frame"))?;
@@ -1059,8 +1065,12 @@ impl Bench {
             .collect())
     }
 
-    /// [`Bench::trace_idle`] into the notes, or why there is no trace.
+    /// [`Bench::trace_idle`] into the notes, or why there is no trace (none without
+    /// [`Settings::trace`]).
     fn traced(&mut self, n: usize) {
+        if !self.s.trace {
+            return;
+        }
         println!("bench: kernel trace of {n} idle commands");
         match self.trace_idle(n) {
             Ok(lines) => self.notes.extend(lines),

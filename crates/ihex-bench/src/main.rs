@@ -75,6 +75,9 @@ enum Cmd {
         /// Keep Mosquitto's default Nagle algorithm (set_tcp_nodelay false) on its sockets.
         #[arg(long)]
         mosquitto_nagle: bool,
+        /// Take the kernel's trace (ftrace) of five idle commands after each idle latency series.
+        #[arg(long)]
+        trace: bool,
         /// Use the Mosquitto already running at this address (in the microVM: the host's, at
         /// 10.0.2.2:PORT) instead of starting one here; its CPU is then not counted.
         #[arg(long)]
@@ -278,6 +281,7 @@ fn main() -> Result<()> {
             trial_secs,
             commands,
             mosquitto_nagle,
+            trace,
             broker,
             remote_load,
             report,
@@ -292,6 +296,7 @@ fn main() -> Result<()> {
                 trial_secs,
                 commands,
                 mosquitto_nagle,
+                trace,
                 broker,
                 remote_load,
             })?;
