@@ -840,6 +840,13 @@ enum Target {
     Forwarder,
 }
 
+impl Target {
+    /// The forwarder (`&` or `&mut`), when it is the one addressed.
+    fn forwarder<F>(self, forwarder: Option<F>) -> Option<F> {
+        forwarder.filter(|_| self == Target::Forwarder)
+    }
+}
+
 /// The plain forwarder running beside the gateway, on a bus of its own.
 struct Forwarder {
     proc: Proc,
@@ -853,25 +860,22 @@ struct Forwarder {
 impl Bench {
     /// The process the trials measure.
     fn measured(&mut self) -> &mut Proc {
-        match (self.target, &mut self.forwarder) {
-            (Target::Forwarder, Some(f)) => &mut f.proc,
-            _ => &mut self.gw,
+        match self.target.forwarder(self.forwarder.as_mut()) {
+            Some(f) => &mut f.proc,
+            None => &mut self.gw,
         }
     }
 
     fn measured_pid(&self) -> u32 {
-        match (self.target, &self.forwarder) {
-            (Target::Forwarder, Some(f)) => f.proc.pid(),
-            _ => self.gw.pid(),
-        }
+        self.target
+            .forwarder(self.forwarder.as_ref())
+            .map_or(self.gw.pid(), |f| f.proc.pid())
     }
 
     /// The bus the measured process writes its frames to.
     fn measured_iface(&self) -> String {
-        match (self.target, &self.forwarder) {
-            (Target::Forwarder, Some(f)) => f.iface.clone(),
-            _ => self.s.iface.clone(),
-        }
+        let f = self.target.forwarder(self.forwarder.as_ref());
+        f.map_or(&self.s.iface, |f| &f.iface).clone()
     }
 
     /// Waits (up to 5 s) until the gateway has used no CPU for 200 ms, so that a trial does not
@@ -1189,9 +1193,9 @@ impl Bench {
     fn command_run(&mut self, count: usize, rate: f64) -> Result<Trial> {
         self.settle()?;
         // The measured process's frames as read (by the responder, or the forwarder's counter).
-        let seen = match (self.target, &self.forwarder) {
-            (Target::Forwarder, Some(f)) => Some(&f.seen),
-            _ => self.seen.as_ref(),
+        let seen = match self.target.forwarder(self.forwarder.as_ref()) {
+            Some(f) => Some(&f.seen),
+            None => self.seen.as_ref(),
         }
         .ok_or_else(|| anyhow!("command trial without the responder"))?;
         while seen.try_recv().is_ok() {}

@@ -1,6 +1,7 @@
 //! The system calls neither std nor tokio offer: the MQTT connection's socket options (each a plain
-//! `setsockopt`/`getsockopt` of one `c_int`: the receive low-water mark, delayed ACKs, Nagle), the CAN socket's registration with tokio's reactor
-//! and its batched read (`recvmmsg`), and the doctor's free-space query (`statvfs`). The one place of the crate allowed `unsafe`
+//! `setsockopt`/`getsockopt` of one `c_int`: the receive low-water mark, delayed ACKs, Nagle), the
+//! CAN socket's registration with tokio's reactor and its batched read (`recvmmsg`), and the
+//! doctor's free-space query (`statvfs`). The one place of the crate allowed `unsafe`
 //! (`#![deny(unsafe_code)]` everywhere else).
 
 use std::{io, os::fd::RawFd};
