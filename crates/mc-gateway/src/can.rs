@@ -333,10 +333,15 @@ async fn receive_socket(
         // first, often a write in the transmit task: so a failed write, a failed read and a
         // periodic look at the interface flags all lead here.
         let mut batch = [socketcan::frame::can_frame_default(); sys::CAN_BATCH];
+        // Made once per socket: fresh ones per read would join and leave two waiter lists per
+        // read. The write failure's is used up when it fires, which ends this socket's loop.
+        let cancelled = cancel.cancelled();
+        let write_failed = failed.notified();
+        tokio::pin!(cancelled, write_failed);
         let why = loop {
             let read = tokio::select! {
-                _ = cancel.cancelled() => return,
-                _ = failed.notified() => break "a write failed with a link error".to_owned(),
+                _ = &mut cancelled => return,
+                _ = &mut write_failed => break "a write failed with a link error".to_owned(),
                 _ = check.tick() => {
                     if !interface_up(&setup.iface) {
                         break "interface down".to_owned();
@@ -404,16 +409,19 @@ async fn receive_link<L: FrameLink>(
     inputs: mpsc::Sender<CanInput>,
     cancel: CancellationToken,
 ) {
+    // Made once: a fresh one per frame would join and leave the token's waiters every frame.
+    let cancelled = cancel.cancelled();
+    tokio::pin!(cancelled);
     // The link already filters with the same rule as the kernel.
     loop {
         let frame = tokio::select! {
-            _ = cancel.cancelled() => return,
+            _ = &mut cancelled => return,
             f = link.recv() => f,
         };
         let Some(frame) = frame else {
             warn!("CAN link closed");
             let _ = inputs.send(CanInput::Bus(BusEvent::InterfaceDown)).await;
-            cancel.cancelled().await;
+            cancelled.await;
             return;
         };
         if let Some(input) = classify(&frame, &[], false) {
@@ -580,9 +588,12 @@ async fn transmit<W: Writer>(
     failed: Option<Arc<Notify>>,
     cancel: CancellationToken,
 ) {
+    // Made once: a fresh one per frame would join and leave the token's waiters every frame.
+    let cancelled = cancel.cancelled();
+    tokio::pin!(cancelled);
     loop {
         let t = tokio::select! {
-            _ = cancel.cancelled() => return,
+            _ = &mut cancelled => return,
             p = packets.recv() => match p { Some(p) => p, None => return },
         };
         let packet = t.packet;

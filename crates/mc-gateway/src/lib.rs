@@ -37,6 +37,7 @@ pub mod shutdown;
 pub mod sila;
 #[allow(unsafe_code)]
 mod sys;
+mod timer;
 #[cfg(feature = "web")]
 pub mod web;
 

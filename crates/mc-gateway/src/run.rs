@@ -31,6 +31,7 @@ use crate::{
     feed::{Feed, ViewRequests},
     metrics::{CommandMeter, Counted},
     mqtt::{self, MqttInput, MqttStats, MqttTask, Outbound},
+    timer::Timer,
     topic::Topics,
 };
 
@@ -387,17 +388,21 @@ impl Core {
             web: mut web_in,
             sila: mut sila_in,
         } = inputs;
+        let mut timer = Timer::new();
+        // Made once: a fresh one per turn would join and leave the token's waiters every turn.
+        let cancelled = cancel.cancelled();
+        tokio::pin!(cancelled);
         loop {
             self.carry_out();
-            let deadline = tokio::time::Instant::from_std(self.bridge.poll_timeout());
+            timer.set(Some(self.bridge.poll_timeout()));
             let publications_waiting = self.bridge.publications_waiting();
             let wants_commands = self.bridge.wants_commands();
             let mut due = false;
             // Unbiased on purpose: a timer that is always due must not starve the inputs, nor a
             // flood of frames the timers.
             tokio::select! {
-                _ = cancel.cancelled() => break,
-                _ = tokio::time::sleep_until(deadline) => {
+                _ = &mut cancelled => break,
+                _ = timer.expired() => {
                     // After a stall (a loaded host, a paused VM) the deadline and the frames read
                     // during it are ready at once; the yield lets the receive task read what the
                     // socket holds (tokio polls its drivers before a yielded task runs again).

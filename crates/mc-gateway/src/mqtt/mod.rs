@@ -27,7 +27,7 @@ use tokio::sync::mpsc;
 use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
 
-use crate::{config::MqttConfig, error::MqttError, topic::Topics};
+use crate::{config::MqttConfig, error::MqttError, timer::Timer, topic::Topics};
 
 pub mod conn;
 pub mod rumqttc_state;
@@ -322,6 +322,10 @@ impl MqttTask {
         let mut publications_open = true;
         // An input handed over by the `inputs.reserve()` branch (the core's channel was full).
         let mut handed = 0;
+        let mut timer = Timer::new();
+        // Made once: a fresh one per turn would join and leave the token's waiters every turn.
+        let cancelled = cancel.cancelled();
+        tokio::pin!(cancelled);
         // Everything queued between two polls leaves in one write: requests and publications are
         // queued first, then `poll()` (cancel-safe) writes them while waiting for the broker.
         // The loop ends when the core is gone.
@@ -340,12 +344,12 @@ impl MqttTask {
                 }
             }
             carry_out(&mut session, &mut conn);
-            let deadline = session.poll_timeout().map(tokio::time::Instant::from_std);
+            timer.set(session.poll_timeout());
             let wants_link = session.wants_link();
             let wants_publications = publications_open && session.wants_publications();
             let has_input = session.has_input();
             tokio::select! {
-                _ = cancel.cancelled() => break,
+                _ = &mut cancelled => break,
                 p = publications.recv(), if wants_publications => match p {
                     Some(p) => {
                         session.handle_publication(p);
@@ -364,7 +368,7 @@ impl MqttTask {
                         handed += 1;
                     }
                 }
-                _ = sleep_until(deadline) => session.handle_timeout(Instant::now()),
+                _ = timer.expired() => session.handle_timeout(Instant::now()),
                 ev = conn.poll(), if wants_link => {
                     // Every packet of the read, in this turn: a burst of commands reads as thousands
                     // of packets at once, and the broker's acknowledgements behind them must not
@@ -495,14 +499,6 @@ fn carry_out(session: &mut Session, conn: &mut Connection) {
             });
             return;
         }
-    }
-}
-
-/// Sleeps until `deadline`; forever without one.
-async fn sleep_until(deadline: Option<tokio::time::Instant>) {
-    match deadline {
-        Some(t) => tokio::time::sleep_until(t).await,
-        None => std::future::pending().await,
     }
 }
 
