@@ -225,14 +225,7 @@ impl CommandMeter {
         }
     }
 
-    /// A command entered the core from `from`, received at `received`; `payload` is read for its
-    /// `request_id` only.
-    pub fn command(&mut self, from: Interface, payload: &[u8], received: Instant) {
-        let request_id = ihex_gateway_core::command::request_id(payload);
-        self.noted(from, request_id, received);
-    }
-
-    /// A command from `from` whose `request_id` is already known.
+    /// A command from `from`, received at `received`, whose answer will carry `request_id`.
     pub fn noted(&mut self, from: Interface, request_id: Option<String>, received: Instant) {
         while self.pending.len() >= PENDING_MAX
             || self
@@ -611,9 +604,9 @@ mod tests {
         let counted = Counted::default();
         let mut m = CommandMeter::new(counted.clone());
         let t0 = Instant::now();
-        m.command(Interface::Web, br#"{"cmd":"led","request_id":"a"}"#, t0);
-        m.command(Interface::Mqtt, br#"{"cmd":"led","request_id":"a"}"#, t0);
-        m.command(Interface::Mqtt, br#"{"cmd":"led"}"#, t0);
+        m.noted(Interface::Web, Some("a".into()), t0);
+        m.noted(Interface::Mqtt, Some("a".into()), t0);
+        m.noted(Interface::Mqtt, None, t0);
         m.noted(Interface::Ha, Some("homeassistant".into()), t0);
         // Same request_id: first come, first answered.
         m.published(
@@ -675,12 +668,12 @@ mod tests {
         let mut m = CommandMeter::default();
         let t0 = Instant::now();
         for _ in 0..PENDING_MAX + 10 {
-            m.command(Interface::Mqtt, b"{}", t0);
+            m.noted(Interface::Mqtt, None, t0);
         }
         assert_eq!(m.pending.len(), PENDING_MAX);
-        m.command(
+        m.noted(
             Interface::Mqtt,
-            b"{}",
+            None,
             t0 + PENDING_FOR + Duration::from_secs(1),
         );
         assert_eq!(m.pending.len(), 1, "the stale ones are gone");

@@ -612,16 +612,19 @@ fn on_mqtt(bridge: &mut Bridge, meter: &mut CommandMeter, audit: Option<&Audit>,
             retained,
             origin,
         } => {
-            meter.command(origin.interface, &payload, received);
             if let Some(a) = audit {
                 a.command(&origin, &payload, retained);
             }
+            let interface = origin.interface;
             let delivery = Delivery {
                 received,
                 retained,
                 origin,
             };
-            bridge.handle_delivered_command(&payload, delivery, now);
+            // The meter learns the request id from the core's own reading of the command, before
+            // the answer leaves the core (at the loop's top).
+            let request_id = bridge.handle_delivered_command(&payload, delivery, now);
+            meter.noted(interface, request_id, received);
         }
         MqttInput::HaCommand { topic, payload } => {
             let id = ihex_gateway_core::ha::command::REQUEST_ID.to_owned();

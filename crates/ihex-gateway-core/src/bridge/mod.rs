@@ -356,26 +356,39 @@ impl Bridge {
     /// them and answers bad input with a `command_rejected` event). See
     /// [`Bridge::handle_delivered_command`].
     pub fn handle_command(&mut self, payload: &[u8], now: Instant) {
-        self.handle_delivered_command(payload, Delivery::live(now), now);
+        let _ = self.handle_delivered_command(payload, Delivery::live(now), now);
     }
 
     /// A message arrived on `CommandsTopic` as `delivery` says. Every message gets exactly one
     /// answer: `command_rejected` (invalid, retained, unknown node, …), `node_list`, or later one
-    /// `command_result`.
-    pub fn handle_delivered_command(&mut self, payload: &[u8], delivery: Delivery, now: Instant) {
+    /// `command_result`. Returns the `request_id` that answer carries (`None` when the message had
+    /// none that could be read): what a caller following the command to its answer matches.
+    pub fn handle_delivered_command(
+        &mut self,
+        payload: &[u8],
+        delivery: Delivery,
+        now: Instant,
+    ) -> Option<String> {
         self.set_now(now);
         if delivery.retained {
+            let request_id = command::request_id(payload);
             self.origin = delivery.origin;
-            self.reject(command::request_id(payload), CommandError::Retained);
+            self.reject(request_id.clone(), CommandError::Retained);
             self.origin = Origin::default();
-            return;
+            return request_id;
         }
         match command::parse_in(payload, self.config.max_command_bytes, &mut self.arena) {
-            Ok(req) => self.execute(req, delivery, now),
+            Ok(req) => {
+                let request_id = req.request_id.clone();
+                self.execute(req, delivery, now);
+                request_id
+            }
             Err(rej) => {
+                let request_id = rej.request_id.clone();
                 self.origin = delivery.origin;
                 self.reject(rej.request_id, rej.error);
                 self.origin = Origin::default();
+                request_id
             }
         }
     }
@@ -1605,7 +1618,8 @@ mod tests {
             ..Delivery::live(t0)
         };
         let cmd = json!({"cmd": "power", "node": "2", "on": true, "request_id": "old"});
-        b.handle_delivered_command(cmd.to_string().as_bytes(), retained.clone(), t0);
+        let id = b.handle_delivered_command(cmd.to_string().as_bytes(), retained.clone(), t0);
+        assert_eq!(id.as_deref(), Some("old"));
         let out = drain(&mut b);
         assert!(out.sent.is_empty());
         let r = out.one("command_rejected");
@@ -1623,7 +1637,7 @@ mod tests {
     }
 
     #[test]
-    fn rejections_echo_the_request_id_whenever_it_can_be_read() {
+    fn rejections_echo_the_request_id_whenever_it_can_be_read_and_say_which() {
         let (mut b, t0) = with_nodes(&[2]);
         let big = format!(
             r#"{{"request_id":"big","cmd":"led","node":"2","color":"red","pad":"{}"}}"#,
@@ -1650,15 +1664,15 @@ mod tests {
             ),
             (br#"["request_id","no"]"#.to_vec(), Value::Null),
         ] {
-            b.handle_command(&payload, t0);
+            let returned = b.handle_delivered_command(&payload, Delivery::live(t0), t0);
             let out = drain(&mut b);
-            assert_eq!(
-                out.one("command_rejected")["request_id"],
-                id,
-                "{}",
-                String::from_utf8_lossy(&payload[..40.min(payload.len())])
-            );
+            let what = String::from_utf8_lossy(&payload[..40.min(payload.len())]);
+            assert_eq!(out.one("command_rejected")["request_id"], id, "{what}");
+            assert_eq!(json!(returned), id, "the id the caller is told, {what}");
         }
+        let valid = br#"{"request_id":"fine","cmd":"led","node":"2","off":true}"#;
+        let returned = b.handle_delivered_command(valid, Delivery::live(t0), t0);
+        assert_eq!(returned.as_deref(), Some("fine"));
         b.handle_command(
             br#"{"cmd":"led","node":"2","off":true,"ttl_ms":"soon"}"#,
             t0,
