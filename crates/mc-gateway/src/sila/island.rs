@@ -2,8 +2,10 @@
 //! JSON the gateway publishes on `ihex/node/<id>/state`), and the dockings they report. No I/O: the
 //! server's model task feeds it the documents and events of the core's feed.
 
+use std::borrow::Cow;
 use std::collections::{BTreeMap, BTreeSet};
 
+use serde::Deserialize;
 use serde_json::Value;
 
 /// One element, as the `Elements` property shows it.
@@ -40,60 +42,108 @@ pub struct Docking {
     pub mobile_port: i64,
 }
 
+/// The parts of a state document the properties show, read in place: a document is parsed once
+/// per change of any node, so nothing else in it is built.
+#[derive(Deserialize)]
+struct StateDoc<'a> {
+    #[serde(borrow)]
+    id: Cow<'a, str>,
+    #[serde(borrow, default)]
+    role: Option<Cow<'a, str>>,
+    #[serde(default)]
+    online: Option<bool>,
+    #[serde(borrow, default)]
+    firmware: Option<Firmware<'a>>,
+    #[serde(borrow, default)]
+    uid: Option<Cow<'a, str>>,
+    #[serde(borrow, default)]
+    led: Option<Led<'a>>,
+    #[serde(default)]
+    relay: Option<bool>,
+    #[serde(borrow, default)]
+    connections: Option<Vec<Link<'a>>>,
+}
+
+#[derive(Deserialize)]
+struct Firmware<'a> {
+    #[serde(borrow, default)]
+    version: Option<Cow<'a, str>>,
+}
+
+#[derive(Deserialize)]
+struct Led<'a> {
+    #[serde(borrow, default)]
+    mode: Option<Cow<'a, str>>,
+    #[serde(borrow, default)]
+    color: Option<Cow<'a, str>>,
+    #[serde(default)]
+    brightness: Option<i64>,
+    #[serde(default)]
+    period_ms: Option<i64>,
+    #[serde(default)]
+    duty: Option<i64>,
+}
+
+#[derive(Deserialize)]
+struct Link<'a> {
+    port: i64,
+    #[serde(borrow)]
+    peer: Cow<'a, str>,
+    peer_port: i64,
+}
+
+/// The `payload` of a `node_forgotten` event.
+#[derive(Deserialize)]
+struct Forgotten<'a> {
+    #[serde(borrow)]
+    payload: ForgottenNode<'a>,
+}
+
+#[derive(Deserialize)]
+struct ForgottenNode<'a> {
+    #[serde(borrow)]
+    id: Cow<'a, str>,
+}
+
 impl Element {
-    /// The element a state document describes; `None` for a document without an `id`.
-    pub fn from_state(doc: &Value) -> Option<Element> {
-        let text = |v: Option<&Value>| v.and_then(Value::as_str).unwrap_or_default().to_owned();
-        let id = doc.get("id")?.as_str()?.to_owned();
-        let light = match doc.get("led") {
-            Some(led) if led.is_object() => {
-                let int = |k: &str| led.get(k).and_then(Value::as_i64).unwrap_or_default();
-                match led.get("mode").and_then(Value::as_str) {
-                    Some("steady") => {
-                        format!("steady {} {}", text(led.get("color")), int("brightness"))
-                    }
+    /// The element a state document describes.
+    fn from_doc(doc: StateDoc<'_>) -> Element {
+        let text = |v: Option<Cow<'_, str>>| v.map(Cow::into_owned).unwrap_or_default();
+        let light = match doc.led {
+            Some(led) => {
+                let color = led.color.as_deref().unwrap_or_default();
+                let brightness = led.brightness.unwrap_or_default();
+                match led.mode.as_deref() {
+                    Some("steady") => format!("steady {color} {brightness}"),
                     Some("blink") => format!(
-                        "blink {} {} {} {}",
-                        text(led.get("color")),
-                        int("brightness"),
-                        int("period_ms"),
-                        int("duty")
+                        "blink {color} {brightness} {} {}",
+                        led.period_ms.unwrap_or_default(),
+                        led.duty.unwrap_or_default()
                     ),
                     Some(mode) => mode.to_owned(),
                     None => String::new(),
                 }
             }
-            _ => String::new(),
+            None => String::new(),
         };
         let links = doc
-            .get("connections")
-            .and_then(Value::as_array)
-            .map(|cs| {
-                cs.iter()
-                    .filter_map(|c| {
-                        Some((
-                            c.get("port")?.as_i64()?,
-                            c.get("peer")?.as_str()?.to_owned(),
-                            c.get("peer_port")?.as_i64()?,
-                        ))
-                    })
-                    .collect()
-            })
-            .unwrap_or_default();
-        Some(Element {
+            .connections
+            .unwrap_or_default()
+            .into_iter()
+            .map(|c| (c.port, c.peer.into_owned(), c.peer_port))
+            .collect();
+        Element {
+            id: doc.id.into_owned(),
             role: doc
-                .get("role")
-                .and_then(Value::as_str)
-                .unwrap_or("unknown")
-                .to_owned(),
-            online: doc.get("online").and_then(Value::as_bool).unwrap_or(false),
-            firmware: text(doc.get("firmware").and_then(|f| f.get("version"))),
-            uid: text(doc.get("uid")),
+                .role
+                .map_or_else(|| "unknown".to_owned(), Cow::into_owned),
+            online: doc.online.unwrap_or(false),
+            firmware: text(doc.firmware.and_then(|f| f.version)),
+            uid: text(doc.uid),
             light,
-            relay: doc.get("relay").and_then(Value::as_bool).unwrap_or(false),
+            relay: doc.relay.unwrap_or(false),
             links,
-            id,
-        })
+        }
     }
 
     /// The `Docking` field: `port:peer:peer_port`, separated by commas.
@@ -118,20 +168,20 @@ impl Island {
     pub fn handle_snapshot<'a>(&mut self, docs: impl IntoIterator<Item = &'a Value>) {
         self.elements = docs
             .into_iter()
-            .filter_map(Element::from_state)
+            // A document without an `id`, or with a field of another type than the gateway
+            // publishes, describes no element.
+            .filter_map(|d| StateDoc::deserialize(d).ok())
+            .map(Element::from_doc)
             .map(|e| (e.id.clone(), e))
             .collect();
     }
 
     /// A state document as published; true when it changed what the properties show.
     pub fn handle_state(&mut self, json: &str) -> bool {
-        let Some(e) = serde_json::from_str(json)
-            .ok()
-            .as_ref()
-            .and_then(Element::from_state)
-        else {
+        let Ok(doc) = serde_json::from_str::<StateDoc<'_>>(json) else {
             return false;
         };
+        let e = Element::from_doc(doc);
         if self.elements.get(&e.id) == Some(&e) {
             return false;
         }
@@ -139,19 +189,10 @@ impl Island {
         true
     }
 
-    /// An event as published; true when it changed what the properties show (`node_forgotten`).
-    pub fn handle_event(&mut self, json: &str) -> bool {
-        let Ok(v) = serde_json::from_str::<Value>(json) else {
-            return false;
-        };
-        if v.get("event").and_then(Value::as_str) != Some("node_forgotten") {
-            return false;
-        }
-        let id = v
-            .get("payload")
-            .and_then(|p| p.get("id"))
-            .and_then(Value::as_str);
-        id.is_some_and(|id| self.elements.remove(id).is_some())
+    /// A `node_forgotten` event as published; true when it removed a known element.
+    pub fn handle_forgotten(&mut self, json: &str) -> bool {
+        serde_json::from_str::<Forgotten<'_>>(json)
+            .is_ok_and(|f| self.elements.remove(f.payload.id.as_ref()).is_some())
     }
 
     /// The elements, by node ID.
@@ -225,10 +266,16 @@ mod tests {
         let mobile_undocked = MOBILE.replace(r#"[{"port":0,"peer":"111","peer_port":3}]"#, "[]");
         assert!(island.handle_state(&mobile_undocked));
         assert_eq!(island.dockings(), vec![]);
-        assert!(island.handle_event(
+        assert!(island.handle_forgotten(
             r#"{"event":"node_forgotten","payload":{"id":"2","reason":"forget","new_id":null}}"#
         ));
         assert_eq!(island.elements().len(), 1);
         assert!(!island.handle_state("not json"));
+        // Escaped text is read as well as plain text.
+        assert!(island.handle_state(r#"{"id":"3","role":"mobile","uid":"a\"b"}"#));
+        assert_eq!(island.elements()[1].uid, "a\"b");
+        // A field of another type than the gateway publishes: no element.
+        assert!(!island.handle_state(r#"{"id":"4","online":"yes"}"#));
+        assert_eq!(island.elements().len(), 2);
     }
 }

@@ -503,7 +503,9 @@ async fn model(
             r = live.recv() => match r {
                 Ok(p) => match p.kind {
                     Kind::State(_) => island.handle_state(&p.json),
-                    Kind::Event(_) => island.handle_event(&p.json),
+                    // The one event that changes the properties; the others are not read.
+                    Kind::Event("node_forgotten") => island.handle_forgotten(&p.json),
+                    Kind::Event(_) => false,
                     // Leases and procedures are not part of IslandControl's properties.
                     Kind::Leases | Kind::Procedures => false,
                 },
