@@ -660,8 +660,14 @@ fn outbound(
         a.published(&publication, &payload);
     }
     // serde_json writes UTF-8 only; the text is checked only where it is read as text (a log line
-    // that is enabled, the island view).
-    let json = || String::from_utf8_lossy(&payload);
+    // that is enabled, the island view and the SiLA server's feed), by `str::from_utf8`, which
+    // checks ASCII a word at a time, where the lossy form goes character by character.
+    let json = || {
+        std::str::from_utf8(&payload).map_or_else(
+            |_| String::from_utf8_lossy(&payload),
+            std::borrow::Cow::Borrowed,
+        )
+    };
     match &publication {
         Publication::Event(e) => info!(event = e.name(), payload = %json(), "event published"),
         Publication::State(s) => debug!(node = %s.id, payload = %json(), "state published"),
