@@ -69,11 +69,16 @@ pub struct BenchArgs {
     /// Skip the firmware update of a simulated island (the demo gateway on the host).
     #[arg(long)]
     no_fw: bool,
+    /// Skip the instructions per command of the whole demo gateway process (callgrind on the
+    /// host).
+    #[arg(long)]
+    no_process: bool,
     /// Skip islands per broker (16 gateways with sim-node islands on one Mosquitto, after the
     /// live part in the same VM boot).
     #[arg(long, conflicts_with = "only_islands")]
     no_islands: bool,
-    /// Run islands per broker alone (no baseline, callgrind, firmware, live, web, sila or fw part).
+    /// Run islands per broker alone (no baseline, callgrind, firmware, live, web, sila, fw or
+    /// process part).
     #[arg(long)]
     only_islands: bool,
     /// Islands per broker: gateway + sim-node pairs, on vcan0.. (at most 16).
@@ -97,8 +102,8 @@ pub struct BenchArgs {
     /// `--baseline` (the live part only; its file name labels it).
     #[arg(long, conflicts_with = "no_baseline")]
     baseline_gateway: Option<PathBuf>,
-    /// Run the live part alone (no callgrind, procedure, audit, firmware, islands, web, sila or fw
-    /// part).
+    /// Run the live part alone (no callgrind, procedure, audit, firmware, islands, web, sila, fw or
+    /// process part).
     #[arg(long, conflicts_with_all = ["no_live", "only_islands"])]
     only_live: bool,
     /// Where the live part's Mosquitto runs when the live part runs in the microVM: on the host
@@ -655,7 +660,8 @@ pub fn run(args: BenchArgs, firmware_dir: &Path) -> Result<()> {
     }
     if only || args.only_live {
         missing.push(
-            "island view latency, SiLA server and firmware update: --only-islands or --only-live"
+            "island view latency, SiLA server, firmware update and whole-process instructions: \
+             --only-islands or --only-live"
                 .into(),
         );
     } else {
@@ -735,8 +741,8 @@ fn measure_host(
     Ok(())
 }
 
-/// The parts that run the demo gateway on the host: the island view, the SiLA server and the
-/// firmware update.
+/// The parts that run the demo gateway on the host: the island view, the SiLA server, the
+/// firmware update and the whole process's instructions per command.
 fn on_host_demo(args: &BenchArgs, bench: &Path, dir: &Path, missing: &mut Vec<String>) {
     let parts = [
         (
@@ -754,6 +760,13 @@ fn on_host_demo(args: &BenchArgs, bench: &Path, dir: &Path, missing: &mut Vec<St
             "--no-sila",
         ),
         (args.no_fw, "fw", "firmware update", "fw.json", "--no-fw"),
+        (
+            args.no_process,
+            "process",
+            "instructions per command, whole process",
+            "process.json",
+            "--no-process",
+        ),
     ];
     if parts.iter().any(|(skip, ..)| !skip) {
         match demo_gateway() {
@@ -771,12 +784,13 @@ fn on_host_demo(args: &BenchArgs, bench: &Path, dir: &Path, missing: &mut Vec<St
                 }
             }
             Err(e) => missing.push(format!(
-                "island view, SiLA server and firmware update: {e:#}"
+                "island view, SiLA server, firmware update and whole-process instructions: {e:#}"
             )),
         }
     } else {
         missing.push(
-            "island view latency, SiLA server and firmware update: --no-web --no-sila --no-fw"
+            "island view latency, SiLA server, firmware update and whole-process instructions: \
+             --no-web --no-sila --no-fw --no-process"
                 .into(),
         );
     }

@@ -14,6 +14,7 @@ mod fw;
 mod islands;
 mod live;
 mod loadgen;
+mod process;
 #[cfg(feature = "sila")]
 mod sila;
 mod stamp;
@@ -177,6 +178,22 @@ enum Cmd {
         /// Pause after each probe, ms.
         #[arg(long, default_value_t = 10)]
         gap_ms: u64,
+        /// Write the figures (JSON) here.
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
+    /// Instructions per LED command of the whole demo gateway process under callgrind, against a
+    /// Mosquitto of its own, with the SiLA server off and on.
+    Process {
+        /// The mc-gateway binary, built with its default features (demo and sila).
+        #[arg(long)]
+        gateway: PathBuf,
+        /// The Mosquitto binary.
+        #[arg(long, default_value = "mosquitto")]
+        mosquitto: PathBuf,
+        /// Commands counted in each run.
+        #[arg(long, default_value_t = 400)]
+        n: usize,
         /// Write the figures (JSON) here.
         #[arg(long)]
         out: Option<PathBuf>,
@@ -363,6 +380,18 @@ fn main() -> Result<()> {
                 ..Default::default()
             })?;
         }
+        Cmd::Process {
+            gateway,
+            mosquitto,
+            n,
+            out,
+        } => {
+            let r = process::run(&gateway, &mosquitto, n)?;
+            finish(r, out, None, |r| report::Results {
+                process: Some(r),
+                ..Default::default()
+            })?;
+        }
         #[cfg(not(feature = "sila"))]
         Cmd::Sila { .. } => {
             anyhow::bail!("this ihex-bench was built without its `sila` feature")
@@ -488,6 +517,12 @@ fn main() -> Result<()> {
                 None => r
                     .missing
                     .push("SiLA round trip and memory (no sila.json)".into()),
+            }
+            match read("process.json") {
+                Some(b) => r.process = Some(serde_json::from_slice(&b).context("process.json")?),
+                None => r
+                    .missing
+                    .push("instructions per command, whole process (no process.json)".into()),
             }
             if let Some(b) = read("missing.json") {
                 let more: Vec<String> = serde_json::from_slice(&b).context("missing.json")?;

@@ -7,7 +7,8 @@ use serde::{Deserialize, Serialize};
 
 use crate::bus::PairLimit;
 use crate::results::{
-    CpuShare, FwResults, IslandsResults, LiveResults, SilaResults, Trial, WebResults,
+    CpuShare, FwResults, IslandsResults, LiveResults, ProcessResults, SilaResults, Trial,
+    WebResults,
 };
 use crate::stats::Summary;
 
@@ -98,6 +99,9 @@ pub struct Results {
     /// The SiLA server's round trip and memory, if they were measured.
     #[serde(default)]
     pub sila: Option<SilaResults>,
+    /// Instructions per command of the whole demo gateway process, if they were counted.
+    #[serde(default)]
+    pub process: Option<ProcessResults>,
     /// The firmware update of a simulated island, if it was measured.
     #[serde(default)]
     pub fw: Option<FwResults>,
@@ -846,6 +850,9 @@ pub fn table(r: &Results) -> String {
     if let Some(s) = &r.sila {
         sila_table(&mut o, s);
     }
+    if let Some(p) = &r.process {
+        process_table(&mut o, p);
+    }
     if let Some(f) = &r.fw {
         fw_table(&mut o, f);
     }
@@ -853,6 +860,27 @@ pub fn table(r: &Results) -> String {
         let _ = writeln!(o, "missing: {m}");
     }
     o
+}
+
+/// Instructions per command of the whole process: figures only, no goal.
+fn process_table(o: &mut String, p: &ProcessResults) {
+    let _ = writeln!(
+        o,
+        "\ninstructions per LED command, the whole demo gateway process (callgrind on this machine, \
+         --sim, no web view; the idle count of as long a pause subtracted)"
+    );
+    for r in &p.runs {
+        let _ = writeln!(
+            o,
+            "  SiLA server {:<3}  {:>9.0} per command  ({} commands in {:.1} s: {} instructions, idle {})",
+            if r.sila { "on" } else { "off" },
+            r.per_command,
+            r.commands,
+            r.seconds,
+            r.instructions_commands,
+            r.instructions_idle
+        );
+    }
 }
 
 /// The SiLA section of the table: goals printed, never asserted.
@@ -1323,6 +1351,32 @@ pub fn rate_svg(l: &LiveResults) -> String {
 mod tests {
     use super::*;
     use crate::results::CostRound;
+
+    #[test]
+    fn the_whole_process_count_is_printed_per_command_for_both_runs() {
+        let run = |sila, per_command| crate::results::ProcessCost {
+            sila,
+            commands: 400,
+            seconds: 4.5,
+            instructions_commands: 14_000_000,
+            instructions_idle: 200_000,
+            per_command,
+        };
+        let r = Results {
+            process: Some(ProcessResults {
+                gateway: "mc-gateway".into(),
+                runs: vec![run(false, 34_500.0), run(true, 41_100.0)],
+            }),
+            ..Default::default()
+        };
+        let t = table(&r);
+        for line in [
+            "  SiLA server off      34500 per command  (400 commands in 4.5 s",
+            "  SiLA server on       41100 per command",
+        ] {
+            assert!(t.contains(line), "{line:?} in\n{t}");
+        }
+    }
 
     fn sample() -> LiveResults {
         LiveResults {

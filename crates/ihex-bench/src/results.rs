@@ -323,6 +323,33 @@ pub struct WebResults {
     pub page_minus_mqtt: Summary,
 }
 
+/// Instructions per command of the whole demo gateway process (`ihex-bench process`, callgrind on
+/// this machine; see `process.rs`).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct ProcessResults {
+    /// The gateway binary measured.
+    pub gateway: String,
+    /// With the SiLA server off, then on.
+    pub runs: Vec<ProcessCost>,
+}
+
+/// One run of [`ProcessResults`].
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct ProcessCost {
+    /// The SiLA server was on.
+    pub sila: bool,
+    /// Commands counted, each answered `ok` before the next was sent.
+    pub commands: usize,
+    /// How long they took, s (the idle count covers as long a pause).
+    pub seconds: f64,
+    /// Instructions of the process while the commands ran.
+    pub instructions_commands: u64,
+    /// Instructions of the process during the pause after them.
+    pub instructions_idle: u64,
+    /// (commands - idle) / commands.
+    pub per_command: f64,
+}
+
 /// The SiLA server's round trip and memory (`ihex-bench sila`, the demo gateway on the host).
 #[derive(Clone, Debug, Default, Serialize, Deserialize)]
 pub struct SilaResults {

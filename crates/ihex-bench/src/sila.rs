@@ -17,7 +17,6 @@ use std::time::{Duration, Instant};
 use anyhow::{bail, Context, Result};
 use ihex_bench::results::SilaResults;
 use ihex_bench::stats::Summary;
-use ihex_gateway_core::event::{Event, Outcome};
 use mc_gateway::sila::proto::{
     framework,
     island_control::{self as pb, island_control_client::IslandControlClient},
@@ -26,24 +25,17 @@ use tokio::runtime::Runtime;
 use tonic::transport::Channel;
 
 use crate::live::{free_port, memory_kib, Mqtt, Proc};
+use crate::process::{colour, led_probe, NODE};
 use crate::web::DEMO_QUIET;
 
 /// Subscribed SiLA clients in the last memory figure.
 pub const CLIENTS: usize = 100;
-/// The static element every probe colours (the built-in demo island has it).
-const NODE: &str = "111";
 /// How long one probe may take before it counts as lost.
 const PROBE_TIMEOUT: Duration = Duration::from_secs(2);
 /// How long the gateway may take to start and its island to answer.
 const START: Duration = Duration::from_secs(30);
 /// MQTT commands every gateway carries out before its memory is read.
 const SETTLE_COMMANDS: usize = 100;
-
-/// A colour of its own per probe, so that every probe changes the element's state.
-fn colour(i: usize) -> String {
-    let c = (i % 200) as u8;
-    format!("#{c:02x}{:02x}28", 255 - c)
-}
 
 /// One demo gateway and an MQTT client of its broker.
 struct Demo {
@@ -105,28 +97,12 @@ impl Demo {
     /// An LED command on MQTT; its round trip when its `command_result` said `ok` in time.
     fn mqtt_probe(&mut self) -> Result<Option<Duration>> {
         let i = self.next();
-        let id = format!("sila-bench-{i}");
-        let command = format!(
-            r#"{{"cmd":"led","node":"{NODE}","color":"{}","brightness":255,"request_id":"{id}"}}"#,
-            colour(i)
-        );
-        let sent = Instant::now();
-        self.mqtt
-            .client
-            .publish("CommandsTopic", rumqttc::QoS::AtLeastOnce, false, command)?;
-        let deadline = sent + PROBE_TIMEOUT;
-        loop {
-            let Some(left) = deadline.checked_duration_since(Instant::now()) else {
-                return Ok(None);
-            };
-            match self.mqtt.next_event(left) {
-                Some((t, Event::CommandResult(r))) if r.request_id.as_deref() == Some(&id) => {
-                    return Ok(matches!(r.result, Outcome::Ok).then(|| t - sent));
-                }
-                Some(_) => {}
-                None => return Ok(None),
-            }
-        }
+        led_probe(
+            &self.mqtt,
+            &format!("sila-bench-{i}"),
+            &colour(i),
+            PROBE_TIMEOUT,
+        )
     }
 
     /// `SetLight` with the next probe's colour; its round trip when it succeeded in time.

@@ -1,0 +1,205 @@
+//! Instructions per command of the whole gateway process, a deterministic unit beside the VM's CPU
+//! figures: the demo gateway on this machine (`--sim`, no web view), run under callgrind against a
+//! Mosquitto of its own, answers LED commands one at a time. Everything the process executes
+//! counts — tokio, the MQTT connection, the tasks' channels, the core, the simulated island — the
+//! kernel does not. The idle cost of as long a pause is measured after the commands and subtracted.
+//!
+//! Measured twice: with the SiLA server off (the part of the README's gateway that is also the
+//! deployed one, but for the island) and on (the README's gateway, without the web view).
+
+use std::net::{Ipv4Addr, SocketAddr};
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::{Duration, Instant};
+
+use anyhow::{bail, Context, Result};
+use ihex_bench::results::{ProcessCost, ProcessResults};
+use ihex_gateway_core::event::{Event, Outcome};
+
+use crate::callgrind::total_instructions;
+use crate::live::{free_port, start_mosquitto, Mqtt, Proc};
+
+/// The static element every command colours (the built-in demo island has it).
+pub(crate) const NODE: &str = "111";
+/// How long one command may take under callgrind before it counts as lost.
+const PROBE_TIMEOUT: Duration = Duration::from_secs(10);
+/// How long the gateway may take to start under callgrind and its island to answer.
+const START: Duration = Duration::from_secs(120);
+/// Commands before the counted ones (the first turns of every path allocate what later ones reuse).
+const WARM_UP: usize = 20;
+/// Pause after each answer, so that every command is a turn of its own, as at idle.
+const GAP: Duration = Duration::from_millis(5);
+
+/// An LED command with colour `colour` published on `CommandsTopic` as `request_id`: its round
+/// trip when its `command_result` said `ok` within `timeout`.
+pub(crate) fn led_probe(
+    mqtt: &Mqtt,
+    request_id: &str,
+    colour: &str,
+    timeout: Duration,
+) -> Result<Option<Duration>> {
+    let command = format!(
+        r#"{{"cmd":"led","node":"{NODE}","color":"{colour}","brightness":255,"request_id":"{request_id}"}}"#
+    );
+    let sent = Instant::now();
+    mqtt.client
+        .publish("CommandsTopic", rumqttc::QoS::AtLeastOnce, false, command)?;
+    let deadline = sent + timeout;
+    loop {
+        let Some(left) = deadline.checked_duration_since(Instant::now()) else {
+            return Ok(None);
+        };
+        match mqtt.next_event(left) {
+            Some((t, Event::CommandResult(r))) if r.request_id.as_deref() == Some(request_id) => {
+                return Ok(matches!(r.result, Outcome::Ok).then(|| t - sent));
+            }
+            Some(_) => {}
+            None => return Ok(None),
+        }
+    }
+}
+
+/// A colour of its own per command, so that every command changes the element's state.
+pub(crate) fn colour(i: usize) -> String {
+    let c = (i % 200) as u8;
+    format!("#{c:02x}{:02x}28", 255 - c)
+}
+
+/// Both runs: `n` counted commands each, the gateway `gateway` (default features), Mosquitto
+/// `mosquitto`.
+pub fn run(gateway: &Path, mosquitto: &Path, n: usize) -> Result<ProcessResults> {
+    if n == 0 {
+        bail!("--n must be at least 1");
+    }
+    let dir = std::env::temp_dir().join(format!("ihex-bench-process-{}", std::process::id()));
+    std::fs::create_dir_all(&dir)?;
+    let (_broker, addr) = start_mosquitto(mosquitto, &dir, false, "")?;
+    let mut runs = Vec::new();
+    for sila in [false, true] {
+        runs.push(measure(gateway, addr, sila, n, &dir)?);
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+    Ok(ProcessResults {
+        gateway: gateway.display().to_string(),
+        runs,
+    })
+}
+
+fn measure(
+    gateway: &Path,
+    broker: SocketAddr,
+    sila: bool,
+    n: usize,
+    dir: &Path,
+) -> Result<ProcessCost> {
+    let out = dir.join(format!("callgrind.sila-{sila}"));
+    let mut cmd = Command::new("valgrind");
+    cmd.args(["--tool=callgrind", "--quiet"])
+        .arg(format!("--callgrind-out-file={}", out.display()))
+        .arg(gateway)
+        .args(["--broker", &broker.to_string(), "--sim", "--http", "off"])
+        .args([
+            "--health-period-ms",
+            "3600000",
+            "--log-dir",
+            "-",
+            "--log",
+            "warn",
+        ]);
+    if sila {
+        let a = SocketAddr::from((Ipv4Addr::LOCALHOST, free_port()?));
+        cmd.args([
+            "--sila",
+            &a.to_string(),
+            "--sila-insecure",
+            "--sila-announce",
+            "off",
+        ]);
+    } else {
+        cmd.args(["--sila", "off"]);
+    }
+    let log = dir.join(format!("gateway.sila-{sila}.log"));
+    let mut gateway = Proc::spawn(cmd, &log, "mc-gateway (demo, under callgrind)")?;
+    let name = format!("ihex-bench-process-{sila}");
+    let mqtt = Mqtt::connect_as(&name, broker, &["EventsTopic"])?;
+    let ready = Instant::now() + START;
+    let mut sent = 0;
+    let mut probe = |mqtt: &Mqtt| {
+        sent += 1;
+        led_probe(
+            mqtt,
+            &format!("process-{sent}"),
+            &colour(sent),
+            PROBE_TIMEOUT,
+        )
+    };
+    while probe(&mqtt)?.is_none() {
+        gateway.check_alive()?;
+        if Instant::now() > ready {
+            bail!(
+                "the demo island never acknowledged an LED command within {START:?} (log: {})",
+                log.display()
+            );
+        }
+    }
+    for _ in 0..WARM_UP {
+        probe(&mqtt)?;
+        std::thread::sleep(GAP);
+    }
+    let pid = gateway.pid().to_string();
+    control(&pid, "-z")?;
+    let start = Instant::now();
+    for i in 0..n {
+        if probe(&mqtt)?.is_none() {
+            bail!("command {i} of {n} was not answered `ok` within {PROBE_TIMEOUT:?}: the count would mix in a timeout");
+        }
+        std::thread::sleep(GAP);
+    }
+    let took = start.elapsed();
+    let commands = dump(&pid, &out, 1)?;
+    std::thread::sleep(took);
+    let idle = dump(&pid, &out, 2)?;
+    gateway.check_alive()?;
+    Ok(ProcessCost {
+        sila,
+        commands: n,
+        seconds: took.as_secs_f64(),
+        instructions_commands: commands,
+        instructions_idle: idle,
+        per_command: (commands as f64 - idle as f64) / n as f64,
+    })
+}
+
+/// `callgrind_control FLAG PID`.
+fn control(pid: &str, flag: &str) -> Result<()> {
+    let status = Command::new("callgrind_control")
+        .args([flag, pid])
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .status()
+        .context("running callgrind_control (Debian: apt-get install valgrind)")?;
+    if !status.success() {
+        bail!("callgrind_control {flag} {pid} failed: {status}");
+    }
+    Ok(())
+}
+
+/// Asks callgrind for dump number `k` of `out` and reads its instruction total (the counts since
+/// the previous dump or zeroing).
+fn dump(pid: &str, out: &Path, k: u32) -> Result<u64> {
+    control(pid, "-d")?;
+    let file = PathBuf::from(format!("{}.{k}", out.display()));
+    let deadline = Instant::now() + Duration::from_secs(30);
+    loop {
+        // The `totals:` line ends the file: before it, the dump may be half written.
+        let text = std::fs::read_to_string(&file).unwrap_or_default();
+        if text.contains("\ntotals:") {
+            return total_instructions(&text)
+                .with_context(|| format!("no instruction total in {}", file.display()));
+        }
+        if Instant::now() > deadline {
+            bail!("no instruction total in {} within 30 s", file.display());
+        }
+        std::thread::sleep(Duration::from_millis(100));
+    }
+}
