@@ -194,6 +194,11 @@ enum Cmd {
         /// Commands counted in each run.
         #[arg(long, default_value_t = 400)]
         n: usize,
+        /// Keep callgrind's files in this directory (`callgrind.sila-false.1` is the commands'
+        /// dump, `.2` the idle one: read them with `callgrind_annotate`); by default they are
+        /// removed.
+        #[arg(long)]
+        keep: Option<PathBuf>,
         /// Write the figures (JSON) here.
         #[arg(long)]
         out: Option<PathBuf>,
@@ -384,9 +389,10 @@ fn main() -> Result<()> {
             gateway,
             mosquitto,
             n,
+            keep,
             out,
         } => {
-            let r = process::run(&gateway, &mosquitto, n)?;
+            let r = process::run(&gateway, &mosquitto, n, keep.as_deref())?;
             finish(r, out, None, |r| report::Results {
                 process: Some(r),
                 ..Default::default()

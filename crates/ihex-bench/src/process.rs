@@ -66,19 +66,29 @@ pub(crate) fn colour(i: usize) -> String {
 }
 
 /// Both runs: `n` counted commands each, the gateway `gateway` (default features), Mosquitto
-/// `mosquitto`.
-pub fn run(gateway: &Path, mosquitto: &Path, n: usize) -> Result<ProcessResults> {
+/// `mosquitto`; callgrind's files and the logs kept in `keep` when given.
+pub fn run(
+    gateway: &Path,
+    mosquitto: &Path,
+    n: usize,
+    keep: Option<&Path>,
+) -> Result<ProcessResults> {
     if n == 0 {
         bail!("--n must be at least 1");
     }
-    let dir = std::env::temp_dir().join(format!("ihex-bench-process-{}", std::process::id()));
-    std::fs::create_dir_all(&dir)?;
+    let dir = match keep {
+        Some(d) => d.to_owned(),
+        None => std::env::temp_dir().join(format!("ihex-bench-process-{}", std::process::id())),
+    };
+    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
     let (_broker, addr) = start_mosquitto(mosquitto, &dir, false, "")?;
     let mut runs = Vec::new();
     for sila in [false, true] {
         runs.push(measure(gateway, addr, sila, n, &dir)?);
     }
-    let _ = std::fs::remove_dir_all(&dir);
+    if keep.is_none() {
+        let _ = std::fs::remove_dir_all(&dir);
+    }
     Ok(ProcessResults {
         gateway: gateway.display().to_string(),
         runs,
@@ -93,6 +103,10 @@ fn measure(
     dir: &Path,
 ) -> Result<ProcessCost> {
     let out = dir.join(format!("callgrind.sila-{sila}"));
+    // A kept directory may hold an earlier run's dumps, which `dump` would take for this one's.
+    for k in 1..=2 {
+        let _ = std::fs::remove_file(format!("{}.{k}", out.display()));
+    }
     let mut cmd = Command::new("valgrind");
     cmd.args(["--tool=callgrind", "--quiet"])
         .arg(format!("--callgrind-out-file={}", out.display()))
