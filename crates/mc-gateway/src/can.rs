@@ -1,7 +1,11 @@
-//! The CAN side: a receive task and a transmit task around one link, turning frames into
+//! The CAN side: a receive task and a transmit path around one link, turning frames into
 //! [`CanInput`]s for the core and the core's packets into frames. The link is SocketCAN
 //! ([`CanLink::socketcan`]) or anything implementing [`FrameLink`] ([`CanLink::frames`]; the demo
 //! plugs its in-memory bus in that way).
+//!
+//! The core hands frames to a [`Transmitter`]: a frame the link takes without waiting is written
+//! there and then, in the core's turn, when no frame waits before it; the others go to the
+//! transmit task, which waits for room. So the usual frame costs one system call and no task hop.
 //!
 //! On SocketCAN the receive task owns the socket's life: it installs the gateway's kernel filters,
 //! enables error frames and the echo of the gateway's own frames (`CAN_RAW_RECV_OWN_MSGS`: a frame
@@ -10,10 +14,19 @@
 //! a capped back-off once the interface is up again, and reports [`BusEvent::Recovered`]. The
 //! transmit task always writes on the socket of the moment (shared through a `watch`), never writes
 //! a frame after its [`Transmit::not_after`] (reported as [`CanInput::Withdrawn`]), and reports every
-//! frame it cannot send. The core hands it at most `ihex_gateway_core::bridge::TRANSMIT_WINDOW`
+//! frame it cannot send. The core hands the link at most `ihex_gateway_core::bridge::TRANSMIT_WINDOW`
 //! frames not yet confirmed, so few frames are ever beyond recall.
 
-use std::{future::Future, io, os::fd::AsRawFd, sync::Arc, time::Duration};
+use std::{
+    future::Future,
+    io,
+    os::fd::AsRawFd,
+    sync::{
+        atomic::{AtomicUsize, Ordering},
+        Arc,
+    },
+    time::{Duration, Instant},
+};
 
 use embedded_can::{Frame as _, Id};
 use ihex_gateway_core::{BusEvent, Transmit};
@@ -88,18 +101,92 @@ pub trait FrameLink: Send + 'static {
 
 /// Transmits frames on a [`FrameLink`].
 pub trait FrameSender: Send + Sync + 'static {
-    /// Writes one frame; the error text is the reason the core reports.
-    fn send(&self, frame: CanFrame) -> impl Future<Output = Result<(), String>> + Send;
+    /// Writes one frame without waiting (the link has no queue to wait for); the error text is
+    /// the reason the core reports.
+    fn send(&self, frame: CanFrame) -> Result<(), String>;
 }
+
+/// Writes a frame at once if the link takes it without waiting: what became of it, or `None` when
+/// it was not written (the transmit task then tries, waits and reports).
+type WriteNow = Box<dyn Fn(&CanFrame) -> Option<Handed> + Send>;
 
 type Start = Box<
     dyn FnOnce(
             mpsc::Receiver<Transmit>,
+            Arc<AtomicUsize>,
             mpsc::Sender<CanInput>,
             &mut JoinSet<()>,
             CancellationToken,
-        ) + Send,
+        ) -> WriteNow
+        + Send,
 >;
+
+/// What [`Transmitter::send`] did with a frame.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Handed {
+    /// Written on a link that echoes its frames: the echo confirms it.
+    Written,
+    /// Written on a link without echo: as sent as it will ever be known (the core reports it
+    /// transmitted itself).
+    Transmitted,
+    /// Queued for the transmit task, which reports what becomes of it.
+    Queued,
+}
+
+/// The core's end of the transmit path (see the module's documentation).
+pub struct Transmitter {
+    queue: mpsc::Sender<Transmit>,
+    /// Frames queued for the transmit task that it has not finished writing: a frame is written
+    /// at once only while this is 0, so frames leave in the order the core hands them over.
+    queued: Arc<AtomicUsize>,
+    write_now: Option<WriteNow>,
+}
+
+impl std::fmt::Debug for Transmitter {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Transmitter")
+            .field("queued", &self.queued.load(Ordering::Relaxed))
+            .field("writes_at_once", &self.write_now.is_some())
+            .finish()
+    }
+}
+
+impl Transmitter {
+    /// Hands `t` to the link, never waiting: written at once when nothing waits before it, the
+    /// link takes it and its `not_after` has not passed at `now`; queued otherwise. An error when
+    /// the queue (a transmit window's room) is full or the transmit task has stopped.
+    pub fn send(
+        &self,
+        t: Transmit,
+        now: Instant,
+    ) -> Result<Handed, mpsc::error::TrySendError<Transmit>> {
+        if let Some(write) = &self.write_now {
+            let in_time = t.not_after.is_none_or(|d| now < d);
+            if in_time && self.queued.load(Ordering::Acquire) == 0 {
+                if let Some(handed) = t.packet.to_frame::<CanFrame>().and_then(|f| write(&f)) {
+                    return Ok(handed);
+                }
+            }
+        }
+        self.queued.fetch_add(1, Ordering::AcqRel);
+        self.queue
+            .try_send(t)
+            .map(|()| Handed::Queued)
+            .inspect_err(|_| {
+                self.queued.fetch_sub(1, Ordering::AcqRel);
+            })
+    }
+
+    /// A transmitter that only queues, on `queue` (tests of the core).
+    #[cfg(test)]
+    pub(crate) fn queue_only(queue: mpsc::Sender<Transmit>) -> Transmitter {
+        Transmitter {
+            queue,
+            queued: Arc::default(),
+            write_now: None,
+        }
+    }
+}
 
 /// What the gateway's socket receives: frames addressed to the gateway, and the echo of its own.
 pub fn receive_filters() -> [Filter; 2] {
@@ -133,7 +220,7 @@ impl CanLink {
             filters: filters.to_vec(),
         };
         let first = setup.open()?.map(Arc::new);
-        let start: Start = Box::new(move |packets, inputs, tasks, cancel| {
+        let start: Start = Box::new(move |packets, queued, inputs, tasks, cancel| {
             let (link_tx, link_rx) = watch::channel(first.clone());
             let failed = Arc::new(Notify::new());
             tasks.spawn(receive_socket(
@@ -144,8 +231,25 @@ impl CanLink {
                 failed.clone(),
                 cancel.clone(),
             ));
+            let link = link_rx.clone();
             let writer = SocketWriter { link: link_rx };
-            tasks.spawn(transmit(packets, writer, inputs, Some(failed), cancel));
+            tasks.spawn(transmit(
+                packets,
+                queued,
+                writer,
+                inputs,
+                Some(failed),
+                cancel,
+            ));
+            // The socket is non-blocking: a full queue (ENOBUFS, EAGAIN) or a link error leaves
+            // the frame to the transmit task, which waits for room or reports the error.
+            Box::new(move |frame: &CanFrame| {
+                let sock = link.borrow().clone()?;
+                sock.get_ref()
+                    .write_frame(frame)
+                    .ok()
+                    .map(|()| Handed::Written)
+            })
         });
         Ok(CanLink {
             name: iface.to_owned(),
@@ -155,10 +259,12 @@ impl CanLink {
 
     /// Any other frame link, named `name` in logs.
     pub fn frames<L: FrameLink>(name: &str, link: L) -> CanLink {
-        let start: Start = Box::new(move |packets, inputs, tasks, cancel| {
+        let start: Start = Box::new(move |packets, queued, inputs, tasks, cancel| {
+            let sender = link.sender();
             let writer = LinkWriter(link.sender());
             tasks.spawn(receive_link(link, inputs.clone(), cancel.clone()));
-            tasks.spawn(transmit(packets, writer, inputs, None, cancel));
+            tasks.spawn(transmit(packets, queued, writer, inputs, None, cancel));
+            Box::new(move |frame: &CanFrame| sender.send(*frame).ok().map(|()| Handed::Transmitted))
         });
         CanLink {
             name: name.to_owned(),
@@ -171,18 +277,23 @@ impl CanLink {
         &self.name
     }
 
-    /// Spawns the receive and transmit tasks into `tasks`; returns the transmit channel (bounded,
-    /// `capacity` frames: the core's transmit window).
+    /// Spawns the receive and transmit tasks into `tasks`; returns the core's end of the transmit
+    /// path, whose queue holds `capacity` frames (the core's transmit window).
     pub fn spawn(
         self,
         capacity: usize,
         inputs: mpsc::Sender<CanInput>,
         tasks: &mut JoinSet<()>,
         cancel: CancellationToken,
-    ) -> mpsc::Sender<Transmit> {
-        let (tx_packets, rx_packets) = mpsc::channel(capacity.max(1));
-        (self.start)(rx_packets, inputs, tasks, cancel);
-        tx_packets
+    ) -> Transmitter {
+        let (queue, rx_packets) = mpsc::channel(capacity.max(1));
+        let queued = Arc::new(AtomicUsize::new(0));
+        let write_now = (self.start)(rx_packets, queued.clone(), inputs, tasks, cancel);
+        Transmitter {
+            queue,
+            queued,
+            write_now: Some(write_now),
+        }
     }
 }
 
@@ -569,10 +680,7 @@ impl<S: FrameSender> Writer for LinkWriter<S> {
         if not_after.is_some_and(|d| tokio::time::Instant::now() >= d) {
             return Err(WriteError::Late);
         }
-        self.0
-            .send(frame)
-            .await
-            .map_err(|e| WriteError::Failed(e, true))
+        self.0.send(frame).map_err(|e| WriteError::Failed(e, true))
     }
 
     fn echoes(&self) -> bool {
@@ -580,9 +688,12 @@ impl<S: FrameSender> Writer for LinkWriter<S> {
     }
 }
 
+/// Writes the frames the core queued (`queued` counts those not yet written), waiting for room
+/// and reporting what it could not write.
 #[tracing::instrument(name = "can_tx", skip_all)]
 async fn transmit<W: Writer>(
     mut packets: mpsc::Receiver<Transmit>,
+    queued: Arc<AtomicUsize>,
     writer: W,
     inputs: mpsc::Sender<CanInput>,
     failed: Option<Arc<Notify>>,
@@ -605,6 +716,8 @@ async fn transmit<W: Writer>(
                 false,
             )),
         };
+        // Done with it: the core may write the next frame itself.
+        queued.fetch_sub(1, Ordering::AcqRel);
         let report = match written {
             Ok(()) if writer.echoes() => continue,
             Ok(()) => CanInput::Transmitted(packet),
@@ -728,7 +841,15 @@ mod tests {
         let (tx, rx) = mpsc::channel(1);
         let (in_tx, mut in_rx) = mpsc::channel(1);
         let cancel = CancellationToken::new();
-        let task = tokio::spawn(transmit(rx, writer, in_tx, None, cancel.clone()));
+        let queued = Arc::new(AtomicUsize::new(1));
+        let task = tokio::spawn(transmit(
+            rx,
+            queued.clone(),
+            writer,
+            in_tx,
+            None,
+            cancel.clone(),
+        ));
         let packet = Packet::command(
             NodeId::new_sc(0x111).unwrap(),
             Message::Identify { seq: 1, seconds: 1 },
@@ -742,6 +863,11 @@ mod tests {
         .await
         .unwrap();
         let report = in_rx.recv().await.unwrap();
+        assert_eq!(
+            queued.load(Ordering::Relaxed),
+            0,
+            "the task is done with it"
+        );
         cancel.cancel();
         task.await.unwrap();
         report
@@ -790,6 +916,84 @@ mod tests {
             CanInput::SendFailed(_, why) => assert_eq!(why, "transmit queue full (ENOBUFS)"),
             other => panic!("{other:?}"),
         }
+    }
+
+    /// A transmitter whose link takes frames at once while `open` says so, recording them.
+    fn recording(
+        open: Arc<std::sync::atomic::AtomicBool>,
+    ) -> (
+        Transmitter,
+        mpsc::Receiver<Transmit>,
+        Arc<std::sync::Mutex<Vec<CanFrame>>>,
+    ) {
+        let (queue, rx) = mpsc::channel(2);
+        let written = Arc::new(std::sync::Mutex::new(Vec::new()));
+        let w = written.clone();
+        let write_now: WriteNow = Box::new(move |f: &CanFrame| {
+            open.load(Ordering::Relaxed).then(|| {
+                w.lock().unwrap().push(*f);
+                Handed::Written
+            })
+        });
+        let t = Transmitter {
+            queue,
+            queued: Arc::default(),
+            write_now: Some(write_now),
+        };
+        (t, rx, written)
+    }
+
+    fn led(seq: u8, not_after: Option<Instant>) -> Transmit {
+        let packet = Packet::command(
+            NodeId::new_sc(0x111).unwrap(),
+            Message::Identify { seq, seconds: 1 },
+        );
+        let owner = ihex_gateway_core::bridge::FrameOwner::Command;
+        Transmit {
+            packet,
+            not_after,
+            owner,
+        }
+    }
+
+    #[test]
+    fn frames_are_written_at_once_until_one_has_to_wait_then_queued_in_order() {
+        let open = Arc::new(std::sync::atomic::AtomicBool::new(true));
+        let (tx, mut rx, written) = recording(open.clone());
+        let now = Instant::now();
+        assert_eq!(tx.send(led(1, None), now).unwrap(), Handed::Written);
+        assert_eq!(written.lock().unwrap().len(), 1);
+        // The link refuses one (its queue is full): it and every later frame wait their turn
+        // behind it, even once the link would take them again.
+        open.store(false, Ordering::Relaxed);
+        assert_eq!(tx.send(led(2, None), now).unwrap(), Handed::Queued);
+        open.store(true, Ordering::Relaxed);
+        assert_eq!(tx.send(led(3, None), now).unwrap(), Handed::Queued);
+        assert_eq!(written.lock().unwrap().len(), 1, "nothing overtook frame 2");
+        // The queue (the window's room) is full: an error, and the count stays true.
+        assert!(matches!(
+            tx.send(led(4, None), now),
+            Err(mpsc::error::TrySendError::Full(_))
+        ));
+        assert_eq!(tx.queued.load(Ordering::Relaxed), 2);
+        for seq in [2, 3] {
+            let t = rx.try_recv().unwrap();
+            assert_eq!(t.packet, led(seq, None).packet);
+            // What the transmit task does once it wrote it.
+            tx.queued.fetch_sub(1, Ordering::AcqRel);
+        }
+        assert_eq!(tx.send(led(5, None), now).unwrap(), Handed::Written);
+        assert_eq!(written.lock().unwrap().len(), 2);
+    }
+
+    #[test]
+    fn a_frame_past_its_deadline_goes_to_the_task_to_be_withdrawn() {
+        let open = Arc::new(std::sync::atomic::AtomicBool::new(true));
+        let (tx, mut rx, written) = recording(open);
+        let now = Instant::now();
+        assert_eq!(tx.send(led(1, Some(now)), now).unwrap(), Handed::Queued);
+        assert!(written.lock().unwrap().is_empty());
+        assert!(rx.try_recv().is_ok());
     }
 
     #[test]

@@ -17,7 +17,7 @@ use std::{
 };
 
 use ihex_gateway_core::{
-    bridge::TRANSMIT_WINDOW, Bridge, Delivery, Interface, PayloadWriter, Publication, Transmit,
+    bridge::TRANSMIT_WINDOW, Bridge, Delivery, Interface, PayloadWriter, Publication,
 };
 use tokio::{sync::mpsc, task::JoinSet};
 use tokio_util::sync::CancellationToken;
@@ -25,7 +25,7 @@ use tracing::{debug, error, info, warn};
 
 use crate::{
     audit::Audit,
-    can::{CanInput, CanLink},
+    can::{CanInput, CanLink, Handed, Transmitter},
     config::{Config, Link},
     error::GatewayError,
     feed::{Feed, ViewRequests},
@@ -341,7 +341,7 @@ impl Gateway {
 /// The task that owns the bridge.
 struct Core {
     bridge: Bridge,
-    can_tx: mpsc::Sender<Transmit>,
+    can_tx: Transmitter,
     pub_tx: mpsc::Sender<Outbound>,
     topics: Topics,
     /// Where publications' text is written.
@@ -494,7 +494,7 @@ impl Core {
     }
 
     /// Drains the bridge's outputs without ever waiting: frames while its transmit window has room
-    /// (the channel holds a whole window, so a full channel is a failed send the bridge hears
+    /// (the transmit queue holds a whole window, so a full queue is a failed send the bridge hears
     /// about), publications while the MQTT task has room (the bridge keeps the rest).
     fn carry_out(&mut self) {
         while let Some(load) = self.bridge.poll_fw_load() {
@@ -503,8 +503,12 @@ impl Core {
         }
         let now = Instant::now();
         while let Some(t) = self.bridge.poll_transmit(now) {
-            let reason = match self.can_tx.try_send(t) {
-                Ok(()) => continue,
+            let reason = match self.can_tx.send(t, now) {
+                Ok(Handed::Written | Handed::Queued) => continue,
+                Ok(Handed::Transmitted) => {
+                    self.bridge.handle_transmitted(t.packet, now);
+                    continue;
+                }
                 Err(mpsc::error::TrySendError::Full(_)) => "CAN transmit channel full",
                 Err(mpsc::error::TrySendError::Closed(_)) => "CAN transmitter stopped",
             };
@@ -735,7 +739,7 @@ mod tests {
         };
         let core = Core {
             bridge: Bridge::new(config, Instant::now()),
-            can_tx,
+            can_tx: crate::can::Transmitter::queue_only(can_tx),
             pub_tx,
             topics: Topics::seed(),
             text: PayloadWriter::default(),

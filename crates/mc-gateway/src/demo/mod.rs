@@ -86,8 +86,8 @@ impl FrameLink for MemLink {
 }
 
 impl FrameSender for MemLinkSender {
-    async fn send(&self, frame: CanFrame) -> Result<(), String> {
-        self.0.send(frame).await.map_err(|e| e.to_string())
+    fn send(&self, frame: CanFrame) -> Result<(), String> {
+        self.0.try_send(frame).map_err(|e| e.to_string())
     }
 }
 
