@@ -1,5 +1,5 @@
-//! The JSON text of the two publications every answered command makes — its `command_result` and
-//! the node's state document — written by hand: the same bytes serde_json writes from their
+//! The JSON text of the publications every answered command makes — its `command_result`, the
+//! node's state document and, with Home Assistant discovery, its light's state — written by hand: the same bytes serde_json writes from their
 //! `Serialize` derives (the MQTT API, docs/mqtt-api.md), in fewer and larger writes. serde_json
 //! escapes every key and writes each piece separately, which was a third of an answered command's
 //! instructions (callgrind); here the keys and punctuation between two values are one literal,
@@ -13,6 +13,7 @@ use crate::event::{
     hex_digits, BuzzerState, CommandResult, Firmware, HexId, LedState, Link, NodeState, Outcome,
     Refusal, Reported, Role, Target,
 };
+use crate::ha::{light::RgbColor, LightState};
 use crate::origin::Origin;
 
 /// Appends `{"event":"command_result","payload":…}`, as [`crate::event::write_json`] of
@@ -182,6 +183,39 @@ pub(crate) fn write_node_state(s: &NodeState, out: &mut BytesMut) {
     w.u64(*last_seen_ms);
     w.raw(b",\"first_seen_ms\":");
     w.u64(*first_seen_ms);
+    w.raw(b"}");
+}
+
+/// Appends a Home Assistant light's state, as [`crate::event::write_json`] of `s` does.
+pub(crate) fn write_light_state(s: &LightState, out: &mut BytesMut) {
+    let LightState {
+        state,
+        color_mode,
+        color,
+        brightness,
+        effect,
+    } = s;
+    let mut w = Writer(out);
+    w.raw(b"{\"state\":");
+    w.opt_str(state.as_deref());
+    if let Some(mode) = color_mode {
+        w.raw(b",\"color_mode\":");
+        w.str(mode);
+    }
+    if let Some(RgbColor { r, g, b }) = color {
+        w.raw(b",\"color\":{\"r\":");
+        w.u64((*r).into());
+        w.raw(b",\"g\":");
+        w.u64((*g).into());
+        w.raw(b",\"b\":");
+        w.u64((*b).into());
+        w.raw(b"}");
+    }
+    w.member_u64(b",\"brightness\":", brightness.map(Into::into));
+    if let Some(effect) = effect {
+        w.raw(b",\"effect\":");
+        w.str(effect);
+    }
     w.raw(b"}");
 }
 
@@ -550,6 +584,40 @@ mod tests {
         for n in 0..420 {
             let (serde, ours) = both(Publication::State(state(n)));
             assert_eq!(ours, serde, "case {n}");
+        }
+    }
+
+    #[test]
+    fn light_states_are_the_bytes_serde_json_writes() {
+        let leds = [
+            None,
+            Some(LedCommand::Off),
+            Some(LedCommand::Steady {
+                color: Rgb::new(0, 128, 255),
+                brightness: 0,
+            }),
+            Some(LedCommand::Blink {
+                color: Rgb::new(255, 9, 10),
+                brightness: 255,
+                period_10ms: 1,
+                duty_pct: 99,
+            }),
+        ];
+        let mut states: Vec<LightState> = leds.into_iter().map(LightState::from_led).collect();
+        for (n, text) in AWKWARD.iter().enumerate() {
+            states.push(LightState {
+                state: (n % 2 == 0).then(|| text.to_string().into()),
+                color_mode: Some(text.to_string().into()),
+                color: None,
+                brightness: (n % 3 == 0).then_some(n as u8),
+                effect: Some(text.to_string().into()),
+            });
+        }
+        for (n, s) in states.iter().enumerate() {
+            let mut ours = BytesMut::new();
+            write_light_state(s, &mut ours);
+            let serde = serde_json::to_string(s).unwrap();
+            assert_eq!(std::str::from_utf8(&ours).unwrap(), serde, "case {n}");
         }
     }
 

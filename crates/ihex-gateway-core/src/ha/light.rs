@@ -3,6 +3,8 @@
 //! "effect":"blink"}`). That schema has no value template, so the gateway publishes this on a topic
 //! of its own (retained) instead of pointing Home Assistant at the node's state document.
 
+use std::borrow::Cow;
+
 use ihex_proto::{LedCommand, Rgb};
 use serde::{Deserialize, Serialize};
 
@@ -34,14 +36,15 @@ impl From<Rgb> for RgbColor {
     }
 }
 
-/// One state message of the light.
+/// One state message of the light. Its texts are the constants above as the gateway builds it
+/// (built for every state document, so without allocating), any text once read back.
 #[derive(Clone, PartialEq, Eq, Debug, Serialize, Deserialize)]
 pub struct LightState {
     /// `ON`, `OFF`, or `null` while the node has acknowledged no LED command (unknown).
-    pub state: Option<String>,
+    pub state: Option<Cow<'static, str>>,
     /// `rgb` while on.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub color_mode: Option<String>,
+    pub color_mode: Option<Cow<'static, str>>,
     /// The colour while on.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub color: Option<RgbColor>,
@@ -50,14 +53,14 @@ pub struct LightState {
     pub brightness: Option<u8>,
     /// [`EFFECT_BLINK`] or [`EFFECT_OFF`] while on.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub effect: Option<String>,
+    pub effect: Option<Cow<'static, str>>,
 }
 
 impl LightState {
     /// The light as the LED command the node last acknowledged shows it (`None`: none yet, or the
     /// node restarted since).
     pub fn from_led(led: Option<LedCommand>) -> LightState {
-        let on = |color: Rgb, brightness: u8, effect: &str| LightState {
+        let on = |color: Rgb, brightness: u8, effect: &'static str| LightState {
             state: Some("ON".into()),
             color_mode: Some("rgb".into()),
             color: Some(color.into()),

@@ -83,7 +83,7 @@ impl HaPublication {
     pub fn write_payload(&self, out: &mut bytes::BytesMut) {
         match self {
             HaPublication::Config { config, .. } => out.extend_from_slice(config.as_bytes()),
-            HaPublication::Light { state, .. } => crate::event::write_json(state, out),
+            HaPublication::Light { state, .. } => crate::json_writer::write_light_state(state, out),
         }
     }
 }
