@@ -214,6 +214,10 @@ struct Pending {
 pub struct CommandMeter {
     pending: VecDeque<Pending>,
     counted: Counted,
+    /// The series answers were counted into, each looked up in its family once: the family's
+    /// lookup takes a lock and hashes the labels, a scan of these few entries does neither.
+    counters: Vec<(CommandLabels, Counter)>,
+    round_trips: Vec<(Interface, Histogram)>,
 }
 
 impl CommandMeter {
@@ -222,6 +226,8 @@ impl CommandMeter {
         CommandMeter {
             pending: VecDeque::new(),
             counted,
+            counters: Vec::new(),
+            round_trips: Vec::new(),
         }
     }
 
@@ -270,20 +276,39 @@ impl CommandMeter {
         let interface = match at.and_then(|i| self.pending.remove(i)) {
             Some(p) => {
                 let secs = now.saturating_duration_since(p.received).as_secs_f64();
-                self.counted
-                    .round_trip
-                    .get_or_create(&InterfaceLabels {
-                        interface: InterfaceLabel(Some(p.from)),
-                    })
-                    .observe(secs);
+                self.round_trip(p.from).observe(secs);
                 InterfaceLabel(Some(p.from))
             }
             None => InterfaceLabel(None),
         };
-        self.counted
-            .commands
-            .get_or_create(&CommandLabels { interface, result })
-            .inc();
+        self.counter(CommandLabels { interface, result }).inc();
+    }
+
+    fn counter(&mut self, labels: CommandLabels) -> &Counter {
+        let at = match self.counters.iter().position(|(l, _)| *l == labels) {
+            Some(at) => at,
+            None => {
+                let c = self.counted.commands.get_or_create(&labels).clone();
+                self.counters.push((labels, c));
+                self.counters.len() - 1
+            }
+        };
+        &self.counters[at].1
+    }
+
+    fn round_trip(&mut self, from: Interface) -> &Histogram {
+        let at = match self.round_trips.iter().position(|(i, _)| *i == from) {
+            Some(at) => at,
+            None => {
+                let labels = InterfaceLabels {
+                    interface: InterfaceLabel(Some(from)),
+                };
+                let h = self.counted.round_trip.get_or_create(&labels).clone();
+                self.round_trips.push((from, h));
+                self.round_trips.len() - 1
+            }
+        };
+        &self.round_trips[at].1
     }
 }
 
@@ -621,9 +646,12 @@ mod tests {
         m.published(&result(Some("homeassistant"), Outcome::Refused), t0);
         // An answer whose command the meter never saw.
         m.published(&result(Some("zzz"), Outcome::Failed), t0);
+        // A series counted into before: the same series again.
+        m.noted(Interface::Web, Some("b".into()), t0);
+        m.published(&result(Some("b"), Outcome::Ok), t0);
         let text = scrape(&counted);
         for (series, v) in [
-            (r#"ihex_commands_total{interface="web",result="ok"}"#, "1"),
+            (r#"ihex_commands_total{interface="web",result="ok"}"#, "2"),
             (
                 r#"ihex_commands_total{interface="mqtt",result="timeout"}"#,
                 "1",
@@ -647,7 +675,7 @@ mod tests {
             ),
             (
                 r#"ihex_command_round_trip_seconds_bucket{interface="web",le="0.025"}"#,
-                "1",
+                "2",
             ),
             (
                 r#"ihex_command_round_trip_seconds_bucket{interface="mqtt",le="0.5"}"#,
