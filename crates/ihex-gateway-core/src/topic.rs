@@ -117,15 +117,7 @@ impl Topics {
 
     /// The retained state topic of one node (`<root>/<id>/state`, id in lower-case hex like events).
     pub fn node_state(&self, id: NodeId) -> String {
-        // Without the formatting machinery: every state document is published on one of these.
-        let mut buf = [0; 4];
-        let id = crate::event::hex(id, &mut buf);
-        let mut name = String::with_capacity(self.node_state_root.len() + id.len() + 7);
-        name.push_str(&self.node_state_root);
-        name.push('/');
-        name.push_str(id);
-        name.push_str("/state");
-        name
+        node_topic(&self.node_state_root, id, "state")
     }
 
     /// The subscription of the upload topics (`<root>/+`).
@@ -180,6 +172,20 @@ impl Topics {
             Topic::Procedures => self.procedures.clone(),
         }
     }
+}
+
+/// `root/ID/leaf`, without the formatting machinery: every state document, and with Home
+/// Assistant discovery every light state, is published on one of these.
+pub(crate) fn node_topic(root: &str, id: NodeId, leaf: &str) -> String {
+    let mut buf = [0; 4];
+    let id = crate::event::hex(id, &mut buf);
+    let mut name = String::with_capacity(root.len() + id.len() + leaf.len() + 2);
+    name.push_str(root);
+    name.push('/');
+    name.push_str(id);
+    name.push('/');
+    name.push_str(leaf);
+    name
 }
 
 /// A topic or island name that cannot be used, and why.

@@ -101,7 +101,7 @@ impl HaTopics {
         match topic {
             HaTopic::GatewayConfig => self.config_topic("gateway"),
             HaTopic::DeviceConfig(id) => self.config_topic(&id.to_string()),
-            HaTopic::LightState(id) => format!("{}/{id}/{}", self.root, Entity::Led.name()),
+            HaTopic::LightState(id) => crate::topic::node_topic(&self.root, id, Entity::Led.name()),
         }
     }
 
@@ -199,6 +199,7 @@ mod tests {
             "homeassistant/device/ihex_gateway/config"
         );
         assert_eq!(t.resolve(HaTopic::LightState(id(2))), "ihex/ha/2/led");
+        assert_eq!(t.resolve(HaTopic::LightState(id(0x7f0))), "ihex/ha/7f0/led");
         assert_eq!(t.command(id(2), Entity::Relay), "ihex/ha/2/relay/set");
         assert_eq!(t.command_filter(), "ihex/ha/+/+/set");
         assert_eq!(t.device(id(2)), "ihex_2");
