@@ -136,7 +136,7 @@ pub struct Control {
     /// The locks SiLA clients hold, for the `LockIdentifier` metadata.
     pub locks: Arc<Locks>,
     /// The elements, kept current by the model task.
-    pub elements: watch::Receiver<Arc<Vec<Element>>>,
+    pub elements: watch::Receiver<Arc<Vec<Arc<Element>>>>,
     /// The dockings, kept current by the model task.
     pub dockings: watch::Receiver<Arc<Vec<Docking>>>,
 }
@@ -239,7 +239,7 @@ macro_rules! element_struct {
     }};
 }
 
-fn element_states(elements: &[Element]) -> pb::SubscribeElementStatesResponses {
+fn element_states(elements: &[Arc<Element>]) -> pb::SubscribeElementStatesResponses {
     pb::SubscribeElementStatesResponses {
         element_states: elements
             .iter()

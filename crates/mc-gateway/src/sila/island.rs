@@ -4,6 +4,7 @@
 
 use std::borrow::Cow;
 use std::collections::{BTreeMap, BTreeSet};
+use std::sync::Arc;
 
 use serde::Deserialize;
 use serde_json::Value;
@@ -157,10 +158,13 @@ impl Element {
     }
 }
 
-/// Every known element, by node ID.
+/// Every known element, by node ID. Elements are shared with the properties' values (a change
+/// of one element copies the others' handles, not their text), and the dockings are derived again
+/// only after a change of links, roles or the elements known.
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
 pub struct Island {
-    elements: BTreeMap<String, Element>,
+    elements: BTreeMap<String, Arc<Element>>,
+    dockings_changed: bool,
 }
 
 impl Island {
@@ -172,8 +176,9 @@ impl Island {
             // publishes, describes no element.
             .filter_map(|d| StateDoc::deserialize(d).ok())
             .map(Element::from_doc)
-            .map(|e| (e.id.clone(), e))
+            .map(|e| (e.id.clone(), Arc::new(e)))
             .collect();
+        self.dockings_changed = true;
     }
 
     /// A state document as published; true when it changed what the properties show.
@@ -182,22 +187,32 @@ impl Island {
             return false;
         };
         let e = Element::from_doc(doc);
-        if self.elements.get(&e.id) == Some(&e) {
-            return false;
+        match self.elements.get(&e.id) {
+            Some(old) if **old == e => return false,
+            Some(old) if old.links == e.links && old.role == e.role => {}
+            // A new element's role may turn a docking its peer reported.
+            _ => self.dockings_changed = true,
         }
-        self.elements.insert(e.id.clone(), e);
+        self.elements.insert(e.id.clone(), Arc::new(e));
         true
     }
 
     /// A `node_forgotten` event as published; true when it removed a known element.
     pub fn handle_forgotten(&mut self, json: &str) -> bool {
-        serde_json::from_str::<Forgotten<'_>>(json)
-            .is_ok_and(|f| self.elements.remove(f.payload.id.as_ref()).is_some())
+        let removed = serde_json::from_str::<Forgotten<'_>>(json)
+            .is_ok_and(|f| self.elements.remove(f.payload.id.as_ref()).is_some());
+        self.dockings_changed |= removed;
+        removed
     }
 
     /// The elements, by node ID.
-    pub fn elements(&self) -> Vec<Element> {
+    pub fn elements(&self) -> Vec<Arc<Element>> {
         self.elements.values().cloned().collect()
+    }
+
+    /// True once after every change that may have changed [`Island::dockings`].
+    pub fn take_dockings_changed(&mut self) -> bool {
+        std::mem::take(&mut self.dockings_changed)
     }
 
     /// The dockings, as either side reports them (a connection both report is listed once).
@@ -261,15 +276,24 @@ mod tests {
             mobile_port: 0,
         };
         assert_eq!(island.dockings(), vec![d], "reported by both, listed once");
+        assert!(island.take_dockings_changed());
+        assert!(!island.take_dockings_changed(), "once per change");
+        // Another colour: the element changed, its links and role did not.
+        let green = STATIC.replace("#ff0000", "#00ff00");
+        assert!(island.handle_state(&green));
+        assert_eq!(island.elements()[0].light, "blink #00ff00 255 500 50");
+        assert!(!island.take_dockings_changed());
         let undocked = STATIC.replace(r#"[{"port":3,"peer":"2","peer_port":0}]"#, "[]");
         assert!(island.handle_state(&undocked));
         let mobile_undocked = MOBILE.replace(r#"[{"port":0,"peer":"111","peer_port":3}]"#, "[]");
         assert!(island.handle_state(&mobile_undocked));
+        assert!(island.take_dockings_changed());
         assert_eq!(island.dockings(), vec![]);
         assert!(island.handle_forgotten(
             r#"{"event":"node_forgotten","payload":{"id":"2","reason":"forget","new_id":null}}"#
         ));
         assert_eq!(island.elements().len(), 1);
+        assert!(island.take_dockings_changed(), "an element forgotten");
         assert!(!island.handle_state("not json"));
         // Escaped text is read as well as plain text.
         assert!(island.handle_state(r#"{"id":"3","role":"mobile","uid":"a\"b"}"#));

@@ -475,7 +475,7 @@ fn self_signed(
 async fn model(
     feed: Arc<Feed>,
     views: mpsc::Sender<ViewRequest>,
-    elements: watch::Sender<Arc<Vec<Element>>>,
+    elements: watch::Sender<Arc<Vec<Arc<Element>>>>,
     dockings: watch::Sender<Arc<Vec<Docking>>>,
     cancel: CancellationToken,
 ) {
@@ -496,7 +496,7 @@ async fn model(
                 .filter_map(|n| serde_json::to_value(n).ok())
                 .collect();
             island.handle_snapshot(&docs);
-            show(&island, &elements, &dockings);
+            show(&mut island, &elements, &dockings);
         }
         let changed = tokio::select! {
             _ = cancel.cancelled() => return,
@@ -521,7 +521,7 @@ async fn model(
             },
         };
         if changed {
-            show(&island, &elements, &dockings);
+            show(&mut island, &elements, &dockings);
         }
     }
 }
@@ -529,11 +529,14 @@ async fn model(
 /// Hands the island's current elements and dockings to the subscribers (dockings only when they
 /// changed, so a docking stream's values are dockings and undockings).
 fn show(
-    island: &Island,
-    elements: &watch::Sender<Arc<Vec<Element>>>,
+    island: &mut Island,
+    elements: &watch::Sender<Arc<Vec<Arc<Element>>>>,
     dockings: &watch::Sender<Arc<Vec<Docking>>>,
 ) {
     elements.send_replace(Arc::new(island.elements()));
+    if !island.take_dockings_changed() {
+        return;
+    }
     let d = island.dockings();
     dockings.send_if_modified(|old| {
         if **old == d {
