@@ -43,6 +43,10 @@ pub struct BenchArgs {
     /// Seconds of traffic per rate trial.
     #[arg(long, default_value_t = 2.0)]
     trial_secs: f64,
+    /// Messages per second of the MQTT -> CAN cost rounds, the same for this build and the
+    /// baseline (default: each at 80 % of its own sustained command rate).
+    #[arg(long)]
+    cost_rate: Option<f64>,
     /// Iterations of the short callgrind run (the long one is twice that).
     #[arg(long, default_value_t = 2000)]
     callgrind_n: u64,
@@ -377,6 +381,9 @@ fn live_args(gateway: &Path, args: &BenchArgs) -> Vec<String> {
     ];
     if args.mosquitto_nagle {
         v.push("--mosquitto-nagle".into());
+    }
+    if let Some(r) = args.cost_rate {
+        v.extend(["--cost-rate".into(), r.to_string()]);
     }
     if args.trace {
         v.push("--trace".into());

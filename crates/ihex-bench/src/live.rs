@@ -75,6 +75,8 @@ pub struct Settings {
     pub probes: usize,
     /// Seconds of traffic per rate trial.
     pub trial_secs: f64,
+    /// Messages per second of the cost rounds; `None`: 80 % of the sustained command rate.
+    pub cost_rate: Option<f64>,
     /// Commands in the MQTT → CAN burst.
     pub commands: usize,
     /// Leave Mosquitto's default `set_tcp_nodelay false` (Nagle on its sockets) instead of turning
@@ -1873,8 +1875,9 @@ pub fn run(s: Settings) -> Result<LiveResults> {
     b.gw.check_alive()?;
     let (hwm, rss) = memory_kib(b.gw.pid())?;
     peaks.push(("bus load", hwm));
-    // Cost: the gateway and the plain forwarder alternately, at 80 % of the sustained rate.
-    let cost_rate = (cps * 0.8).max(100.0);
+    // Cost: the gateway and the plain forwarder alternately, at 80 % of the sustained rate unless
+    // a rate was given.
+    let cost_rate = b.s.cost_rate.unwrap_or((cps * 0.8).max(100.0));
     println!(
         "bench: MQTT->CAN cost at {cost_rate:.0} msg/s, the gateway and a plain forwarder \
          (on {}) alternately, {COST_ROUNDS} rounds",

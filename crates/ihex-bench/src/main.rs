@@ -70,6 +70,11 @@ enum Cmd {
         /// Seconds of traffic per rate trial.
         #[arg(long, default_value_t = 2.0)]
         trial_secs: f64,
+        /// Messages per second of the MQTT -> CAN cost rounds (default: 80 % of the sustained
+        /// command rate). A fixed rate makes two gateways' CPU per 1,000 commands comparable:
+        /// both depend on how many commands share a wake-up.
+        #[arg(long)]
+        cost_rate: Option<f64>,
         /// Commands in the MQTT -> CAN burst.
         #[arg(long, default_value_t = 4000)]
         commands: usize,
@@ -301,6 +306,7 @@ fn main() -> Result<()> {
             mosquitto,
             probes,
             trial_secs,
+            cost_rate,
             commands,
             mosquitto_nagle,
             trace,
@@ -316,6 +322,7 @@ fn main() -> Result<()> {
                 mosquitto,
                 probes,
                 trial_secs,
+                cost_rate,
                 commands,
                 mosquitto_nagle,
                 trace,
