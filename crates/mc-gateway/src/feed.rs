@@ -57,6 +57,9 @@ pub struct Published {
     pub kind: Kind,
     /// The JSON text exactly as published on MQTT.
     pub json: Arc<str>,
+    /// A state document as the core built it (`Kind::State`), for readers that show parts of it
+    /// without reading the text again.
+    pub state: Option<NodeState>,
 }
 
 /// The publications of one gateway, for readers other than MQTT.
@@ -81,12 +84,12 @@ impl Feed {
     /// Called by the core task for every publication, with the JSON it serialised for MQTT: numbers
     /// it, keeps it when it is an event, and hands it to every live reader (never waiting: a reader
     /// that falls [`LIVE_QUEUE`] behind is told how many it lost).
-    pub fn publish(&self, publication: &Publication, json: &str) {
-        let kind = match publication {
-            Publication::Event(e) => Kind::Event(e.name()),
-            Publication::State(s) => Kind::State(s.id.0),
-            Publication::Leases(_) => Kind::Leases,
-            Publication::Procedures(_) => Kind::Procedures,
+    pub fn publish(&self, publication: Publication, json: &str) {
+        let (kind, state) = match publication {
+            Publication::Event(e) => (Kind::Event(e.name()), None),
+            Publication::State(s) => (Kind::State(s.id.0), Some(s)),
+            Publication::Leases(_) => (Kind::Leases, None),
+            Publication::Procedures(_) => (Kind::Procedures, None),
             // Home Assistant's topics are not the page's; a forgotten node's emptied state document
             // reaches it as the `node_forgotten` event.
             Publication::Ha(_) | Publication::Cleared(_) => return,
@@ -96,6 +99,7 @@ impl Feed {
             time_ms: unix_ms(SystemTime::now()),
             kind,
             json: Arc::from(json),
+            state,
         });
         // A firmware update's progress (a step per element every 5 %) would push every other
         // event out of the timeline a new page starts from; the live stream carries it.
@@ -239,9 +243,11 @@ mod tests {
             phase: "receiving".into(),
             percent: 5,
         }));
-        feed.publish(&p, &p.to_json());
+        let json = p.to_json();
+        feed.publish(p, &json);
         let r = rejected(1);
-        feed.publish(&r, &r.to_json());
+        let json = r.to_json();
+        feed.publish(r, &json);
         assert_eq!(live.try_recv().unwrap().kind, Kind::Event("fw_progress"));
         let kept = feed.recent_events(u64::MAX);
         assert_eq!(kept.len(), 1);
@@ -254,7 +260,8 @@ mod tests {
         let mut live = feed.subscribe();
         for n in 0..RECENT_EVENTS + 5 {
             let p = rejected(n);
-            feed.publish(&p, &p.to_json());
+            let json = p.to_json();
+            feed.publish(p, &json);
         }
         assert_eq!(feed.seq(), (RECENT_EVENTS + 5) as u64);
         let kept = feed.recent_events(u64::MAX);

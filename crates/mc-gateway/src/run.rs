@@ -682,13 +682,15 @@ fn outbound(
         Publication::Leases(_) => info!(payload = %json(), "leases published"),
         Publication::Procedures(_) => info!(payload = %json(), "procedures published"),
     }
+    let topic = topics.resolve(publication.topic());
+    let retain = publication.retain();
     if let Some(feed) = feed {
-        feed.publish(&publication, &json());
+        feed.publish(publication, &json());
     }
     Outbound {
-        topic: topics.resolve(publication.topic()),
+        topic,
         payload,
-        retain: publication.retain(),
+        retain,
     }
 }
 

@@ -1,13 +1,13 @@
-//! The island as `IslandControl`'s properties show it: every element from its state document (the
-//! JSON the gateway publishes on `ihex/node/<id>/state`), and the dockings they report. No I/O: the
+//! The island as `IslandControl`'s properties show it: every element from its state document (as
+//! the gateway publishes it on `ihex/node/<id>/state`), and the dockings they report. No I/O: the
 //! server's model task feeds it the documents and events of the core's feed.
 
 use std::borrow::Cow;
 use std::collections::{BTreeMap, BTreeSet};
 use std::sync::Arc;
 
+use ihex_gateway_core::event::{NodeState, Role};
 use serde::Deserialize;
-use serde_json::Value;
 
 /// One element, as the `Elements` property shows it.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -43,56 +43,6 @@ pub struct Docking {
     pub mobile_port: i64,
 }
 
-/// The parts of a state document the properties show, read in place: a document is parsed once
-/// per change of any node, so nothing else in it is built.
-#[derive(Deserialize)]
-struct StateDoc<'a> {
-    #[serde(borrow)]
-    id: Cow<'a, str>,
-    #[serde(borrow, default)]
-    role: Option<Cow<'a, str>>,
-    #[serde(default)]
-    online: Option<bool>,
-    #[serde(borrow, default)]
-    firmware: Option<Firmware<'a>>,
-    #[serde(borrow, default)]
-    uid: Option<Cow<'a, str>>,
-    #[serde(borrow, default)]
-    led: Option<Led<'a>>,
-    #[serde(default)]
-    relay: Option<bool>,
-    #[serde(borrow, default)]
-    connections: Option<Vec<Link<'a>>>,
-}
-
-#[derive(Deserialize)]
-struct Firmware<'a> {
-    #[serde(borrow, default)]
-    version: Option<Cow<'a, str>>,
-}
-
-#[derive(Deserialize)]
-struct Led<'a> {
-    #[serde(borrow, default)]
-    mode: Option<Cow<'a, str>>,
-    #[serde(borrow, default)]
-    color: Option<Cow<'a, str>>,
-    #[serde(default)]
-    brightness: Option<i64>,
-    #[serde(default)]
-    period_ms: Option<i64>,
-    #[serde(default)]
-    duty: Option<i64>,
-}
-
-#[derive(Deserialize)]
-struct Link<'a> {
-    port: i64,
-    #[serde(borrow)]
-    peer: Cow<'a, str>,
-    peer_port: i64,
-}
-
 /// The `payload` of a `node_forgotten` event.
 #[derive(Deserialize)]
 struct Forgotten<'a> {
@@ -108,39 +58,43 @@ struct ForgottenNode<'a> {
 
 impl Element {
     /// The element a state document describes.
-    fn from_doc(doc: StateDoc<'_>) -> Element {
-        let text = |v: Option<Cow<'_, str>>| v.map(Cow::into_owned).unwrap_or_default();
-        let light = match doc.led {
+    fn from_state(doc: &NodeState) -> Element {
+        let light = match &doc.led {
             Some(led) => {
                 let color = led.color.as_deref().unwrap_or_default();
                 let brightness = led.brightness.unwrap_or_default();
-                match led.mode.as_deref() {
-                    Some("steady") => format!("steady {color} {brightness}"),
-                    Some("blink") => format!(
+                match led.mode.as_str() {
+                    "steady" => format!("steady {color} {brightness}"),
+                    "blink" => format!(
                         "blink {color} {brightness} {} {}",
                         led.period_ms.unwrap_or_default(),
                         led.duty.unwrap_or_default()
                     ),
-                    Some(mode) => mode.to_owned(),
-                    None => String::new(),
+                    mode => mode.to_owned(),
                 }
             }
             None => String::new(),
         };
         let links = doc
             .connections
-            .unwrap_or_default()
-            .into_iter()
-            .map(|c| (c.port, c.peer.into_owned(), c.peer_port))
+            .iter()
+            .map(|c| (c.port.into(), c.peer.0.to_string(), c.peer_port.into()))
             .collect();
+        let role = match doc.role {
+            Some(Role::Static) => "static",
+            Some(Role::Mobile) => "mobile",
+            None => "unknown",
+        };
         Element {
-            id: doc.id.into_owned(),
-            role: doc
-                .role
-                .map_or_else(|| "unknown".to_owned(), Cow::into_owned),
-            online: doc.online.unwrap_or(false),
-            firmware: text(doc.firmware.and_then(|f| f.version)),
-            uid: text(doc.uid),
+            id: doc.id.0.to_string(),
+            role: role.to_owned(),
+            online: doc.online,
+            firmware: doc
+                .firmware
+                .as_ref()
+                .map(|f| f.version.clone())
+                .unwrap_or_default(),
+            uid: doc.uid.clone().unwrap_or_default(),
             light,
             relay: doc.relay.unwrap_or(false),
             links,
@@ -169,24 +123,18 @@ pub struct Island {
 
 impl Island {
     /// Starts again from a whole view of the island (every node's state document).
-    pub fn handle_snapshot<'a>(&mut self, docs: impl IntoIterator<Item = &'a Value>) {
+    pub fn handle_snapshot<'a>(&mut self, docs: impl IntoIterator<Item = &'a NodeState>) {
         self.elements = docs
             .into_iter()
-            // A document without an `id`, or with a field of another type than the gateway
-            // publishes, describes no element.
-            .filter_map(|d| StateDoc::deserialize(d).ok())
-            .map(Element::from_doc)
+            .map(Element::from_state)
             .map(|e| (e.id.clone(), Arc::new(e)))
             .collect();
         self.dockings_changed = true;
     }
 
     /// A state document as published; true when it changed what the properties show.
-    pub fn handle_state(&mut self, json: &str) -> bool {
-        let Ok(doc) = serde_json::from_str::<StateDoc<'_>>(json) else {
-            return false;
-        };
-        let e = Element::from_doc(doc);
+    pub fn handle_state(&mut self, doc: &NodeState) -> bool {
+        let e = Element::from_state(doc);
         match self.elements.get(&e.id) {
             Some(old) if **old == e => return false,
             Some(old) if old.links == e.links && old.role == e.role => {}
@@ -252,20 +200,30 @@ mod tests {
         "led":{"mode":"blink","color":"#ff0000","brightness":255,"period_ms":500,"duty":50},
         "buzzer":{"mode":"off"},"relay":true,"loops":[3],
         "connections":[{"port":3,"peer":"2","peer_port":0}],"reported":null,"last_seen_ms":120,"first_seen_ms":41000}"##;
-    const MOBILE: &str = r#"{"id":"2","online":true,"role":"mobile","led":null,"relay":null,
-        "connections":[{"port":0,"peer":"111","peer_port":3}]}"#;
+    const MOBILE: &str = r#"{"id":"2","online":true,"role":"mobile","ports":1,"version":null,
+        "firmware":null,"uid":null,"led":null,"buzzer":null,"relay":null,"loops":[],
+        "connections":[{"port":0,"peer":"111","peer_port":3}],"reported":null,"last_seen_ms":0,"first_seen_ms":0}"#;
+
+    /// The document a JSON text (as the gateway publishes it) describes.
+    fn doc(json: &str) -> NodeState {
+        serde_json::from_str(json).unwrap()
+    }
 
     #[test]
     fn state_documents_become_elements_and_dockings() {
         let mut island = Island::default();
-        assert!(island.handle_state(STATIC));
-        assert!(!island.handle_state(STATIC), "the same document again");
-        assert!(island.handle_state(MOBILE));
+        assert!(island.handle_state(&doc(STATIC)));
+        assert!(
+            !island.handle_state(&doc(STATIC)),
+            "the same document again"
+        );
+        assert!(island.handle_state(&doc(MOBILE)));
         let e = island.elements();
         assert_eq!(e.len(), 2);
         assert_eq!(e[0].id, "111");
         assert_eq!(e[0].light, "blink #ff0000 255 500 50");
         assert_eq!(e[0].firmware, "0.1.0");
+        assert_eq!(e[0].uid, "0123456789abcdef01234567");
         assert_eq!(e[0].docking_text(), "3:2:0");
         assert!(e[0].relay);
         assert_eq!((e[1].role.as_str(), e[1].light.as_str()), ("mobile", ""));
@@ -280,13 +238,19 @@ mod tests {
         assert!(!island.take_dockings_changed(), "once per change");
         // Another colour: the element changed, its links and role did not.
         let green = STATIC.replace("#ff0000", "#00ff00");
-        assert!(island.handle_state(&green));
+        assert!(island.handle_state(&doc(&green)));
         assert_eq!(island.elements()[0].light, "blink #00ff00 255 500 50");
         assert!(!island.take_dockings_changed());
+        let steady = STATIC.replace(
+            r##"{"mode":"blink","color":"#ff0000","brightness":255,"period_ms":500,"duty":50}"##,
+            r##"{"mode":"steady","color":"#0000ff","brightness":7}"##,
+        );
+        assert!(island.handle_state(&doc(&steady)));
+        assert_eq!(island.elements()[0].light, "steady #0000ff 7");
         let undocked = STATIC.replace(r#"[{"port":3,"peer":"2","peer_port":0}]"#, "[]");
-        assert!(island.handle_state(&undocked));
+        assert!(island.handle_state(&doc(&undocked)));
         let mobile_undocked = MOBILE.replace(r#"[{"port":0,"peer":"111","peer_port":3}]"#, "[]");
-        assert!(island.handle_state(&mobile_undocked));
+        assert!(island.handle_state(&doc(&mobile_undocked)));
         assert!(island.take_dockings_changed());
         assert_eq!(island.dockings(), vec![]);
         assert!(island.handle_forgotten(
@@ -294,12 +258,11 @@ mod tests {
         ));
         assert_eq!(island.elements().len(), 1);
         assert!(island.take_dockings_changed(), "an element forgotten");
-        assert!(!island.handle_state("not json"));
-        // Escaped text is read as well as plain text.
-        assert!(island.handle_state(r#"{"id":"3","role":"mobile","uid":"a\"b"}"#));
-        assert_eq!(island.elements()[1].uid, "a\"b");
-        // A field of another type than the gateway publishes: no element.
-        assert!(!island.handle_state(r#"{"id":"4","online":"yes"}"#));
-        assert_eq!(island.elements().len(), 2);
+        assert!(!island.handle_forgotten("not json"));
+        // A node the gateway knows nothing about yet.
+        let bare = MOBILE.replace(r#""role":"mobile""#, r#""role":null"#);
+        assert!(island.handle_state(&doc(&bare.replace(r#""id":"2""#, r#""id":"7ff""#))));
+        let e = island.elements();
+        assert_eq!((e[1].id.as_str(), e[1].role.as_str()), ("7ff", "unknown"));
     }
 }

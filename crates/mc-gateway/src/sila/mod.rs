@@ -489,12 +489,7 @@ async fn model(
                 _ = cancel.cancelled() => return,
                 v = feed::ask(&views, true) => v,
             };
-            let docs: Vec<serde_json::Value> = view
-                .and_then(|v| v.nodes)
-                .unwrap_or_default()
-                .iter()
-                .filter_map(|n| serde_json::to_value(n).ok())
-                .collect();
+            let docs = view.and_then(|v| v.nodes).unwrap_or_default();
             island.handle_snapshot(&docs);
             show(&mut island, &elements, &dockings);
         }
@@ -502,7 +497,7 @@ async fn model(
             _ = cancel.cancelled() => return,
             r = live.recv() => match r {
                 Ok(p) => match p.kind {
-                    Kind::State(_) => island.handle_state(&p.json),
+                    Kind::State(_) => p.state.as_ref().is_some_and(|s| island.handle_state(s)),
                     // The one event that changes the properties; the others are not read.
                     Kind::Event("node_forgotten") => island.handle_forgotten(&p.json),
                     Kind::Event(_) => false,
