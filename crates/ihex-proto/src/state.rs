@@ -141,7 +141,13 @@ impl fmt::Display for FirmwareVersion {
                 n += 1;
             }
             let digits = [part / 100, part / 10 % 10, part % 10];
-            let first = if part >= 100 { 0 } else if part >= 10 { 1 } else { 2 };
+            let first = if part >= 100 {
+                0
+            } else if part >= 10 {
+                1
+            } else {
+                2
+            };
             for d in &digits[first..] {
                 buf[n] = b'0' + d;
                 n += 1;
