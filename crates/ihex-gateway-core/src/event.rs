@@ -209,6 +209,16 @@ pub enum Role {
     Mobile,
 }
 
+impl Role {
+    /// The name in every document and event (`"static"`, `"mobile"`), as serde writes it.
+    pub fn name(self) -> &'static str {
+        match self {
+            Role::Static => "static",
+            Role::Mobile => "mobile",
+        }
+    }
+}
+
 /// Payload of `node_online`: a node was heard for the first time, or again after `node_lost`.
 #[derive(Clone, PartialEq, Eq, Debug, Serialize, Deserialize)]
 pub struct NodeOnline {

@@ -11,7 +11,7 @@ use bytes::{BufMut, BytesMut};
 
 use crate::event::{
     hex_digits, BuzzerState, CommandResult, Firmware, HexId, LedState, Link, NodeState, Outcome,
-    Refusal, Reported, Role, Target,
+    Refusal, Reported, Target,
 };
 use crate::ha::{light::RgbColor, LightState};
 use crate::origin::Origin;
@@ -103,11 +103,10 @@ pub(crate) fn write_node_state(s: &NodeState, out: &mut BytesMut) {
     } else {
         b",\"online\":false,\"role\":"
     });
-    w.raw(match role {
-        None => b"null",
-        Some(Role::Static) => b"\"static\"",
-        Some(Role::Mobile) => b"\"mobile\"",
-    });
+    match role {
+        None => w.raw(b"null"),
+        Some(r) => w.plain_str(r.name()),
+    }
     w.raw(b",\"ports\":");
     w.opt_u64(ports.map(u64::from));
     w.raw(b",\"version\":");
@@ -431,7 +430,7 @@ mod tests {
     use proptest::prelude::*;
 
     use super::*;
-    use crate::event::{Event, Version};
+    use crate::event::{Event, Role, Version};
     use crate::origin::Interface;
     use crate::Publication;
 

@@ -228,7 +228,7 @@ macro_rules! element_struct {
         let e: &Element = $e;
         $ty {
             element_id: text(e.id.clone()),
-            role: text(e.role.clone()),
+            role: text(e.role_name().to_owned()),
             online: boolean(e.online),
             firmware: text(e.firmware.clone()),
             uid: text(e.uid.clone()),

@@ -14,8 +14,8 @@ use serde::Deserialize;
 pub struct Element {
     /// Node ID in hex.
     pub id: String,
-    /// `static`, `mobile` or `unknown`.
-    pub role: String,
+    /// Static or mobile, when the element has told.
+    pub role: Option<Role>,
     /// Answering health checks.
     pub online: bool,
     /// Firmware version, empty until read back.
@@ -57,6 +57,11 @@ struct ForgottenNode<'a> {
 }
 
 impl Element {
+    /// `static`, `mobile` or `unknown`, as the `Elements` property shows it.
+    pub fn role_name(&self) -> &'static str {
+        self.role.map_or("unknown", Role::name)
+    }
+
     /// The element a state document describes.
     fn from_state(doc: &NodeState) -> Element {
         let light = match &doc.led {
@@ -80,14 +85,9 @@ impl Element {
             .iter()
             .map(|c| (c.port.into(), c.peer.0.to_string(), c.peer_port.into()))
             .collect();
-        let role = match doc.role {
-            Some(Role::Static) => "static",
-            Some(Role::Mobile) => "mobile",
-            None => "unknown",
-        };
         Element {
             id: doc.id.0.to_string(),
-            role: role.to_owned(),
+            role: doc.role,
             online: doc.online,
             firmware: doc
                 .firmware
@@ -168,8 +168,8 @@ impl Island {
         let mut all = BTreeSet::new();
         for e in self.elements.values() {
             for (port, peer, peer_port) in &e.links {
-                let peer_role = self.elements.get(peer).map(|p| p.role.as_str());
-                let d = if e.role == "mobile" || peer_role == Some("static") {
+                let peer_role = self.elements.get(peer).and_then(|p| p.role);
+                let d = if e.role == Some(Role::Mobile) || peer_role == Some(Role::Static) {
                     Docking {
                         static_element: peer.clone(),
                         port: *peer_port,
@@ -226,7 +226,7 @@ mod tests {
         assert_eq!(e[0].uid, "0123456789abcdef01234567");
         assert_eq!(e[0].docking_text(), "3:2:0");
         assert!(e[0].relay);
-        assert_eq!((e[1].role.as_str(), e[1].light.as_str()), ("mobile", ""));
+        assert_eq!((e[1].role_name(), e[1].light.as_str()), ("mobile", ""));
         let d = Docking {
             static_element: "111".into(),
             port: 3,
@@ -263,6 +263,6 @@ mod tests {
         let bare = MOBILE.replace(r#""role":"mobile""#, r#""role":null"#);
         assert!(island.handle_state(&doc(&bare.replace(r#""id":"2""#, r#""id":"7ff""#))));
         let e = island.elements();
-        assert_eq!((e[1].id.as_str(), e[1].role.as_str()), ("7ff", "unknown"));
+        assert_eq!((e[1].id.as_str(), e[1].role_name()), ("7ff", "unknown"));
     }
 }
