@@ -285,31 +285,35 @@ impl CommandMeter {
     }
 
     fn counter(&mut self, labels: CommandLabels) -> &Counter {
-        let at = match self.counters.iter().position(|(l, _)| *l == labels) {
-            Some(at) => at,
-            None => {
-                let c = self.counted.commands.get_or_create(&labels).clone();
-                self.counters.push((labels, c));
-                self.counters.len() - 1
-            }
-        };
-        &self.counters[at].1
+        let family = &self.counted.commands;
+        cached(&mut self.counters, labels, |l| {
+            family.get_or_create(l).clone()
+        })
     }
 
     fn round_trip(&mut self, from: Interface) -> &Histogram {
-        let at = match self.round_trips.iter().position(|(i, _)| *i == from) {
-            Some(at) => at,
-            None => {
-                let labels = InterfaceLabels {
-                    interface: InterfaceLabel(Some(from)),
-                };
-                let h = self.counted.round_trip.get_or_create(&labels).clone();
-                self.round_trips.push((from, h));
-                self.round_trips.len() - 1
-            }
-        };
-        &self.round_trips[at].1
+        let family = &self.counted.round_trip;
+        cached(&mut self.round_trips, from, |&from| {
+            let labels = InterfaceLabels {
+                interface: InterfaceLabel(Some(from)),
+            };
+            family.get_or_create(&labels).clone()
+        })
     }
+}
+
+/// The handle cached under `key`, made by `make` the first time: a family's `get_or_create` takes a
+/// lock and hashes the labels, a few handles in a vector are found by comparison.
+fn cached<K: PartialEq, V>(cache: &mut Vec<(K, V)>, key: K, make: impl FnOnce(&K) -> V) -> &V {
+    let at = match cache.iter().position(|(k, _)| *k == key) {
+        Some(at) => at,
+        None => {
+            let v = make(&key);
+            cache.push((key, v));
+            cache.len() - 1
+        }
+    };
+    &cache[at].1
 }
 
 fn outcome(o: ihex_gateway_core::event::Outcome) -> CommandResult {
