@@ -59,7 +59,8 @@ pub struct BenchArgs {
     /// Keep Mosquitto's default Nagle algorithm on its sockets (to compare; see docs/benchmarks.md).
     #[arg(long)]
     mosquitto_nagle: bool,
-    /// Take the kernel's trace (ftrace) of five idle commands after each idle latency series.
+    /// Take the kernel's trace (ftrace) of five idle commands after each idle latency series,
+    /// and count the system calls of one command trial at the cost rate (gateway, forwarder).
     /// Off by default: starting it has twice hung the microVM's kernel (a soft lockup in the
     /// benchmark's system call, TCG with two vCPUs), which loses the whole run.
     #[arg(long)]

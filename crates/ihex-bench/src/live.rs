@@ -1086,6 +1086,47 @@ impl Bench {
         }
     }
 
+    /// With [`Settings::trace`], one command trial at `rate` to the measured process while the
+    /// kernel counts its system calls ([`trace::census`]): a note of the calls per 1,000 commands
+    /// by kind, or why there is none. Outside the cost rounds: tracing costs CPU of its own.
+    fn census(&mut self, rate: f64) {
+        if !self.s.trace {
+            return;
+        }
+        let who = match self.target {
+            Target::Forwarder => "plain forwarder",
+            Target::Gateway => "gateway",
+        };
+        println!("bench: system calls of the {who} over a trial at {rate:.0} msg/s");
+        let note = (|| -> Result<String> {
+            let t = Trace::start_calls(self.measured_pid())?;
+            let trial = self.command_trial(rate);
+            let text = t.stop()?;
+            let trial = trial?;
+            let (counts, lost) = trace::census(&text);
+            let per_1k = |c: u64| c as f64 * 1000.0 / trial.received.max(1) as f64;
+            let total: u64 = counts.iter().map(|(_, c)| c).sum();
+            let kinds: Vec<String> = counts
+                .iter()
+                .map(|(k, c)| format!("{k} {:.0}", per_1k(*c)))
+                .collect();
+            let lost = if lost > 0 {
+                format!(" ({lost} trace events lost: the counts are short)")
+            } else {
+                String::new()
+            };
+            Ok(format!(
+                "system calls per 1,000 commands, {who} ({} of {} at {rate:.0}/s, every thread): {:.0}: {}{lost}",
+                trial.received,
+                trial.sent,
+                per_1k(total),
+                kinds.join(", ")
+            ))
+        })();
+        self.notes
+            .push(note.unwrap_or_else(|e| format!("no system call census of the {who}: {e:#}")));
+    }
+
     /// One `BootUp` frame to its `node_rebooted` event, µs (`None`: no event within 2 s); with
     /// `stamps`, also from the frame on the bus to the event's packet leaving for the broker.
     fn event_probe(
@@ -1901,6 +1942,11 @@ pub fn run(s: Settings) -> Result<LiveResults> {
     let share_commands = cost_trials[2 * median].share;
     let raw_forward = cost_trials.last().cloned();
     command_trials.extend(cost_trials.into_iter().step_by(2));
+    b.census(cost_rate);
+    b.addressing(Target::Forwarder, |b| {
+        b.census(cost_rate);
+        Ok(())
+    })?;
     println!("bench: latency of the raw MQTT->CAN forward at idle");
     dog.phase("forwarder latency and trace", &[forwarder]);
     let raw_idle = b.addressing(Target::Forwarder, |b| {

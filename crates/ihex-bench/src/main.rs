@@ -81,7 +81,8 @@ enum Cmd {
         /// Keep Mosquitto's default Nagle algorithm (set_tcp_nodelay false) on its sockets.
         #[arg(long)]
         mosquitto_nagle: bool,
-        /// Take the kernel's trace (ftrace) of five idle commands after each idle latency series.
+        /// Take the kernel's trace (ftrace) of five idle commands after each idle latency series,
+        /// and count the system calls of one command trial at the cost rate (gateway, forwarder).
         #[arg(long)]
         trace: bool,
         /// Use the Mosquitto already running at this address (in the microVM: the host's, at

@@ -1,6 +1,7 @@
-//! The kernel's trace (ftrace, through tracefs) of a few idle commands through the measured
-//! process: when it was woken, when it ran, which system calls it made and when it wrote the
-//! command's frame. No profiler runs in the microVM; this says where an idle command's time goes.
+//! The kernel's trace (ftrace, through tracefs) of the measured process: for a few idle commands,
+//! when it was woken, when it ran, which system calls it made and when it wrote the command's
+//! frame; for a trial at a steady rate, how many system calls of each kind it made (its census).
+//! No profiler runs in the microVM; this says where a command's time in the kernel goes.
 
 use std::fs;
 use std::path::{Path, PathBuf};
@@ -9,8 +10,9 @@ use std::process::Command;
 use anyhow::{bail, Context, Result};
 
 const ROOT: &str = "/sys/kernel/tracing";
+const SYS_ENTER: &str = "raw_syscalls/sys_enter";
 const EVENTS: [&str; 5] = [
-    "raw_syscalls/sys_enter",
+    SYS_ENTER,
     "raw_syscalls/sys_exit",
     "sched/sched_switch",
     "sched/sched_wakeup",
@@ -30,6 +32,31 @@ impl Trace {
     /// Starts tracing the system calls and scheduling of process `pid` (mounting tracefs when it
     /// is not yet), on the monotonic clock.
     pub(crate) fn start(pid: u32) -> Result<Trace> {
+        let t = Trace::open()?;
+        t.write("set_event_pid", &pid.to_string())?;
+        for e in EVENTS {
+            t.write(&format!("events/{e}/enable"), "1")?;
+        }
+        t.write("tracing_on", "1")?;
+        Ok(t)
+    }
+
+    /// Starts tracing the system calls alone of every thread of process `pid` (`set_event_pid`
+    /// matches threads, and a forwarder on rumqttc's blocking client makes its calls on two).
+    pub(crate) fn start_calls(pid: u32) -> Result<Trace> {
+        let tids: Vec<String> = fs::read_dir(format!("/proc/{pid}/task"))
+            .with_context(|| format!("listing the threads of process {pid}"))?
+            .filter_map(|e| e.ok()?.file_name().into_string().ok())
+            .collect();
+        let t = Trace::open()?;
+        t.write("set_event_pid", &tids.join(" "))?;
+        t.write(&format!("events/{SYS_ENTER}/enable"), "1")?;
+        t.write("tracing_on", "1")?;
+        Ok(t)
+    }
+
+    /// Tracefs, mounted when it is not yet, emptied and stopped, on the monotonic clock.
+    fn open() -> Result<Trace> {
         let root = PathBuf::from(ROOT);
         if !root.join("trace").exists() {
             let ok = Command::new("mount")
@@ -45,11 +72,6 @@ impl Trace {
         t.write("trace", "")?;
         t.write("trace_clock", "mono")?;
         t.write("buffer_size_kb", "8192")?;
-        t.write("set_event_pid", &pid.to_string())?;
-        for e in EVENTS {
-            t.write(&format!("events/{e}/enable"), "1")?;
-        }
-        t.write("tracing_on", "1")?;
         Ok(t)
     }
 
@@ -166,6 +188,48 @@ pub(crate) fn probes(trace: &str, pid: u32) -> Vec<Probe> {
     out
 }
 
+/// The system calls of a trace by kind, most frequent first, and the events the ring buffer lost
+/// (a census that lost some is short by as many). A `write` or `sendto` is told apart by its
+/// length: 16 bytes is a CAN frame, 8 an eventfd wake-up.
+pub(crate) fn census(trace: &str) -> (Vec<(String, u64)>, u64) {
+    let mut counts: std::collections::BTreeMap<String, u64> = Default::default();
+    let mut lost = 0;
+    for line in trace.lines() {
+        // `CPU:1 [LOST 123 EVENTS]`: the reader fell behind the ring buffer.
+        if let Some(n) = line.split("[LOST ").nth(1) {
+            lost += n
+                .split(' ')
+                .next()
+                .and_then(|n| n.parse().ok())
+                .unwrap_or(0);
+            continue;
+        }
+        let Some((_, what)) = timestamp_and_event(line) else {
+            continue;
+        };
+        let Some(args) = what.strip_prefix("sys_enter: NR ") else {
+            continue;
+        };
+        let (nr, rest) = args.split_once(' ').unwrap_or((args, ""));
+        let nr: u32 = nr.parse().unwrap_or(u32::MAX);
+        let len = rest
+            .trim_start_matches('(')
+            .split(", ")
+            .nth(2)
+            .and_then(|a| u64::from_str_radix(a, 16).ok());
+        let kind = match (name(nr), nr, len) {
+            (n, 1 | 44, Some(16)) => format!("{n} 16 B"),
+            (n, 1 | 44, Some(8)) => format!("{n} 8 B"),
+            ("other", ..) => format!("nr {nr}"),
+            (n, ..) => n.to_owned(),
+        };
+        *counts.entry(kind).or_default() += 1;
+    }
+    let mut counts: Vec<(String, u64)> = counts.into_iter().collect();
+    counts.sort_by(|a, b| b.1.cmp(&a.1).then_with(|| a.0.cmp(&b.0)));
+    (counts, lost)
+}
+
 /// The timestamp (s) and the event text of a trace line: `task-pid [cpu] flags  ts: event`.
 fn timestamp_and_event(line: &str) -> Option<(f64, &str)> {
     let (head, event) = line.split_once(": ")?;
@@ -180,6 +244,7 @@ fn name(nr: u32) -> &'static str {
         1 => "write",
         7 => "poll",
         20 => "writev",
+        24 => "sched_yield",
         44 => "sendto",
         45 => "recvfrom",
         46 => "sendmsg",
@@ -187,6 +252,7 @@ fn name(nr: u32) -> &'static str {
         54 => "setsockopt",
         202 => "futex",
         228 => "clock_gettime",
+        230 => "clock_nanosleep",
         232 => "epoll_wait",
         233 => "epoll_ctl",
         281 => "epoll_pwait",
@@ -227,6 +293,24 @@ mod tests {
         assert!(close(p[0].frame_us, 1100.0), "{p:?}");
         // The PUBACK's sendto after the frame is not counted.
         assert_eq!(p[0].calls, ["recvfrom", "xmit(eth0, 66)", "write(5, 16)"]);
+    }
+
+    #[test]
+    fn a_census_counts_the_calls_by_kind_and_frames_apart() {
+        let trace = format!("{TRACE}CPU:1 [LOST 12 EVENTS]\n  mc-gateway-77  [001] .....  100.003: sys_enter: NR 1 (5, 7ffd, 8, 0, 0, 0)\n  mc-gateway-77  [001] .....  100.004: sys_enter: NR 999 (0)\n");
+        let (counts, lost) = census(&trace);
+        let c = |k: &str| counts.iter().find(|(n, _)| n == k).map(|(_, c)| *c);
+        assert_eq!(c("recvfrom"), Some(1));
+        assert_eq!(c("write 16 B"), Some(1), "{counts:?}");
+        assert_eq!(c("write 8 B"), Some(1));
+        assert_eq!(c("sendto"), Some(1), "the 4-byte PUBACK");
+        assert_eq!(c("nr 999"), Some(1));
+        assert_eq!(lost, 12);
+        assert_eq!(
+            counts.iter().map(|(_, c)| c).sum::<u64>(),
+            5,
+            "sys_exit and the rest are not calls"
+        );
     }
 
     #[test]
