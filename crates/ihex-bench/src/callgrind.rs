@@ -2,6 +2,7 @@
 //! iterations of each path in child processes of this same binary and take the difference, so
 //! start-up, set-up and exit cancel out.
 
+use std::collections::HashMap;
 use std::path::Path;
 use std::process::{Command, Stdio};
 
@@ -17,6 +18,55 @@ pub fn total_instructions(out: &str) -> Option<u64> {
                 .or_else(|| l.strip_prefix("totals:"))
         })
         .and_then(|v| v.split_whitespace().next()?.parse().ok())
+}
+
+/// Inclusive instructions (`Ir`) of each function of `names` in a callgrind output file: the cost
+/// of its own lines plus that of every call it makes to another function, over all the blocks
+/// callgrind wrote for it (one per source file its code came from, inlined code included). `None`
+/// for a name the file does not have: the function was inlined into its caller, or never ran.
+/// A function that calls itself is counted once; one that reaches itself through another would
+/// be counted again (none of the tasks' loop functions does).
+pub fn inclusive(out: &str, names: &[&str]) -> Vec<Option<u64>> {
+    // Callgrind names a function in full once, `(id) name`, and as `(id)` after that.
+    fn name<'a>(full: &mut HashMap<&'a str, &'a str>, spec: &'a str) -> Option<&'a str> {
+        let spec = spec.trim();
+        let Some((id, rest)) = spec.strip_prefix('(').and_then(|r| r.split_once(')')) else {
+            return Some(spec);
+        };
+        let rest = rest.trim();
+        if rest.is_empty() {
+            full.get(id).copied()
+        } else {
+            full.insert(id, rest);
+            Some(rest)
+        }
+    }
+    let mut full = HashMap::new();
+    let mut sums: HashMap<&str, u64> = HashMap::new();
+    let (mut current, mut callee, mut call) = (None, None, false);
+    for line in out.lines() {
+        if let Some(spec) = line.strip_prefix("fn=") {
+            current = name(&mut full, spec);
+            call = false;
+        } else if let Some(spec) = line.strip_prefix("cfn=") {
+            callee = name(&mut full, spec);
+        } else if line.starts_with("calls=") {
+            call = true;
+        } else if line.starts_with(|c: char| c.is_ascii_digit() || "+-*".contains(c)) {
+            // `position cost`: after `calls=`, the cost is the call's inclusive one.
+            let counted = !(std::mem::take(&mut call) && callee == current);
+            let cost = line
+                .split_whitespace()
+                .nth(1)
+                .and_then(|c| c.parse::<u64>().ok());
+            if let (true, Some(f), Some(cost)) = (counted, current, cost) {
+                if names.contains(&f) {
+                    *sums.entry(f).or_default() += cost;
+                }
+            }
+        }
+    }
+    names.iter().map(|n| sums.get(n).copied()).collect()
 }
 
 /// The audit writer's inline entry point in the `audited` workload: counting only inside it
@@ -163,5 +213,35 @@ mod tests {
         assert_eq!(total_instructions(out), Some(1234567));
         assert_eq!(total_instructions("totals: 42 7\n"), Some(42));
         assert_eq!(total_instructions("events: Ir\n"), None);
+    }
+
+    #[test]
+    fn inclusive_counts_add_the_calls_to_other_functions_over_every_block() {
+        // `task` runs 10 of its own in two blocks (its code and code inlined from another
+        // file), calls `work` (inclusive 100) and itself (50, not counted again); `work` is named
+        // by its compressed id on its second appearance.
+        let out = "\
+events: Ir
+fl=(1) a.rs
+fn=(1) task
+3 4
+cfn=(2) work
+calls=2 10
+3 100
+cfn=(1)
+calls=1 3
+4 50
+fi=(2) b.rs
++1 6
+fn=(2)
+10 100
+fn=(3) idle
+1 7
+totals: 267
+";
+        assert_eq!(
+            inclusive(out, &["task", "work", "idle", "inlined"]),
+            [Some(110), Some(100), Some(7), None]
+        );
     }
 }

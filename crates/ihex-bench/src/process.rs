@@ -13,10 +13,10 @@ use std::process::Command;
 use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context, Result};
-use ihex_bench::results::{ProcessCost, ProcessResults};
+use ihex_bench::results::{ProcessCost, ProcessPhase, ProcessResults};
 use ihex_gateway_core::event::{Event, Outcome};
 
-use crate::callgrind::total_instructions;
+use crate::callgrind::{inclusive, total_instructions};
 use crate::live::{free_port, start_mosquitto, Mqtt, Proc};
 
 /// The static element every command colours (the built-in demo island has it).
@@ -29,6 +29,71 @@ const START: Duration = Duration::from_secs(120);
 const WARM_UP: usize = 20;
 /// Pause after each answer, so that every command is a turn of its own, as at idle.
 const GAP: Duration = Duration::from_millis(5);
+
+/// Where the instructions go: each task of the process by the function tokio polls it through,
+/// and the parts of the core and MQTT tasks a command meets (callgrind's names; a part is
+/// indented under its task). The simulated link and island are the demo's: a deployed gateway
+/// reads a CAN socket instead. What no line names is tokio's scheduler and I/O driver, and with
+/// the SiLA server on, the server.
+const PHASES: [(&str, &[&str]); 9] = [
+    ("core task", &["mc_gateway::run::Core::run::{{closure}}"]),
+    (
+        "  command in (read, checked, its frame written)",
+        &["mc_gateway::run::on_mqtt"],
+    ),
+    ("  the node's answer", &["mc_gateway::run::on_can"]),
+    (
+        "  answers and frames out (publications taken, JSON)",
+        &["mc_gateway::run::Core::carry_out"],
+    ),
+    (
+        "MQTT task",
+        &["mc_gateway::mqtt::MqttTask::run::{{closure}}"],
+    ),
+    (
+        "  socket reads and writes, packets parsed",
+        &["mc_gateway::mqtt::conn::Connection::poll::{{closure}}"],
+    ),
+    (
+        "  publications and PUBACKs encoded",
+        &["mc_gateway::mqtt::carry_out"],
+    ),
+    (
+        "CAN receive task (simulated link)",
+        &["mc_gateway::can::receive_link::{{closure}}"],
+    ),
+    (
+        "simulated island",
+        &[
+            "sim_node::island::Island::run::{{closure}}",
+            "sim_node::island::Island::boot::{{closure}}",
+        ],
+    ),
+];
+
+/// [`PHASES`] per command: the commands' dump less the pause's, over `n`.
+fn phases(commands: &str, idle: &str, n: usize) -> Vec<ProcessPhase> {
+    let names: Vec<&str> = PHASES.iter().flat_map(|(_, f)| f.iter().copied()).collect();
+    let (busy, quiet) = (inclusive(commands, &names), inclusive(idle, &names));
+    let mut at = 0;
+    PHASES
+        .iter()
+        .map(|(phase, functions)| {
+            let mut sum = None;
+            for k in at..at + functions.len() {
+                if let Some(b) = busy[k] {
+                    let q = quiet[k].unwrap_or(0);
+                    *sum.get_or_insert(0.0) += b as f64 - q as f64;
+                }
+            }
+            at += functions.len();
+            ProcessPhase {
+                name: (*phase).to_owned(),
+                per_command: sum.map(|s| s / n as f64),
+            }
+        })
+        .collect()
+}
 
 /// An LED command with colour `colour` published on `CommandsTopic` as `request_id`: its round
 /// trip when its `command_result` said `ok` within `timeout`.
@@ -170,9 +235,9 @@ fn measure(
         std::thread::sleep(GAP);
     }
     let took = start.elapsed();
-    let commands = dump(&pid, &out, 1)?;
+    let (commands, busy) = dump(&pid, &out, 1)?;
     std::thread::sleep(took);
-    let idle = dump(&pid, &out, 2)?;
+    let (idle, quiet) = dump(&pid, &out, 2)?;
     gateway.check_alive()?;
     Ok(ProcessCost {
         sila,
@@ -181,6 +246,7 @@ fn measure(
         instructions_commands: commands,
         instructions_idle: idle,
         per_command: (commands as f64 - idle as f64) / n as f64,
+        phases: phases(&busy, &quiet, n),
     })
 }
 
@@ -199,8 +265,8 @@ fn control(pid: &str, flag: &str) -> Result<()> {
 }
 
 /// Asks callgrind for dump number `k` of `out` and reads its instruction total (the counts since
-/// the previous dump or zeroing).
-fn dump(pid: &str, out: &Path, k: u32) -> Result<u64> {
+/// the previous dump or zeroing), with the dump itself.
+fn dump(pid: &str, out: &Path, k: u32) -> Result<(u64, String)> {
     control(pid, "-d")?;
     let file = PathBuf::from(format!("{}.{k}", out.display()));
     let deadline = Instant::now() + Duration::from_secs(30);
@@ -208,8 +274,9 @@ fn dump(pid: &str, out: &Path, k: u32) -> Result<u64> {
         // The `totals:` line ends the file: before it, the dump may be half written.
         let text = std::fs::read_to_string(&file).unwrap_or_default();
         if text.contains("\ntotals:") {
-            return total_instructions(&text)
-                .with_context(|| format!("no instruction total in {}", file.display()));
+            let total = total_instructions(&text)
+                .with_context(|| format!("no instruction total in {}", file.display()))?;
+            return Ok((total, text));
         }
         if Instant::now() > deadline {
             bail!("no instruction total in {} within 30 s", file.display());

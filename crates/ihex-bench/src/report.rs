@@ -880,6 +880,28 @@ fn process_table(o: &mut String, p: &ProcessResults) {
             r.instructions_commands,
             r.instructions_idle
         );
+        if r.phases.is_empty() {
+            continue;
+        }
+        for ph in &r.phases {
+            let v = ph
+                .per_command
+                .map_or("inlined".to_owned(), |v| format!("{v:.0}"));
+            let _ = writeln!(o, "      {:<60} {v:>7}", ph.name);
+        }
+        // Tasks are the lines not indented; their parts are inside them.
+        let tasks: f64 = r
+            .phases
+            .iter()
+            .filter(|ph| !ph.name.starts_with(' '))
+            .filter_map(|ph| ph.per_command)
+            .sum();
+        let _ = writeln!(
+            o,
+            "      {:<60} {:>7.0}",
+            "the rest (tokio's scheduler and I/O driver, the SiLA server)",
+            r.per_command - tasks
+        );
     }
 }
 
@@ -1361,6 +1383,28 @@ mod tests {
             instructions_commands: 14_000_000,
             instructions_idle: 200_000,
             per_command,
+            phases: if sila {
+                Vec::new()
+            } else {
+                vec![
+                    crate::results::ProcessPhase {
+                        name: "core task".into(),
+                        per_command: Some(20_000.0),
+                    },
+                    crate::results::ProcessPhase {
+                        name: "  the node's answer".into(),
+                        per_command: Some(1_500.0),
+                    },
+                    crate::results::ProcessPhase {
+                        name: "MQTT task".into(),
+                        per_command: Some(10_000.0),
+                    },
+                    crate::results::ProcessPhase {
+                        name: "simulated island".into(),
+                        per_command: None,
+                    },
+                ]
+            },
         };
         let r = Results {
             process: Some(ProcessResults {
@@ -1373,9 +1417,19 @@ mod tests {
         for line in [
             "  SiLA server off      34500 per command  (400 commands in 4.5 s",
             "  SiLA server on       41100 per command",
+            "      core task                                                      20000",
+            "        the node's answer                                             1500",
+            "      simulated island                                             inlined",
+            // 34,500 less the two tasks counted: a part is not counted again.
+            "      the rest (tokio's scheduler and I/O driver, the SiLA server)    4500",
         ] {
             assert!(t.contains(line), "{line:?} in\n{t}");
         }
+        assert_eq!(
+            t.matches("the rest").count(),
+            1,
+            "none without phases:\n{t}"
+        );
     }
 
     fn sample() -> LiveResults {

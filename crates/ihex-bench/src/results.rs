@@ -348,6 +348,19 @@ pub struct ProcessCost {
     pub instructions_idle: u64,
     /// (commands - idle) / commands.
     pub per_command: f64,
+    /// Where they went: per command, each task's inclusive count and some of its parts, the
+    /// pause's subtracted ([`ProcessPhase`]); empty in results written before it was counted.
+    #[serde(default)]
+    pub phases: Vec<ProcessPhase>,
+}
+
+/// One line of [`ProcessCost::phases`].
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct ProcessPhase {
+    /// What it is (`core task`, `  command in`: a part is indented under its task).
+    pub name: String,
+    /// Instructions per command; `None` when callgrind had none of its functions (inlined).
+    pub per_command: Option<f64>,
 }
 
 /// The SiLA server's round trip and memory (`ihex-bench sila`, the demo gateway on the host).
