@@ -847,6 +847,14 @@ impl Target {
     fn forwarder<F>(self, forwarder: Option<F>) -> Option<F> {
         forwarder.filter(|_| self == Target::Forwarder)
     }
+
+    /// How the notes name it.
+    fn name(self) -> &'static str {
+        match self {
+            Target::Forwarder => "plain forwarder",
+            Target::Gateway => "gateway",
+        }
+    }
 }
 
 /// The plain forwarder running beside the gateway, on a bus of its own.
@@ -1029,10 +1037,7 @@ impl Bench {
     /// `n` idle commands to the measured process under the kernel's trace ([`crate::trace`]):
     /// one note per command, with when the process was woken, ran and wrote the frame.
     fn trace_idle(&mut self, n: usize) -> Result<Vec<String>> {
-        let who = match self.target {
-            Target::Forwarder => "plain forwarder",
-            Target::Gateway => "gateway",
-        };
+        let who = self.target.name();
         let pid = self.measured_pid();
         let rx = self.led_socket()?;
         let t = Trace::start(pid)?;
@@ -1086,45 +1091,47 @@ impl Bench {
         }
     }
 
-    /// With [`Settings::trace`], one command trial at `rate` to the measured process while the
-    /// kernel counts its system calls ([`trace::census`]): a note of the calls per 1,000 commands
-    /// by kind, or why there is none. Outside the cost rounds: tracing costs CPU of its own.
+    /// With [`Settings::trace`], [`Bench::census_note`] into the notes, or why there is none.
     fn census(&mut self, rate: f64) {
         if !self.s.trace {
             return;
         }
-        let who = match self.target {
-            Target::Forwarder => "plain forwarder",
-            Target::Gateway => "gateway",
-        };
+        let who = self.target.name();
         println!("bench: system calls of the {who} over a trial at {rate:.0} msg/s");
-        let note = (|| -> Result<String> {
-            let t = Trace::start_calls(self.measured_pid())?;
-            let trial = self.command_trial(rate);
-            let text = t.stop()?;
-            let trial = trial?;
-            let (counts, lost) = trace::census(&text);
-            let per_1k = |c: u64| c as f64 * 1000.0 / trial.received.max(1) as f64;
-            let total: u64 = counts.iter().map(|(_, c)| c).sum();
-            let kinds: Vec<String> = counts
-                .iter()
-                .map(|(k, c)| format!("{k} {:.0}", per_1k(*c)))
-                .collect();
-            let lost = if lost > 0 {
-                format!(" ({lost} trace events lost: the counts are short)")
-            } else {
-                String::new()
-            };
-            Ok(format!(
-                "system calls per 1,000 commands, {who} ({} of {} at {rate:.0}/s, every thread): {:.0}: {}{lost}",
-                trial.received,
-                trial.sent,
-                per_1k(total),
-                kinds.join(", ")
-            ))
-        })();
-        self.notes
-            .push(note.unwrap_or_else(|e| format!("no system call census of the {who}: {e:#}")));
+        let note = self
+            .census_note(rate)
+            .unwrap_or_else(|e| format!("no system call census of the {who}: {e:#}"));
+        self.notes.push(note);
+    }
+
+    /// One command trial at `rate` to the measured process while the kernel counts its system
+    /// calls ([`trace::census`]): the calls per 1,000 commands by kind. Outside the cost rounds:
+    /// tracing costs CPU of its own.
+    fn census_note(&mut self, rate: f64) -> Result<String> {
+        let t = Trace::start_calls(self.measured_pid())?;
+        let trial = self.command_trial(rate);
+        let text = t.stop()?;
+        let trial = trial?;
+        let (counts, lost) = trace::census(&text);
+        let per_1k = |c: u64| c as f64 * 1000.0 / trial.received.max(1) as f64;
+        let total: u64 = counts.iter().map(|(_, c)| c).sum();
+        let kinds: Vec<String> = counts
+            .iter()
+            .map(|(k, c)| format!("{k} {:.0}", per_1k(*c)))
+            .collect();
+        let lost = if lost > 0 {
+            format!(" ({lost} trace events lost: the counts are short)")
+        } else {
+            String::new()
+        };
+        Ok(format!(
+            "system calls per 1,000 commands, {} ({} of {} at {rate:.0}/s, every thread): {:.0}: {}{lost}",
+            self.target.name(),
+            trial.received,
+            trial.sent,
+            per_1k(total),
+            kinds.join(", ")
+        ))
     }
 
     /// One `BootUp` frame to its `node_rebooted` event, µs (`None`: no event within 2 s); with

@@ -75,22 +75,19 @@ const PHASES: [(&str, &[&str]); 9] = [
 fn phases(commands: &str, idle: &str, n: usize) -> Vec<ProcessPhase> {
     let names: Vec<&str> = PHASES.iter().flat_map(|(_, f)| f.iter().copied()).collect();
     let (busy, quiet) = (inclusive(commands, &names), inclusive(idle, &names));
-    let mut at = 0;
+    let of = |f: &str| {
+        let i = names.iter().position(|n| *n == f)?;
+        Some(busy[i]? as f64 - quiet[i].unwrap_or(0) as f64)
+    };
     PHASES
         .iter()
-        .map(|(phase, functions)| {
-            let mut sum = None;
-            for k in at..at + functions.len() {
-                if let Some(b) = busy[k] {
-                    let q = quiet[k].unwrap_or(0);
-                    *sum.get_or_insert(0.0) += b as f64 - q as f64;
-                }
-            }
-            at += functions.len();
-            ProcessPhase {
-                name: (*phase).to_owned(),
-                per_command: sum.map(|s| s / n as f64),
-            }
+        .map(|(phase, functions)| ProcessPhase {
+            name: (*phase).to_owned(),
+            per_command: functions
+                .iter()
+                .filter_map(|f| of(f))
+                .reduce(|a, b| a + b)
+                .map(|s| s / n as f64),
         })
         .collect()
 }

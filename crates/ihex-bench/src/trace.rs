@@ -32,13 +32,7 @@ impl Trace {
     /// Starts tracing the system calls and scheduling of process `pid` (mounting tracefs when it
     /// is not yet), on the monotonic clock.
     pub(crate) fn start(pid: u32) -> Result<Trace> {
-        let t = Trace::open()?;
-        t.write("set_event_pid", &pid.to_string())?;
-        for e in EVENTS {
-            t.write(&format!("events/{e}/enable"), "1")?;
-        }
-        t.write("tracing_on", "1")?;
-        Ok(t)
+        Trace::start_events(&pid.to_string(), &EVENTS)
     }
 
     /// Starts tracing the system calls alone of every thread of process `pid` (`set_event_pid`
@@ -48,9 +42,16 @@ impl Trace {
             .with_context(|| format!("listing the threads of process {pid}"))?
             .filter_map(|e| e.ok()?.file_name().into_string().ok())
             .collect();
+        Trace::start_events(&tids.join(" "), &[SYS_ENTER])
+    }
+
+    /// Starts tracing `events` of the threads `pids` (space-separated).
+    fn start_events(pids: &str, events: &[&str]) -> Result<Trace> {
         let t = Trace::open()?;
-        t.write("set_event_pid", &tids.join(" "))?;
-        t.write(&format!("events/{SYS_ENTER}/enable"), "1")?;
+        t.write("set_event_pid", pids)?;
+        for e in events {
+            t.write(&format!("events/{e}/enable"), "1")?;
+        }
         t.write("tracing_on", "1")?;
         Ok(t)
     }
@@ -161,16 +162,8 @@ pub(crate) fn probes(trace: &str, pid: u32) -> Vec<Probe> {
                 if nr.is_some_and(|nr| READS.contains(&nr)) {
                     p.read_us = Some(at);
                 }
-            } else if let Some(args) = what.strip_prefix("sys_enter: NR ") {
-                let (nr, rest) = args.split_once(' ').unwrap_or((args, ""));
-                let nr: u32 = nr.parse().unwrap_or(u32::MAX);
-                let arg = |i: usize| {
-                    rest.trim_start_matches('(')
-                        .trim_end_matches(')')
-                        .split(", ")
-                        .nth(i)
-                        .and_then(|a| u64::from_str_radix(a, 16).ok())
-                };
+            } else if let Some(call) = SysEnter::of(what) {
+                let (nr, arg) = (call.nr, |i| call.arg(i));
                 p.calls.push(match (nr, arg(0), arg(2)) {
                     (1 | 44, Some(fd), Some(len)) => format!("{}({fd}, {len})", name(nr)),
                     _ => name(nr).to_owned(),
@@ -207,17 +200,11 @@ pub(crate) fn census(trace: &str) -> (Vec<(String, u64)>, u64) {
         let Some((_, what)) = timestamp_and_event(line) else {
             continue;
         };
-        let Some(args) = what.strip_prefix("sys_enter: NR ") else {
+        let Some(call) = SysEnter::of(what) else {
             continue;
         };
-        let (nr, rest) = args.split_once(' ').unwrap_or((args, ""));
-        let nr: u32 = nr.parse().unwrap_or(u32::MAX);
-        let len = rest
-            .trim_start_matches('(')
-            .split(", ")
-            .nth(2)
-            .and_then(|a| u64::from_str_radix(a, 16).ok());
-        let kind = match (name(nr), nr, len) {
+        let nr = call.nr;
+        let kind = match (name(nr), nr, call.arg(2)) {
             (n, 1 | 44, Some(16)) => format!("{n} 16 B"),
             (n, 1 | 44, Some(8)) => format!("{n} 8 B"),
             ("other", ..) => format!("nr {nr}"),
@@ -228,6 +215,34 @@ pub(crate) fn census(trace: &str) -> (Vec<(String, u64)>, u64) {
     let mut counts: Vec<(String, u64)> = counts.into_iter().collect();
     counts.sort_by(|a, b| b.1.cmp(&a.1).then_with(|| a.0.cmp(&b.0)));
     (counts, lost)
+}
+
+/// A `sys_enter` event: `sys_enter: NR 44 (7, 55d0, 4, 40, 0, 0)`, the arguments in hex.
+struct SysEnter<'a> {
+    /// The call's x86_64 number (`u32::MAX` when unreadable).
+    nr: u32,
+    args: &'a str,
+}
+
+impl<'a> SysEnter<'a> {
+    fn of(event: &'a str) -> Option<SysEnter<'a>> {
+        let rest = event.strip_prefix("sys_enter: NR ")?;
+        let (nr, args) = rest.split_once(' ').unwrap_or((rest, ""));
+        Some(SysEnter {
+            nr: nr.parse().unwrap_or(u32::MAX),
+            args,
+        })
+    }
+
+    /// Argument `i` (the file descriptor is 0, a write's length 2).
+    fn arg(&self, i: usize) -> Option<u64> {
+        self.args
+            .trim_start_matches('(')
+            .trim_end_matches(')')
+            .split(", ")
+            .nth(i)
+            .and_then(|a| u64::from_str_radix(a, 16).ok())
+    }
 }
 
 /// The timestamp (s) and the event text of a trace line: `task-pid [cpu] flags  ts: event`.
