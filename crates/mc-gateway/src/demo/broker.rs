@@ -104,33 +104,40 @@ fn no_nagle(listen: SocketAddr) -> io::Result<()> {
     fds.into_iter().try_for_each(crate::sys::set_nodelay)?;
     // The broker listens before this runs, so a client that connects as soon as the port answers
     // (a script waiting for it, the readiness probe) got a socket made without the option. Such a
-    // socket is found once rumqttd has accepted it: looked for now and again a moment later, for
-    // one still in the accept queue. Best effort: a connection may close between the look and
-    // the call.
-    for pass in 0..2 {
-        if pass > 0 {
-            std::thread::sleep(EARLY_ACCEPT);
-        }
-        let accepted =
-            own_tcp_sockets(|local, _, state| local == listen.port() && state == TCP_ESTABLISHED)?;
-        for fd in accepted {
+    // socket is found once rumqttd has accepted it; one still in the accept queue has no
+    // descriptor yet (inode 0 in the table) and is waited for, briefly. Best effort: a connection
+    // may close between the look and the call.
+    let deadline = Instant::now() + EARLY_ACCEPT;
+    loop {
+        let made =
+            tcp_inodes(|local, _, state| local == listen.port() && state == TCP_ESTABLISHED)?;
+        for fd in fds_of(&made)? {
             let _ = crate::sys::set_nodelay(fd);
         }
+        if !made.contains(&0) || Instant::now() >= deadline {
+            return Ok(());
+        }
+        std::thread::sleep(Duration::from_millis(1));
     }
-    Ok(())
 }
 
 /// `st` of a listening socket in /proc/net/tcp.
 const TCP_LISTEN: u8 = 0x0A;
 /// `st` of an established connection in /proc/net/tcp.
 const TCP_ESTABLISHED: u8 = 0x01;
-/// How long rumqttd may take to accept a connection already made when Nagle was turned off.
+/// How long rumqttd may take to accept a connection made before Nagle was turned off.
 const EARLY_ACCEPT: Duration = Duration::from_millis(20);
 
 /// This process's TCP sockets that `wanted(local port, remote port, state)` picks: rumqttd keeps
 /// its sockets to itself, so they are found through the kernel's socket tables (/proc/net/tcp and
 /// tcp6, whose inodes name the sockets) and this process's descriptors (/proc/self/fd).
 fn own_tcp_sockets(wanted: impl Fn(u16, u16, u8) -> bool) -> io::Result<Vec<RawFd>> {
+    fds_of(&tcp_inodes(wanted)?)
+}
+
+/// The inodes of the kernel's TCP sockets that `wanted(local port, remote port, state)` picks
+/// (0: a connection not yet accepted, or one without a socket any more).
+fn tcp_inodes(wanted: impl Fn(u16, u16, u8) -> bool) -> io::Result<HashSet<u64>> {
     let hex_port = |a: &str| u16::from_str_radix(a.rsplit(':').next()?, 16).ok();
     let mut inodes = HashSet::new();
     for table in ["/proc/net/tcp", "/proc/net/tcp6"] {
@@ -156,6 +163,11 @@ fn own_tcp_sockets(wanted: impl Fn(u16, u16, u8) -> bool) -> io::Result<Vec<RawF
             }
         }
     }
+    Ok(inodes)
+}
+
+/// This process's descriptors of the sockets `inodes` names.
+fn fds_of(inodes: &HashSet<u64>) -> io::Result<Vec<RawFd>> {
     let mut fds = Vec::new();
     for entry in std::fs::read_dir("/proc/self/fd")? {
         let entry = entry?;
