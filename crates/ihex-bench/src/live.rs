@@ -44,6 +44,22 @@ const TRACED: usize = 5;
 const IDLE_GAP: Duration = Duration::from_millis(100);
 /// Rounds of the command cost comparison: a gateway trial, then a forwarder trial ([`CostRound`]).
 const COST_ROUNDS: usize = 5;
+/// The cost rounds' first rate unless rates are given: the rate of issue 34's reference figures,
+/// at which in the microVM a command mostly arrives on its own (its own wake-ups and system
+/// calls, none shared with the next command).
+const REFERENCE_COST_RATE: f64 = 1000.0;
+
+/// The cost rounds' rates unless given: [`REFERENCE_COST_RATE`], then 80 % of the sustained
+/// command rate `cps`, where commands arrive together and share wake-ups and system calls (left
+/// out when it is not clearly faster).
+fn default_cost_rates(cps: f64) -> Vec<f64> {
+    let busy = (cps * 0.8).round();
+    if busy > REFERENCE_COST_RATE * 1.25 {
+        vec![REFERENCE_COST_RATE, busy]
+    } else {
+        vec![REFERENCE_COST_RATE]
+    }
+}
 /// Bitrate of the island bus.
 pub const BITRATE: u32 = 500_000;
 /// Nodes the benchmark makes known to the gateway (ids 1..=NODES).
@@ -75,8 +91,9 @@ pub struct Settings {
     pub probes: usize,
     /// Seconds of traffic per rate trial.
     pub trial_secs: f64,
-    /// Messages per second of the cost rounds; `None`: 80 % of the sustained command rate.
-    pub cost_rate: Option<f64>,
+    /// Messages per second of the cost rounds, one series of rounds per rate, the first the
+    /// headline; empty: [`REFERENCE_COST_RATE`] and 80 % of the sustained command rate.
+    pub cost_rates: Vec<f64>,
     /// Commands in the MQTT → CAN burst.
     pub commands: usize,
     /// Leave Mosquitto's default `set_tcp_nodelay false` (Nagle on its sockets) instead of turning
@@ -1401,6 +1418,7 @@ impl Bench {
             let gateway = self.command_trial(rate)?;
             let forward = self.addressing(Target::Forwarder, |b| b.command_trial(rate))?;
             let r = CostRound {
+                rate,
                 gateway_ms: per_1k(&gateway),
                 forward_ms: per_1k(&forward),
             };
@@ -1923,37 +1941,48 @@ pub fn run(s: Settings) -> Result<LiveResults> {
     b.gw.check_alive()?;
     let (hwm, rss) = memory_kib(b.gw.pid())?;
     peaks.push(("bus load", hwm));
-    // Cost: the gateway and the plain forwarder alternately, at 80 % of the sustained rate unless
-    // a rate was given.
-    let cost_rate = b.s.cost_rate.unwrap_or((cps * 0.8).max(100.0));
-    println!(
-        "bench: MQTT->CAN cost at {cost_rate:.0} msg/s, the gateway and a plain forwarder \
-         (on {}) alternately, {COST_ROUNDS} rounds",
-        s.forward_iface
-    );
+    // Cost: the gateway and the plain forwarder alternately, at each rate given, else at the
+    // reference rate and at 80 % of the sustained rate.
+    let cost_rates = if b.s.cost_rates.is_empty() {
+        default_cost_rates(cps)
+    } else {
+        b.s.cost_rates.clone()
+    };
     dog.phase("cost rounds", &[b.gw.pid()]);
     b.start_forwarder(&dir)?;
     let forwarder = b.forwarder.as_ref().map_or(0, |f| f.proc.pid());
     dog.phase("cost rounds", &[b.gw.pid(), forwarder]);
-    let (cost_rounds, cost_trials) = b.cost_rounds(cost_rate)?;
-    // The gateway's figures from its median round (by CPU), the forwarder's last trial for its
-    // counts; the ratio is the rounds' own ([`LiveResults::cost_ratio`]).
-    let mut by_cpu: Vec<usize> = (0..cost_rounds.len()).collect();
-    by_cpu.sort_by(|&i, &j| {
-        cost_rounds[i]
-            .gateway_ms
-            .total_cmp(&cost_rounds[j].gateway_ms)
-    });
+    let mut series = Vec::new();
+    for &rate in &cost_rates {
+        println!(
+            "bench: MQTT->CAN cost at {rate:.0} msg/s, the gateway and a plain forwarder \
+             (on {}) alternately, {COST_ROUNDS} rounds",
+            s.forward_iface
+        );
+        series.push(b.cost_rounds(rate)?);
+    }
+    let (headline, headline_trials) = &series[0];
+    // The gateway's figures from the headline rate's median round (by CPU), the forwarder's last
+    // trial at that rate for its counts; the ratios are the rounds' own
+    // ([`LiveResults::cost_ratio`]).
+    let mut by_cpu: Vec<usize> = (0..headline.len()).collect();
+    by_cpu.sort_by(|&i, &j| headline[i].gateway_ms.total_cmp(&headline[j].gateway_ms));
     let median = by_cpu[(by_cpu.len() - 1) / 2];
-    let cpu_ms_per_1k_commands = cost_rounds[median].gateway_ms;
-    let share_commands = cost_trials[2 * median].share;
-    let raw_forward = cost_trials.last().cloned();
-    command_trials.extend(cost_trials.into_iter().step_by(2));
-    b.census(cost_rate);
-    b.addressing(Target::Forwarder, |b| {
-        b.census(cost_rate);
-        Ok(())
-    })?;
+    let cpu_ms_per_1k_commands = headline[median].gateway_ms;
+    let share_commands = headline_trials[2 * median].share;
+    let raw_forward = headline_trials.last().cloned();
+    let mut cost_rounds = Vec::new();
+    for (rounds, trials) in series {
+        cost_rounds.extend(rounds);
+        command_trials.extend(trials.into_iter().step_by(2));
+    }
+    for &rate in &cost_rates {
+        b.census(rate);
+        b.addressing(Target::Forwarder, |b| {
+            b.census(rate);
+            Ok(())
+        })?;
+    }
     println!("bench: latency of the raw MQTT->CAN forward at idle");
     dog.phase("forwarder latency and trace", &[forwarder]);
     let raw_idle = b.addressing(Target::Forwarder, |b| {
@@ -2101,6 +2130,14 @@ mod tests {
         );
         assert_eq!(led_index(&p), Some(0x1234));
         assert!(led_command(0x1234).contains("[52,18,0]"));
+    }
+
+    #[test]
+    fn the_cost_rounds_run_at_the_reference_rate_and_near_the_sustained_one() {
+        assert_eq!(default_cost_rates(3750.0), [1000.0, 3000.0]);
+        // Not clearly above the reference: one series.
+        assert_eq!(default_cost_rates(1500.0), [1000.0]);
+        assert_eq!(default_cost_rates(0.0), [1000.0]);
     }
 
     #[test]

@@ -233,6 +233,10 @@ pub struct LiveResults {
 /// vCPUs and is charged to whatever runs) cancels in it.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct CostRound {
+    /// Commands (and frames, for the forwarder) offered per second (0 in results from before the
+    /// rounds recorded it: one rate then).
+    #[serde(default)]
+    pub rate: f64,
     /// Gateway CPU per 1,000 acknowledged commands, ms.
     pub gateway_ms: f64,
     /// Plain forwarder CPU per 1,000 frames, ms.
@@ -260,10 +264,27 @@ pub struct CostRatio {
 }
 
 impl LiveResults {
-    /// The median and range of the cost rounds' ratios (`None`: no round measured both).
+    /// The cost rounds by rate, in the order the rates were measured; the first is the headline
+    /// (the gateway's CPU per 1,000 commands is its median round's).
+    pub fn cost_series(&self) -> Vec<(f64, Vec<CostRound>)> {
+        let mut series: Vec<(f64, Vec<CostRound>)> = Vec::new();
+        for c in &self.cost_rounds {
+            match series.iter_mut().find(|(rate, _)| *rate == c.rate) {
+                Some((_, rounds)) => rounds.push(*c),
+                None => series.push((c.rate, vec![*c])),
+            }
+        }
+        series
+    }
+
+    /// [`LiveResults::cost_ratio_of`] the headline rate's rounds.
     pub fn cost_ratio(&self) -> Option<CostRatio> {
-        let mut r: Vec<f64> = self
-            .cost_rounds
+        Self::cost_ratio_of(&self.cost_series().first()?.1)
+    }
+
+    /// The median and range of `rounds`' ratios (`None`: no round measured both).
+    pub fn cost_ratio_of(rounds: &[CostRound]) -> Option<CostRatio> {
+        let mut r: Vec<f64> = rounds
             .iter()
             .filter(|c| c.gateway_ms > 0.0 && c.forward_ms > 0.0)
             .map(CostRound::ratio)
@@ -278,11 +299,13 @@ impl LiveResults {
     }
 
     /// CPU per 1,000 frames of a raw MQTT → CAN forward, ms: the plain forwarder's when it ran
-    /// and forwarded something (the median of the cost rounds when there were rounds), else the
-    /// bare SocketCAN pair's (no MQTT in it). With which one.
+    /// and forwarded something (the median of the headline rate's cost rounds when there were
+    /// rounds), else the bare SocketCAN pair's (no MQTT in it). With which one.
     pub fn raw_forward_cpu(&self) -> Option<(f64, &'static str)> {
-        let mut rounds: Vec<f64> = self
-            .cost_rounds
+        let series = self.cost_series();
+        let mut rounds: Vec<f64> = series
+            .first()
+            .map_or(&[][..], |(_, rounds)| rounds)
             .iter()
             .map(|c| c.forward_ms)
             .filter(|&ms| ms > 0.0)
