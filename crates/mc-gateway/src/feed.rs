@@ -23,7 +23,6 @@ use ihex_gateway_core::{
     procedure::ProceduresDocument,
     Bridge, Publication,
 };
-use ihex_proto::NodeId;
 use tokio::sync::{broadcast, mpsc, oneshot};
 
 /// Events kept for readers that arrive late (the island view's timeline).
@@ -38,8 +37,8 @@ pub const VIEW_REQUESTS: usize = 16;
 pub enum Kind {
     /// An event on the events topic, by name (`new_connection`, ...).
     Event(&'static str),
-    /// A node's retained state document.
-    State(NodeId),
+    /// A node's retained state document (which node: [`Published::state`]).
+    State,
     /// The retained leases document.
     Leases,
     /// The retained document of the running procedures.
@@ -87,7 +86,7 @@ impl Feed {
     pub fn publish(&self, publication: Publication, json: &str) {
         let (kind, state) = match publication {
             Publication::Event(e) => (Kind::Event(e.name()), None),
-            Publication::State(s) => (Kind::State(s.id.0), Some(s)),
+            Publication::State(s) => (Kind::State, Some(s)),
             Publication::Leases(_) => (Kind::Leases, None),
             Publication::Procedures(_) => (Kind::Procedures, None),
             // Home Assistant's topics are not the page's; a forgotten node's emptied state document

@@ -497,7 +497,7 @@ async fn model(
             _ = cancel.cancelled() => return,
             r = live.recv() => match r {
                 Ok(p) => match p.kind {
-                    Kind::State(_) => p.state.as_ref().is_some_and(|s| island.handle_state(s)),
+                    Kind::State => p.state.as_ref().is_some_and(|s| island.handle_state(s)),
                     // The one event that changes the properties; the others are not read.
                     Kind::Event("node_forgotten") => island.handle_forgotten(&p.json),
                     Kind::Event(_) => false,

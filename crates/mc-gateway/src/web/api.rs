@@ -117,7 +117,7 @@ async fn island(State(app): State<Arc<App>>) -> Response {
 fn sse_of(p: &Published) -> Event {
     let name = match p.kind {
         Kind::Event(_) => "event",
-        Kind::State(_) => "state",
+        Kind::State => "state",
         Kind::Leases => "leases",
         Kind::Procedures => "procedures",
     };
