@@ -74,7 +74,7 @@ enum Cmd {
         /// (repeat the option or separate rates by commas; the first is the headline). Default:
         /// 1,000/s and 80 % of the sustained command rate. A fixed rate makes two gateways' CPU
         /// per 1,000 commands comparable: both depend on how many commands share a wake-up.
-        #[arg(long, value_delimiter = ',')]
+        #[arg(long, value_delimiter = ',', value_parser = rate)]
         cost_rate: Vec<f64>,
         /// Commands in the MQTT -> CAN burst.
         #[arg(long, default_value_t = 4000)]
@@ -297,6 +297,16 @@ fn finish<T: serde::Serialize>(
     };
     println!("{}", report::table(&r));
     Ok(())
+}
+
+/// A rate of messages per second: a positive number.
+fn rate(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(r) if r.is_finite() && r > 0.0 => Ok(r),
+        _ => Err(format!(
+            "{s:?} is not a rate: give messages per second, above 0"
+        )),
+    }
 }
 
 fn main() -> Result<()> {
