@@ -1421,6 +1421,8 @@ impl Bench {
                 rate,
                 gateway_ms: per_1k(&gateway),
                 forward_ms: per_1k(&forward),
+                gateway_share: gateway.share,
+                forward_share: forward.share,
             };
             println!(
                 "bench: cost round {round}/{COST_ROUNDS}: gateway {:.0} ms, forwarder {:.0} ms per 1,000 ({:.2}x)",
@@ -1972,11 +1974,9 @@ pub fn run(s: Settings) -> Result<LiveResults> {
     // The gateway's figures from the headline rate's median round (by CPU), the forwarder's last
     // trial at that rate for its counts; the ratios are the rounds' own
     // ([`LiveResults::cost_ratio`]).
-    let mut by_cpu: Vec<usize> = (0..headline.len()).collect();
-    by_cpu.sort_by(|&i, &j| headline[i].gateway_ms.total_cmp(&headline[j].gateway_ms));
-    let median = by_cpu[(by_cpu.len() - 1) / 2];
-    let cpu_ms_per_1k_commands = headline[median].gateway_ms;
-    let share_commands = headline_trials[2 * median].share;
+    let median = CostRound::median(headline).copied().unwrap_or_default();
+    let cpu_ms_per_1k_commands = median.gateway_ms;
+    let share_commands = median.gateway_share;
     let raw_forward = headline_trials.last().cloned();
     let mut cost_rounds = Vec::new();
     for (rounds, trials) in series {

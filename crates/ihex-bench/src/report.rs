@@ -7,8 +7,8 @@ use serde::{Deserialize, Serialize};
 
 use crate::bus::PairLimit;
 use crate::results::{
-    CostRatio, CpuShare, FwResults, IslandsResults, LiveResults, ProcessResults, SilaResults,
-    Trial, WebResults,
+    CostRatio, CostRound, CpuShare, FwResults, IslandsResults, LiveResults, ProcessResults,
+    SilaResults, Trial, WebResults,
 };
 use crate::stats::Summary;
 
@@ -412,6 +412,26 @@ fn share_line(what: &str, s: &CpuShare, cpus: usize) -> String {
     )
 }
 
+/// The gateway's and the forwarder's user and system time in a cost round (`None`: a round of
+/// results from before they were kept).
+fn cost_line(rate: f64, r: &CostRound) -> Option<String> {
+    let (g, f) = (r.gateway_share?, r.forward_share?);
+    let part = |s: &CpuShare| {
+        format!(
+            "{:.0} (user {:.0} + system {:.0}; {:.0} switches)",
+            s.gateway_user + s.gateway_system,
+            s.gateway_user,
+            s.gateway_system,
+            s.gateway_switches
+        )
+    };
+    Some(format!(
+        "cost at {rate:.0}/s, its median round: gateway {}, forwarder {}",
+        part(&g),
+        part(&f)
+    ))
+}
+
 fn lat(s: &Summary) -> String {
     format!("{:>8.0} {:>8.0} {:>8.0}", s.p50_us, s.p99_us, s.max_us)
 }
@@ -663,6 +683,13 @@ pub fn table(r: &Results) -> String {
             for (what, share) in shares {
                 if let Some(s) = share {
                     let _ = writeln!(o, "  {}", share_line(what, &s, l.cpus));
+                }
+            }
+            for (rate, rounds) in l.cost_series() {
+                if let Some(r) = CostRound::median(&rounds) {
+                    if let Some(line) = cost_line(rate, r) {
+                        let _ = writeln!(o, "  {line}");
+                    }
                 }
             }
         }
@@ -1393,7 +1420,6 @@ pub fn rate_svg(l: &LiveResults) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::results::CostRound;
 
     #[test]
     fn the_whole_process_count_is_printed_per_command_for_both_runs() {
@@ -1638,6 +1664,7 @@ mod tests {
             rate: 1000.0,
             gateway_ms,
             forward_ms,
+            ..Default::default()
         })
         .to_vec();
         let r = l.cost_ratio().unwrap();
@@ -1666,8 +1693,20 @@ mod tests {
                     rate: 3000.0,
                     gateway_ms,
                     forward_ms,
+                    ..Default::default()
                 },
             ));
+        // Its median round (360 ms) with where the CPU went: printed under the shares.
+        let share = |user, system| CpuShare {
+            gateway_user: user,
+            gateway_system: system,
+            gateway_switches: 60.0,
+            ..Default::default()
+        };
+        l.share_commands = Some(share(400.0, 300.0));
+        let third = l.cost_rounds.len() - 1;
+        l.cost_rounds[third].gateway_share = Some(share(210.0, 150.0));
+        l.cost_rounds[third].forward_share = Some(share(130.0, 170.0));
         assert!((l.cost_ratio().unwrap().median - 1.1).abs() < 1e-9);
         assert_eq!(l.raw_forward_cpu().unwrap().0, 600.0);
         let t = table(&Results {
@@ -1678,6 +1717,7 @@ mod tests {
             "CPU per 1,000 acked commands <= 1.2x a raw frame forward at 1000/s  pass  (1.10x, the median of 4 alternating rounds, 0.90-2.00x; plain MQTT->CAN forwarder)",
             "CPU per 1,000 acked commands <= 1.2x a raw frame forward at 3000/s  pass  (1.20x, the median of 3 alternating rounds, 1.10-1.30x; plain MQTT->CAN forwarder)",
             "cost rounds, gateway/forwarder ms     330/300  390/300  360/300 (alternately at 3000 msg/s)",
+            "cost at 3000/s, its median round: gateway 360 (user 210 + system 150; 60 switches), forwarder 300 (user 130 + system 170; 60 switches)",
         ] {
             assert!(t.contains(line), "missing {line:?} in\n{t}");
         }

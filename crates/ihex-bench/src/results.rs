@@ -241,12 +241,26 @@ pub struct CostRound {
     pub gateway_ms: f64,
     /// Plain forwarder CPU per 1,000 frames, ms.
     pub forward_ms: f64,
+    /// Where the CPU went in the gateway's trial (absent from older results).
+    #[serde(default)]
+    pub gateway_share: Option<CpuShare>,
+    /// The same for the forwarder's trial: its `gateway_*` figures are the forwarder's.
+    #[serde(default)]
+    pub forward_share: Option<CpuShare>,
 }
 
 impl CostRound {
     /// Gateway / forwarder.
     pub fn ratio(&self) -> f64 {
         self.gateway_ms / self.forward_ms
+    }
+
+    /// The round whose gateway CPU is the median of `rounds`' (the lower middle one of an even
+    /// count), which the headline figures are taken from.
+    pub fn median(rounds: &[CostRound]) -> Option<&CostRound> {
+        let mut by_cpu: Vec<&CostRound> = rounds.iter().collect();
+        by_cpu.sort_by(|a, b| a.gateway_ms.total_cmp(&b.gateway_ms));
+        by_cpu.get(by_cpu.len().checked_sub(1)? / 2).copied()
     }
 }
 
