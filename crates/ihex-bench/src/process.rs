@@ -17,7 +17,7 @@ use ihex_bench::results::{ProcessCost, ProcessPhase, ProcessResults};
 use ihex_gateway_core::event::{Event, Outcome};
 
 use crate::callgrind::{inclusive, total_instructions};
-use crate::live::{free_port, start_mosquitto, Mqtt, Proc};
+use crate::live::{answers, free_port, start_mosquitto, Mqtt, Proc};
 
 /// The static element every command colours (the built-in demo island has it).
 pub(crate) const NODE: &str = "111";
@@ -29,6 +29,9 @@ const START: Duration = Duration::from_secs(120);
 const WARM_UP: usize = 20;
 /// Pause after each answer, so that every command is a turn of its own, as at idle.
 const GAP: Duration = Duration::from_millis(5);
+/// Commands published back to back in the second count, where they share the process's turns as
+/// at a high rate: below the 256 unanswered LED commands a node may have.
+const BURST: usize = 200;
 
 /// Where the instructions go: each task of the process by the function tokio polls it through,
 /// and the parts of the core and MQTT tasks a command meets (callgrind's names; a part is
@@ -146,7 +149,7 @@ pub fn run(
     let (_broker, addr) = start_mosquitto(mosquitto, &dir, false, "")?;
     let mut runs = Vec::new();
     for sila in [false, true] {
-        runs.push(measure(gateway, addr, sila, n, &dir)?);
+        runs.extend(measure(gateway, addr, sila, n, &dir)?);
     }
     if keep.is_none() {
         let _ = std::fs::remove_dir_all(&dir);
@@ -157,16 +160,18 @@ pub fn run(
     })
 }
 
+/// One gateway run: `n` commands one at a time, then (SiLA server off) `n` rounded up to
+/// [`BURST`]s in bursts.
 fn measure(
     gateway: &Path,
     broker: SocketAddr,
     sila: bool,
     n: usize,
     dir: &Path,
-) -> Result<ProcessCost> {
+) -> Result<Vec<ProcessCost>> {
     let out = dir.join(format!("callgrind.sila-{sila}"));
     // A kept directory may hold an earlier run's dumps, which `dump` would take for this one's.
-    for k in 1..=2 {
+    for k in 1..=3 {
         let _ = std::fs::remove_file(format!("{}.{k}", out.display()));
     }
     let mut cmd = Command::new("valgrind");
@@ -236,15 +241,55 @@ fn measure(
     std::thread::sleep(took);
     let (idle, quiet) = dump(&pid, &out, 2)?;
     gateway.check_alive()?;
-    Ok(ProcessCost {
+    let mut costs = vec![ProcessCost {
         sila,
+        burst: None,
         commands: n,
         seconds: took.as_secs_f64(),
         instructions_commands: commands,
         instructions_idle: idle,
         per_command: (commands as f64 - idle as f64) / n as f64,
         phases: phases(&busy, &quiet, n),
-    })
+    }];
+    if !sila {
+        let bursts = n.div_ceil(BURST);
+        let start = Instant::now();
+        for b in 0..bursts {
+            for k in 0..BURST {
+                let i = sent + b * BURST + k;
+                let command = format!(
+                    r#"{{"cmd":"led","node":"{NODE}","color":"{}","brightness":255,"request_id":"burst-{i}"}}"#,
+                    colour(i)
+                );
+                mqtt.client
+                    .publish("CommandsTopic", rumqttc::QoS::AtLeastOnce, false, command)?;
+            }
+            let (ok, note) = answers(&mqtt, BURST, PROBE_TIMEOUT);
+            if ok < BURST {
+                bail!(
+                    "burst {b} of {bursts}: {ok} of {BURST} commands answered `ok`{}",
+                    note.map_or(String::new(), |n| format!(" ({n})"))
+                );
+            }
+        }
+        let took_bursts = start.elapsed();
+        let (commands, busy) = dump(&pid, &out, 3)?;
+        gateway.check_alive()?;
+        let counted = bursts * BURST;
+        // The pause's count, scaled to the bursts' time.
+        let idle_share = idle as f64 * took_bursts.as_secs_f64() / took.as_secs_f64();
+        costs.push(ProcessCost {
+            sila,
+            burst: Some(BURST),
+            commands: counted,
+            seconds: took_bursts.as_secs_f64(),
+            instructions_commands: commands,
+            instructions_idle: idle_share as u64,
+            per_command: (commands as f64 - idle_share) / counted as f64,
+            phases: phases(&busy, &quiet, counted),
+        });
+    }
+    Ok(costs)
 }
 
 /// `callgrind_control FLAG PID`.

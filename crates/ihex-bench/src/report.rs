@@ -918,10 +918,23 @@ fn process_table(o: &mut String, p: &ProcessResults) {
          --sim, no web view; the idle count of as long a pause subtracted)"
     );
     for r in &p.runs {
+        let (label, how) = match r.burst {
+            None => (
+                if r.sila {
+                    "SiLA server on"
+                } else {
+                    "SiLA server off"
+                },
+                String::new(),
+            ),
+            Some(k) => (
+                "  in bursts",
+                format!(", {k} published back to back at a time"),
+            ),
+        };
         let _ = writeln!(
             o,
-            "  SiLA server {:<3}  {:>9.0} per command  ({} commands in {:.1} s: {} instructions, idle {})",
-            if r.sila { "on" } else { "off" },
+            "  {label:<15}  {:>9.0} per command  ({} commands{how} in {:.1} s: {} instructions, idle {})",
             r.per_command,
             r.commands,
             r.seconds,
@@ -1425,6 +1438,7 @@ mod tests {
     fn the_whole_process_count_is_printed_per_command_for_both_runs() {
         let run = |sila, per_command| crate::results::ProcessCost {
             sila,
+            burst: None,
             commands: 400,
             seconds: 4.5,
             instructions_commands: 14_000_000,
@@ -1456,13 +1470,22 @@ mod tests {
         let r = Results {
             process: Some(ProcessResults {
                 gateway: "mc-gateway".into(),
-                runs: vec![run(false, 34_500.0), run(true, 41_100.0)],
+                runs: vec![
+                    run(false, 34_500.0),
+                    crate::results::ProcessCost {
+                        burst: Some(200),
+                        phases: Vec::new(),
+                        ..run(false, 21_000.0)
+                    },
+                    run(true, 41_100.0),
+                ],
             }),
             ..Default::default()
         };
         let t = table(&r);
         for line in [
             "  SiLA server off      34500 per command  (400 commands in 4.5 s",
+            "    in bursts          21000 per command  (400 commands, 200 published back to back at a time in 4.5 s",
             "  SiLA server on       41100 per command",
             "      core task                                                      20000",
             "        the node's answer                                             1500",

@@ -375,7 +375,11 @@ pub struct ProcessResults {
 pub struct ProcessCost {
     /// The SiLA server was on.
     pub sila: bool,
-    /// Commands counted, each answered `ok` before the next was sent.
+    /// `None`: each command answered `ok` before the next was sent; `Some(k)`: published `k`
+    /// back to back, the next `k` once all of them were answered.
+    #[serde(default)]
+    pub burst: Option<usize>,
+    /// Commands counted.
     pub commands: usize,
     /// How long they took, s (the idle count covers as long a pause).
     pub seconds: f64,
