@@ -728,12 +728,13 @@ fn color_help() -> String {
 fn color(f: &Fields<'_>, v: &Json<'_>) -> Result<Option<Rgb>, CommandError> {
     let bad = || f.bad("color", &color_help(), v);
     match v {
+        // Case does not matter; compared in place rather than lowercased into a copy: a colour
+        // is read for every LED command.
         Json::String(s) => {
-            let lower = s.to_ascii_lowercase();
-            if lower == "off" {
+            if s.eq_ignore_ascii_case("off") {
                 return Ok(None);
             }
-            if let Some(hex) = lower.strip_prefix('#') {
+            if let Some(hex) = s.strip_prefix('#') {
                 let ch = |i: usize| {
                     hex.get(i..i + 2)
                         .and_then(|h| u8::from_str_radix(h, 16).ok())
@@ -745,7 +746,7 @@ fn color(f: &Fields<'_>, v: &Json<'_>) -> Result<Option<Rgb>, CommandError> {
             }
             COLOR_NAMES
                 .iter()
-                .find(|(n, _)| *n == lower)
+                .find(|(n, _)| n.eq_ignore_ascii_case(s))
                 .map(|(_, c)| Some(*c))
                 .ok_or_else(bad)
         }
@@ -1015,6 +1016,17 @@ mod tests {
                 })
             }
         );
+    }
+
+    #[test]
+    fn colours_are_read_in_any_case() {
+        let led =
+            |color: &str| ok(&format!(r#"{{"cmd":"led","node":"1","color":"{color}"}}"#)).command;
+        assert_eq!(led("#FF8000"), led("#ff8000"));
+        assert_eq!(led("#Ff8000"), led("#ff8000"));
+        assert_eq!(led("RED"), led("red"));
+        assert_eq!(led("Red"), led("red"));
+        assert_ne!(led("red"), led("#ff8000"));
     }
 
     #[test]
