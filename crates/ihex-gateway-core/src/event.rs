@@ -4,6 +4,7 @@
 //! Every DTO also implements `Deserialize`, so test harnesses and tools (provisioning, dashboards written
 //! in Rust) can read events back with the same types instead of poking at untyped JSON.
 
+use std::borrow::Cow;
 use std::fmt;
 
 use bytes::BytesMut;
@@ -298,8 +299,9 @@ pub struct Refusal {
 pub struct CommandResult {
     /// The command's `request_id`, `null` when it had none.
     pub request_id: Option<String>,
-    /// The command name (`led`, `buzzer`, `power`, `identify`, `assign`).
-    pub cmd: String,
+    /// The command name (`led`, `buzzer`, `power`, `identify`, `assign`): one of the gateway's
+    /// own names when it answers (no copy per answer), an owned one when read back.
+    pub cmd: Cow<'static, str>,
     /// The node (for `assign`: the new ID) or `"all"`.
     pub node: Target,
     /// How it ended.

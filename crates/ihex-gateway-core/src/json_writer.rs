@@ -463,7 +463,7 @@ mod tests {
         let text = |k: usize| AWKWARD[(n + k) % AWKWARD.len()].to_owned();
         CommandResult {
             request_id: (!n.is_multiple_of(3)).then(|| text(0)),
-            cmd: text(1),
+            cmd: text(1).into(),
             node: if n.is_multiple_of(4) {
                 Target::All
             } else {

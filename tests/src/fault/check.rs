@@ -329,7 +329,7 @@ pub fn check(trace: &Trace) -> Report {
         let (request_id, what, answer) = match event {
             Event::CommandResult(c) => (
                 c.request_id,
-                Some((c.cmd.clone(), c.node.to_string())),
+                Some((c.cmd.into_owned(), c.node.to_string())),
                 Answer::Result(c.result, c.reason.unwrap_or_default()),
             ),
             Event::CommandRejected(c) => (c.request_id, None, Answer::Rejected(c.reason)),
