@@ -1945,18 +1945,18 @@ pub fn run(s: Settings) -> Result<LiveResults> {
     peaks.push(("bus load", hwm));
     // Cost: the gateway and the plain forwarder alternately, at each rate given, else at the
     // reference rate and at 80 % of the sustained rate.
-    let mut cost_rates = if b.s.cost_rates.is_empty() {
+    let given = if b.s.cost_rates.is_empty() {
         default_cost_rates(cps)
     } else {
         b.s.cost_rates.clone()
     };
     // A rate given twice is one series (the results group the rounds by rate).
-    let mut seen = Vec::new();
-    cost_rates.retain(|r| {
-        let new = !seen.contains(r);
-        seen.push(*r);
-        new
-    });
+    let mut cost_rates: Vec<f64> = Vec::new();
+    for rate in given {
+        if !cost_rates.contains(&rate) {
+            cost_rates.push(rate);
+        }
+    }
     dog.phase("cost rounds", &[b.gw.pid()]);
     b.start_forwarder(&dir)?;
     let forwarder = b.forwarder.as_ref().map_or(0, |f| f.proc.pid());

@@ -103,12 +103,8 @@ pub(crate) fn led_probe(
     colour: &str,
     timeout: Duration,
 ) -> Result<Option<Duration>> {
-    let command = format!(
-        r#"{{"cmd":"led","node":"{NODE}","color":"{colour}","brightness":255,"request_id":"{request_id}"}}"#
-    );
     let sent = Instant::now();
-    mqtt.client
-        .publish("CommandsTopic", rumqttc::QoS::AtLeastOnce, false, command)?;
+    publish_led(mqtt, request_id, colour)?;
     let deadline = sent + timeout;
     loop {
         let Some(left) = deadline.checked_duration_since(Instant::now()) else {
@@ -122,6 +118,16 @@ pub(crate) fn led_probe(
             None => return Ok(None),
         }
     }
+}
+
+/// Publishes an LED command with colour `colour` on `CommandsTopic` as `request_id` (QoS 1).
+fn publish_led(mqtt: &Mqtt, request_id: &str, colour: &str) -> Result<()> {
+    let command = format!(
+        r#"{{"cmd":"led","node":"{NODE}","color":"{colour}","brightness":255,"request_id":"{request_id}"}}"#
+    );
+    mqtt.client
+        .publish("CommandsTopic", rumqttc::QoS::AtLeastOnce, false, command)?;
+    Ok(())
 }
 
 /// A colour of its own per command, so that every command changes the element's state.
@@ -257,12 +263,7 @@ fn measure(
         for b in 0..bursts {
             for k in 0..BURST {
                 let i = sent + b * BURST + k;
-                let command = format!(
-                    r#"{{"cmd":"led","node":"{NODE}","color":"{}","brightness":255,"request_id":"burst-{i}"}}"#,
-                    colour(i)
-                );
-                mqtt.client
-                    .publish("CommandsTopic", rumqttc::QoS::AtLeastOnce, false, command)?;
+                publish_led(&mqtt, &format!("burst-{i}"), &colour(i))?;
             }
             let (ok, note) = answers(&mqtt, BURST, PROBE_TIMEOUT);
             if ok < BURST {

@@ -1434,6 +1434,14 @@ pub fn rate_svg(l: &LiveResults) -> String {
 mod tests {
     use super::*;
 
+    /// The table of results that have only the live part `l`.
+    fn live_table(l: &LiveResults) -> String {
+        table(&Results {
+            live: Some(l.clone()),
+            ..Default::default()
+        })
+    }
+
     #[test]
     fn the_whole_process_count_is_printed_per_command_for_both_runs() {
         let run = |sila, per_command| crate::results::ProcessCost {
@@ -1649,10 +1657,7 @@ mod tests {
             gateway_cpu_ms: 400.0,
             ..Default::default()
         });
-        let t = table(&Results {
-            live: Some(l.clone()),
-            ..Default::default()
-        });
+        let t = live_table(&l);
         for line in [
             "CPU per 1,000 acked commands <= 1.2x a raw frame forward  FAIL  (900.0 vs 500.0 ms: 1.80x; plain MQTT->CAN forwarder)",
             "plain MQTT->CAN forwarder; its last trial at 400 msg/s, 800/800 frames; commands 1.80x",
@@ -1699,10 +1704,7 @@ mod tests {
             l.raw_forward_cpu(),
             Some((600.0, "plain MQTT->CAN forwarder, median of the rounds"))
         );
-        let t = table(&Results {
-            live: Some(l.clone()),
-            ..Default::default()
-        });
+        let t = live_table(&l);
         for line in [
             "CPU per 1,000 acked commands <= 1.2x a raw frame forward at 1000/s  pass  (1.10x, the median of 4 alternating rounds, 0.90-2.00x; plain MQTT->CAN forwarder)",
             "cost rounds, gateway/forwarder ms     800/400  660/600  690/600  540/600  700/0 (alternately at 1000 msg/s; the gateway's figure above is its median round's)",
@@ -1732,10 +1734,7 @@ mod tests {
         l.cost_rounds[third].forward_share = Some(share(130.0, 170.0));
         assert!((l.cost_ratio().unwrap().median - 1.1).abs() < 1e-9);
         assert_eq!(l.raw_forward_cpu().unwrap().0, 600.0);
-        let t = table(&Results {
-            live: Some(l.clone()),
-            ..Default::default()
-        });
+        let t = live_table(&l);
         for line in [
             "CPU per 1,000 acked commands <= 1.2x a raw frame forward at 1000/s  pass  (1.10x, the median of 4 alternating rounds, 0.90-2.00x; plain MQTT->CAN forwarder)",
             "CPU per 1,000 acked commands <= 1.2x a raw frame forward at 3000/s  pass  (1.20x, the median of 3 alternating rounds, 1.10-1.30x; plain MQTT->CAN forwarder)",
@@ -1751,12 +1750,7 @@ mod tests {
     #[test]
     fn the_latency_goal_uses_the_kernel_timestamps_when_measured() {
         let mut l = sample();
-        let r = |l: &LiveResults| {
-            table(&Results {
-                live: Some(l.clone()),
-                ..Default::default()
-            })
-        };
+        let r = live_table;
         assert!(r(&l).contains("; estimate)"), "{}", r(&l));
         l.cmd_to_frame_idle_kernel = Some(Summary::of(vec![700.0, 800.0, 900.0]));
         l.frame_to_event_idle_kernel = Some(Summary::of(vec![1100.0, 1200.0, 1300.0]));
