@@ -74,13 +74,14 @@ const PHASES: [(&str, &[&str]); 9] = [
     ),
 ];
 
-/// [`PHASES`] per command: the commands' dump less the pause's, over `n`.
-fn phases(commands: &str, idle: &str, n: usize) -> Vec<ProcessPhase> {
+/// [`PHASES`] per command: the commands' dump less the pause's scaled by `idle_scale` (the
+/// commands' time over the pause's), over `n`.
+fn phases(commands: &str, idle: &str, idle_scale: f64, n: usize) -> Vec<ProcessPhase> {
     let names: Vec<&str> = PHASES.iter().flat_map(|(_, f)| f.iter().copied()).collect();
     let (busy, quiet) = (inclusive(commands, &names), inclusive(idle, &names));
     let of = |f: &str| {
         let i = names.iter().position(|n| *n == f)?;
-        Some(busy[i]? as f64 - quiet[i].unwrap_or(0) as f64)
+        Some(busy[i]? as f64 - quiet[i].unwrap_or(0) as f64 * idle_scale)
     };
     PHASES
         .iter()
@@ -255,7 +256,7 @@ fn measure(
         instructions_commands: commands,
         instructions_idle: idle,
         per_command: (commands as f64 - idle as f64) / n as f64,
-        phases: phases(&busy, &quiet, n),
+        phases: phases(&busy, &quiet, 1.0, n),
     }];
     if !sila {
         let bursts = n.div_ceil(BURST);
@@ -278,7 +279,8 @@ fn measure(
         gateway.check_alive()?;
         let counted = bursts * BURST;
         // The pause's count, scaled to the bursts' time.
-        let idle_share = idle as f64 * took_bursts.as_secs_f64() / took.as_secs_f64();
+        let idle_scale = took_bursts.as_secs_f64() / took.as_secs_f64();
+        let idle_share = idle as f64 * idle_scale;
         costs.push(ProcessCost {
             sila,
             burst: Some(BURST),
@@ -287,7 +289,7 @@ fn measure(
             instructions_commands: commands,
             instructions_idle: idle_share as u64,
             per_command: (commands as f64 - idle_share) / counted as f64,
-            phases: phases(&busy, &quiet, counted),
+            phases: phases(&busy, &quiet, idle_scale, counted),
         });
     }
     Ok(costs)
