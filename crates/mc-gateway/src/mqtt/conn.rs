@@ -4,14 +4,14 @@
 //! rumqttc 0.25's event loop takes one request per `poll()` and flushes after each
 //! (bytebeamio/rumqtt#810): on a busy island that is a system call, a wake-up of the broker and a
 //! TCP segment per publication, and it was most of what a bridged frame cost. This module keeps
-//! rumqttc's sans-IO parts — `rumqttc::MqttState` (packet ids, the in-flight window, acks, keep-alive
-//! pings) and its MQTT 3.1.1 codec — and does the I/O itself: [`Connection::publish`] and friends
-//! only encode into a write buffer, and [`Connection::poll`] writes whatever is buffered, reads
-//! whatever arrived, and returns the next incoming packet. `poll` is cancel-safe (all its state lives
-//! in the [`Connection`], including a connection attempt under way), so the MQTT task can select on
-//! it beside its channels. When to ping and when to give a silent link up is the session's decision
-//! ([`super::session`]): the connection pings when asked ([`Connection::ping`]) and closes when told
-//! ([`Connection::close`]). rumqttc's state is reached only through [`super::rumqttc_state`].
+//! rumqttc's MQTT 3.1.1 packet types and codec, keeps the client state in [`super::state`] (packet
+//! ids, the in-flight window, acks, the awaited PINGRESP) and does the I/O itself:
+//! [`Connection::publish`] and friends only encode into a write buffer, and [`Connection::poll`]
+//! writes whatever is buffered, reads whatever arrived, and returns the next incoming packet. `poll`
+//! is cancel-safe (all its state lives in the [`Connection`], including a connection attempt under
+//! way), so the MQTT task can select on it beside its channels. When to ping and when to give a
+//! silent link up is the session's decision ([`super::session`]): the connection pings when asked
+//! ([`Connection::ping`]) and closes when told ([`Connection::close`]).
 
 use std::{
     future::Future,
@@ -35,7 +35,7 @@ use tokio::{
     net::TcpSocket,
 };
 
-use super::rumqttc_state::State;
+use super::state::State;
 use crate::sys as sockopt;
 
 /// Anything a connection can run over (TCP, TLS over TCP).
@@ -174,10 +174,7 @@ impl Connection {
         let Link::Up(up) = &self.link else {
             return Err((topic, payload));
         };
-        if up.write.len() >= WRITE_BATCH
-            || self.state.inflight() >= self.options.inflight()
-            || self.state.collided()
-        {
+        if up.write.len() >= WRITE_BATCH || self.state.window_full() {
             return Err((topic, payload));
         }
         let mut p = Publish::from_bytes(topic, QoS::AtLeastOnce, payload);
@@ -243,11 +240,7 @@ impl Connection {
         let Link::Up(up) = &mut self.link else {
             return;
         };
-        let result = self
-            .state
-            .handle_outgoing(request)
-            .and_then(|p| encode(p, &mut up.write, self.max_outgoing));
-        if let Err(e) = result {
+        if let Err(e) = self.state.send(request, &mut up.write, self.max_outgoing) {
             self.broken.get_or_insert(e.into());
         }
     }
@@ -290,7 +283,7 @@ impl Connection {
         if let Some(event) = self.notice.take() {
             return Some(event);
         }
-        self.state.next_incoming()
+        self.state.next_incoming().map(Event::Incoming)
     }
 
     /// One step: start or continue a connection attempt, or one round of I/O.
@@ -354,9 +347,8 @@ impl Connection {
             if let Packet::SubAck(_) | Packet::UnsubAck(_) = packet {
                 self.replies_due = self.replies_due.saturating_sub(1);
             }
-            if let Some(reply) = self.state.handle_incoming(packet)? {
-                encode(Some(reply), &mut up.write, self.max_outgoing)?;
-            }
+            self.state
+                .handle_incoming(packet, &mut up.write, self.max_outgoing)?;
         }
     }
 }
@@ -505,14 +497,6 @@ fn smallest_publish(filter: &str) -> u16 {
         .sum::<usize>()
         + filter.matches('/').count();
     u16::try_from(4 + topic.max(1)).unwrap_or(u16::MAX)
-}
-
-/// Encodes a packet the state wants written.
-fn encode(packet: Option<Packet>, buf: &mut BytesMut, max: usize) -> Result<(), StateError> {
-    if let Some(p) = packet {
-        p.write(buf, max).map_err(StateError::Deserialization)?;
-    }
-    Ok(())
 }
 
 /// TCP (with `TCP_NODELAY`: every QoS 1 round trip would otherwise wait for Nagle), TLS when the
@@ -738,9 +722,12 @@ mod tests {
     /// Subscribed to `CommandsTopic` (its SUBACK read), then `n` publications written and none
     /// acknowledged (packet ids 2..=n+1).
     async fn subscribed_with_publications(port: u16, broker: &Script, n: u16) -> Connection {
-        let mut conn = connected(MqttOptions::new("lowat-commands", "127.0.0.1", port)).await;
+        let options = MqttOptions::new("lowat-commands", "127.0.0.1", port);
+        // Subscriptions take the packet ids above the publications'.
+        let [hi, lo] = (options.inflight() + 1).to_be_bytes();
+        let mut conn = connected(options).await;
         conn.subscribe("CommandsTopic".into(), QoS::AtLeastOnce);
-        broker.send(vec![0x90, 0x03, 0x00, 0x01, 0x01]).unwrap(); // SUBACK, granted QoS 1
+        broker.send(vec![0x90, 0x03, hi, lo, 0x01]).unwrap(); // SUBACK, granted QoS 1
         let ev = tokio::time::timeout(Duration::from_secs(5), conn.poll()).await;
         assert!(
             matches!(ev, Ok(Ok(Event::Incoming(Incoming::SubAck(_))))),
@@ -820,20 +807,20 @@ mod tests {
             libc::c_int::from(smallest_publish("CommandsTopic"))
         );
 
-        broker.send(puback(2)).unwrap();
+        broker.send(puback(1)).unwrap();
         let early = tokio::time::timeout(Duration::from_millis(300), conn.poll()).await;
         assert!(early.is_err(), "a lone PUBACK woke the client: {early:?}");
 
         broker.send(command("CommandsTopic", 17).0).unwrap();
         assert!(
-            matches!(next(&mut conn).await, Event::Incoming(Incoming::PubAck(a)) if a.pkid == 2)
+            matches!(next(&mut conn).await, Event::Incoming(Incoming::PubAck(a)) if a.pkid == 1)
         );
         match next(&mut conn).await {
             Event::Incoming(Incoming::Publish(p)) => assert_eq!(p.topic, "CommandsTopic"),
             other => panic!("{other:?}"),
         }
         // The last PUBACK with nothing behind it: held too, never lost.
-        broker.send(puback(3)).unwrap();
+        broker.send(puback(2)).unwrap();
         let early = tokio::time::timeout(Duration::from_millis(300), conn.poll()).await;
         assert!(early.is_err(), "a lone PUBACK woke the client: {early:?}");
         assert_eq!(conn.state.inflight(), 1);
@@ -845,10 +832,10 @@ mod tests {
         let (port, broker) = broker(None).await;
         let mut conn = subscribed_with_publications(port, &broker, 5).await;
         let (head, rest) = command("CommandsTopic", 5);
-        let mut burst: Vec<u8> = (2..=6).flat_map(puback).collect();
+        let mut burst: Vec<u8> = (1..=5).flat_map(puback).collect();
         burst.extend_from_slice(&head);
         broker.send(burst).unwrap();
-        assert_eq!(acks(&mut conn, 5).await, vec![2, 3, 4, 5, 6]);
+        assert_eq!(acks(&mut conn, 5).await, vec![1, 2, 3, 4, 5]);
 
         assert!(rest.len() < usize::from(smallest_publish("CommandsTopic")));
         broker.send(rest).unwrap();
@@ -863,11 +850,11 @@ mod tests {
     async fn awaited_replies_are_not_held_back() {
         let (port, broker) = broker(None).await;
         let options = MqttOptions::new("lowat-replies", "127.0.0.1", port);
+        // Subscriptions take the packet ids above the publications'.
+        let [hi, lo] = (options.inflight() + 1).to_be_bytes();
         let mut conn = connected_with_publications(options).await;
 
         conn.subscribe("CommandsTopic".into(), QoS::AtLeastOnce);
-        let pkid = PUBLISHED + 1; // the subscription's packet id follows the publications'
-        let [hi, lo] = pkid.to_be_bytes();
         broker.send(vec![0x90, 0x03, hi, lo, 0x01]).unwrap(); // SUBACK, granted QoS 1
         let ev = tokio::time::timeout(Duration::from_secs(5), conn.poll()).await;
         assert!(

@@ -1,5 +1,5 @@
-//! The MQTT side: exactly one task owns the broker [`Connection`] (see [`conn`]: rumqttc's sans-IO
-//! state, our own I/O, one write per batch of packets) and the [`Session`] (see [`session`]: every
+//! The MQTT side: exactly one task owns the broker [`Connection`] (see [`conn`]: rumqttc's packets
+//! and codec, our client [`state`] and I/O, one write per batch of packets) and the [`Session`] (see [`session`]: every
 //! rule of the MQTT session — manual acks per connection, commands held for the core and QoS 0
 //! floods shed, the retained-state window, `online`, publications taken back after a break,
 //! back-off, warnings, the keep-alive and the dead-link bound — as a sans-IO state machine).
@@ -8,9 +8,8 @@
 //!
 //! It connects with keep-alive, clean session and a retained `offline` last will. Every packet the
 //! broker delivers is read, up to the MQTT maximum ([`MAX_INCOMING`]), so an oversized command
-//! reaches the core and is answered instead of breaking the connection. rumqttc's undocumented
-//! state fields are read in [`rumqttc_state`] only, the socket options set through
-//! `crate::sys` only (the crate's one `unsafe` module).
+//! reaches the core and is answered instead of breaking the connection. The socket options are set
+//! through `crate::sys` only (the crate's one `unsafe` module).
 
 use ihex_gateway_core::Origin;
 use std::{
@@ -30,8 +29,8 @@ use tracing::{info, warn};
 use crate::{config::MqttConfig, error::MqttError, timer::Timer, topic::Topics};
 
 pub mod conn;
-pub mod rumqttc_state;
 pub mod session;
+pub mod state;
 #[allow(unsafe_code)]
 #[cfg(test)]
 mod test_broker;
