@@ -155,11 +155,13 @@ impl Packed {
     }
 }
 
-/// A pending command, its key and the stamp of its one live entry in the deadline heap.
+/// A pending command, its key, and the stamp and deadline of its one live entry in the deadline
+/// heap (never later than the command's deadline; `None` once [`PendingTable::overdue`] took it).
 #[derive(Debug)]
 struct Slot {
     key: Packed,
     stamp: u64,
+    due: Option<Instant>,
     command: PendingCommand,
 }
 
@@ -170,9 +172,12 @@ struct Slot {
 /// each. The hash table holds indices, not commands, so that growing it in a burst of commands
 /// copies 8-byte entries while the commands' vector grows in place (a large `realloc` remaps).
 ///
-/// A deadline that changes is pushed again rather than moved: the heap entry whose stamp is no
+/// A deadline moved earlier is pushed again rather than moved: the heap entry whose stamp is no
 /// longer the command's is stale, skipped when it reaches the top and purged when stale entries
-/// outnumber live ones, so the heap's top is always the earliest live deadline.
+/// outnumber live ones. A deadline moved later (a command's frame confirmed on the bus: the node's
+/// time starts) is not pushed: most commands are answered before their first deadline, and the
+/// live entry, when it comes due, is pushed again with the later one. That halves the heap's work
+/// per command; the heap's top is the earliest live deadline or earlier.
 #[derive(Debug, Default)]
 struct PendingTable {
     index: FxHashMap<Packed, u32>,
@@ -190,6 +195,7 @@ impl PendingTable {
         let slot = Slot {
             key,
             stamp,
+            due: Some(p.deadline),
             command: p,
         };
         match self.index.get(&key) {
@@ -248,12 +254,18 @@ impl PendingTable {
         let Some(&i) = self.index.get(&key) else {
             return;
         };
-        let stamp = self.push_deadline(deadline, key);
-        if let Some(slot) = self.slots.get_mut(i as usize) {
-            slot.stamp = stamp;
-            slot.command.deadline = deadline;
+        let Some(slot) = self.slots.get_mut(i as usize) else {
+            return;
+        };
+        slot.command.deadline = deadline;
+        if slot.due.is_none_or(|due| deadline < due) {
+            slot.due = Some(deadline);
+            let stamp = self.push_deadline(deadline, key);
+            if let Some(slot) = self.slots.get_mut(i as usize) {
+                slot.stamp = stamp;
+            }
+            self.drop_stale();
         }
-        self.drop_stale();
     }
 
     /// Pushes `key`'s new deadline; the returned stamp makes it the live one.
@@ -296,12 +308,15 @@ impl PendingTable {
             .filter_map(|s| Some((s.key.key()?, &s.command)))
     }
 
+    /// The earliest deadline, or earlier: a deadline moved later is found when the earlier one
+    /// comes ([`PendingTable::overdue`] returns only keys really due).
     fn next_deadline(&self) -> Option<Instant> {
         self.deadlines.peek().map(|Reverse((d, _, _))| *d)
     }
 
     /// Keys whose deadline is at or before `now`, earliest first, taken off the heap: the caller
-    /// ends each of them or gives it a new deadline.
+    /// ends each of them or gives it a new deadline. A command whose deadline was moved later is
+    /// pushed again with it instead.
     fn overdue(&mut self, now: Instant) -> Vec<PendingKey> {
         let mut keys = Vec::new();
         while let Some(top) = self.deadlines.peek() {
@@ -311,9 +326,23 @@ impl PendingTable {
             }
             let live = self.live(top);
             self.deadlines.pop();
-            if live {
-                keys.extend(key.key());
+            if !live {
+                continue;
             }
+            let Some(&i) = self.index.get(&key) else {
+                continue;
+            };
+            let later = Some(self.slots[i as usize].command.deadline).filter(|&d| d > now);
+            let stamp = match later {
+                Some(d) => self.push_deadline(d, key),
+                None => {
+                    keys.extend(key.key());
+                    0
+                }
+            };
+            let slot = &mut self.slots[i as usize];
+            slot.stamp = stamp;
+            slot.due = later;
         }
         self.drop_stale();
         keys
@@ -1652,6 +1681,9 @@ mod pending_tests {
         // seq 1 (10 ms) moves past seq 0 (30 ms), then back before it: only its last deadline counts.
         p.set_deadline(&key(1), t0 + ms(35));
         p.set_deadline(&key(1), t0 + ms(25));
+        // Moved later: its first deadline comes first, and is pushed again, not overdue.
+        assert_eq!(p.next_deadline(), Some(t0 + ms(10)));
+        assert_eq!(p.overdue(t0 + ms(10)), vec![]);
         assert_eq!(p.next_deadline(), Some(t0 + ms(20)));
         p.remove(&key(2));
         assert_eq!(
@@ -1659,10 +1691,15 @@ mod pending_tests {
             Some(t0 + ms(25)),
             "a removed command's deadline is gone"
         );
+        // Moved earlier: pushed at once.
+        p.set_deadline(&key(3), t0 + ms(15));
+        assert_eq!(p.next_deadline(), Some(t0 + ms(15)));
+        p.set_deadline(&key(3), t0 + ms(40));
         assert_eq!(p.overdue(t0 + ms(30)), vec![key(1), key(0)]);
         // Taken off the heap: not overdue twice, though still pending until the caller acts.
         assert_eq!(p.overdue(t0 + ms(30)), vec![]);
         assert_eq!(p.next_deadline(), Some(t0 + ms(40)));
+        assert_eq!(p.overdue(t0 + ms(40)), vec![key(3)]);
         assert!(p.get(&key(0)).is_some());
     }
 
@@ -1678,6 +1715,8 @@ mod pending_tests {
             let k = (NodeId::new(3).unwrap(), Kind::PowerSet, (i % 4) as u8);
             p.set_deadline(&k, t0 + Duration::from_millis(10_000 - i));
         }
+        // Their first deadlines (t0) come first and are pushed again with the last ones.
+        assert_eq!(p.overdue(t0), vec![]);
         assert!(
             p.deadlines.len() <= 2 * 4 + 64 + 1,
             "{} heap entries",
