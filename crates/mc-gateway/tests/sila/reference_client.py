@@ -17,10 +17,11 @@ Exits non-zero with the reason on the first thing that is not as it should be.
 """
 
 import json
+import os
 import queue
 import sys
-import threading
 import time
+import traceback
 import uuid
 from pathlib import Path
 
@@ -390,10 +391,27 @@ def main(argv):
         again(argv[2], int(argv[3]), Path(argv[4]), argv[5], argv[6])
     else:
         raise SystemExit(f"unknown mode {mode}")
-    # sila2's subscription threads do not always end with the interpreter.
-    sys.stdout.flush()
-    threading.Timer(0.1, lambda: None).start()
+
+
+def run(argv) -> int:
+    """main's exit status: 0 when it returned, 1 (the reason on stderr) when it failed."""
+    try:
+        main(argv)
+        return 0
+    except SystemExit as e:
+        if e.code in (None, 0):
+            return 0
+        print(e.code, file=sys.stderr)
+        return 1
+    except BaseException:
+        traceback.print_exc()
+        return 1
 
 
 if __name__ == "__main__":
-    main(sys.argv)
+    status = run(sys.argv)
+    sys.stdout.flush()
+    sys.stderr.flush()
+    # sila2's subscription threads are not daemons and may never end (a subscription whose value
+    # did not come, after a failed check): the process ends here, whatever they do.
+    os._exit(status)
