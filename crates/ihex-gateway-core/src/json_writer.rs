@@ -235,13 +235,13 @@ impl Writer<'_> {
     /// characters below U+0020 as `\b`, `\t`, `\n`, `\f`, `\r` or `\u00xx`, everything else as is.
     fn str(&mut self, s: &str) {
         let bytes = s.as_bytes();
-        if !bytes.iter().any(|&b| b < 0x20 || b == b'"' || b == b'\\') {
+        let Some(first) = crate::json_text::special_byte(bytes) else {
             return self.plain_str(s);
-        }
+        };
         self.0.reserve(bytes.len() + 2);
         self.0.put_u8(b'"');
         let mut run = 0;
-        for (i, &b) in bytes.iter().enumerate() {
+        for (i, &b) in bytes.iter().enumerate().skip(first) {
             let short = match b {
                 b'"' => b'"',
                 b'\\' => b'\\',

@@ -246,34 +246,6 @@ mod fast {
         (p.pos == text.len()).then_some(value)
     }
 
-    /// Where the first `"`, `\` or control character is in `bytes`: eight bytes per step, as
-    /// serde_json's own scan does (a string's bytes are most of a command's).
-    pub(super) fn string_end(bytes: &[u8]) -> Option<usize> {
-        const ONES: u64 = u64::from_le_bytes([1; 8]);
-        const HIGH: u64 = ONES << 7;
-        // Per byte, the high bit of `x - 1 & !x` is set where `x` is zero; the lowest flag is
-        // always right (a borrow only flags bytes above a zero one), which is all this needs.
-        let zero = |x: u64| x.wrapping_sub(ONES) & !x;
-        let mut chunks = bytes.chunks_exact(8);
-        for (i, chunk) in chunks.by_ref().enumerate() {
-            let mut word = [0; 8];
-            word.copy_from_slice(chunk);
-            let w = u64::from_le_bytes(word);
-            let found = (zero(w ^ (ONES * u64::from(b'"')))
-                | zero(w ^ (ONES * u64::from(b'\\')))
-                | w.wrapping_sub(ONES * 0x20) & !w)
-                & HIGH;
-            if found != 0 {
-                return Some(i * 8 + (found.trailing_zeros() / 8) as usize);
-            }
-        }
-        let tail = chunks.remainder();
-        let at = tail
-            .iter()
-            .position(|&b| b == b'"' || b == b'\\' || b < 0x20)?;
-        Some(bytes.len() - tail.len() + at)
-    }
-
     struct Pass<'a> {
         text: &'a str,
         pos: usize,
@@ -359,7 +331,7 @@ mod fast {
         fn string(&mut self) -> Option<&'a str> {
             let start = self.pos + 1;
             let rest = self.text.as_bytes().get(start..)?;
-            let len = string_end(rest)?;
+            let len = crate::json_text::special_byte(rest)?;
             if rest[len] != b'"' {
                 return None;
             }
@@ -651,21 +623,6 @@ mod tests {
             "deep nesting is serde_json's"
         );
         assert!(Arena::default().parse(&deep).is_ok());
-    }
-
-    #[test]
-    fn a_string_ends_at_its_first_quote_backslash_or_control_character() {
-        for len in 0..24 {
-            for end in [b'"', b'\\', b'\n', 0, 0x1f] {
-                // Non-ASCII and bytes near the ones looked for before it, other enders after it.
-                let mut bytes: Vec<u8> = "aé !#[\x7f".bytes().cycle().take(len).collect();
-                bytes.push(end);
-                bytes.extend_from_slice(b"\"\\\x01xyz");
-                assert_eq!(fast::string_end(&bytes), Some(len), "{bytes:?}");
-            }
-            let plain: Vec<u8> = "ab\x20\x21é".bytes().cycle().take(len).collect();
-            assert_eq!(fast::string_end(&plain), None);
-        }
     }
 
     /// JSON-like text: valid values with odd spacing, numbers of every form, strings with escapes
