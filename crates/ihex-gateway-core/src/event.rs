@@ -594,8 +594,9 @@ impl std::io::Write for Append<'_> {
 /// The LED state a node acknowledged.
 #[derive(Clone, PartialEq, Eq, Debug, Serialize, Deserialize)]
 pub struct LedState {
-    /// `off`, `steady` or `blink`.
-    pub mode: String,
+    /// `off`, `steady` or `blink` (the gateway's own names when it builds a state document: no
+    /// copy per document; owned when read back).
+    pub mode: Cow<'static, str>,
     /// `#rrggbb`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub color: Option<String>,
@@ -660,8 +661,8 @@ fn color_text(c: ihex_proto::Rgb) -> String {
 /// The buzzer state a node acknowledged.
 #[derive(Clone, PartialEq, Eq, Debug, Serialize, Deserialize)]
 pub struct BuzzerState {
-    /// `off`, `on` or `pattern`.
-    pub mode: String,
+    /// `off`, `on` or `pattern` (static or owned, as [`LedState::mode`]).
+    pub mode: Cow<'static, str>,
     /// Tone frequency.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub freq_hz: Option<u16>,
@@ -679,7 +680,7 @@ pub struct BuzzerState {
 impl From<BuzzerCommand> for BuzzerState {
     fn from(cmd: BuzzerCommand) -> Self {
         let none = BuzzerState {
-            mode: String::new(),
+            mode: Cow::Borrowed(""),
             freq_hz: None,
             on_ms: None,
             off_ms: None,

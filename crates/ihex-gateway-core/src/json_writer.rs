@@ -523,7 +523,7 @@ mod tests {
         let mut led = led.map(|c| Some(LedState::from(c))).to_vec();
         led.push(None);
         led.push(Some(LedState {
-            mode: text(0),
+            mode: text(0).into(),
             color: Some(text(1)),
             brightness: None,
             period_ms: Some(u16::MAX),
@@ -633,7 +633,7 @@ mod tests {
             prop_assert_eq!(ours, serde);
             let mut d = state(3);
             d.uid = Some(ascii);
-            d.led = Some(LedState { mode: s, color: None, brightness: None, period_ms: None, duty: None });
+            d.led = Some(LedState { mode: s.into(), color: None, brightness: None, period_ms: None, duty: None });
             let (serde, ours) = both(Publication::State(d));
             prop_assert_eq!(ours, serde);
         }

@@ -1077,7 +1077,7 @@ fn led_of(d: &NodeState) -> Option<Led> {
         let v = u32::from_str_radix(hex, 16).ok()?;
         Some([(v >> 16) as u8, (v >> 8) as u8, v as u8])
     };
-    match led.mode.as_str() {
+    match &*led.mode {
         "off" => Some(([0, 0, 0], None)),
         "steady" if led.brightness == Some(255) => Some((color(&led.color)?, None)),
         "blink" if led.brightness == Some(255) => {
@@ -1089,7 +1089,7 @@ fn led_of(d: &NodeState) -> Option<Led> {
 
 /// A buzzer state in the words [`Element::buzzer`] uses.
 pub fn buzzer_text(b: &BuzzerState) -> String {
-    match b.mode.as_str() {
+    match &*b.mode {
         "on" => format!("on {}", b.freq_hz.unwrap_or_default()),
         "pattern" => format!(
             "pattern {} {} {} {}",

@@ -68,7 +68,7 @@ impl Element {
             Some(led) => {
                 let color = led.color.as_deref().unwrap_or_default();
                 let brightness = led.brightness.unwrap_or_default();
-                match led.mode.as_str() {
+                match &*led.mode {
                     "steady" => format!("steady {color} {brightness}"),
                     "blink" => format!(
                         "blink {color} {brightness} {} {}",
