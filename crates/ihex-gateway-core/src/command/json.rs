@@ -8,7 +8,7 @@
 //! Parsing is serde_json's (its nesting limit, its error messages), except for the shape nearly
 //! every command has — objects and arrays a few levels deep, strings without escapes or control
 //! characters, integers of up to 18 digits, `true`, `false`, `null` — which a single pass reads
-//! first ([`fast`]): an LED command's parse took about 2,100 instructions through serde's
+//! first (module `fast`): an LED command's parse took about 2,100 instructions through serde's
 //! visitor, 1,650 this way (callgrind), of some 15,000 the gateway spends on it. Anything else, an
 //! error included, makes that pass give up and serde_json parse the text from the start, so both
 //! give the same tree for any text.
