@@ -1240,8 +1240,11 @@ impl Bridge {
             }
         }
         self.procedures_on_input(now);
-        for id in std::mem::take(&mut self.out.unsure) {
-            self.readback.want(id);
+        // Most inputs leave none, and even an empty set's iterator walks its (empty) tree.
+        if !self.out.unsure.is_empty() {
+            for id in std::mem::take(&mut self.out.unsure) {
+                self.readback.want(id);
+            }
         }
         if !self.health.bus_down() {
             let registry = &self.registry;
