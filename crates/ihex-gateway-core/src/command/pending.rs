@@ -259,13 +259,17 @@ impl PendingTable {
         };
         slot.command.deadline = deadline;
         if slot.due.is_none_or(|due| deadline < due) {
-            slot.due = Some(deadline);
-            let stamp = self.push_deadline(deadline, key);
-            if let Some(slot) = self.slots.get_mut(i as usize) {
-                slot.stamp = stamp;
-            }
+            self.schedule(i as usize, deadline);
             self.drop_stale();
         }
+    }
+
+    /// Makes `deadline` the live heap entry of the command in slot `i`.
+    fn schedule(&mut self, i: usize, deadline: Instant) {
+        let stamp = self.push_deadline(deadline, self.slots[i].key);
+        let slot = &mut self.slots[i];
+        slot.stamp = stamp;
+        slot.due = Some(deadline);
     }
 
     /// Pushes `key`'s new deadline; the returned stamp makes it the live one.
@@ -320,29 +324,27 @@ impl PendingTable {
     fn overdue(&mut self, now: Instant) -> Vec<PendingKey> {
         let mut keys = Vec::new();
         while let Some(top) = self.deadlines.peek() {
-            let &Reverse((deadline, key, _)) = top;
+            let &Reverse((deadline, key, stamp)) = top;
             if deadline > now {
                 break;
             }
-            let live = self.live(top);
             self.deadlines.pop();
-            if !live {
-                continue;
-            }
             let Some(&i) = self.index.get(&key) else {
                 continue;
             };
-            let later = Some(self.slots[i as usize].command.deadline).filter(|&d| d > now);
-            let stamp = match later {
-                Some(d) => self.push_deadline(d, key),
-                None => {
-                    keys.extend(key.key());
-                    0
-                }
-            };
             let slot = &mut self.slots[i as usize];
-            slot.stamp = stamp;
-            slot.due = later;
+            if slot.stamp != stamp {
+                continue; // stale
+            }
+            if slot.command.deadline > now {
+                let later = slot.command.deadline;
+                self.schedule(i as usize, later);
+            } else {
+                // No live entry (stamps start at 1) until the caller gives it a new deadline.
+                slot.stamp = 0;
+                slot.due = None;
+                keys.extend(key.key());
+            }
         }
         self.drop_stale();
         keys

@@ -720,7 +720,7 @@ mod tests {
     }
 
     /// Subscribed to `CommandsTopic` (its SUBACK read), then `n` publications written and none
-    /// acknowledged (packet ids 2..=n+1).
+    /// acknowledged (packet ids 1..=n).
     async fn subscribed_with_publications(port: u16, broker: &Script, n: u16) -> Connection {
         let options = MqttOptions::new("lowat-commands", "127.0.0.1", port);
         // Subscriptions take the packet ids above the publications'.
