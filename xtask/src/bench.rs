@@ -34,6 +34,12 @@ pub struct BenchArgs {
     /// the gateway's CPU, which then bounds the rates before the bus does.
     #[arg(long, env = "IHEX_BENCH_SMP", default_value_t = 2)]
     smp: u32,
+    /// Leave every process where the kernels put it. By default, with 2 or more vCPUs on a host
+    /// with 2 or more cores, the live part pins vCPU 0's thread alone on host CPU 0 (everything
+    /// else on the host on the other cores) and, in the VM, the gateway and the plain forwarder
+    /// alone on vCPU 0: their CPU figures then hold only their own work.
+    #[arg(long)]
+    no_pin: bool,
     /// Kill the VM after this many seconds (both gateways' live runs and islands per broker together).
     #[arg(long, default_value_t = 2400)]
     vm_timeout: u64,
@@ -282,6 +288,9 @@ struct CanRun {
     out: PathBuf,
     /// In the microVM, give it a fresh Mosquitto on the host (`--broker 10.0.2.2:PORT`).
     host_broker: bool,
+    /// In a pinned microVM (see `--no-pin`), pass `--pin`: a live run, whose CPU figures compare
+    /// the gateway with the plain forwarder.
+    pin: bool,
 }
 
 /// A Mosquitto on the host for one run in the microVM: on a free loopback port, which the VM's
@@ -447,6 +456,22 @@ fn live(runs: &[CanRun], files: &[PathBuf], bench: &Path, args: &BenchArgs) -> R
     };
     let mut vm = vcan::test_vm(settings)?;
     vm.net_device = Some(args.vm_net);
+    let host_cpus = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let machine = format!(
+        "QEMU TCG microVM, {} vCPU, {:?} network card, Debian kernel, on a {}",
+        settings.smp,
+        args.vm_net,
+        host_cpu()
+    );
+    let pinned = !args.no_pin && settings.smp >= 2 && host_cpus >= 2;
+    // Everything this process starts from here (the host's brokers and load generators, QEMU)
+    // inherits CPUs 1.. ; QEMU's vCPU 0 thread then moves to CPU 0 alone.
+    let off_cpu0 = if pinned {
+        vm.pin_vcpu0 = Some(0);
+        Some(HostAffinity::leave_cpu0(host_cpus)?)
+    } else {
+        None
+    };
     // Each run sends its results back over the user-mode network (10.0.2.2 is our loopback).
     let mut programs = Vec::new();
     let mut results = Vec::new();
@@ -458,6 +483,9 @@ fn live(runs: &[CanRun], files: &[PathBuf], bench: &Path, args: &BenchArgs) -> R
         let port = listener.local_addr()?.port();
         results.push((run.name, receive(listener), &run.out));
         let mut program_args = run.args.clone();
+        if pinned && run.pin {
+            program_args.push("--pin".into());
+        }
         program_args.extend([
             "--mosquitto".into(),
             mosquitto.to_string_lossy().into_owned(),
@@ -491,6 +519,7 @@ fn live(runs: &[CanRun], files: &[PathBuf], bench: &Path, args: &BenchArgs) -> R
     };
     let outcomes = vm.run(&payload)?;
     drop(brokers);
+    drop(off_cpu0);
     for ((name, rx, out), o) in results.into_iter().zip(&outcomes) {
         if o.code != 0 {
             failed.push(format!("{name} failed in the VM (exit {})", o.code));
@@ -505,12 +534,44 @@ fn live(runs: &[CanRun], files: &[PathBuf], bench: &Path, args: &BenchArgs) -> R
     if !failed.is_empty() {
         bail!("{}", failed.join("; "));
     }
-    Ok(format!(
-        "QEMU TCG microVM, {} vCPU, {:?} network card, Debian kernel, on a {}",
-        settings.smp,
-        args.vm_net,
-        host_cpu()
-    ))
+    Ok(if pinned {
+        format!("{machine}; vCPU 0 alone on host CPU 0, the other vCPU and the host's broker and load generator on the other cores")
+    } else {
+        machine
+    })
+}
+
+/// This process's threads (and so what it starts while this lives) kept off host CPU 0, which
+/// the microVM's vCPU 0 gets to itself; all CPUs again when dropped. Uses util-linux's `taskset`.
+struct HostAffinity {
+    all: String,
+}
+
+impl HostAffinity {
+    fn leave_cpu0(cpus: usize) -> Result<HostAffinity> {
+        set_affinity(&format!("1-{}", cpus - 1))?;
+        Ok(HostAffinity {
+            all: format!("0-{}", cpus - 1),
+        })
+    }
+}
+
+impl Drop for HostAffinity {
+    fn drop(&mut self) {
+        if let Err(e) = set_affinity(&self.all) {
+            eprintln!("xtask bench: giving this process all CPUs again: {e:#}");
+        }
+    }
+}
+
+/// `taskset -a -p -c CPUS <this process>`: every thread of it.
+fn set_affinity(cpus: &str) -> Result<()> {
+    cmd::run(
+        Command::new("taskset")
+            .args(["-a", "-p", "-c", cpus, &std::process::id().to_string()])
+            .stdout(std::process::Stdio::null()),
+    )
+    .with_context(|| format!("taskset -c {cpus} (util-linux; `--no-pin` runs without)"))
 }
 
 /// The gateway as the README's first command runs it (default features: embedded broker,
@@ -561,6 +622,9 @@ pub fn run(args: BenchArgs, firmware_dir: &Path) -> Result<()> {
         "web.json",
         "sila.json",
         "fw.json",
+        "procedure.json",
+        "audit.json",
+        "process.json",
     ] {
         let _ = fs::remove_file(dir.join(f));
     }
@@ -620,6 +684,7 @@ pub fn run(args: BenchArgs, firmware_dir: &Path) -> Result<()> {
             args: live_args(&gateway, &args),
             out: dir.join("live.json"),
             host_broker: on_host,
+            pin: true,
         });
         if let Some(b) = &baseline {
             runs.push(CanRun {
@@ -627,6 +692,7 @@ pub fn run(args: BenchArgs, firmware_dir: &Path) -> Result<()> {
                 args: live_args(&b.gateway, &args),
                 out: dir.join("baseline-live.json"),
                 host_broker: on_host,
+                pin: true,
             });
         }
         if args.broker == BrokerPlace::Both {
@@ -635,6 +701,7 @@ pub fn run(args: BenchArgs, firmware_dir: &Path) -> Result<()> {
                 args: live_args(&gateway, &args),
                 out: dir.join("live-vm.json"),
                 host_broker: false,
+                pin: true,
             });
         }
     }
@@ -652,6 +719,7 @@ pub fn run(args: BenchArgs, firmware_dir: &Path) -> Result<()> {
             args: islands_args(&gateway, &sim_node, &args),
             out: dir.join("islands.json"),
             host_broker: false,
+            pin: false,
         });
     }
     let mut machine = "SocketCAN part not run".to_string();

@@ -61,6 +61,9 @@ pub struct Vm {
     pub memory_mb: u64,
     /// Virtual CPUs.
     pub smp: u32,
+    /// A host CPU for the thread of vCPU 0 alone ([`pin_vcpu0`]); the other threads keep the
+    /// CPUs QEMU was started with.
+    pub pin_vcpu0: Option<usize>,
     /// A VM still running after this long is killed.
     pub timeout: Duration,
     /// Where base archives are cached.
@@ -182,6 +185,36 @@ pub fn static_busybox() -> Option<PathBuf> {
     is_static.then_some(p)
 }
 
+/// Moves the thread of vCPU 0 of the QEMU process `pid` (started with `debug-threads=on`) to
+/// host CPU `cpu` alone. QEMU's multi-threaded TCG runs each vCPU on a thread of its own, created
+/// before the guest starts.
+fn pin_vcpu0(pid: u32, cpu: usize) -> Result<()> {
+    let deadline = Instant::now() + Duration::from_secs(10);
+    loop {
+        for task in fs::read_dir(format!("/proc/{pid}/task"))?.flatten() {
+            let comm = fs::read_to_string(task.path().join("comm")).unwrap_or_default();
+            if comm.trim_end() == "CPU 0/TCG" {
+                let tid = task.file_name().to_string_lossy().into_owned();
+                cmd::run(
+                    Command::new("taskset")
+                        .args(["-p", "-c", &cpu.to_string(), &tid])
+                        .stdout(Stdio::null()),
+                )
+                .context("pinning vCPU 0 (taskset, util-linux)")?;
+                println!("vm: vCPU 0 (thread {tid}) alone on host CPU {cpu}");
+                return Ok(());
+            }
+        }
+        if Instant::now() > deadline {
+            bail!(
+                "QEMU (pid {pid}) has no thread \"CPU 0/TCG\" after 10 s: single-threaded TCG? \
+                 (`cargo xtask bench --no-pin` runs without pinning)"
+            );
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
 impl Vm {
     /// An x86_64 TCG microVM from the host's kernel, busybox and QEMU (KVM does not work on the
     /// project's machines, see docs/testing.md, so TCG always).
@@ -212,6 +245,7 @@ impl Vm {
             host_programs: Vec::new(),
             memory_mb: 1024,
             smp: 2,
+            pin_vcpu0: None,
             timeout: Duration::from_secs(15 * 60),
             cache_dir: cache_root.join("x86_64"),
             strip: std::env::var_os("IHEX_VM_KEEP_DEBUG").is_none(),
@@ -503,6 +537,10 @@ poweroff -f
                 ),
             ])
             .args(["-no-reboot", "-display", "none", "-monitor", "none"]);
+        if self.pin_vcpu0.is_some() {
+            // Names QEMU's threads ("CPU 0/TCG"), so that vCPU 0's can be found.
+            q.args(["-name", "ihex-vm,debug-threads=on"]);
+        }
         if let Some(dev) = &self.net_device {
             q.args([
                 "-netdev",
@@ -523,6 +561,13 @@ poweroff -f
         let mut child = q
             .spawn()
             .with_context(|| format!("starting {}", self.qemu.display()))?;
+        if let Some(cpu) = self.pin_vcpu0 {
+            if let Err(e) = pin_vcpu0(child.id(), cpu) {
+                let _ = child.kill();
+                let _ = child.wait();
+                return Err(e);
+            }
+        }
         let stdout = child.stdout.take().expect("piped");
         let (tx, rx) = mpsc::sync_channel(16);
         let reader = std::thread::spawn(move || console(stdout, std::io::stdout(), tx));

@@ -32,6 +32,7 @@ use ihex_bench::bus::{Limit, PairLimit};
 use ihex_bench::results::{Bare, CostRound, CpuShare, LiveResults, MqttBare, Trial};
 use ihex_bench::stats::Summary;
 
+use crate::affinity::Pinning;
 use crate::forward;
 use crate::loadgen::{Load, Remote};
 use crate::stamp::{micros_between, Tap, Way};
@@ -109,6 +110,9 @@ pub struct Settings {
     /// broker (asked over the broker) instead of from this process, which then only writes and
     /// reads CAN frames during those trials: the load generator is off the gateway's CPU.
     pub remote_load: bool,
+    /// Run the gateway and the plain forwarder alone on CPU 0, this process on the others
+    /// ([`Pinning`]).
+    pub pin: bool,
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -849,6 +853,8 @@ struct Bench {
     forwarder: Option<Forwarder>,
     /// Whom the command trials and probes address: the gateway, or the forwarder.
     target: Target,
+    /// The measured processes' CPU, when [`Settings::pin`].
+    pinning: Option<Pinning>,
     notes: Vec<String>,
 }
 
@@ -1370,7 +1376,12 @@ impl Bench {
         let mut c = Command::new(std::env::current_exe()?);
         c.args(["forward", "--iface", &iface, "--broker"])
             .arg(self.broker_addr.to_string());
-        let proc = Proc::spawn(c, &dir.join("forward.log"), "ihex-bench forward")?;
+        let log = dir.join("forward.log");
+        let spawn = || Proc::spawn(c, &log, "ihex-bench forward");
+        let proc = match &self.pinning {
+            Some(p) => p.on_measured_cpu(spawn)?,
+            None => spawn()?,
+        };
         let (counter, seen) = Responder::start(&iface, false, &mut self.notes)
             .with_context(|| format!("the plain forwarder's bus (--forward-iface {iface})"))?;
         self.forwarder = Some(Forwarder {
@@ -1764,6 +1775,14 @@ pub fn run(s: Settings) -> Result<LiveResults> {
         "bench: bare pair {:.0} fps ({}/{}), RTT p50 {:.0} us",
         bare.rate_fps, bare.received, bare.sent, bare.rtt.p50_us
     );
+    // After the bare pair, which may use every CPU (the most the kernel path gives), and before
+    // the threads that stay: every later one inherits the benchmark's CPUs.
+    let pinning = s.pin.then(|| Pinning::start(cpus)).transpose()?;
+    let cpu_layout = if pinning.is_some() {
+        Pinning::layout(cpus)
+    } else {
+        String::new()
+    };
 
     // `_broker` lives as long as the run: dropping it stops the broker.
     let (_broker, broker_pid, addr, broker_layout) = match s.broker {
@@ -1816,7 +1835,11 @@ pub fn run(s: Settings) -> Result<LiveResults> {
         "bench: bare MQTT ingress {:.0} msg/s, egress {:.0} msg/s (zero loss)",
         mqtt_bare.ingress_mps, mqtt_bare.egress_mps
     );
-    let mut gw = start_gateway(&s.gateway, &s.iface, addr, &dir)?;
+    let spawn = || start_gateway(&s.gateway, &s.iface, addr, &dir);
+    let mut gw = match &pinning {
+        Some(p) => p.on_measured_cpu(spawn)?,
+        None => spawn()?,
+    };
     let gw_log = || std::fs::read_to_string(dir.join("gateway.log")).unwrap_or_default();
     let mut waited = 0;
     while !mqtt.wait_topic(
@@ -1850,6 +1873,7 @@ pub fn run(s: Settings) -> Result<LiveResults> {
         broker_addr: addr,
         forwarder: None,
         target: Target::Gateway,
+        pinning,
         notes,
     };
 
@@ -2035,6 +2059,7 @@ pub fn run(s: Settings) -> Result<LiveResults> {
     let r = LiveResults {
         environment,
         broker_layout,
+        cpu_layout,
         mqtt_bare: Some(mqtt_bare),
         cpus,
         bare,

@@ -8,6 +8,7 @@ use anyhow::{Context, Result};
 use clap::{Parser, Subcommand, ValueEnum};
 use ihex_bench::{report, workload};
 
+mod affinity;
 mod callgrind;
 mod forward;
 mod fw;
@@ -94,6 +95,11 @@ enum Cmd {
         /// `ihex-bench loadgen` serving at `--broker` (asked over the broker), not from here.
         #[arg(long, requires = "broker")]
         remote_load: bool,
+        /// Run the gateway and the plain forwarder alone on CPU 0 and this benchmark's threads on
+        /// the other CPUs (needs two or more), so that the measured processes' CPU figures do
+        /// not include the benchmark's work.
+        #[arg(long)]
+        pin: bool,
         /// Send the results as a JSON line to this TCP address (the host's xtask).
         #[arg(long)]
         report: Option<String>,
@@ -324,6 +330,7 @@ fn main() -> Result<()> {
             trace,
             broker,
             remote_load,
+            pin,
             report,
             out,
         } => {
@@ -340,6 +347,7 @@ fn main() -> Result<()> {
                 trace,
                 broker,
                 remote_load,
+                pin,
             })?;
             finish(r, out, report, |r| report::Results {
                 live: Some(r),

@@ -454,6 +454,9 @@ pub fn table(r: &Results) -> String {
         if !l.broker_layout.is_empty() {
             let _ = writeln!(o, "broker: {} (every live figure below)", l.broker_layout);
         }
+        if !l.cpu_layout.is_empty() {
+            let _ = writeln!(o, "cpus: {}", l.cpu_layout);
+        }
         let _ = writeln!(
             o,
             "\nthroughput                                 value      ratio"
@@ -1614,6 +1617,7 @@ mod tests {
     fn issue_34_prints_the_layout_the_bare_baselines_and_its_goals() {
         let mut l = sample();
         l.broker_layout = "Mosquitto elsewhere, at 10.0.2.2:1883".into();
+        l.cpu_layout = "the gateway alone on CPU 0".into();
         l.mqtt_to_can_cps = 500.0;
         l.can_to_mqtt_fps = 1000.0;
         l.mqtt_bare = Some(crate::results::MqttBare {
@@ -1635,6 +1639,7 @@ mod tests {
         let t = table(&r);
         for line in [
             "broker: Mosquitto elsewhere, at 10.0.2.2:1883 (every live figure below)",
+            "cpus: the gateway alone on CPU 0",
             "0.50x bare MQTT ingress (1000 msg/s)",
             "0.50x bare MQTT egress (2000 msg/s)",
             "CPU per 1,000 acked commands <= 1.2x a raw frame forward  pass  (110.0 vs 100.0 ms: 1.10x; bare SocketCAN pair)",

@@ -130,6 +130,9 @@ pub struct LiveResults {
     /// Mosquitto seen from the microVM).
     #[serde(default)]
     pub broker_layout: String,
+    /// Which CPUs the measured processes had (`live --pin`); empty: wherever the kernel put them.
+    #[serde(default)]
+    pub cpu_layout: String,
     /// The bare MQTT path through the same broker, when measured.
     #[serde(default)]
     pub mqtt_bare: Option<MqttBare>,
