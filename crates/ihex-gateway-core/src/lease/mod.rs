@@ -305,6 +305,11 @@ pub struct LeasesDocument {
 #[derive(Debug)]
 pub struct LeaseTable {
     leases: Vec<Lease>,
+    /// One bit per raw node id that a lease in `leases` names: a command to an element without
+    /// its bit, with no island lease in `leases`, passes without a scan (the common case).
+    named: [u64; NAMED_WORDS],
+    /// Island leases in `leases`.
+    islands: usize,
     next_id: u32,
     /// Keys the tokens: another run's tokens (or a guessed counter) never match this run's.
     keys: RandomState,
@@ -316,11 +321,16 @@ impl Default for LeaseTable {
     }
 }
 
+/// Words of [`LeaseTable::named`]: a bit for every raw node id.
+const NAMED_WORDS: usize = (NodeId::MAX_RAW as usize + 1).div_ceil(64);
+
 impl LeaseTable {
     /// No leases.
     pub fn new() -> Self {
         LeaseTable {
             leases: Vec::new(),
+            named: [0; NAMED_WORDS],
+            islands: 0,
             next_id: 1,
             keys: RandomState::new(),
         }
@@ -363,6 +373,7 @@ impl LeaseTable {
             scope,
             expires: now + ttl,
         });
+        self.index();
         self.leases.last().ok_or(LeaseError::UnknownId { id })
     }
 
@@ -392,7 +403,7 @@ impl LeaseTable {
         let i = self
             .by_token(token, now)
             .ok_or(LeaseError::UnknownToken { cmd: "release" })?;
-        Ok(self.leases.remove(i))
+        Ok(self.remove(i))
     }
 
     /// Ends lease `id` without its token (the administrative break).
@@ -402,7 +413,7 @@ impl LeaseTable {
             .iter()
             .position(|l| l.held(now) && l.id == id)
             .ok_or(LeaseError::UnknownId { id })?;
-        Ok(self.leases.remove(i))
+        Ok(self.remove(i))
     }
 
     /// May a command carrying `token` reach `id` at `now`? Refused, naming the holder, when a
@@ -442,8 +453,36 @@ impl LeaseTable {
 
     /// The lease held now that keeps a command carrying `token` from `id`.
     pub fn holder(&self, id: NodeId, token: Option<&str>, now: Instant) -> Option<&Lease> {
+        let raw = usize::from(id.get());
+        if self.islands == 0 && self.named[raw / 64] & 1 << (raw % 64) == 0 {
+            return None;
+        }
         self.held(now)
             .find(|l| l.scope.covers(id) && Some(l.token.as_str()) != token)
+    }
+
+    /// Removes lease `i` (an index into `leases`).
+    fn remove(&mut self, i: usize) -> Lease {
+        let lease = self.leases.remove(i);
+        self.index();
+        lease
+    }
+
+    /// Sets `named` and `islands` from `leases`, after every change of the set of leases.
+    fn index(&mut self) {
+        self.named = [0; NAMED_WORDS];
+        self.islands = 0;
+        for l in &self.leases {
+            match &l.scope {
+                Scope::Island => self.islands += 1,
+                Scope::Nodes(ids) => {
+                    for id in ids {
+                        let raw = usize::from(id.get());
+                        self.named[raw / 64] |= 1 << (raw % 64);
+                    }
+                }
+            }
+        }
     }
 
     /// The earliest end of a lease.
@@ -457,6 +496,7 @@ impl LeaseTable {
             .into_iter()
             .partition(|l| !l.held(now));
         self.leases = held;
+        self.index();
         ended
     }
 }

@@ -151,12 +151,12 @@ fn wall_clock_formats_and_tokens_differ() {
 }
 
 proptest! {
-    /// Whatever leases are taken, renewed, released and broken, an element is refused to a
+    /// Whatever leases are taken, renewed, released, broken and expired, an element is refused to a
     /// command without a token exactly when a lease whose end is after `now` covers it, and each
     /// lease's own token always passes its elements.
     #[test]
     fn refusal_is_exactly_a_held_cover(
-        ops in prop::collection::vec((0u8..4, 1u16..6, 1u64..50, 0u64..40), 1..30),
+        ops in prop::collection::vec((0u8..5, 1u16..6, 1u64..50, 0u64..40), 1..30),
         probe in 0u64..200,
     ) {
         let t0 = Instant::now();
@@ -195,6 +195,12 @@ proptest! {
                     let i = usize::from(n) % model.len();
                     let lease_id = model.remove(i).id;
                     prop_assert!(t.break_lease(lease_id, now).is_ok());
+                }
+                // The leases' timer: those ended by now leave the table.
+                4 => {
+                    for l in t.expire(now) {
+                        prop_assert!(!model.iter().any(|m| m.id == l.id));
+                    }
                 }
                 _ => {}
             }
