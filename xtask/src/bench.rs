@@ -456,19 +456,20 @@ fn live(runs: &[CanRun], files: &[PathBuf], bench: &Path, args: &BenchArgs) -> R
     };
     let mut vm = vcan::test_vm(settings)?;
     vm.net_device = Some(args.vm_net);
-    let host_cpus = std::thread::available_parallelism().map_or(1, |n| n.get());
+    // The CPUs this process may use (a container or `taskset` may have narrowed them).
+    let allowed = allowed_cpus()?;
     let machine = format!(
         "QEMU TCG microVM, {} vCPU, {:?} network card, Debian kernel, on a {}",
         settings.smp,
         args.vm_net,
         host_cpu()
     );
-    let pinned = !args.no_pin && settings.smp >= 2 && host_cpus >= 2;
+    let pinned = !args.no_pin && settings.smp >= 2 && allowed.len() >= 2;
     // Everything this process starts from here (the host's brokers and load generators, QEMU)
-    // inherits CPUs 1.. ; QEMU's vCPU 0 thread then moves to CPU 0 alone.
-    let off_cpu0 = if pinned {
-        vm.pin_vcpu0 = Some(0);
-        Some(HostAffinity::leave_cpu0(host_cpus)?)
+    // inherits the other CPUs; QEMU's vCPU 0 thread then moves to the first one alone.
+    let off_first = if pinned {
+        vm.pin_vcpu0 = Some(allowed[0]);
+        Some(HostAffinity::leave_first(&allowed)?)
     } else {
         None
     };
@@ -519,7 +520,7 @@ fn live(runs: &[CanRun], files: &[PathBuf], bench: &Path, args: &BenchArgs) -> R
     };
     let outcomes = vm.run(&payload)?;
     drop(brokers);
-    drop(off_cpu0);
+    drop(off_first);
     for ((name, rx, out), o) in results.into_iter().zip(&outcomes) {
         if o.code != 0 {
             failed.push(format!("{name} failed in the VM (exit {})", o.code));
@@ -535,36 +536,66 @@ fn live(runs: &[CanRun], files: &[PathBuf], bench: &Path, args: &BenchArgs) -> R
         bail!("{}", failed.join("; "));
     }
     Ok(if pinned {
-        format!("{machine}; vCPU 0 alone on host CPU 0, the other vCPU and the host's broker and load generator on the other cores")
+        format!(
+            "{machine}; vCPU 0 alone on host CPU {}, the other vCPU and the host's broker and load \
+             generator on the other cores",
+            allowed[0]
+        )
     } else {
         machine
     })
 }
 
-/// This process's threads (and so what it starts while this lives) kept off host CPU 0, which
-/// the microVM's vCPU 0 gets to itself; all CPUs again when dropped. Uses util-linux's `taskset`.
+/// This process's threads (and so what it starts while this lives) kept off the first of its
+/// CPUs, which the microVM's vCPU 0 gets to itself; its CPUs as before when dropped. Uses
+/// util-linux's `taskset`.
 struct HostAffinity {
-    all: String,
+    before: String,
 }
 
 impl HostAffinity {
-    fn leave_cpu0(cpus: usize) -> Result<HostAffinity> {
-        set_affinity(&format!("1-{}", cpus - 1))?;
+    fn leave_first(allowed: &[usize]) -> Result<HostAffinity> {
+        let rest: Vec<String> = allowed[1..].iter().map(usize::to_string).collect();
+        set_affinity(&rest.join(","))?;
+        let all: Vec<String> = allowed.iter().map(usize::to_string).collect();
         Ok(HostAffinity {
-            all: format!("0-{}", cpus - 1),
+            before: all.join(","),
         })
     }
 }
 
 impl Drop for HostAffinity {
     fn drop(&mut self) {
-        if let Err(e) = set_affinity(&self.all) {
-            eprintln!("xtask bench: giving this process all CPUs again: {e:#}");
+        if let Err(e) = set_affinity(&self.before) {
+            eprintln!("xtask bench: giving this process its CPUs again: {e:#}");
         }
     }
 }
 
-/// `taskset -a -p -c CPUS <this process>`: every thread of it.
+/// The CPUs this process may run on (`Cpus_allowed_list` of `/proc/self/status`), ascending.
+fn allowed_cpus() -> Result<Vec<usize>> {
+    let status = fs::read_to_string("/proc/self/status").context("reading /proc/self/status")?;
+    let list = status
+        .lines()
+        .find_map(|l| l.strip_prefix("Cpus_allowed_list:"))
+        .ok_or_else(|| anyhow!("/proc/self/status has no Cpus_allowed_list"))?;
+    cpu_list(list.trim())
+}
+
+/// A kernel CPU list (`0-3,8,10-11`), expanded.
+fn cpu_list(list: &str) -> Result<Vec<usize>> {
+    let mut cpus = Vec::new();
+    for part in list.split(',').filter(|p| !p.is_empty()) {
+        let (first, last) = part.split_once('-').unwrap_or((part, part));
+        let (first, last): (usize, usize) = (first.parse()?, last.parse()?);
+        cpus.extend(first..=last);
+    }
+    if cpus.is_empty() {
+        bail!("empty CPU list {list:?}");
+    }
+    Ok(cpus)
+}
+
 fn set_affinity(cpus: &str) -> Result<()> {
     cmd::run(
         Command::new("taskset")
@@ -871,5 +902,24 @@ fn on_host_demo(args: &BenchArgs, bench: &Path, dir: &Path, missing: &mut Vec<St
              --no-web --no-sila --no-fw --no-process"
                 .into(),
         );
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn cpu_lists_expand_as_the_kernel_writes_them() {
+        assert_eq!(cpu_list("0-1").unwrap(), vec![0, 1]);
+        assert_eq!(cpu_list("0-2,5,8-9").unwrap(), vec![0, 1, 2, 5, 8, 9]);
+        assert_eq!(cpu_list("3").unwrap(), vec![3]);
+        assert!(cpu_list("").is_err());
+        assert!(cpu_list("x-1").is_err());
+    }
+
+    #[test]
+    fn this_process_may_run_somewhere() {
+        assert!(!allowed_cpus().unwrap().is_empty());
     }
 }
