@@ -35,8 +35,8 @@ pub struct BenchArgs {
     #[arg(long, env = "IHEX_BENCH_SMP", default_value_t = 2)]
     smp: u32,
     /// Leave every process where the kernels put it. By default, with 2 or more vCPUs on a host
-    /// with 2 or more cores, the live part pins vCPU 0's thread alone on host CPU 0 (everything
-    /// else on the host on the other cores) and, in the VM, the gateway and the plain forwarder
+    /// with 2 or more cores, the live part pins vCPU 0's thread alone on the first host CPU this
+    /// process may use (everything else it starts on the others) and, in the VM, the gateway and the plain forwarder
     /// alone on vCPU 0: their CPU figures then hold only their own work.
     #[arg(long)]
     no_pin: bool,
@@ -457,14 +457,18 @@ fn live(runs: &[CanRun], files: &[PathBuf], bench: &Path, args: &BenchArgs) -> R
     let mut vm = vcan::test_vm(settings)?;
     vm.net_device = Some(args.vm_net);
     // The CPUs this process may use (a container or `taskset` may have narrowed them).
-    let allowed = allowed_cpus()?;
+    let allowed = if !args.no_pin && settings.smp >= 2 {
+        allowed_cpus()?
+    } else {
+        Vec::new()
+    };
     let machine = format!(
         "QEMU TCG microVM, {} vCPU, {:?} network card, Debian kernel, on a {}",
         settings.smp,
         args.vm_net,
         host_cpu()
     );
-    let pinned = !args.no_pin && settings.smp >= 2 && allowed.len() >= 2;
+    let pinned = allowed.len() >= 2;
     // Everything this process starts from here (the host's brokers and load generators, QEMU)
     // inherits the other CPUs; QEMU's vCPU 0 thread then moves to the first one alone.
     let off_first = if pinned {
@@ -555,11 +559,15 @@ struct HostAffinity {
 
 impl HostAffinity {
     fn leave_first(allowed: &[usize]) -> Result<HostAffinity> {
-        let rest: Vec<String> = allowed[1..].iter().map(usize::to_string).collect();
-        set_affinity(&rest.join(","))?;
-        let all: Vec<String> = allowed.iter().map(usize::to_string).collect();
+        let list = |cpus: &[usize]| {
+            cpus.iter()
+                .map(usize::to_string)
+                .collect::<Vec<_>>()
+                .join(",")
+        };
+        set_affinity(&list(&allowed[1..]))?;
         Ok(HostAffinity {
-            before: all.join(","),
+            before: list(allowed),
         })
     }
 }

@@ -37,26 +37,30 @@ impl Pinning {
         Ok(Pinning { measured, rest })
     }
 
-    /// Runs `start` (which starts a measured process) with the calling thread on CPU 0, then
-    /// moves the thread back.
-    pub(crate) fn on_measured_cpu<T>(&self, start: impl FnOnce() -> Result<T>) -> Result<T> {
-        sched_setaffinity(this_thread(), &self.measured).context("moving to CPU 0")?;
+    /// Runs `start` (which starts a measured process) with the calling thread on CPU 0 when
+    /// `pinning`, then moves the thread back; without it, just runs `start`.
+    pub(crate) fn measured<T>(
+        pinning: Option<&Pinning>,
+        start: impl FnOnce() -> Result<T>,
+    ) -> Result<T> {
+        let Some(p) = pinning else {
+            return start();
+        };
+        sched_setaffinity(this_thread(), &p.measured).context("moving to CPU 0")?;
         let started = start();
-        sched_setaffinity(this_thread(), &self.rest).context("moving off CPU 0")?;
+        sched_setaffinity(this_thread(), &p.rest).context("moving off CPU 0")?;
         started
     }
 
     /// What the table's heading says about it.
     pub(crate) fn layout(cpus: usize) -> String {
+        let rest = match cpus {
+            ..=2 => "CPU 1".to_owned(),
+            _ => format!("CPUs 1-{}", cpus - 1),
+        };
         format!(
-            "the gateway and the plain forwarder alone on CPU 0, the benchmark's threads on CPU{} \
-             1{} (the bare SocketCAN pair before that, on every CPU)",
-            if cpus > 2 { "s" } else { "" },
-            if cpus > 2 {
-                format!("-{}", cpus - 1)
-            } else {
-                String::new()
-            }
+            "the gateway and the plain forwarder alone on CPU 0, the benchmark's threads on \
+             {rest} (the bare SocketCAN pair before that, on every CPU)"
         )
     }
 }

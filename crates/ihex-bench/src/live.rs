@@ -1377,11 +1377,9 @@ impl Bench {
         c.args(["forward", "--iface", &iface, "--broker"])
             .arg(self.broker_addr.to_string());
         let log = dir.join("forward.log");
-        let spawn = || Proc::spawn(c, &log, "ihex-bench forward");
-        let proc = match &self.pinning {
-            Some(p) => p.on_measured_cpu(spawn)?,
-            None => spawn()?,
-        };
+        let proc = Pinning::measured(self.pinning.as_ref(), || {
+            Proc::spawn(c, &log, "ihex-bench forward")
+        })?;
         let (counter, seen) = Responder::start(&iface, false, &mut self.notes)
             .with_context(|| format!("the plain forwarder's bus (--forward-iface {iface})"))?;
         self.forwarder = Some(Forwarder {
@@ -1835,11 +1833,9 @@ pub fn run(s: Settings) -> Result<LiveResults> {
         "bench: bare MQTT ingress {:.0} msg/s, egress {:.0} msg/s (zero loss)",
         mqtt_bare.ingress_mps, mqtt_bare.egress_mps
     );
-    let spawn = || start_gateway(&s.gateway, &s.iface, addr, &dir);
-    let mut gw = match &pinning {
-        Some(p) => p.on_measured_cpu(spawn)?,
-        None => spawn()?,
-    };
+    let mut gw = Pinning::measured(pinning.as_ref(), || {
+        start_gateway(&s.gateway, &s.iface, addr, &dir)
+    })?;
     let gw_log = || std::fs::read_to_string(dir.join("gateway.log")).unwrap_or_default();
     let mut waited = 0;
     while !mqtt.wait_topic(

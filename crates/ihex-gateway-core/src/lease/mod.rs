@@ -324,6 +324,12 @@ impl Default for LeaseTable {
 /// Words of [`LeaseTable::named`]: a bit for every raw node id.
 const NAMED_WORDS: usize = (NodeId::MAX_RAW as usize + 1).div_ceil(64);
 
+/// `id`'s word in [`LeaseTable::named`] and its bit there.
+fn named_bit(id: NodeId) -> (usize, u64) {
+    let raw = usize::from(id.get());
+    (raw / 64, 1 << (raw % 64))
+}
+
 impl LeaseTable {
     /// No leases.
     pub fn new() -> Self {
@@ -453,8 +459,8 @@ impl LeaseTable {
 
     /// The lease held now that keeps a command carrying `token` from `id`.
     pub fn holder(&self, id: NodeId, token: Option<&str>, now: Instant) -> Option<&Lease> {
-        let raw = usize::from(id.get());
-        if self.islands == 0 && self.named[raw / 64] & 1 << (raw % 64) == 0 {
+        let (word, bit) = named_bit(id);
+        if self.islands == 0 && self.named[word] & bit == 0 {
             return None;
         }
         self.held(now)
@@ -476,9 +482,9 @@ impl LeaseTable {
             match &l.scope {
                 Scope::Island => self.islands += 1,
                 Scope::Nodes(ids) => {
-                    for id in ids {
-                        let raw = usize::from(id.get());
-                        self.named[raw / 64] |= 1 << (raw % 64);
+                    for &id in ids {
+                        let (word, bit) = named_bit(id);
+                        self.named[word] |= bit;
                     }
                 }
             }
@@ -496,7 +502,9 @@ impl LeaseTable {
             .into_iter()
             .partition(|l| !l.held(now));
         self.leases = held;
-        self.index();
+        if !ended.is_empty() {
+            self.index();
+        }
         ended
     }
 }
