@@ -397,6 +397,7 @@ async fn receive_socket(
     failed: Arc<Notify>,
     cancel: CancellationToken,
 ) {
+    let mut cancelled = crate::shutdown::stopped(&cancel);
     let mut delay = REOPEN_MIN;
     let mut down = false;
     loop {
@@ -414,7 +415,7 @@ async fn receive_socket(
                     let _ = inputs.send(CanInput::Bus(BusEvent::InterfaceDown)).await;
                 }
                 tokio::select! {
-                    _ = cancel.cancelled() => return,
+                    _ = &mut cancelled => return,
                     _ = tokio::time::sleep(delay) => {}
                 }
                 delay = (delay * 2).min(REOPEN_MAX);
@@ -425,7 +426,7 @@ async fn receive_socket(
                 // in case the interface is replaced, but slowly.
                 tracing::error!(error = %e, "CAN socket set-up failed");
                 tokio::select! {
-                    _ = cancel.cancelled() => return,
+                    _ = &mut cancelled => return,
                     _ = tokio::time::sleep(REOPEN_MAX) => {}
                 }
                 continue;
@@ -444,11 +445,10 @@ async fn receive_socket(
         // first, often a write in the transmit task: so a failed write, a failed read and a
         // periodic look at the interface flags all lead here.
         let mut batch = [socketcan::frame::can_frame_default(); sys::CAN_BATCH];
-        // Made once per socket: fresh ones per read would join and leave two waiter lists per
-        // read. The write failure's is used up when it fires, which ends this socket's loop.
-        let cancelled = cancel.cancelled();
+        // Made once per socket: a fresh one per read would join and leave its waiter list per
+        // read. It is used up when it fires, which ends this socket's loop.
         let write_failed = failed.notified();
-        tokio::pin!(cancelled, write_failed);
+        tokio::pin!(write_failed);
         let why = loop {
             let read = tokio::select! {
                 _ = &mut cancelled => return,
@@ -520,9 +520,7 @@ async fn receive_link<L: FrameLink>(
     inputs: mpsc::Sender<CanInput>,
     cancel: CancellationToken,
 ) {
-    // Made once: a fresh one per frame would join and leave the token's waiters every frame.
-    let cancelled = cancel.cancelled();
-    tokio::pin!(cancelled);
+    let mut cancelled = crate::shutdown::stopped(&cancel);
     // The link already filters with the same rule as the kernel.
     loop {
         let frame = tokio::select! {
@@ -699,9 +697,7 @@ async fn transmit<W: Writer>(
     failed: Option<Arc<Notify>>,
     cancel: CancellationToken,
 ) {
-    // Made once: a fresh one per frame would join and leave the token's waiters every frame.
-    let cancelled = cancel.cancelled();
-    tokio::pin!(cancelled);
+    let mut cancelled = crate::shutdown::stopped(&cancel);
     loop {
         let t = tokio::select! {
             _ = &mut cancelled => return,

@@ -389,9 +389,7 @@ impl Core {
             sila: mut sila_in,
         } = inputs;
         let mut timer = Timer::new();
-        // Made once: a fresh one per turn would join and leave the token's waiters every turn.
-        let cancelled = cancel.cancelled();
-        tokio::pin!(cancelled);
+        let mut cancelled = crate::shutdown::stopped(&cancel);
         loop {
             self.carry_out();
             timer.set(Some(self.bridge.poll_timeout()));

@@ -322,9 +322,7 @@ impl MqttTask {
         // An input handed over by the `inputs.reserve()` branch (the core's channel was full).
         let mut handed = 0;
         let mut timer = Timer::new();
-        // Made once: a fresh one per turn would join and leave the token's waiters every turn.
-        let cancelled = cancel.cancelled();
-        tokio::pin!(cancelled);
+        let mut cancelled = crate::shutdown::stopped(&cancel);
         // Everything queued between two polls leaves in one write: requests and publications are
         // queued first, then `poll()` (cancel-safe) writes them while waiting for the broker.
         // The loop ends when the core is gone.
