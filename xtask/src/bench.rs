@@ -300,6 +300,8 @@ struct CanRun {
 struct HostBroker {
     child: std::process::Child,
     port: u16,
+    /// Its configuration file, removed with it.
+    conf: PathBuf,
     loadgen: Option<std::process::Child>,
 }
 
@@ -328,6 +330,7 @@ impl HostBroker {
         let broker = HostBroker {
             child,
             port,
+            conf,
             loadgen: None,
         };
         for _ in 0..100 {
@@ -358,6 +361,7 @@ impl Drop for HostBroker {
             let _ = child.kill();
             let _ = child.wait();
         }
+        let _ = fs::remove_file(&self.conf);
     }
 }
 
