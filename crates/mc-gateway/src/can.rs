@@ -104,7 +104,21 @@ pub trait FrameSender: Send + Sync + 'static {
     /// Writes one frame without waiting (the link has no queue to wait for); the error text is
     /// the reason the core reports.
     fn send(&self, frame: CanFrame) -> Result<(), String>;
+
+    /// The link should not take a frame now: a receiver on it is behind and would lose frames
+    /// (an in-memory bus, which nothing paces as arbitration and the bit rate pace a real one).
+    /// Frames then wait in the transmit queue, whose filling holds commands back as a busy bus
+    /// does, up to [`BUSY_WAIT_MAX`] each. Never busy unless a link says so.
+    fn busy(&self) -> bool {
+        false
+    }
 }
+
+/// Longest a frame waits for a [`FrameSender::busy`] link: after that it is written all the same
+/// (a receiver that stopped reading must not stop the gateway's transmissions for good).
+pub const BUSY_WAIT_MAX: Duration = Duration::from_secs(1);
+/// How often a frame waiting for a busy link looks again.
+const BUSY_POLL: Duration = Duration::from_millis(1);
 
 /// Writes a frame at once if the link takes it without waiting: what became of it, or `None` when
 /// it was not written (the transmit task then tries, waits and reports).
@@ -264,7 +278,12 @@ impl CanLink {
             let writer = LinkWriter(link.sender());
             tasks.spawn(receive_link(link, inputs.clone(), cancel.clone()));
             tasks.spawn(transmit(packets, queued, writer, inputs, None, cancel));
-            Box::new(move |frame: &CanFrame| sender.send(*frame).ok().map(|()| Handed::Transmitted))
+            Box::new(move |frame: &CanFrame| {
+                if sender.busy() {
+                    return None;
+                }
+                sender.send(*frame).ok().map(|()| Handed::Transmitted)
+            })
         });
         CanLink {
             name: name.to_owned(),
@@ -675,7 +694,12 @@ impl<S: FrameSender> Writer for LinkWriter<S> {
         frame: CanFrame,
         not_after: Option<tokio::time::Instant>,
     ) -> Result<(), WriteError> {
-        if not_after.is_some_and(|d| tokio::time::Instant::now() >= d) {
+        let late = || not_after.is_some_and(|d| tokio::time::Instant::now() >= d);
+        let give_up = tokio::time::Instant::now() + BUSY_WAIT_MAX;
+        while self.0.busy() && tokio::time::Instant::now() < give_up && !late() {
+            tokio::time::sleep(BUSY_POLL).await;
+        }
+        if late() {
             return Err(WriteError::Late);
         }
         self.0.send(frame).map_err(|e| WriteError::Failed(e, true))
@@ -950,6 +974,112 @@ mod tests {
             not_after,
             owner,
         }
+    }
+
+    /// A link that is busy while `busy` says so, recording what it was sent.
+    #[derive(Clone, Default)]
+    struct Jammed {
+        busy: Arc<std::sync::atomic::AtomicBool>,
+        sent: Arc<std::sync::Mutex<Vec<CanFrame>>>,
+    }
+
+    impl FrameSender for Jammed {
+        fn send(&self, frame: CanFrame) -> Result<(), String> {
+            self.sent.lock().unwrap().push(frame);
+            Ok(())
+        }
+
+        fn busy(&self) -> bool {
+            self.busy.load(Ordering::Relaxed)
+        }
+    }
+
+    fn jammed() -> (LinkWriter<Jammed>, Jammed, CanFrame) {
+        let link = Jammed::default();
+        link.busy.store(true, Ordering::Relaxed);
+        let frame = led(1, None).packet.to_frame::<CanFrame>().unwrap();
+        (LinkWriter(link.clone()), link, frame)
+    }
+
+    #[tokio::test]
+    async fn a_busy_link_gets_the_frame_once_it_is_free() {
+        let (writer, link, frame) = jammed();
+        let busy = link.busy.clone();
+        tokio::spawn(async move {
+            tokio::time::sleep(Duration::from_millis(30)).await;
+            busy.store(false, Ordering::Relaxed);
+        });
+        let start = Instant::now();
+        assert!(writer.write(frame, None).await.is_ok());
+        assert!(start.elapsed() >= Duration::from_millis(30), "did not wait");
+        assert_eq!(*link.sent.lock().unwrap(), [frame]);
+    }
+
+    #[tokio::test]
+    async fn a_frame_whose_time_ends_while_the_link_is_busy_is_late_and_not_written() {
+        let (writer, link, frame) = jammed();
+        let soon = tokio::time::Instant::now() + Duration::from_millis(20);
+        assert!(matches!(
+            writer.write(frame, Some(soon)).await,
+            Err(WriteError::Late)
+        ));
+        assert!(link.sent.lock().unwrap().is_empty());
+    }
+
+    #[tokio::test]
+    async fn a_link_busy_for_good_gets_the_frame_after_the_longest_wait() {
+        let (writer, link, frame) = jammed();
+        let start = Instant::now();
+        assert!(writer.write(frame, None).await.is_ok());
+        assert!(start.elapsed() >= BUSY_WAIT_MAX);
+        assert_eq!(link.sent.lock().unwrap().len(), 1);
+    }
+
+    #[tokio::test]
+    async fn a_busy_link_takes_no_frame_at_once_the_transmit_task_writes_it_when_free() {
+        struct Link(Jammed);
+        impl FrameLink for Link {
+            type Sender = Jammed;
+            fn sender(&self) -> Jammed {
+                self.0.clone()
+            }
+            async fn recv(&mut self) -> Option<CanFrame> {
+                std::future::pending().await
+            }
+        }
+        let (_, link, _) = jammed();
+        let (queue, rx) = mpsc::channel(4);
+        let queued = Arc::new(AtomicUsize::new(0));
+        let (in_tx, mut in_rx) = mpsc::channel(4);
+        let mut tasks = JoinSet::new();
+        let cancel = CancellationToken::new();
+        let start = CanLink::frames("jammed", Link(link.clone())).start;
+        let write_now = start(rx, queued.clone(), in_tx, &mut tasks, cancel.clone());
+        let tx = Transmitter {
+            queue,
+            queued,
+            write_now: Some(write_now),
+        };
+        assert_eq!(
+            tx.send(led(1, None), Instant::now()).unwrap(),
+            Handed::Queued
+        );
+        tokio::time::sleep(Duration::from_millis(20)).await;
+        assert!(link.sent.lock().unwrap().is_empty(), "written while busy");
+        link.busy.store(false, Ordering::Relaxed);
+        let report = tokio::time::timeout(Duration::from_secs(1), in_rx.recv())
+            .await
+            .expect("no report");
+        assert!(
+            matches!(report, Some(CanInput::Transmitted(_))),
+            "{report:?}"
+        );
+        assert_eq!(link.sent.lock().unwrap().len(), 1);
+        assert_eq!(
+            tx.send(led(2, None), Instant::now()).unwrap(),
+            Handed::Transmitted
+        );
+        cancel.cancel();
     }
 
     #[test]

@@ -7,6 +7,7 @@ use std::{
     time::Duration,
 };
 
+use ihex_tests::broker::{Mosquitto, Setup};
 use ihex_tests::free_port;
 use ihex_tests::mqtt::Client;
 use mc_gateway::{config::Options, error::BrokerError, CancellationToken, Config, GatewayError};
@@ -160,6 +161,90 @@ async fn the_demo_answers_commands_docks_and_says_goodbye() {
         t == "ihex/gateway/availability" && p == b"offline"
     })
     .await;
+}
+
+/// A burst of QoS 1 commands to one element, from a broker that sends them without waiting for
+/// acknowledgements (Mosquitto's `max_inflight_messages 0`), faster than the simulated island
+/// reads its in-memory bus: the frames wait for the island as on a real bus (where arbitration and
+/// the bit rate pace the gateway), the commands behind them wait unacknowledged, and every command
+/// is answered `ok` — none refused for the 256 unanswered commands an element may have, none lost
+/// with a frame the island's end of the bus dropped.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_burst_to_one_element_is_answered_ok_whole() {
+    const BURST: usize = 5000;
+    let broker = Mosquitto::start_with(&Setup {
+        global: "max_inflight_messages 0\nmax_queued_messages 0\n".into(),
+        ..Setup::default()
+    })
+    .expect("start mosquitto");
+    let cli = Options {
+        broker: Some(broker.addr().to_string()),
+        sim: Some(true),
+        http: Some("off".into()),
+        sila: Some("off".into()),
+        log_dir: Some("-".into()),
+        ..Options::default()
+    };
+    let stop = CancellationToken::new();
+    let config = Config::resolve(cli, Options::default()).unwrap();
+    let gw = tokio::spawn(mc_gateway::run(config, stop.clone()));
+    let mut rx = Client::subscribed(broker.addr(), "burst-events", &["#"]);
+    rx.set_wait(WAIT);
+    expect(&mut rx, "node 111 online", |t, p| {
+        t == "ihex/node/111/state" && event(p)["online"] == true
+    })
+    .await;
+    // A publisher whose own window lets the whole burst reach the broker at once.
+    let mut options = ihex_tests::mqtt::options(broker.addr(), "burst-publisher");
+    options.set_inflight(u16::MAX);
+    let publisher = Client::subscribe_on_connect(options, &[]);
+    for i in 0..BURST {
+        let json = format!(
+            r#"{{"cmd":"led","node":"111","color":[{},{},1],"request_id":"burst-{i}"}}"#,
+            i & 0xff,
+            i >> 8
+        );
+        publisher.publish("CommandsTopic", json).await;
+    }
+    let answer = |m: &ihex_tests::mqtt::Seen| {
+        let m = m.message()?;
+        let v = event(&m.payload);
+        let ours = v["payload"]["request_id"]
+            .as_str()
+            .is_some_and(|r| r.starts_with("burst-"));
+        (m.topic == "EventsTopic" && ours).then_some(v)
+    };
+    let deadline = tokio::time::Instant::now() + ihex_tests::time::scaled(Duration::from_secs(60));
+    let mut answers: Vec<Value> = Vec::new();
+    while answers.len() < BURST && tokio::time::Instant::now() < deadline {
+        tokio::time::sleep(Duration::from_millis(200)).await;
+        answers = rx.drain().iter().filter_map(answer).collect();
+    }
+    let not_ok: Vec<&Value> = answers
+        .iter()
+        .filter(|v| v["event"] != "command_result" || v["payload"]["result"] != "ok")
+        .collect();
+    assert!(
+        not_ok.is_empty(),
+        "{} of {} answers not ok, the first: {:#?}",
+        not_ok.len(),
+        answers.len(),
+        &not_ok[..not_ok.len().min(3)]
+    );
+    assert_eq!(answers.len(), BURST, "answered");
+    let mut ids: Vec<&str> = answers
+        .iter()
+        .filter_map(|v| v["payload"]["request_id"].as_str())
+        .collect();
+    ids.sort_unstable();
+    ids.dedup();
+    assert_eq!(ids.len(), BURST, "each answered once");
+    stop.cancel();
+    tokio::time::timeout(WAIT, gw)
+        .await
+        .expect("gateway stops")
+        .unwrap()
+        .expect("clean exit");
 }
 
 #[tokio::test]

@@ -105,6 +105,14 @@ impl MemSender {
         self.try_send(frame)
     }
 
+    /// Frames on the bus that an endpoint has not read yet (its slowest endpoint's backlog; 0 once
+    /// the bus is gone). Nothing on an in-memory bus paces a sender as arbitration and the bit rate
+    /// pace a real one, so a sender that must not overrun slow endpoints (the gateway's transmit
+    /// side, in the demo) waits while this is high.
+    pub fn backlog(&self) -> usize {
+        self.tx.upgrade().map_or(0, |tx| tx.len())
+    }
+
     /// [`MemSender::send`] without the `async`.
     pub fn try_send(&self, frame: CanFrame) -> Result<(), BusError> {
         let tx = self.tx.upgrade().ok_or(BusError::Closed)?;
@@ -247,6 +255,29 @@ mod tests {
             Packet::from_frame(&node.recv().await.unwrap()).unwrap(),
             all
         );
+    }
+
+    #[tokio::test]
+    async fn the_backlog_is_what_the_slowest_endpoint_has_not_read() {
+        let bus = MemBus::new();
+        let mut fast = bus.endpoint();
+        let mut slow = bus.endpoint();
+        let tx = bus.endpoint().sender();
+        assert_eq!(tx.backlog(), 0);
+        for i in 0..3 {
+            tx.send(frame(0x100, &[i])).await.unwrap();
+        }
+        for _ in 0..3 {
+            fast.recv().await.unwrap();
+        }
+        assert_eq!(tx.backlog(), 3, "the slow endpoint read nothing");
+        slow.recv().await.unwrap();
+        assert_eq!(tx.backlog(), 2);
+        drop(slow);
+        assert_eq!(tx.backlog(), 0, "a dropped endpoint holds nothing back");
+        drop(bus);
+        drop(fast);
+        assert_eq!(tx.backlog(), 0, "no bus, no backlog");
     }
 
     #[tokio::test]

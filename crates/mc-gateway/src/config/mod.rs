@@ -49,7 +49,7 @@ options! {
     /// `examples/islands/demo.toml`).
     island_file: PathBuf = (text "the built-in island"), env "IHEX_ISLAND_FILE", value "FILE";
     /// Bit rate the interface is expected to run at, bit/s (the system's link configuration sets
-    /// it; a warning if it differs).
+    /// it; a warning if it differs); the simulated island's bus runs at it.
     bitrate: u32 = {ihex_proto::BITRATE}, env "IHEX_BITRATE", value "BIT/S",
         range 10000..=1000000;
     /// Island name: every topic goes under `NAME/`, so several gateways can share one broker.

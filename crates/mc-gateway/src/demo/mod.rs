@@ -11,6 +11,9 @@ pub mod broker;
 pub mod sim;
 
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
 
 use ihex_proto::filter;
 use sim_node::{
@@ -67,17 +70,18 @@ pub fn island_layout(desc: &IslandDesc) -> crate::config::web::Layout {
         .collect()
 }
 
-/// The gateway's endpoint on the simulated island's in-memory bus.
-struct MemLink(MemEndpoint);
+/// The gateway's endpoint on the simulated island's in-memory bus, with the clock that paces what
+/// it sends.
+struct MemLink(MemEndpoint, Arc<BusClock>);
 
 /// Transmit half of [`MemLink`].
-struct MemLinkSender(MemSender);
+struct MemLinkSender(MemSender, Arc<BusClock>);
 
 impl FrameLink for MemLink {
     type Sender = MemLinkSender;
 
     fn sender(&self) -> MemLinkSender {
-        MemLinkSender(self.0.sender())
+        MemLinkSender(self.0.sender(), self.1.clone())
     }
 
     async fn recv(&mut self) -> Option<CanFrame> {
@@ -87,7 +91,69 @@ impl FrameLink for MemLink {
 
 impl FrameSender for MemLinkSender {
     fn send(&self, frame: CanFrame) -> Result<(), String> {
+        use embedded_can::Frame;
+        let bits = ihex_proto::bus::frame_bits(frame.dlc() as u8);
+        self.1.take(bits, Instant::now());
         self.0.try_send(frame).map_err(|e| e.to_string())
+    }
+
+    fn busy(&self) -> bool {
+        self.1.ahead(Instant::now()) || self.0.backlog() >= SIM_BACKLOG
+    }
+}
+
+/// Frames the simulated island may have unread before the gateway waits, whatever the clock says:
+/// far below what an endpoint of the in-memory bus may fall behind before it loses frames
+/// ([`MemBus::DEFAULT_CAPACITY`]).
+const SIM_BACKLOG: usize = 64;
+
+/// Bus time the gateway may have booked ahead of now before its next frame waits: a few frames,
+/// so that a transmit task looking again every millisecond keeps the bus busy.
+const BOOK_AHEAD: Duration = Duration::from_millis(2);
+
+/// When the simulated bus is free of the gateway's frames: nothing paces a sender on an in-memory
+/// bus, so without this a burst of commands reached the island as fast as the gateway could write
+/// them, piled up unread and unanswered, and was refused (256 unanswered commands to one element)
+/// or lost (an endpoint that fell 1,024 frames behind). Each frame books its bits (without stuff
+/// bits; the island's own frames book nothing) at the configured bit rate, as arbitration and the
+/// bit rate make a real island's gateway wait; the frames behind wait in the transmit queue, and
+/// the commands behind those at the broker.
+#[derive(Debug)]
+struct BusClock {
+    origin: Instant,
+    /// Nanoseconds from `origin` at which the last booked frame ends.
+    free_at: AtomicU64,
+    bitrate: u64,
+}
+
+impl BusClock {
+    fn new(bitrate: u32, now: Instant) -> BusClock {
+        BusClock {
+            origin: now,
+            free_at: AtomicU64::new(0),
+            bitrate: u64::from(bitrate.max(1)),
+        }
+    }
+
+    fn nanos(&self, t: Instant) -> u64 {
+        u64::try_from(t.saturating_duration_since(self.origin).as_nanos()).unwrap_or(u64::MAX)
+    }
+
+    /// Books `bits` on the bus from when it is free (now at the earliest).
+    fn take(&self, bits: u32, now: Instant) {
+        let now = self.nanos(now);
+        let length = u64::from(bits) * 1_000_000_000 / self.bitrate;
+        let _ = self
+            .free_at
+            .fetch_update(Ordering::AcqRel, Ordering::Acquire, |free| {
+                Some(free.max(now).saturating_add(length))
+            });
+    }
+
+    /// More than [`BOOK_AHEAD`] of bus time is booked beyond `now`.
+    fn ahead(&self, now: Instant) -> bool {
+        let limit = self.nanos(now).saturating_add(BOOK_AHEAD.as_nanos() as u64);
+        self.free_at.load(Ordering::Acquire) > limit
     }
 }
 
@@ -162,7 +228,11 @@ impl Demo {
             handle,
             control: Some(control),
         });
-        Ok(Some(CanLink::frames("simulated island", MemLink(endpoint))))
+        let clock = Arc::new(BusClock::new(config.can.bitrate, Instant::now()));
+        Ok(Some(CanLink::frames(
+            "simulated island",
+            MemLink(endpoint, clock),
+        )))
     }
 
     /// Positions of static elements the island file gives, for the island view.
@@ -218,6 +288,33 @@ impl Demo {
 mod tests {
     use super::*;
     use crate::config::web::Hex;
+
+    #[test]
+    fn the_bus_clock_books_each_frame_from_when_the_bus_is_free() {
+        let t0 = Instant::now();
+        let clock = BusClock::new(500_000, t0);
+        // 131 bits at 500 kbit/s: 262 µs a frame.
+        let frame = Duration::from_micros(262);
+        assert!(!clock.ahead(t0));
+        for _ in 0..7 {
+            clock.take(131, t0);
+        }
+        assert!(!clock.ahead(t0), "7 frames: 1.83 ms booked");
+        clock.take(131, t0);
+        assert!(clock.ahead(t0), "8 frames: 2.1 ms booked");
+        assert!(
+            !clock.ahead(t0 + frame),
+            "one frame later, below the limit again"
+        );
+        // A bus idle since: the next frame starts now, not where the last one ended.
+        let later = t0 + Duration::from_secs(1);
+        clock.take(131, later);
+        assert!(!clock.ahead(later));
+        assert_eq!(
+            clock.free_at.load(Ordering::Relaxed),
+            clock.nanos(later) + 262_000
+        );
+    }
 
     #[test]
     fn the_island_file_places_its_hexagons() {
