@@ -47,6 +47,19 @@ fn event(p: &[u8]) -> Value {
     serde_json::from_slice(p).unwrap_or(Value::Null)
 }
 
+/// Cancels the gateway and waits for its clean exit.
+async fn stop_cleanly(
+    stop: &CancellationToken,
+    gw: tokio::task::JoinHandle<Result<(), GatewayError>>,
+) {
+    stop.cancel();
+    tokio::time::timeout(WAIT, gw)
+        .await
+        .expect("gateway stops")
+        .unwrap()
+        .expect("clean exit");
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_demo_answers_commands_docks_and_says_goodbye() {
     let port = free_port();
@@ -151,12 +164,7 @@ async fn the_demo_answers_commands_docks_and_says_goodbye() {
     })
     .await;
 
-    stop.cancel();
-    tokio::time::timeout(WAIT, gw)
-        .await
-        .expect("gateway stops")
-        .unwrap()
-        .expect("clean exit");
+    stop_cleanly(&stop, gw).await;
     expect(&mut rx, "offline", |t, p| {
         t == "ihex/gateway/availability" && p == b"offline"
     })
@@ -239,12 +247,7 @@ async fn a_burst_to_one_element_is_answered_ok_whole() {
     ids.sort_unstable();
     ids.dedup();
     assert_eq!(ids.len(), BURST, "each answered once");
-    stop.cancel();
-    tokio::time::timeout(WAIT, gw)
-        .await
-        .expect("gateway stops")
-        .unwrap()
-        .expect("clean exit");
+    stop_cleanly(&stop, gw).await;
 }
 
 #[tokio::test]
