@@ -105,20 +105,19 @@ pub trait FrameSender: Send + Sync + 'static {
     /// the reason the core reports.
     fn send(&self, frame: CanFrame) -> Result<(), String>;
 
-    /// The link should not take a frame now: a receiver on it is behind and would lose frames
-    /// (an in-memory bus, which nothing paces as arbitration and the bit rate pace a real one).
-    /// Frames then wait in the transmit queue, whose filling holds commands back as a busy bus
-    /// does, up to [`BUSY_WAIT_MAX`] each. Never busy unless a link says so.
-    fn busy(&self) -> bool {
-        false
+    /// `None` when the link takes a frame now; otherwise how long to wait before asking again. A
+    /// link says so when nothing else paces its senders (an in-memory bus: no arbitration, no bit
+    /// rate, receivers that lose what they fall behind on). Frames then wait in the transmit queue,
+    /// whose filling holds commands back as a busy bus does, up to [`BUSY_WAIT_MAX`] each. Never
+    /// busy unless a link says so.
+    fn busy_for(&self) -> Option<Duration> {
+        None
     }
 }
 
-/// Longest a frame waits for a [`FrameSender::busy`] link: after that it is written all the same
-/// (a receiver that stopped reading must not stop the gateway's transmissions for good).
+/// Longest a frame waits for a [`FrameSender::busy_for`] link: after that it is written all the
+/// same (a receiver that stopped reading must not stop the gateway's transmissions for good).
 pub const BUSY_WAIT_MAX: Duration = Duration::from_secs(1);
-/// How often a frame waiting for a busy link looks again.
-const BUSY_POLL: Duration = Duration::from_millis(1);
 
 /// Writes a frame at once if the link takes it without waiting: what became of it, or `None` when
 /// it was not written (the transmit task then tries, waits and reports).
@@ -279,7 +278,7 @@ impl CanLink {
             tasks.spawn(receive_link(link, inputs.clone(), cancel.clone()));
             tasks.spawn(transmit(packets, queued, writer, inputs, None, cancel));
             Box::new(move |frame: &CanFrame| {
-                if sender.busy() {
+                if sender.busy_for().is_some() {
                     return None;
                 }
                 sender.send(*frame).ok().map(|()| Handed::Transmitted)
@@ -696,8 +695,13 @@ impl<S: FrameSender> Writer for LinkWriter<S> {
     ) -> Result<(), WriteError> {
         let late = || not_after.is_some_and(|d| tokio::time::Instant::now() >= d);
         let give_up = tokio::time::Instant::now() + BUSY_WAIT_MAX;
-        while self.0.busy() && tokio::time::Instant::now() < give_up && !late() {
-            tokio::time::sleep(BUSY_POLL).await;
+        while let Some(wait) = self.0.busy_for() {
+            let now = tokio::time::Instant::now();
+            if now >= give_up || late() {
+                break;
+            }
+            let until = (now + wait).min(give_up);
+            tokio::time::sleep_until(not_after.map_or(until, |d| until.min(d))).await;
         }
         if late() {
             return Err(WriteError::Late);
@@ -989,8 +993,10 @@ mod tests {
             Ok(())
         }
 
-        fn busy(&self) -> bool {
-            self.busy.load(Ordering::Relaxed)
+        fn busy_for(&self) -> Option<Duration> {
+            self.busy
+                .load(Ordering::Relaxed)
+                .then_some(Duration::from_millis(1))
         }
     }
 

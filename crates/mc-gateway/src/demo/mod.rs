@@ -97,8 +97,14 @@ impl FrameSender for MemLinkSender {
         self.0.try_send(frame).map_err(|e| e.to_string())
     }
 
-    fn busy(&self) -> bool {
-        self.1.ahead(Instant::now()) || self.0.backlog() >= SIM_BACKLOG
+    fn busy_for(&self) -> Option<Duration> {
+        let booked = self.1.booked_beyond(Instant::now());
+        if booked > BOOK_AHEAD {
+            // Wake with half the window still booked: the bus never idles, and each wake-up writes
+            // half a window of frames (about 19 at 500 kbit/s), not one.
+            return Some(booked - BOOK_AHEAD / 2);
+        }
+        (self.0.backlog() >= SIM_BACKLOG).then_some(BACKLOG_POLL)
     }
 }
 
@@ -106,10 +112,14 @@ impl FrameSender for MemLinkSender {
 /// far below what an endpoint of the in-memory bus may fall behind before it loses frames
 /// ([`MemBus::DEFAULT_CAPACITY`]).
 const SIM_BACKLOG: usize = 64;
+/// How often a frame waiting for the island to read its backlog looks again.
+const BACKLOG_POLL: Duration = Duration::from_millis(1);
 
-/// Bus time the gateway may have booked ahead of now before its next frame waits: a few frames,
-/// so that a transmit task looking again every millisecond keeps the bus busy.
-const BOOK_AHEAD: Duration = Duration::from_millis(2);
+/// Bus time the gateway may have booked ahead of now before its next frame waits, as a kernel's
+/// transmit queue takes a few dozen frames at once: about 38 frames at 500 kbit/s. Together with
+/// the frames the core keeps queued (half its transmit queue), well below the 256 unanswered
+/// commands an element may have.
+const BOOK_AHEAD: Duration = Duration::from_millis(10);
 
 /// When the simulated bus is free of the gateway's frames: nothing paces a sender on an in-memory
 /// bus, so without this a burst of commands reached the island as fast as the gateway could write
@@ -150,10 +160,10 @@ impl BusClock {
             });
     }
 
-    /// More than [`BOOK_AHEAD`] of bus time is booked beyond `now`.
-    fn ahead(&self, now: Instant) -> bool {
-        let limit = self.nanos(now).saturating_add(BOOK_AHEAD.as_nanos() as u64);
-        self.free_at.load(Ordering::Acquire) > limit
+    /// Bus time booked beyond `now`.
+    fn booked_beyond(&self, now: Instant) -> Duration {
+        let now = self.nanos(now);
+        Duration::from_nanos(self.free_at.load(Ordering::Acquire).saturating_sub(now))
     }
 }
 
@@ -289,31 +299,72 @@ mod tests {
     use super::*;
     use crate::config::web::Hex;
 
+    #[tokio::test]
+    async fn the_link_is_busy_beyond_its_window_or_while_the_island_has_not_read() {
+        let bus = MemBus::new();
+        let island = bus.endpoint();
+        let clock = Arc::new(BusClock::new(500_000, Instant::now()));
+        let link = MemLinkSender(bus.endpoint().sender(), clock.clone());
+        let frame = ihex_proto::Packet::command(
+            ihex_proto::NodeId::new_sc(0x111).unwrap(),
+            ihex_proto::Message::Identify { seq: 1, seconds: 1 },
+        )
+        .to_frame::<CanFrame>()
+        .unwrap();
+        assert_eq!(link.busy_for(), None);
+        // Each frame sent books its bits: 262 µs for 8 data bytes at 500 kbit/s.
+        link.send(frame).unwrap();
+        let booked = clock.booked_beyond(Instant::now());
+        assert!(booked > Duration::ZERO && booked <= Duration::from_micros(262));
+        // 40 frames' time booked (10.5 ms, beyond the window): wait until half the window is left.
+        clock.take(40 * ihex_proto::bus::frame_bits(8), Instant::now());
+        let before = clock.booked_beyond(Instant::now());
+        let wait = link.busy_for().expect("busy");
+        let after = clock.booked_beyond(Instant::now());
+        assert!(before > BOOK_AHEAD);
+        assert!(
+            after.saturating_sub(BOOK_AHEAD / 2) <= wait && wait <= before - BOOK_AHEAD / 2,
+            "{after:?} {wait:?} {before:?}"
+        );
+        let sent = 1;
+        // The bus clock idle again, but the island has read none of them.
+        clock.free_at.store(0, Ordering::Relaxed);
+        for _ in sent..SIM_BACKLOG {
+            assert_eq!(link.busy_for(), None);
+            link.0.try_send(frame).unwrap();
+        }
+        assert_eq!(link.busy_for(), Some(BACKLOG_POLL));
+        drop(island);
+        assert_eq!(
+            link.busy_for(),
+            None,
+            "read (or gone), nothing holds the link"
+        );
+    }
+
     #[test]
     fn the_bus_clock_books_each_frame_from_when_the_bus_is_free() {
         let t0 = Instant::now();
         let clock = BusClock::new(500_000, t0);
         // 131 bits at 500 kbit/s: 262 µs a frame.
-        let frame = Duration::from_micros(262);
-        assert!(!clock.ahead(t0));
-        for _ in 0..7 {
+        assert_eq!(clock.booked_beyond(t0), Duration::ZERO);
+        for _ in 0..8 {
             clock.take(131, t0);
         }
-        assert!(!clock.ahead(t0), "7 frames: 1.83 ms booked");
-        clock.take(131, t0);
-        assert!(clock.ahead(t0), "8 frames: 2.1 ms booked");
-        assert!(
-            !clock.ahead(t0 + frame),
-            "one frame later, below the limit again"
+        assert_eq!(clock.booked_beyond(t0), Duration::from_micros(8 * 262));
+        assert_eq!(
+            clock.booked_beyond(t0 + Duration::from_micros(262)),
+            Duration::from_micros(7 * 262),
+            "one frame later, one fewer booked"
+        );
+        assert_eq!(
+            clock.booked_beyond(t0 + Duration::from_secs(1)),
+            Duration::ZERO
         );
         // A bus idle since: the next frame starts now, not where the last one ended.
         let later = t0 + Duration::from_secs(1);
         clock.take(131, later);
-        assert!(!clock.ahead(later));
-        assert_eq!(
-            clock.free_at.load(Ordering::Relaxed),
-            clock.nanos(later) + 262_000
-        );
+        assert_eq!(clock.booked_beyond(later), Duration::from_micros(262));
     }
 
     #[test]
