@@ -85,15 +85,16 @@ impl FrameLink for MemLink {
     }
 
     async fn recv(&mut self) -> Option<CanFrame> {
-        self.0.recv().await
+        let frame = self.0.recv().await?;
+        // The island's answers share the bus with the gateway's frames.
+        self.1.take_frame(&frame, Instant::now());
+        Some(frame)
     }
 }
 
 impl FrameSender for MemLinkSender {
     fn send(&self, frame: CanFrame) -> Result<(), String> {
-        use embedded_can::Frame;
-        let bits = ihex_proto::bus::frame_bits(frame.dlc() as u8);
-        self.1.take(bits, Instant::now());
+        self.1.take_frame(&frame, Instant::now());
         self.0.try_send(frame).map_err(|e| e.to_string())
     }
 
@@ -124,10 +125,11 @@ const BOOK_AHEAD: Duration = Duration::from_millis(10);
 /// When the simulated bus is free of the gateway's frames: nothing paces a sender on an in-memory
 /// bus, so without this a burst of commands reached the island as fast as the gateway could write
 /// them, piled up unread and unanswered, and was refused (256 unanswered commands to one element)
-/// or lost (an endpoint that fell 1,024 frames behind). Each frame books its bits (without stuff
-/// bits; the island's own frames book nothing) at the configured bit rate, as arbitration and the
-/// bit rate make a real island's gateway wait; the frames behind wait in the transmit queue, and
-/// the commands behind those at the broker.
+/// or lost (an endpoint that fell 1,024 frames behind). Each frame the gateway writes or reads
+/// books its bits (without stuff bits) at the configured bit rate, as arbitration and the bit rate
+/// make a real island's gateway wait (frames between elements that the gateway does not read book
+/// nothing); the frames behind wait in the transmit queue, and the commands behind those at the
+/// broker.
 #[derive(Debug)]
 struct BusClock {
     origin: Instant,
@@ -147,6 +149,12 @@ impl BusClock {
 
     fn nanos(&self, t: Instant) -> u64 {
         u64::try_from(t.saturating_duration_since(self.origin).as_nanos()).unwrap_or(u64::MAX)
+    }
+
+    /// Books `frame`'s bits (without stuff bits) from when the bus is free.
+    fn take_frame(&self, frame: &CanFrame, now: Instant) {
+        use embedded_can::Frame;
+        self.take(ihex_proto::bus::frame_bits(frame.dlc() as u8), now);
     }
 
     /// Books `bits` on the bus from when it is free (now at the earliest).
@@ -339,6 +347,28 @@ mod tests {
             link.busy_for(),
             None,
             "read (or gone), nothing holds the link"
+        );
+    }
+
+    #[tokio::test]
+    async fn a_frame_the_gateway_reads_books_the_bus_too() {
+        let bus = MemBus::new();
+        let island = bus.endpoint();
+        let clock = Arc::new(BusClock::new(500_000, Instant::now()));
+        let mut link = MemLink(bus.endpoint(), clock.clone());
+        let ack = ihex_proto::Packet::command(
+            ihex_proto::NodeId::new_sc(0x111).unwrap(),
+            ihex_proto::Message::Identify { seq: 1, seconds: 1 },
+        )
+        .to_frame::<CanFrame>()
+        .unwrap();
+        island.send(ack).await.unwrap();
+        let before = Instant::now();
+        assert_eq!(link.recv().await, Some(ack));
+        let booked = clock.booked_beyond(before);
+        assert!(
+            booked > Duration::ZERO && booked <= Duration::from_micros(262),
+            "{booked:?}"
         );
     }
 
