@@ -20,6 +20,7 @@ import json
 import os
 import queue
 import sys
+import threading
 import time
 import traceback
 import uuid
@@ -99,6 +100,24 @@ def expect_error(call, kind, contains):
         print(f"ok: {text}")
         return e
     raise AssertionError(f"expected {kind}, the call succeeded")
+
+
+def collect(subscription):
+    """Every value `subscription` delivers, in a queue, from the first on. A callback added after
+    `subscribe()` misses the values that came before it (the client's reader thread calls only the
+    callbacks it has), and a property's first value comes at once; iterating reads the
+    subscription's own queue, which has them all."""
+    values = queue.Queue()
+
+    def read():
+        try:
+            for value in subscription:
+                values.put(value)
+        except Exception:  # the stream cancelled or broken: the waits on `values` say so
+            pass
+
+    threading.Thread(target=read, daemon=True).start()
+    return values
 
 
 def wait_for(what, pred):
@@ -201,9 +220,8 @@ def first(host, sila_port, ca: Path, mqtt_port, sila_dir: Path, name, server_uui
     check(named.endswith("/SetLight/Parameter/Color"), f"named {named}")
 
     # Dockings: one value now, then one per docking change done through the simulator.
-    values = queue.Queue()
     sub = ic.Dockings.subscribe()
-    sub.add_callback(values.put)
+    values = collect(sub)
 
     def next_dockings(what):
         try:
@@ -302,9 +320,8 @@ def firmware(host, sila_port, ca: Path, mqtt_port, small: Path, big: Path):
 
     # An update to its end: progress as intermediate responses, the outcomes as the result.
     run = fu.UpdateFirmware(Image=small.name, Elements="111,112")
-    progress = queue.Queue()
     sub = run.subscribe_to_intermediate_responses()
-    sub.add_callback(progress.put)
+    progress = collect(sub)
     try:
         first_step = progress.get(timeout=WAIT)
     except queue.Empty:
@@ -336,8 +353,7 @@ def firmware(host, sila_port, ca: Path, mqtt_port, small: Path, big: Path):
     run = fu.UpdateFirmware(Image=big.name, Elements="111,112")
     expect_error(lambda: fu.UpdateFirmware(Image=small.name, Elements="111"), "UpdateRunning", "running")
     sub = run.subscribe_to_intermediate_responses()
-    started = queue.Queue()
-    sub.add_callback(started.put)
+    started = collect(sub)
     try:
         started.get(timeout=WAIT)
     except queue.Empty:
