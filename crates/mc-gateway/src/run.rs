@@ -528,6 +528,10 @@ impl Core {
         self.stats
             .publications_dropped
             .store(self.bridge.publications_dropped(), Ordering::Relaxed);
+        self.stats.answers_due.store(
+            self.bridge.command_counters().in_flight > 0,
+            Ordering::Relaxed,
+        );
         self.carry_out_audit(now);
     }
 
@@ -723,15 +727,57 @@ mod tests {
         assert!(late.len() <= 6, "{late:#?}");
     }
 
-    /// `TRANSMIT_WINDOW` LED commands to a known node, their frames written (echoed) at once and
-    /// acknowledged by a task whose timer falls due while the runtime's only thread is blocked
-    /// past the command timeout. Every `command_result`.
-    async fn commands_across_a_stall() -> Vec<serde_json::Value> {
-        let node = NodeId::new(0x111).unwrap();
-        let (can_tx, mut can_rx) = mpsc::channel(TRANSMIT_WINDOW);
+    /// A core on channels, run by a task of the current runtime, with node 111 known.
+    struct Harness {
+        can_rx: mpsc::Receiver<ihex_gateway_core::Transmit>,
+        pub_rx: mpsc::Receiver<Outbound>,
+        can_in_tx: mpsc::Sender<CanInput>,
+        mqtt_in_tx: mpsc::Sender<MqttInput>,
+        stats: Arc<MqttStats>,
+        cancel: CancellationToken,
+        core: tokio::task::JoinHandle<Result<(), GatewayError>>,
+    }
+
+    const NODE: u16 = 0x111;
+
+    fn from_node(msg: Message) -> CanInput {
+        CanInput::Packet(Packet {
+            src: NodeId::new(NODE).unwrap(),
+            dest: NodeId::GATEWAY,
+            msg,
+        })
+    }
+
+    fn event(p: Outbound) -> serde_json::Value {
+        serde_json::from_slice(&p.payload).unwrap_or_default()
+    }
+
+    fn led_command(request_id: &str) -> MqttInput {
+        let command =
+            format!(r#"{{"cmd":"led","node":"111","color":"red","request_id":"{request_id}"}}"#);
+        MqttInput::Command {
+            payload: command.into(),
+            received: Instant::now(),
+            retained: false,
+            origin: Default::default(),
+        }
+    }
+
+    fn ok(kind: Kind, seq: u8) -> Message {
+        Message::Ack {
+            kind,
+            seq,
+            result: AckResult::Ok,
+            detail: 0,
+        }
+    }
+
+    async fn harness() -> Harness {
+        let (can_tx, can_rx) = mpsc::channel(TRANSMIT_WINDOW);
         let (pub_tx, mut pub_rx) = mpsc::channel(PUBLICATIONS);
         let (can_in_tx, can_in) = mpsc::channel(CAN_INPUTS);
         let (mqtt_in_tx, mqtt_in) = mpsc::channel(MQTT_INPUTS);
+        let stats = Arc::<MqttStats>::default();
         // Only the commands' frames on the bus.
         let config = ihex_gateway_core::BridgeConfig {
             health_period: Duration::from_secs(3600),
@@ -745,7 +791,7 @@ mod tests {
             text: PayloadWriter::default(),
             feed: None,
             views: ViewRequests::default(),
-            stats: Arc::default(),
+            stats: stats.clone(),
             fw_dir: None,
             meter: CommandMeter::new(Counted::default()),
             audit: None,
@@ -758,16 +804,6 @@ mod tests {
         };
         let cancel = CancellationToken::new();
         let core = tokio::spawn(core.run(inputs, cancel.clone()));
-        let from_node = move |msg| {
-            CanInput::Packet(Packet {
-                src: node,
-                dest: NodeId::GATEWAY,
-                msg,
-            })
-        };
-        let event = |p: Outbound| -> serde_json::Value {
-            serde_json::from_slice(&p.payload).unwrap_or_default()
-        };
         let boot_up = Message::BootUp {
             version: ihex_proto::PROTOCOL_VERSION,
             role: BootRole::Static,
@@ -776,29 +812,69 @@ mod tests {
         };
         can_in_tx.send(from_node(boot_up)).await.unwrap();
         while event(pub_rx.recv().await.unwrap())["event"] != "node_online" {}
+        Harness {
+            can_rx,
+            pub_rx,
+            can_in_tx,
+            mqtt_in_tx,
+            stats,
+            cancel,
+            core,
+        }
+    }
+
+    /// The core tells the MQTT task when answers are due (so a lone command's PUBACK may wait for
+    /// its answer): from the turn that sent a command until the turn that published its answer.
+    #[tokio::test(flavor = "current_thread")]
+    async fn answers_are_due_while_a_command_is_out() {
+        let mut h = harness().await;
+        let due = |h: &Harness| h.stats.answers_due.load(Ordering::Relaxed);
+        assert!(!due(&h), "nothing sent yet");
+        h.mqtt_in_tx.send(led_command("a")).await.unwrap();
+        // The core's turn ends before this task runs again (one thread): its flag is set. (The
+        // node's state is also read back, with frames of the core's own, which are no command.)
+        let seq = loop {
+            let t = h.can_rx.recv().await.unwrap();
+            let echo = CanInput::Transmitted(t.packet);
+            h.can_in_tx.send(echo).await.unwrap();
+            if let Message::LedSet { seq, .. } = t.packet.msg {
+                break seq;
+            }
+        };
+        assert!(due(&h), "the command's frame is out, its answer due");
+        h.can_in_tx
+            .send(from_node(ok(Kind::LedSet, seq)))
+            .await
+            .unwrap();
+        while event(h.pub_rx.recv().await.unwrap())["event"] != "command_result" {}
+        assert!(!due(&h), "the answer is out");
+        h.cancel.cancel();
+        h.core.await.unwrap().unwrap();
+    }
+
+    /// `TRANSMIT_WINDOW` LED commands to a known node, their frames written (echoed) at once and
+    /// acknowledged by a task whose timer falls due while the runtime's only thread is blocked
+    /// past the command timeout. Every `command_result`.
+    async fn commands_across_a_stall() -> Vec<serde_json::Value> {
+        let Harness {
+            mut can_rx,
+            mut pub_rx,
+            can_in_tx,
+            mqtt_in_tx,
+            cancel,
+            core,
+            ..
+        } = harness().await;
         let n = TRANSMIT_WINDOW;
         for i in 0..n {
-            let command =
-                format!(r#"{{"cmd":"led","node":"111","color":"red","request_id":"{i}"}}"#);
-            let input = MqttInput::Command {
-                payload: command.into(),
-                received: Instant::now(),
-                retained: false,
-                origin: Default::default(),
-            };
-            mqtt_in_tx.send(input).await.unwrap();
+            mqtt_in_tx.send(led_command(&i.to_string())).await.unwrap();
         }
         // Every frame is written at once (its echo); the LED frames' acks are held.
         let mut acks = Vec::new();
         while acks.len() < n {
             let t = can_rx.recv().await.unwrap();
             if let Message::LedSet { seq, .. } = t.packet.msg {
-                acks.push(Message::Ack {
-                    kind: Kind::LedSet,
-                    seq,
-                    result: AckResult::Ok,
-                    detail: 0,
-                });
+                acks.push(ok(Kind::LedSet, seq));
             }
             let echo = CanInput::Transmitted(t.packet);
             can_in_tx.send(echo).await.unwrap();

@@ -57,6 +57,10 @@ pub const WRITE_BATCH: usize = READ_CHUNK;
 const ACK_BATCH: u16 = 16;
 /// A PUBACK's encoded size: the fewest bytes on the wire per acknowledgement (TLS only adds).
 const PUBACK_LEN: u16 = 4;
+/// PUBACKs a connection holds back at most while answers are due ([`Connection::hold_acks`]): far
+/// inside any broker's window of unacknowledged deliveries (Mosquitto's `max_inflight_messages` is
+/// 20 by default), so holding them never stops the broker from sending more commands.
+pub const ACKS_HELD: usize = 4;
 /// A quiet spell after which the next read first puts the socket back into delayed-ACK mode
 /// ([`Up::delay_acks`]). The kernel leaves that mode when its delayed-ACK timer fires, at least
 /// 40 ms after a segment came that nothing answered, such as the PUBACK of a `command_result`; a
@@ -93,6 +97,11 @@ pub struct Connection {
     /// Successful writes to the broker's socket, over every connection: each a system call and,
     /// with `TCP_NODELAY`, a segment that wakes the broker.
     writes: Arc<AtomicU64>,
+    /// PUBACKs queued and not yet encoded, oldest first: encoded ahead of any other packet, and
+    /// written with it, or on their own unless [`Connection::hold_acks`] holds them back.
+    acks: Vec<u16>,
+    /// Whether PUBACKs alone (fewer than [`ACKS_HELD`]) wait for the next write of something else.
+    hold_acks: bool,
 }
 
 enum Link {
@@ -149,6 +158,8 @@ impl Connection {
             replies_due: 0,
             smallest_publish: None,
             writes: Arc::default(),
+            acks: Vec::new(),
+            hold_acks: false,
         }
     }
 
@@ -200,9 +211,22 @@ impl Connection {
         self.request(Request::Unsubscribe(Unsubscribe::new(filter)));
     }
 
-    /// Queues the acknowledgement of a received QoS 1 publication (manual acks).
+    /// Queues the acknowledgement of a received QoS 1 publication (manual acks). It leaves with the
+    /// next packet written, or on its own as [`Connection::hold_acks`] says.
     pub fn ack(&mut self, pkid: u16) {
-        self.request(Request::PubAck(PubAck::new(pkid)));
+        if self.is_up() {
+            self.acks.push(pkid);
+        }
+    }
+
+    /// Whether PUBACKs with nothing else to write wait (while fewer than [`ACKS_HELD`]) for the next
+    /// packet that is: the caller holds them when it knows that something will be written soon —
+    /// the gateway while the core has commands out whose answers it will publish, so that a lone
+    /// command's PUBACK leaves with its answer, one write and one segment instead of two. Holding
+    /// an acknowledgement only delays when the broker may count the delivery done; it never
+    /// changes that it is acknowledged.
+    pub fn hold_acks(&mut self, hold: bool) {
+        self.hold_acks = hold;
     }
 
     /// Queues a PINGREQ (the session asks for one at the keep-alive, and to probe a silent link;
@@ -237,6 +261,21 @@ impl Connection {
     /// request the state refuses or that cannot be encoded breaks the connection: the next `poll`
     /// reports it.
     fn request(&mut self, request: Request) {
+        self.encode_acks();
+        self.encode(request);
+    }
+
+    /// Encodes the queued PUBACKs, in the order their publications came (MQTT 3.1.1, 4.6).
+    fn encode_acks(&mut self) {
+        let mut acks = std::mem::take(&mut self.acks);
+        for pkid in acks.drain(..) {
+            self.encode(Request::PubAck(PubAck::new(pkid)));
+        }
+        // The same allocation next time.
+        self.acks = acks;
+    }
+
+    fn encode(&mut self, request: Request) {
         let Link::Up(up) = &mut self.link else {
             return;
         };
@@ -263,6 +302,8 @@ impl Connection {
                 Err(e) => {
                     self.link = Link::Down;
                     self.disconnecting = false;
+                    // Acknowledgements of the lost connection's deliveries mean nothing on the next.
+                    self.acks.clear();
                     self.state.forget_incoming();
                     return Err(e);
                 }
@@ -288,6 +329,9 @@ impl Connection {
 
     /// One step: start or continue a connection attempt, or one round of I/O.
     async fn advance(&mut self) -> Result<(), ConnectionError> {
+        if self.acks_due() {
+            self.encode_acks();
+        }
         match &mut self.link {
             Link::Down => {
                 self.link = Link::Connecting(Box::pin(connect(
@@ -333,6 +377,16 @@ impl Connection {
 }
 
 impl Connection {
+    /// Queued PUBACKs are to be written in this round of I/O: nothing holds them, there are
+    /// [`ACKS_HELD`] of them, or other packets go anyway.
+    fn acks_due(&self) -> bool {
+        let Link::Up(up) = &self.link else {
+            return false;
+        };
+        !self.acks.is_empty()
+            && (!self.hold_acks || self.acks.len() >= ACKS_HELD || !up.write.is_empty())
+    }
+
     /// Hands every complete packet in the read buffer to the state; its replies are queued.
     fn parse(&mut self) -> Result<(), StateError> {
         let Link::Up(up) = &mut self.link else {
@@ -600,7 +654,7 @@ async fn tls_connect(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::mqtt::test_broker::{broker, Script};
+    use crate::mqtt::test_broker::{broker, broker_seeing, Script};
     use rumqttc::Incoming;
 
     const PUBLISHED: u16 = ACK_BATCH + 4;
@@ -741,6 +795,81 @@ mod tests {
     async fn next(conn: &mut Connection) -> Event {
         let ev = tokio::time::timeout(Duration::from_secs(5), conn.poll()).await;
         ev.expect("an event within 5 s").unwrap()
+    }
+
+    /// What the broker read within `wait`, and the writes counted meanwhile, polling `conn`.
+    async fn written(
+        conn: &mut Connection,
+        seen: &mut tokio::sync::mpsc::UnboundedReceiver<Vec<u8>>,
+        writes: &AtomicU64,
+        wait: Duration,
+    ) -> (Vec<u8>, u64) {
+        let before = writes.load(Ordering::Relaxed);
+        let _ = tokio::time::timeout(wait, conn.poll()).await;
+        let mut bytes = Vec::new();
+        while let Ok(b) = seen.try_recv() {
+            bytes.extend(b);
+        }
+        (bytes, writes.load(Ordering::Relaxed) - before)
+    }
+
+    /// Held PUBACKs wait for the next packet written and leave in its write, ahead of it; with
+    /// [`ACKS_HELD`] of them, or once not held, they leave on their own.
+    #[tokio::test]
+    async fn held_acks_leave_with_the_next_write() {
+        let (port, _broker, mut seen) = broker_seeing(None).await;
+        let mut conn = connected(MqttOptions::new("held-acks", "127.0.0.1", port)).await;
+        let writes = Arc::new(AtomicU64::new(0));
+        conn.count_writes_in(writes.clone());
+        let wait = Duration::from_millis(200);
+
+        conn.hold_acks(true);
+        conn.ack(7);
+        let (bytes, n) = written(&mut conn, &mut seen, &writes, wait).await;
+        assert_eq!((bytes.len(), n), (0, 0), "a held PUBACK was written alone");
+        conn.publish("EventsTopic".into(), Bytes::from_static(b"x"), false)
+            .unwrap();
+        let (bytes, n) = written(&mut conn, &mut seen, &writes, wait).await;
+        assert_eq!(n, 1, "the PUBACK and the publication took {n} writes");
+        assert_eq!(bytes[..4], puback(7), "{bytes:02x?}");
+        assert!(
+            bytes.windows(11).any(|w| w == b"EventsTopic"),
+            "{bytes:02x?}"
+        );
+
+        let held = u16::try_from(ACKS_HELD).unwrap();
+        for pkid in 1..held {
+            conn.ack(pkid);
+        }
+        let (bytes, n) = written(&mut conn, &mut seen, &writes, wait).await;
+        assert_eq!(
+            (bytes.len(), n),
+            (0, 0),
+            "fewer than ACKS_HELD were written"
+        );
+        conn.ack(held);
+        let (bytes, n) = written(&mut conn, &mut seen, &writes, wait).await;
+        assert_eq!(n, 1);
+        assert_eq!(bytes, (1..=held).flat_map(puback).collect::<Vec<_>>());
+
+        conn.hold_acks(false);
+        conn.ack(9);
+        let (bytes, n) = written(&mut conn, &mut seen, &writes, wait).await;
+        assert_eq!((bytes, n), (puback(9), 1), "an ack not held waited");
+    }
+
+    /// PUBACKs held when the connection breaks are not written on the next one, whose deliveries
+    /// they do not acknowledge.
+    #[tokio::test]
+    async fn held_acks_end_with_their_connection() {
+        let (port, _broker, _seen) = broker_seeing(Some(0)).await;
+        let mut conn = connected(MqttOptions::new("held-acks-lost", "127.0.0.1", port)).await;
+        conn.hold_acks(true);
+        conn.ack(3);
+        // The broker hangs up at once (`Some(0)` reads): the next poll reports it.
+        let ev = tokio::time::timeout(Duration::from_secs(5), conn.poll()).await;
+        assert!(matches!(ev, Ok(Err(_))), "{ev:?}");
+        assert!(conn.acks.is_empty());
     }
 
     /// The smallest publication a subscription can bring, for the filters the gateway subscribes.

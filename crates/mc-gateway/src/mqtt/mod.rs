@@ -126,6 +126,10 @@ pub struct MqttStats {
     /// Events the core dropped because they could not be published as fast as they came (the
     /// core's count, mirrored here; never answers or state documents).
     pub publications_dropped: AtomicU64,
+    /// The core has commands out whose answers it will publish within the command timeout (set by
+    /// the core at every turn): a command's PUBACK may then wait to leave with its answer
+    /// ([`conn::Connection::hold_acks`]).
+    pub answers_due: AtomicBool,
     /// Failed connection attempts since the last successful one.
     pub failed_attempts: AtomicU64,
     /// Writes to the broker's socket (each a system call and a TCP segment that wakes the
@@ -341,6 +345,7 @@ impl MqttTask {
                 }
             }
             carry_out(&mut session, &mut conn);
+            conn.hold_acks(self.stats.answers_due.load(Ordering::Relaxed));
             timer.set(session.poll_timeout());
             let wants_link = session.wants_link();
             let wants_publications = publications_open && session.wants_publications();
@@ -705,6 +710,62 @@ mod tests {
             other => panic!("{other:?}"),
         }
         // The core's answer, in the turn that took the command.
+        pub_tx.send(publication(1)).await.unwrap();
+        let puback = [0x40, 0x02, 0x00, 0x07];
+        let mut bytes = Vec::new();
+        let deadline = tokio::time::Instant::now() + Duration::from_secs(5);
+        while !(bytes.windows(4).any(|w| w == puback)
+            && bytes.windows(11).any(|w| w == b"EventsTopic"))
+        {
+            let b = tokio::time::timeout_at(deadline, seen.recv()).await;
+            bytes.extend(b.expect("the PUBACK and the answer").unwrap());
+        }
+        assert_eq!(
+            writes.load(Ordering::Relaxed) - before,
+            1,
+            "the PUBACK and the answer took more than one write: {bytes:02x?}"
+        );
+        cancel.cancel();
+        drop(pub_tx);
+        run.await.unwrap();
+    }
+
+    /// A command taken while the core has answers due: its PUBACK waits for its answer, published
+    /// later (after the node's ack), and both leave in one write.
+    #[tokio::test]
+    async fn a_puback_waits_for_the_answer_while_answers_are_due() {
+        let (port, broker, mut seen) = test_broker::broker_seeing(None).await;
+        let mut t = task();
+        t.options = MqttOptions::new("answers-due", "127.0.0.1", port);
+        t.options.set_manual_acks(true);
+        t.stats.answers_due.store(true, Ordering::Relaxed);
+        let writes = t.stats.writes.clone();
+        let (pub_tx, pub_rx) = mpsc::channel(4);
+        let (in_tx, mut in_rx) = mpsc::channel(4);
+        let cancel = CancellationToken::new();
+        let run = tokio::spawn(t.run(pub_rx, in_tx, cancel.clone()));
+        assert_eq!(in_rx.recv().await, Some(MqttInput::Connected));
+        // Subscriptions and `online` written; nothing else is due.
+        tokio::time::sleep(Duration::from_millis(300)).await;
+        while seen.try_recv().is_ok() {}
+        let before = writes.load(Ordering::Relaxed);
+        // A QoS 1 PUBLISH of `{}` on CommandsTopic, packet id 7.
+        let mut p = vec![0x32, 19, 0x00, 13];
+        p.extend_from_slice(b"CommandsTopic");
+        p.extend_from_slice(&[0x00, 0x07, b'{', b'}']);
+        broker.send(p).unwrap();
+        match in_rx.recv().await {
+            Some(MqttInput::Command { payload, .. }) => assert_eq!(&payload[..], b"{}"),
+            other => panic!("{other:?}"),
+        }
+        tokio::time::sleep(Duration::from_millis(200)).await;
+        assert_eq!(
+            writes.load(Ordering::Relaxed),
+            before,
+            "the PUBACK left before the answer: {:02x?}",
+            seen.try_recv()
+        );
+        // The answer, once the node acknowledged.
         pub_tx.send(publication(1)).await.unwrap();
         let puback = [0x40, 0x02, 0x00, 0x07];
         let mut bytes = Vec::new();

@@ -14,9 +14,18 @@ pub type Script = mpsc::UnboundedSender<Vec<u8>>;
 /// sends on the returned channel and acknowledges nothing by itself. It hangs up after `reads`
 /// reads of what the client wrote (`None`: once the client hangs up). Returns its port.
 pub async fn broker(reads: Option<usize>) -> (u16, Script) {
+    let (port, script, _) = broker_seeing(reads).await;
+    (port, script)
+}
+
+/// [`broker`], also handing the test every read of what the client wrote after its CONNECT.
+pub async fn broker_seeing(
+    reads: Option<usize>,
+) -> (u16, Script, mpsc::UnboundedReceiver<Vec<u8>>) {
     let listener = TcpListener::bind("127.0.0.1:0").await.unwrap();
     let port = listener.local_addr().unwrap().port();
     let (tx, mut script) = mpsc::unbounded_channel::<Vec<u8>>();
+    let (seen_tx, seen) = mpsc::unbounded_channel::<Vec<u8>>();
     tokio::spawn(async move {
         let (mut s, _) = listener.accept().await.unwrap();
         let mut buf = vec![0u8; 64 * 1024];
@@ -27,13 +36,12 @@ pub async fn broker(reads: Option<usize>) -> (u16, Script) {
             tokio::select! {
                 Some(bytes) = script.recv() => s.write_all(&bytes).await.unwrap(),
                 n = s.read(&mut buf) => {
-                    if !matches!(n, Ok(n) if n > 0) {
-                        break;
-                    }
+                    let Ok(n @ 1..) = n else { break };
+                    let _ = seen_tx.send(buf[..n].to_vec());
                     left -= 1;
                 }
             }
         }
     });
-    (port, tx)
+    (port, tx, seen)
 }
