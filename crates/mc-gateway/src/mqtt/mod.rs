@@ -126,9 +126,9 @@ pub struct MqttStats {
     /// Events the core dropped because they could not be published as fast as they came (the
     /// core's count, mirrored here; never answers or state documents).
     pub publications_dropped: AtomicU64,
-    /// The core has commands out whose answers it will publish within the command timeout (set by
-    /// the core at every turn): a command's PUBACK may then wait to leave with its answer
-    /// ([`conn::Connection::hold_acks`]).
+    /// The core has commands out whose answers it will publish (set by the core at every turn):
+    /// each is answered by its node or, when its time runs out, `timeout`, so a command's PUBACK
+    /// may wait to leave with an answer ([`conn::Connection::hold_acks`]).
     pub answers_due: AtomicBool,
     /// Failed connection attempts since the last successful one.
     pub failed_attempts: AtomicU64,
