@@ -662,39 +662,16 @@ mod tests {
         run.await.unwrap();
     }
 
-    /// A command whose answer the core publishes in the turn that took it: the command's PUBACK and
-    /// the answer leave in one write (one system call, one segment waking the broker), not two.
-    #[tokio::test]
-    async fn a_puback_and_what_the_core_publishes_in_the_same_turn_share_a_write() {
-        use tokio::io::{AsyncReadExt, AsyncWriteExt};
-        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-        let port = listener.local_addr().unwrap().port();
-        let (go_tx, go) = tokio::sync::oneshot::channel::<()>();
-        let (seen_tx, mut seen) = mpsc::unbounded_channel::<Vec<u8>>();
-        tokio::spawn(async move {
-            let (mut s, _) = listener.accept().await.unwrap();
-            let mut buf = [0u8; 4096];
-            let _ = s.read(&mut buf).await; // CONNECT
-            s.write_all(&[0x20, 0x02, 0x00, 0x00]).await.unwrap(); // CONNACK accepted
-            let (mut r, mut w) = s.into_split();
-            tokio::spawn(async move {
-                while let Ok(n) = r.read(&mut buf).await {
-                    if n == 0 || seen_tx.send(buf[..n].to_vec()).is_err() {
-                        break;
-                    }
-                }
-            });
-            go.await.unwrap();
-            // A QoS 1 PUBLISH of `{}` on CommandsTopic, packet id 7.
-            let mut p = vec![0x32, 19, 0x00, 13];
-            p.extend_from_slice(b"CommandsTopic");
-            p.extend_from_slice(&[0x00, 0x07, b'{', b'}']);
-            w.write_all(&p).await.unwrap();
-            std::future::pending::<()>().await;
-        });
+    /// A QoS 1 command (packet id 7) that the core takes and answers `later` (`None`: in the turn
+    /// that took it), while the core says `answers_due`: the command's PUBACK and the answer leave
+    /// in one write (one system call, one segment waking the broker), not two, and nothing leaves
+    /// before the answer.
+    async fn puback_and_answer(name: &str, answers_due: bool, later: Option<Duration>) {
+        let (port, broker, mut seen) = test_broker::broker_seeing(None).await;
         let mut t = task();
-        t.options = MqttOptions::new("batch", "127.0.0.1", port);
+        t.options = MqttOptions::new(name, "127.0.0.1", port);
         t.options.set_manual_acks(true);
+        t.stats.answers_due.store(answers_due, Ordering::Relaxed);
         let writes = t.stats.writes.clone();
         let (pub_tx, pub_rx) = mpsc::channel(4);
         let (in_tx, mut in_rx) = mpsc::channel(4);
@@ -703,13 +680,26 @@ mod tests {
         assert_eq!(in_rx.recv().await, Some(MqttInput::Connected));
         // Subscriptions and `online` written; nothing else is due.
         tokio::time::sleep(Duration::from_millis(300)).await;
+        while seen.try_recv().is_ok() {}
         let before = writes.load(Ordering::Relaxed);
-        go_tx.send(()).unwrap();
+        // A QoS 1 PUBLISH of `{}` on CommandsTopic, packet id 7.
+        let mut p = vec![0x32, 19, 0x00, 13];
+        p.extend_from_slice(b"CommandsTopic");
+        p.extend_from_slice(&[0x00, 0x07, b'{', b'}']);
+        broker.send(p).unwrap();
         match in_rx.recv().await {
             Some(MqttInput::Command { payload, .. }) => assert_eq!(&payload[..], b"{}"),
             other => panic!("{other:?}"),
         }
-        // The core's answer, in the turn that took the command.
+        if let Some(later) = later {
+            tokio::time::sleep(later).await;
+            assert_eq!(
+                writes.load(Ordering::Relaxed),
+                before,
+                "the PUBACK left before the answer: {:02x?}",
+                seen.try_recv()
+            );
+        }
         pub_tx.send(publication(1)).await.unwrap();
         let puback = [0x40, 0x02, 0x00, 0x07];
         let mut bytes = Vec::new();
@@ -730,60 +720,18 @@ mod tests {
         run.await.unwrap();
     }
 
+    /// A command whose answer the core publishes in the turn that took it (a rejection, or the
+    /// node's ack read with the command): the PUBACK waits for nothing and shares its write.
+    #[tokio::test]
+    async fn a_puback_and_what_the_core_publishes_in_the_same_turn_share_a_write() {
+        puback_and_answer("batch", false, None).await;
+    }
+
     /// A command taken while the core has answers due: its PUBACK waits for its answer, published
-    /// later (after the node's ack), and both leave in one write.
+    /// later (after the node's ack), and leaves with it.
     #[tokio::test]
     async fn a_puback_waits_for_the_answer_while_answers_are_due() {
-        let (port, broker, mut seen) = test_broker::broker_seeing(None).await;
-        let mut t = task();
-        t.options = MqttOptions::new("answers-due", "127.0.0.1", port);
-        t.options.set_manual_acks(true);
-        t.stats.answers_due.store(true, Ordering::Relaxed);
-        let writes = t.stats.writes.clone();
-        let (pub_tx, pub_rx) = mpsc::channel(4);
-        let (in_tx, mut in_rx) = mpsc::channel(4);
-        let cancel = CancellationToken::new();
-        let run = tokio::spawn(t.run(pub_rx, in_tx, cancel.clone()));
-        assert_eq!(in_rx.recv().await, Some(MqttInput::Connected));
-        // Subscriptions and `online` written; nothing else is due.
-        tokio::time::sleep(Duration::from_millis(300)).await;
-        while seen.try_recv().is_ok() {}
-        let before = writes.load(Ordering::Relaxed);
-        // A QoS 1 PUBLISH of `{}` on CommandsTopic, packet id 7.
-        let mut p = vec![0x32, 19, 0x00, 13];
-        p.extend_from_slice(b"CommandsTopic");
-        p.extend_from_slice(&[0x00, 0x07, b'{', b'}']);
-        broker.send(p).unwrap();
-        match in_rx.recv().await {
-            Some(MqttInput::Command { payload, .. }) => assert_eq!(&payload[..], b"{}"),
-            other => panic!("{other:?}"),
-        }
-        tokio::time::sleep(Duration::from_millis(200)).await;
-        assert_eq!(
-            writes.load(Ordering::Relaxed),
-            before,
-            "the PUBACK left before the answer: {:02x?}",
-            seen.try_recv()
-        );
-        // The answer, once the node acknowledged.
-        pub_tx.send(publication(1)).await.unwrap();
-        let puback = [0x40, 0x02, 0x00, 0x07];
-        let mut bytes = Vec::new();
-        let deadline = tokio::time::Instant::now() + Duration::from_secs(5);
-        while !(bytes.windows(4).any(|w| w == puback)
-            && bytes.windows(11).any(|w| w == b"EventsTopic"))
-        {
-            let b = tokio::time::timeout_at(deadline, seen.recv()).await;
-            bytes.extend(b.expect("the PUBACK and the answer").unwrap());
-        }
-        assert_eq!(
-            writes.load(Ordering::Relaxed) - before,
-            1,
-            "the PUBACK and the answer took more than one write: {bytes:02x?}"
-        );
-        cancel.cancel();
-        drop(pub_tx);
-        run.await.unwrap();
+        puback_and_answer("answers-due", true, Some(Duration::from_millis(200))).await;
     }
 
     /// A broker that answers CONNECT only after `delay` and counts connections: publications that
