@@ -221,10 +221,10 @@ impl Connection {
 
     /// Whether PUBACKs with nothing else to write wait (while fewer than [`ACKS_HELD`]) for the next
     /// packet that is: the caller holds them when it knows that something will be written soon —
-    /// the gateway while the core has commands out whose answers it will publish, so that a lone
-    /// command's PUBACK leaves with its answer, one write and one segment instead of two. Holding
-    /// an acknowledgement only delays when the broker may count the delivery done; it never
-    /// changes that it is acknowledged.
+    /// the gateway while the core has commands out whose answers it will publish and none waits
+    /// for it, so that a lone command's PUBACK leaves with its answer, one write and one segment
+    /// instead of two. Holding an acknowledgement only delays when the broker may count the
+    /// delivery done; it never changes that it is acknowledged.
     pub fn hold_acks(&mut self, hold: bool) {
         self.hold_acks = hold;
     }

@@ -345,7 +345,9 @@ impl MqttTask {
                 }
             }
             carry_out(&mut session, &mut conn);
-            conn.hold_acks(self.stats.answers_due.load(Ordering::Relaxed));
+            // Never while commands wait for the core: in a flood each write of PUBACKs also
+            // acknowledges the broker's TCP stream, which delayed-ACK mode leaves to the next write.
+            conn.hold_acks(self.stats.answers_due.load(Ordering::Relaxed) && !session.has_input());
             timer.set(session.poll_timeout());
             let wants_link = session.wants_link();
             let wants_publications = publications_open && session.wants_publications();
@@ -732,6 +734,50 @@ mod tests {
     #[tokio::test]
     async fn a_puback_waits_for_the_answer_while_answers_are_due() {
         puback_and_answer("answers-due", true, Some(Duration::from_millis(200))).await;
+    }
+
+    /// Commands waiting for the core (a flood): the PUBACK of each one taken leaves at once,
+    /// answers due or not, with no publication to go with it.
+    #[tokio::test]
+    async fn pubacks_are_not_held_while_commands_wait_for_the_core() {
+        let (port, broker, mut seen) = test_broker::broker_seeing(None).await;
+        let mut t = task();
+        t.options = MqttOptions::new("flood", "127.0.0.1", port);
+        t.options.set_manual_acks(true);
+        t.stats.answers_due.store(true, Ordering::Relaxed);
+        let (pub_tx, pub_rx) = mpsc::channel(4);
+        // The core takes one input at a time, and only when this test reads it.
+        let (in_tx, mut in_rx) = mpsc::channel(1);
+        let cancel = CancellationToken::new();
+        let run = tokio::spawn(t.run(pub_rx, in_tx, cancel.clone()));
+        assert_eq!(in_rx.recv().await, Some(MqttInput::Connected));
+        tokio::time::sleep(Duration::from_millis(300)).await;
+        while seen.try_recv().is_ok() {}
+        // Three QoS 1 PUBLISHes of `{}` on CommandsTopic, packet ids 1..=3, in one segment.
+        let mut burst = Vec::new();
+        for pkid in 1..=3u8 {
+            burst.extend_from_slice(&[0x32, 19, 0x00, 13]);
+            burst.extend_from_slice(b"CommandsTopic");
+            burst.extend_from_slice(&[0x00, pkid, b'{', b'}']);
+        }
+        broker.send(burst).unwrap();
+        let mut bytes = Vec::new();
+        for pkid in 1..=3u8 {
+            assert!(matches!(
+                in_rx.recv().await,
+                Some(MqttInput::Command { .. })
+            ));
+            // Taken while others wait: its PUBACK is written without an answer.
+            let puback = [0x40, 0x02, 0x00, pkid];
+            let deadline = tokio::time::Instant::now() + Duration::from_millis(500);
+            while pkid < 3 && !bytes.windows(4).any(|w| w == puback) {
+                let b = tokio::time::timeout_at(deadline, seen.recv()).await;
+                bytes.extend(b.expect("the PUBACK within 500 ms").unwrap());
+            }
+        }
+        cancel.cancel();
+        drop(pub_tx);
+        run.await.unwrap();
     }
 
     /// A broker that answers CONNECT only after `delay` and counts connections: publications that
