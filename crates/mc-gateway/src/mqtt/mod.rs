@@ -611,11 +611,7 @@ mod tests {
             let mut buf = [0u8; 4096];
             let _ = s.read(&mut buf).await; // CONNECT
             s.write_all(&[0x20, 0x02, 0x00, 0x00]).await.unwrap(); // CONNACK accepted
-                                                                   // A retained QoS 1 PUBLISH of `{}` on CommandsTopic, packet id 1.
-            let mut p = vec![0x33, 19, 0x00, 13];
-            p.extend_from_slice(b"CommandsTopic");
-            p.extend_from_slice(&[0x00, 0x01, b'{', b'}']);
-            s.write_all(&p).await.unwrap();
+            s.write_all(&command_publish(1, true)).await.unwrap();
             while let Ok(n) = s.read(&mut buf).await {
                 if n == 0 || seen_tx.send(buf[..n].to_vec()).is_err() {
                     break;
@@ -664,32 +660,73 @@ mod tests {
         run.await.unwrap();
     }
 
+    /// A QoS 1 PUBLISH of `{}` on `CommandsTopic` with packet id `pkid`, as a broker sends it.
+    fn command_publish(pkid: u8, retain: bool) -> Vec<u8> {
+        let mut p = vec![0x32 | u8::from(retain), 19, 0x00, 13];
+        p.extend_from_slice(b"CommandsTopic");
+        p.extend_from_slice(&[0x00, pkid, b'{', b'}']);
+        p
+    }
+
+    /// The MQTT task as the gateway runs it (manual acks) against a scripted broker
+    /// ([`test_broker::broker_seeing`]): what a test drives it with and watches.
+    struct Scripted {
+        broker: test_broker::Script,
+        /// Every read of what the task wrote since [`Scripted::start`] returned.
+        seen: mpsc::UnboundedReceiver<Vec<u8>>,
+        writes: Arc<AtomicU64>,
+        pub_tx: mpsc::Sender<Outbound>,
+        in_rx: mpsc::Receiver<MqttInput>,
+        cancel: CancellationToken,
+        run: tokio::task::JoinHandle<()>,
+    }
+
+    impl Scripted {
+        /// Starts client `name` with room for `core_room` inputs on the core's channel, the core
+        /// saying `answers_due`; returns once it is connected, its subscriptions and `online`
+        /// written, and nothing else is due.
+        async fn start(name: &str, answers_due: bool, core_room: usize) -> Scripted {
+            let (port, broker, mut seen) = test_broker::broker_seeing(None).await;
+            let mut t = task();
+            t.options = MqttOptions::new(name, "127.0.0.1", port);
+            t.options.set_manual_acks(true);
+            t.stats.answers_due.store(answers_due, Ordering::Relaxed);
+            let writes = t.stats.writes.clone();
+            let (pub_tx, pub_rx) = mpsc::channel(4);
+            let (in_tx, mut in_rx) = mpsc::channel(core_room);
+            let cancel = CancellationToken::new();
+            let run = tokio::spawn(t.run(pub_rx, in_tx, cancel.clone()));
+            assert_eq!(in_rx.recv().await, Some(MqttInput::Connected));
+            tokio::time::sleep(Duration::from_millis(300)).await;
+            while seen.try_recv().is_ok() {}
+            Scripted {
+                broker,
+                seen,
+                writes,
+                pub_tx,
+                in_rx,
+                cancel,
+                run,
+            }
+        }
+
+        async fn stop(self) {
+            self.cancel.cancel();
+            drop(self.pub_tx);
+            self.run.await.unwrap();
+        }
+    }
+
     /// A QoS 1 command (packet id 7) that the core takes and answers `later` (`None`: in the turn
     /// that took it), while the core says `answers_due`: the command's PUBACK and the answer leave
     /// in one write (one system call, one segment waking the broker), not two, and nothing leaves
     /// before the answer.
     async fn puback_and_answer(name: &str, answers_due: bool, later: Option<Duration>) {
-        let (port, broker, mut seen) = test_broker::broker_seeing(None).await;
-        let mut t = task();
-        t.options = MqttOptions::new(name, "127.0.0.1", port);
-        t.options.set_manual_acks(true);
-        t.stats.answers_due.store(answers_due, Ordering::Relaxed);
-        let writes = t.stats.writes.clone();
-        let (pub_tx, pub_rx) = mpsc::channel(4);
-        let (in_tx, mut in_rx) = mpsc::channel(4);
-        let cancel = CancellationToken::new();
-        let run = tokio::spawn(t.run(pub_rx, in_tx, cancel.clone()));
-        assert_eq!(in_rx.recv().await, Some(MqttInput::Connected));
-        // Subscriptions and `online` written; nothing else is due.
-        tokio::time::sleep(Duration::from_millis(300)).await;
-        while seen.try_recv().is_ok() {}
+        let mut t = Scripted::start(name, answers_due, 4).await;
+        let (seen, writes) = (&mut t.seen, &t.writes);
         let before = writes.load(Ordering::Relaxed);
-        // A QoS 1 PUBLISH of `{}` on CommandsTopic, packet id 7.
-        let mut p = vec![0x32, 19, 0x00, 13];
-        p.extend_from_slice(b"CommandsTopic");
-        p.extend_from_slice(&[0x00, 0x07, b'{', b'}']);
-        broker.send(p).unwrap();
-        match in_rx.recv().await {
+        t.broker.send(command_publish(7, false)).unwrap();
+        match t.in_rx.recv().await {
             Some(MqttInput::Command { payload, .. }) => assert_eq!(&payload[..], b"{}"),
             other => panic!("{other:?}"),
         }
@@ -702,7 +739,7 @@ mod tests {
                 seen.try_recv()
             );
         }
-        pub_tx.send(publication(1)).await.unwrap();
+        t.pub_tx.send(publication(1)).await.unwrap();
         let puback = [0x40, 0x02, 0x00, 0x07];
         let mut bytes = Vec::new();
         let deadline = tokio::time::Instant::now() + Duration::from_secs(5);
@@ -717,9 +754,7 @@ mod tests {
             1,
             "the PUBACK and the answer took more than one write: {bytes:02x?}"
         );
-        cancel.cancel();
-        drop(pub_tx);
-        run.await.unwrap();
+        t.stop().await;
     }
 
     /// A command whose answer the core publishes in the turn that took it (a rejection, or the
@@ -740,44 +775,26 @@ mod tests {
     /// answers due or not, with no publication to go with it.
     #[tokio::test]
     async fn pubacks_are_not_held_while_commands_wait_for_the_core() {
-        let (port, broker, mut seen) = test_broker::broker_seeing(None).await;
-        let mut t = task();
-        t.options = MqttOptions::new("flood", "127.0.0.1", port);
-        t.options.set_manual_acks(true);
-        t.stats.answers_due.store(true, Ordering::Relaxed);
-        let (pub_tx, pub_rx) = mpsc::channel(4);
         // The core takes one input at a time, and only when this test reads it.
-        let (in_tx, mut in_rx) = mpsc::channel(1);
-        let cancel = CancellationToken::new();
-        let run = tokio::spawn(t.run(pub_rx, in_tx, cancel.clone()));
-        assert_eq!(in_rx.recv().await, Some(MqttInput::Connected));
-        tokio::time::sleep(Duration::from_millis(300)).await;
-        while seen.try_recv().is_ok() {}
-        // Three QoS 1 PUBLISHes of `{}` on CommandsTopic, packet ids 1..=3, in one segment.
-        let mut burst = Vec::new();
-        for pkid in 1..=3u8 {
-            burst.extend_from_slice(&[0x32, 19, 0x00, 13]);
-            burst.extend_from_slice(b"CommandsTopic");
-            burst.extend_from_slice(&[0x00, pkid, b'{', b'}']);
-        }
-        broker.send(burst).unwrap();
+        let mut t = Scripted::start("flood", true, 1).await;
+        // Three commands in one segment.
+        let burst = (1..=3u8).flat_map(|pkid| command_publish(pkid, false));
+        t.broker.send(burst.collect()).unwrap();
         let mut bytes = Vec::new();
         for pkid in 1..=3u8 {
             assert!(matches!(
-                in_rx.recv().await,
+                t.in_rx.recv().await,
                 Some(MqttInput::Command { .. })
             ));
             // Taken while others wait: its PUBACK is written without an answer.
             let puback = [0x40, 0x02, 0x00, pkid];
             let deadline = tokio::time::Instant::now() + Duration::from_millis(500);
             while pkid < 3 && !bytes.windows(4).any(|w| w == puback) {
-                let b = tokio::time::timeout_at(deadline, seen.recv()).await;
+                let b = tokio::time::timeout_at(deadline, t.seen.recv()).await;
                 bytes.extend(b.expect("the PUBACK within 500 ms").unwrap());
             }
         }
-        cancel.cancel();
-        drop(pub_tx);
-        run.await.unwrap();
+        t.stop().await;
     }
 
     /// A broker that answers CONNECT only after `delay` and counts connections: publications that
