@@ -104,7 +104,8 @@ pub struct BenchArgs {
     #[arg(long, default_value_t = 10.0)]
     islands_rate: f64,
     /// Measure the gateway of this commit beside this one, in the same run with the same harness
-    /// (its tree exported with `git archive` and built offline under target/bench/). The default
+    /// (its tree exported with `git archive` and built under target/bench/ from its own
+    /// Cargo.lock, fetching from the registry what the cargo cache lacks). The default
     /// is the state issue 15 measured.
     #[arg(long, env = "IHEX_BENCH_BASELINE", default_value = BASELINE)]
     baseline: String,
@@ -157,8 +158,9 @@ struct BaselineBuild {
 }
 
 /// Exports `commit`'s tree under target/bench/baseline-COMMIT/src (once) and builds its gateway
-/// and benchmark as [`build`] does, offline (the dependencies come from the cargo cache), into a
-/// target directory of its own (its Cargo.lock differs from ours).
+/// and benchmark as [`build`] does, with its own Cargo.lock (`--locked`) into a target directory of
+/// its own. Not offline: resolving an older lock needs index entries a cache filled for this tree
+/// lacks (even of crates its features leave out, such as `aws-lc-rs`).
 fn build_baseline(commit: &str) -> Result<BaselineBuild> {
     let dir = cmd::target_dir()
         .join("bench")
@@ -182,7 +184,7 @@ fn build_baseline(commit: &str) -> Result<BaselineBuild> {
         cmd::cargo()
             .current_dir(&src)
             .env("CARGO_TARGET_DIR", &target)
-            .args(["build", "--offline"])
+            .args(["build", "--locked"])
             .args(BUILD),
     )?;
     let bin = |name: &str| target.join(MUSL).join("release").join(name);
