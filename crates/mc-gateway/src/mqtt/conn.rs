@@ -654,15 +654,10 @@ async fn tls_connect(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::mqtt::test_broker::{broker, broker_seeing, Script};
+    use crate::mqtt::test_broker::{broker, broker_seeing, puback, Script};
     use rumqttc::Incoming;
 
     const PUBLISHED: u16 = ACK_BATCH + 4;
-
-    fn puback(pkid: u16) -> Vec<u8> {
-        let [hi, lo] = pkid.to_be_bytes();
-        vec![0x40, 0x02, hi, lo]
-    }
 
     /// The socket's receive low-water mark as the kernel has it.
     fn kernel_lowat(conn: &Connection) -> libc::c_int {

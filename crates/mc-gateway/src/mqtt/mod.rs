@@ -626,7 +626,7 @@ mod tests {
         let (in_tx, mut in_rx) = mpsc::channel(1);
         let cancel = CancellationToken::new();
         let run = tokio::spawn(t.run(pub_rx, in_tx, cancel.clone()));
-        let puback = [0x40, 0x02, 0x00, 0x01];
+        let puback = test_broker::puback(1);
         let mut bytes = Vec::new();
         let quiet = tokio::time::sleep(Duration::from_millis(400));
         tokio::pin!(quiet);
@@ -740,7 +740,7 @@ mod tests {
             );
         }
         t.pub_tx.send(publication(1)).await.unwrap();
-        let puback = [0x40, 0x02, 0x00, 0x07];
+        let puback = test_broker::puback(7);
         let mut bytes = Vec::new();
         let deadline = tokio::time::Instant::now() + Duration::from_secs(5);
         while !(bytes.windows(4).any(|w| w == puback)
@@ -786,8 +786,9 @@ mod tests {
                 t.in_rx.recv().await,
                 Some(MqttInput::Command { .. })
             ));
-            // Taken while others wait: its PUBACK is written without an answer.
-            let puback = [0x40, 0x02, 0x00, pkid];
+            // Taken while others wait: its PUBACK is written without an answer. (Nothing waits
+            // after the last one, so its PUBACK is held for its answer: not looked for.)
+            let puback = test_broker::puback(pkid.into());
             let deadline = tokio::time::Instant::now() + Duration::from_millis(500);
             while pkid < 3 && !bytes.windows(4).any(|w| w == puback) {
                 let b = tokio::time::timeout_at(deadline, t.seen.recv()).await;

@@ -45,3 +45,9 @@ pub async fn broker_seeing(
     });
     (port, tx, seen)
 }
+
+/// A PUBACK of `pkid` as it goes on the wire.
+pub fn puback(pkid: u16) -> Vec<u8> {
+    let [hi, lo] = pkid.to_be_bytes();
+    vec![0x40, 0x02, hi, lo]
+}
