@@ -591,6 +591,8 @@ impl Mqtt {
 pub(crate) struct Proc {
     pub(crate) child: Child,
     pub(crate) name: &'static str,
+    /// Where its output goes, when to a file: an early exit's error quotes its last line.
+    log: Option<PathBuf>,
 }
 
 impl Drop for Proc {
@@ -607,7 +609,17 @@ impl Proc {
 
     pub(crate) fn check_alive(&mut self) -> Result<()> {
         if let Some(status) = self.child.try_wait()? {
-            bail!("{} exited during the benchmark ({status})", self.name);
+            let Some(log) = &self.log else {
+                bail!("{} exited during the benchmark ({status})", self.name);
+            };
+            let text = std::fs::read_to_string(log).unwrap_or_default();
+            let last = text.lines().rev().find(|l| !l.trim().is_empty());
+            bail!(
+                "{} exited during the benchmark ({status}); its last line: {} (log: {})",
+                self.name,
+                last.unwrap_or("(none)"),
+                log.display()
+            );
         }
         Ok(())
     }
@@ -621,7 +633,11 @@ impl Proc {
             .stderr(file)
             .spawn()
             .with_context(|| format!("starting {name} ({:?})", cmd.get_program()))?;
-        Ok(Proc { child, name })
+        Ok(Proc {
+            child,
+            name,
+            log: Some(log.to_owned()),
+        })
     }
 
     /// Waits until `addr` accepts TCP connections (or the process ends, or `within` passes).
@@ -676,29 +692,21 @@ pub(crate) fn start_mosquitto(
     let mut p = Proc {
         child,
         name: "mosquitto",
+        log: None,
     };
     p.wait_listening(addr, Duration::from_secs(20))?;
     Ok((p, addr))
 }
 
 fn start_gateway(bin: &Path, iface: &str, broker: SocketAddr, dir: &Path) -> Result<Proc> {
-    let log = std::fs::File::create(dir.join("gateway.log"))?;
-    let child = Command::new(bin)
-        .args(["--can", iface, "--broker", &broker.to_string()])
+    let mut cmd = Command::new(bin);
+    cmd.args(["--can", iface, "--broker", &broker.to_string()])
         // No health checks during the run: silent nodes would be declared lost, and a lost node's
         // BootUp is `node_online`, not `node_rebooted`. Commands keep the
         // deployed timeout (500 ms): the bench's responder acks them as the nodes would.
         .args(["--health-period-ms", "3600000"])
-        .args(["--log-dir", "-", "--log", "warn"])
-        .stdin(Stdio::null())
-        .stdout(log.try_clone()?)
-        .stderr(log)
-        .spawn()
-        .with_context(|| format!("starting {}", bin.display()))?;
-    Ok(Proc {
-        child,
-        name: "mc-gateway",
-    })
+        .args(["--log-dir", "-", "--log", "warn"]);
+    Proc::spawn(cmd, &dir.join("gateway.log"), "mc-gateway")
 }
 
 /// utime and stime of `pid`, ms.
@@ -2116,6 +2124,31 @@ pub fn send(results: &impl serde::Serialize, addr: &str) -> Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn an_early_exit_names_the_last_line_of_the_log() {
+        let dir = std::env::temp_dir().join(format!("ihex-bench-proc-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let log = dir.join("out.log");
+        let mut cmd = Command::new("sh");
+        cmd.args([
+            "-c",
+            "echo starting; echo 'no such feature: pass --x off' >&2; exit 3",
+        ]);
+        let mut p = Proc::spawn(cmd, &log, "tool").unwrap();
+        p.child.wait().unwrap();
+        let e = p.check_alive().unwrap_err().to_string();
+        std::fs::remove_dir_all(&dir).unwrap();
+        assert!(
+            e.starts_with("tool exited during the benchmark (exit status: 3)"),
+            "{e}"
+        );
+        assert!(
+            e.contains("its last line: no such feature: pass --x off"),
+            "{e}"
+        );
+        assert!(e.contains("out.log"), "{e}");
+    }
 
     #[test]
     fn report_index_round_trips_through_the_event_json() {
