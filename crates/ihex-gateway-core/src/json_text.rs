@@ -1,6 +1,7 @@
 //! The bytes a JSON string treats specially — `"`, `\` and the control characters below U+0020 —
 //! found eight bytes at a time (as serde_json's own scan does): where the command parser's single
-//! pass stops reading a string, and whether the writer must escape one.
+//! pass stops reading a string, and how a writer escapes one ([`write_str`]: the publications'
+//! JSON, the gateway's JSON log lines).
 
 /// Where the first `"`, `\` or control character is in `bytes`.
 pub(crate) fn special_byte(bytes: &[u8]) -> Option<usize> {
@@ -29,6 +30,46 @@ pub(crate) fn special_byte(bytes: &[u8]) -> Option<usize> {
     Some(bytes.len() - tail.len() + at)
 }
 
+/// Writes `s` as a JSON string, quotes included, in the pieces `out` is given: runs of `s` as they
+/// are and the escapes between them — the bytes serde_json writes for it (`\"`, `\\`, `\b`, `\f`,
+/// `\n`, `\r`, `\t`, other control characters as `\u00xx`).
+pub fn write_str(s: &str, mut out: impl FnMut(&str)) {
+    let bytes = s.as_bytes();
+    let Some(first) = special_byte(bytes) else {
+        out("\"");
+        out(s);
+        return out("\"");
+    };
+    out("\"");
+    let mut run = 0;
+    for (i, &b) in bytes.iter().enumerate().skip(first) {
+        let short = match b {
+            b'"' => "\\\"",
+            b'\\' => "\\\\",
+            0x08 => "\\b",
+            0x09 => "\\t",
+            0x0a => "\\n",
+            0x0c => "\\f",
+            0x0d => "\\r",
+            0x00..=0x1f => "",
+            _ => continue,
+        };
+        // Every byte split at is ASCII, so both pieces are whole characters.
+        out(&s[run..i]);
+        run = i + 1;
+        if short.is_empty() {
+            const DIGITS: &[u8; 16] = b"0123456789abcdef";
+            let (hi, lo) = (DIGITS[usize::from(b >> 4)], DIGITS[usize::from(b & 0xf)]);
+            let u = [b'\\', b'u', b'0', b'0', hi, lo];
+            out(std::str::from_utf8(&u).unwrap_or_default());
+        } else {
+            out(short);
+        }
+    }
+    out(&s[run..]);
+    out("\"");
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -45,6 +86,17 @@ mod tests {
             }
             let plain: Vec<u8> = "ab\x20\x21\u{e9}".bytes().cycle().take(len).collect();
             assert_eq!(special_byte(&plain), None);
+        }
+    }
+
+    #[test]
+    fn strings_are_written_as_serde_json_writes_them() {
+        let mut all: String = (0u8..0x80).map(char::from).collect();
+        all.push_str("\u{e9}\u{2028}\u{1f600}\"end");
+        for s in ["", "plain", "a\"b", "\\", "\u{7f}", "\x00\x1f", &all] {
+            let mut text = String::new();
+            write_str(s, |t| text.push_str(t));
+            assert_eq!(text, serde_json::to_string(s).unwrap(), "{s:?}");
         }
     }
 }

@@ -231,40 +231,10 @@ impl Writer<'_> {
         self.raw(b"null");
     }
 
-    /// A string, escaped as serde_json escapes it: `"` and `\` with a backslash, the control
-    /// characters below U+0020 as `\b`, `\t`, `\n`, `\f`, `\r` or `\u00xx`, everything else as is.
+    /// A string, escaped as serde_json escapes it ([`crate::json_text::write_str`]).
     fn str(&mut self, s: &str) {
-        let bytes = s.as_bytes();
-        let Some(first) = crate::json_text::special_byte(bytes) else {
-            return self.plain_str(s);
-        };
-        self.0.reserve(bytes.len() + 2);
-        self.0.put_u8(b'"');
-        let mut run = 0;
-        for (i, &b) in bytes.iter().enumerate().skip(first) {
-            let short = match b {
-                b'"' => b'"',
-                b'\\' => b'\\',
-                0x08 => b'b',
-                0x09 => b't',
-                0x0a => b'n',
-                0x0c => b'f',
-                0x0d => b'r',
-                0x00..=0x1f => b'u',
-                _ => continue,
-            };
-            self.0.extend_from_slice(&bytes[run..i]);
-            run = i + 1;
-            if short == b'u' {
-                const DIGITS: &[u8; 16] = b"0123456789abcdef";
-                let (hi, lo) = (DIGITS[usize::from(b >> 4)], DIGITS[usize::from(b & 0xf)]);
-                self.0.extend_from_slice(&[b'\\', b'u', b'0', b'0', hi, lo]);
-            } else {
-                self.0.extend_from_slice(&[b'\\', short]);
-            }
-        }
-        self.0.extend_from_slice(&bytes[run..]);
-        self.0.put_u8(b'"');
+        self.0.reserve(s.len() + 2);
+        crate::json_text::write_str(s, |t| self.0.extend_from_slice(t.as_bytes()));
     }
 
     /// A string known to need no escaping, in quotes.

@@ -48,7 +48,7 @@ pub mod error_frame;
 pub mod event;
 pub mod fwupdate;
 pub mod ha;
-mod json_text;
+pub mod json_text;
 mod json_writer;
 pub mod lease;
 pub mod origin;

@@ -8,6 +8,7 @@
 //! `pid`, so `jq 'select(.pid == 1234)'` separates them. A file per process instead would escape the
 //! appender's pruning and grow the directory with every run.
 
+use std::fmt::Write as _;
 use std::path::PathBuf;
 use tracing_appender::{
     non_blocking::{NonBlocking, NonBlockingBuilder, WorkerGuard},
@@ -19,7 +20,7 @@ use tracing_subscriber::{
     fmt::{
         self,
         format::{Format, Json, JsonFields, Writer},
-        FmtContext, FormatEvent, FormatFields,
+        FmtContext, FormatEvent, FormatFields, FormattedFields,
     },
     layer::SubscriberExt,
     registry::LookupSpan,
@@ -79,13 +80,62 @@ fn file_name(rotation: Rotation, now: time::OffsetDateTime) -> String {
     format!("{FILE_PREFIX}.{period}.jsonl")
 }
 
-/// The JSON format with the process ID as every line's first field.
-struct WithPid {
+/// The JSON log line: tracing-subscriber's JSON format (the event's fields under `fields`, the
+/// current span's under `span`, no span list) with the process ID as its first member. At info
+/// every published event is a line, so the line is written here directly: the crate's formatter
+/// takes each field through serde and escapes a `%` or `?` value piece by piece while it is
+/// formatted, which cost more than the command the event answers (docs/benchmarks.md). Events of
+/// the `log` crate, whose metadata the crate normalises, and a span whose fields are not a JSON
+/// object go through the crate's formatter ([`JsonLine::crate_format`]); the tests hold the two
+/// to the same bytes.
+struct JsonLine {
     json: Format<Json>,
-    pid: u32,
+    /// `{"pid":N,`.
+    head: String,
 }
 
-impl<S, N> FormatEvent<S, N> for WithPid
+impl JsonLine {
+    fn new(pid: u32) -> JsonLine {
+        JsonLine {
+            json: fmt::format()
+                .json()
+                .with_current_span(true)
+                .with_span_list(false),
+            head: format!("{{\"pid\":{pid},"),
+        }
+    }
+
+    /// The crate's JSON formatter, with the process ID put in as the line's first member.
+    fn crate_format<S, N>(
+        &self,
+        ctx: &FmtContext<'_, S, N>,
+        mut writer: Writer<'_>,
+        event: &tracing::Event<'_>,
+    ) -> std::fmt::Result
+    where
+        S: tracing::Subscriber + for<'a> LookupSpan<'a>,
+        N: for<'a> FormatFields<'a> + 'static,
+    {
+        let mut line = String::new();
+        self.json.format_event(ctx, Writer::new(&mut line), event)?;
+        match line.strip_prefix('{') {
+            Some(rest) => {
+                writer.write_str(&self.head)?;
+                writer.write_str(rest)
+            }
+            None => writer.write_str(&line),
+        }
+    }
+}
+
+thread_local! {
+    /// The line being written and the text of one `%` or `?` field, reused from line to line.
+    static LINE: std::cell::RefCell<(String, String)> = const {
+        std::cell::RefCell::new((String::new(), String::new()))
+    };
+}
+
+impl<S, N> FormatEvent<S, N> for JsonLine
 where
     S: tracing::Subscriber + for<'a> LookupSpan<'a>,
     N: for<'a> FormatFields<'a> + 'static,
@@ -96,13 +146,149 @@ where
         mut writer: Writer<'_>,
         event: &tracing::Event<'_>,
     ) -> std::fmt::Result {
-        let mut line = String::new();
-        self.json.format_event(ctx, Writer::new(&mut line), event)?;
-        // The JSON formatter writes one object per line; the pid goes in as its first member.
-        match line.strip_prefix('{') {
-            Some(rest) => write!(writer, "{{\"pid\":{},{rest}", self.pid),
-            None => writer.write_str(&line),
+        let meta = event.metadata();
+        let now = time::OffsetDateTime::now_utc();
+        // Four digits of year, as the crate's timer writes them (a clock set far off: its format).
+        if meta.fields().field("log.target").is_some() || !(0..=9999).contains(&now.year()) {
+            return self.crate_format(ctx, writer, event);
         }
+        let span = event
+            .parent()
+            .and_then(|id| ctx.span(id))
+            .or_else(|| ctx.lookup_current());
+        let ext = span.as_ref().map(|s| s.extensions());
+        let span_fields = match ext.as_ref().map(|e| e.get::<FormattedFields<N>>()) {
+            None => None,
+            Some(Some(f)) => match f.fields.strip_prefix('{').and_then(|f| f.strip_suffix('}')) {
+                Some(inner) => Some(inner),
+                None => return self.crate_format(ctx, writer, event),
+            },
+            Some(None) => return self.crate_format(ctx, writer, event),
+        };
+        let write = |line: &mut String, value: &mut String| {
+            line.clear();
+            line.push_str(&self.head);
+            line.push_str("\"timestamp\":\"");
+            timestamp(line, now);
+            line.push_str("\",\"level\":\"");
+            line.push_str(meta.level().as_str());
+            line.push_str("\",\"fields\":{");
+            event.record(&mut Fields {
+                line: &mut *line,
+                value,
+                first: true,
+            });
+            line.push_str("},\"target\":");
+            json_str(line, meta.target());
+            if let (Some(span), Some(inner)) = (&span, span_fields) {
+                line.push_str(",\"span\":{");
+                line.push_str(inner);
+                if !inner.is_empty() {
+                    line.push(',');
+                }
+                line.push_str("\"name\":");
+                json_str(line, span.name());
+                line.push('}');
+            }
+            line.push_str("}\n");
+        };
+        // A field's formatting may log in turn: that line gets buffers of its own.
+        LINE.with(|bufs| match bufs.try_borrow_mut() {
+            Ok(mut bufs) => {
+                let (line, value) = &mut *bufs;
+                write(line, value);
+                writer.write_str(line)
+            }
+            Err(_) => {
+                let (mut line, mut value) = (String::new(), String::new());
+                write(&mut line, &mut value);
+                writer.write_str(&line)
+            }
+        })
+    }
+}
+
+/// `t` (year 0 to 9999) as tracing-subscriber's timer writes it: RFC 3339, UTC, microseconds.
+fn timestamp(line: &mut String, t: time::OffsetDateTime) {
+    let digits = |line: &mut String, v: u32, width: u32| {
+        for p in (0..width).rev() {
+            // A digit: below 10.
+            line.push(char::from(b'0' + (v / 10u32.pow(p) % 10) as u8));
+        }
+    };
+    digits(line, u32::try_from(t.year()).unwrap_or(0), 4);
+    line.push('-');
+    digits(line, u32::from(u8::from(t.month())), 2);
+    line.push('-');
+    digits(line, u32::from(t.day()), 2);
+    line.push('T');
+    digits(line, u32::from(t.hour()), 2);
+    line.push(':');
+    digits(line, u32::from(t.minute()), 2);
+    line.push(':');
+    digits(line, u32::from(t.second()), 2);
+    line.push('.');
+    digits(line, t.microsecond(), 6);
+    line.push('Z');
+}
+
+fn json_str(line: &mut String, s: &str) {
+    ihex_gateway_core::json_text::write_str(s, |t| line.push_str(t));
+}
+
+/// The event's fields as the members of a JSON object, as tracing-serde writes them: strings,
+/// numbers and booleans as such, everything else (`%`, `?`, errors, 128-bit numbers) as the string
+/// of its `Debug` form.
+struct Fields<'a> {
+    line: &'a mut String,
+    /// The text of a `Debug` value, before it is escaped.
+    value: &'a mut String,
+    first: bool,
+}
+
+impl Fields<'_> {
+    fn key(&mut self, field: &tracing::field::Field) {
+        if !std::mem::take(&mut self.first) {
+            self.line.push(',');
+        }
+        json_str(self.line, field.name());
+        self.line.push(':');
+    }
+}
+
+impl tracing::field::Visit for Fields<'_> {
+    fn record_str(&mut self, field: &tracing::field::Field, value: &str) {
+        self.key(field);
+        json_str(self.line, value);
+    }
+
+    fn record_bool(&mut self, field: &tracing::field::Field, value: bool) {
+        self.key(field);
+        self.line.push_str(if value { "true" } else { "false" });
+    }
+
+    fn record_u64(&mut self, field: &tracing::field::Field, value: u64) {
+        self.key(field);
+        let _ = write!(self.line, "{value}");
+    }
+
+    fn record_i64(&mut self, field: &tracing::field::Field, value: i64) {
+        self.key(field);
+        let _ = write!(self.line, "{value}");
+    }
+
+    fn record_f64(&mut self, field: &tracing::field::Field, value: f64) {
+        self.key(field);
+        // serde_json's text for it (`null` when not finite).
+        let text = serde_json::to_string(&value).unwrap_or_else(|_| "null".into());
+        self.line.push_str(&text);
+    }
+
+    fn record_debug(&mut self, field: &tracing::field::Field, value: &dyn std::fmt::Debug) {
+        self.key(field);
+        self.value.clear();
+        let _ = write!(self.value, "{value:?}");
+        json_str(self.line, self.value);
     }
 }
 
@@ -198,17 +384,10 @@ pub fn init(cfg: &LogConfig) -> Result<LogGuard, LogError> {
                 .map_err(|e| LogError::File(dir.display().to_string(), e.to_string()))?;
             let (file, g) = non_blocking(appender);
             guards.push(g);
-            let json = fmt::format()
-                .json()
-                .with_current_span(true)
-                .with_span_list(false);
             Some(
                 fmt::layer()
                     .fmt_fields(JsonFields::new())
-                    .event_format(WithPid {
-                        json,
-                        pid: std::process::id(),
-                    })
+                    .event_format(JsonLine::new(std::process::id()))
                     .with_writer(file)
                     .with_filter(filter(cfg)?.with_target(FATAL_TARGET, LevelFilter::ERROR)),
             )
@@ -234,6 +413,124 @@ pub fn init(cfg: &LogConfig) -> Result<LogGuard, LogError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The crate's formatter alone: what [`JsonLine`] must write.
+    struct CrateFormat(JsonLine);
+
+    impl<S, N> FormatEvent<S, N> for CrateFormat
+    where
+        S: tracing::Subscriber + for<'a> LookupSpan<'a>,
+        N: for<'a> FormatFields<'a> + 'static,
+    {
+        fn format_event(
+            &self,
+            ctx: &FmtContext<'_, S, N>,
+            writer: Writer<'_>,
+            event: &tracing::Event<'_>,
+        ) -> std::fmt::Result {
+            self.0.crate_format(ctx, writer, event)
+        }
+    }
+
+    #[derive(Clone, Default)]
+    struct Lines(std::sync::Arc<std::sync::Mutex<Vec<u8>>>);
+
+    impl std::io::Write for Lines {
+        fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+            self.0.lock().unwrap().extend_from_slice(buf);
+            Ok(buf.len())
+        }
+        fn flush(&mut self) -> std::io::Result<()> {
+            Ok(())
+        }
+    }
+
+    impl Lines {
+        /// The lines, each timestamp checked for the timer's shape and then replaced by `T`.
+        fn take(&self) -> Vec<String> {
+            let text = String::from_utf8(std::mem::take(&mut *self.0.lock().unwrap())).unwrap();
+            text.lines()
+                .map(|l| {
+                    let (head, rest) = l.split_once("\"timestamp\":\"").expect(l);
+                    let (ts, tail) = rest.split_once('"').expect(l);
+                    let shape: String = ts
+                        .chars()
+                        .map(|c| if c.is_ascii_digit() { '0' } else { c })
+                        .collect();
+                    assert_eq!(shape, "0000-00-00T00:00:00.000000Z", "{l}");
+                    format!("{head}\"timestamp\":\"T\"{tail}")
+                })
+                .collect()
+        }
+    }
+
+    #[test]
+    fn json_lines_are_the_crates_json_lines() {
+        let (ours, theirs) = (Lines::default(), Lines::default());
+        let layer = |format, lines: &Lines| {
+            let lines = lines.clone();
+            fmt::layer()
+                .fmt_fields(JsonFields::new())
+                .event_format(format)
+                .with_writer(move || lines.clone())
+        };
+        let subscriber = tracing_subscriber::registry()
+            .with(layer(JsonLine::new(4321), &ours))
+            .with(
+                fmt::layer()
+                    .fmt_fields(JsonFields::new())
+                    .event_format(CrateFormat(JsonLine::new(4321)))
+                    .with_writer({
+                        let lines = theirs.clone();
+                        move || lines.clone()
+                    }),
+            );
+        tracing::subscriber::with_default(subscriber, || {
+            tracing::info!("plain message");
+            tracing::warn!(
+                a = 1u64,
+                b = -2i64,
+                c = true,
+                d = 1.5f64,
+                e = f64::NAN,
+                s = "q\"uote\\ \n\u{1}\u{e9}",
+                big = 1u128 << 100,
+                "message {} with \"quotes\"",
+                3
+            );
+            let payload = r#"{"event":"command_result","payload":{"request_id":"r\"1"}}"#;
+            tracing::info!(event = "command_result", payload = %payload, "event published");
+            let io = std::io::Error::other("disk \"full\"");
+            tracing::error!(
+                thing = ?Some("x"),
+                error = &io as &dyn std::error::Error,
+                "with debug"
+            );
+            tracing::debug!(target: "custom::target", r#type = "t", "a target and a raw name");
+            tracing::trace!("trace");
+            let mqtt = tracing::info_span!("mqtt", client_id = "ihex-gateway", n = 2);
+            mqtt.in_scope(|| {
+                tracing::info!("inside a span");
+                let inner = tracing::info_span!("inner");
+                inner.in_scope(|| tracing::info!("inside a span without fields"));
+            });
+            tracing::info!(parent: &mqtt, "with an explicit parent");
+            let later = tracing::info_span!("later", a = tracing::field::Empty, b = "x");
+            later.record("a", 5);
+            later.in_scope(|| tracing::info!("inside a span recorded later"));
+        });
+        let (ours, theirs) = (ours.take(), theirs.take());
+        assert_eq!(ours.len(), 10);
+        for (o, t) in ours.iter().zip(&theirs) {
+            assert_eq!(o, t);
+        }
+        assert_eq!(ours.len(), theirs.len());
+        assert!(
+            ours[0].starts_with("{\"pid\":4321,\"timestamp\""),
+            "{}",
+            ours[0]
+        );
+    }
 
     #[test]
     fn the_current_file_is_named_as_the_appender_names_it() {
