@@ -2,8 +2,9 @@
 //! command as received with its origin, each answer, lease changes, firmware outcomes, start and
 //! stop — as [`Record`]s, and hands them to a writer thread through a bounded queue without ever
 //! waiting: a slow or full disk never slows a command or keeps it from its answer. The writer
-//! appends them to the hash chain ([`ihex_audit::Writer`]) and makes them durable at least once a
-//! second (`fdatasync`), so a power cut loses at most the last second.
+//! appends them to the hash chain ([`ihex_audit::Writer`]) every [`WRITE_EVERY`] and makes them
+//! durable at least once a second after that (`fdatasync`): a power cut loses at most the records
+//! of the last 1.1 s.
 //!
 //! When a record cannot be written (a full disk, `--audit-max-bytes` reached, a failing disk) or the
 //! queue is full, the record is lost and counted: the health flag ([`AuditStatus`], on `/healthz`
@@ -32,6 +33,10 @@ use crate::config::AuditConfig;
 pub const QUEUE: usize = 4096;
 /// Longest time a written record waits for `fdatasync`.
 pub const SYNC_EVERY: Duration = Duration::from_secs(1);
+/// How often the writer's thread takes the records waiting: they are written together, and the
+/// core's hand-over never wakes it (a thread woken per record cost about two thread wake-ups per
+/// command: docs/benchmarks.md).
+pub const WRITE_EVERY: Duration = Duration::from_millis(100);
 /// Lines the island view may show.
 pub const RECENT: usize = 50;
 
@@ -400,33 +405,41 @@ impl AuditWriter {
         }
     }
 
-    /// The writer thread: runs until the core's end is dropped, then syncs and returns.
+    /// The writer thread: every [`WRITE_EVERY`] writes what came, syncs when [`SYNC_EVERY`] has
+    /// passed since the first record not yet synced; once the core's end is dropped, writes the
+    /// rest, syncs and returns.
     pub fn run(mut self) {
         loop {
-            let wait = self.unsynced.map_or(SYNC_EVERY, |since| {
-                SYNC_EVERY.saturating_sub(since.elapsed())
-            });
-            match self.rx.recv_timeout(wait) {
-                Ok((ts, note, unsent)) => self.take(ts, &note, unsent),
-                Err(std_mpsc::RecvTimeoutError::Timeout) => {}
-                Err(std_mpsc::RecvTimeoutError::Disconnected) => break,
-            }
-            if self
-                .unsynced
-                .is_some_and(|since| since.elapsed() >= SYNC_EVERY)
+            std::thread::sleep(WRITE_EVERY);
+            let open = self.drain();
+            if !open
+                || self
+                    .unsynced
+                    .is_some_and(|since| since.elapsed() >= SYNC_EVERY)
             {
                 self.sync();
             }
+            if !open {
+                return;
+            }
         }
-        self.sync();
     }
 
     /// Writes every record waiting, without waiting for more (the benchmark's inline writer).
     // Never inlined: the benchmark counts the writer's instructions as those inside this function.
     #[inline(never)]
     pub fn write_waiting(&mut self) {
-        while let Ok((ts, note, unsent)) = self.rx.try_recv() {
-            self.take(ts, &note, unsent);
+        self.drain();
+    }
+
+    /// Writes every record waiting; false once the core's end is gone and nothing is left.
+    fn drain(&mut self) -> bool {
+        loop {
+            match self.rx.try_recv() {
+                Ok((ts, note, unsent)) => self.take(ts, &note, unsent),
+                Err(std_mpsc::TryRecvError::Empty) => return true,
+                Err(std_mpsc::TryRecvError::Disconnected) => return false,
+            }
         }
     }
 

@@ -1,7 +1,7 @@
 //! Logging set-up for the binary: human-readable lines on stderr and JSON lines in a rotated file,
-//! both written by background threads (`tracing-appender` non-blocking writers, lossy when full:
-//! [`BUFFERED_LINES`] lines each), so logging never blocks the data path. Keep the returned
-//! [`LogGuard`] until shutdown: dropping it flushes what is still buffered.
+//! both written by threads of their own ([`Batched`]: every [`FLUSH_EVERY`], lossy beyond
+//! [`BUFFERED_BYTES`]), so logging never blocks the data path and never wakes a thread per line.
+//! Keep the returned [`LogGuard`] until shutdown: dropping it writes out what is still buffered.
 //!
 //! Every gateway of a machine started with the same log directory writes to the same file (one file
 //! per rotation period, pruned by the appender): each JSON line carries the writing process's
@@ -10,10 +10,11 @@
 
 use std::fmt::Write as _;
 use std::path::PathBuf;
-use tracing_appender::{
-    non_blocking::{NonBlocking, NonBlockingBuilder, WorkerGuard},
-    rolling,
-};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use tracing_appender::rolling;
 
 use tracing_subscriber::{
     filter::{LevelFilter, Targets},
@@ -30,17 +31,109 @@ use tracing_subscriber::{
 
 use crate::config::{LogConfig, Rotation};
 
-/// Lines each log writer buffers for its thread before further lines are dropped. The crate's
-/// default, 128,000, allocates and touches a 4 MB channel per writer at start-up: half the
-/// gateway's resident memory (docs/benchmarks.md). 1,024 lines (32 KB) are a third of a second of
-/// events at 3,000 a second, time enough for the writer's thread even on one busy core.
-pub const BUFFERED_LINES: usize = 1024;
+/// How long a logged line waits for its writer's thread at most. The thread writes what came in
+/// that time in one write: at info every published event is a line, and a writer woken for each
+/// (as `tracing-appender`'s non-blocking writer is) cost two thread wake-ups per command
+/// (docs/benchmarks.md).
+pub const FLUSH_EVERY: Duration = Duration::from_millis(100);
 
-/// A non-blocking writer of [`BUFFERED_LINES`] lines around `w`.
-fn non_blocking<W: std::io::Write + Send + 'static>(w: W) -> (NonBlocking, WorkerGuard) {
-    NonBlockingBuilder::default()
-        .buffered_lines_limit(BUFFERED_LINES)
-        .finish(w)
+/// Bytes of lines each writer holds for its thread before further lines are dropped: 256 KiB, two
+/// periods of events at 3,000 a second, allocated only as lines come.
+pub const BUFFERED_BYTES: usize = 256 * 1024;
+
+/// A log writer that never blocks the thread that logs: lines are appended to a buffer, which a
+/// thread of its own writes out every [`FLUSH_EVERY`] (and once more when its [`Flusher`] is
+/// dropped); when the buffer holds [`BUFFERED_BYTES`] a line is dropped.
+#[derive(Clone)]
+struct Batched(Arc<Lines>);
+
+struct Lines {
+    waiting: Mutex<Vec<u8>>,
+    stop: AtomicBool,
+}
+
+/// Writes out what is left and stops a [`Batched`] writer's thread when dropped.
+struct Flusher {
+    lines: Arc<Lines>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+impl Batched {
+    /// A writer around `out` and the guard of its thread, named `name`.
+    fn new<W: std::io::Write + Send + 'static>(
+        mut out: W,
+        name: &str,
+    ) -> std::io::Result<(Batched, Flusher)> {
+        let lines = Arc::new(Lines {
+            waiting: Mutex::new(Vec::new()),
+            stop: AtomicBool::new(false),
+        });
+        let theirs = Arc::clone(&lines);
+        let thread = std::thread::Builder::new()
+            .name(name.into())
+            .spawn(move || {
+                let mut taken = Vec::new();
+                loop {
+                    // Read before taking the lines: every line logged before the stop is written.
+                    let stop = theirs.stop.load(Ordering::Acquire);
+                    std::mem::swap(&mut taken, &mut *theirs.lock());
+                    if !taken.is_empty() {
+                        // Nowhere to report a failing log: the lines are lost, as when full.
+                        let _ = out.write_all(&taken).and_then(|()| out.flush());
+                        taken.clear();
+                    }
+                    if stop {
+                        return;
+                    }
+                    std::thread::park_timeout(FLUSH_EVERY);
+                }
+            })?;
+        let flusher = Flusher {
+            lines: Arc::clone(&lines),
+            thread: Some(thread),
+        };
+        Ok((Batched(lines), flusher))
+    }
+}
+
+impl Lines {
+    fn lock(&self) -> std::sync::MutexGuard<'_, Vec<u8>> {
+        self.waiting
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+}
+
+impl std::io::Write for &Lines {
+    fn write(&mut self, line: &[u8]) -> std::io::Result<usize> {
+        let mut waiting = self.lock();
+        if waiting.len() + line.len() <= BUFFERED_BYTES {
+            waiting.extend_from_slice(line);
+        }
+        Ok(line.len())
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        Ok(())
+    }
+}
+
+impl<'a> tracing_subscriber::fmt::MakeWriter<'a> for Batched {
+    type Writer = &'a Lines;
+
+    fn make_writer(&'a self) -> &'a Lines {
+        &self.0
+    }
+}
+
+impl Drop for Flusher {
+    fn drop(&mut self) {
+        self.lines.stop.store(true, Ordering::Release);
+        if let Some(thread) = self.thread.take() {
+            thread.thread().unpark();
+            let _ = thread.join();
+        }
+    }
 }
 
 /// Name of the log files: `mc-gateway.<date>.jsonl` in the log directory.
@@ -292,10 +385,10 @@ impl tracing::field::Visit for Fields<'_> {
     }
 }
 
-/// Flushes the log writers when dropped.
+/// Writes out what the log writers still hold, and stops them, when dropped.
 #[must_use = "dropping the guard stops the log writers"]
 pub struct LogGuard {
-    _guards: Vec<WorkerGuard>,
+    _flushers: Vec<Flusher>,
 }
 
 /// Why logging could not be set up.
@@ -307,6 +400,9 @@ pub enum LogError {
     /// The log directory cannot be created or opened.
     #[error("cannot open a log file in {0}: {1}")]
     File(String, String),
+    /// A log writer's thread cannot be started.
+    #[error("cannot start a log writer thread: {0}")]
+    Thread(String),
     /// A global subscriber is already installed.
     #[error("logging already initialised: {0}")]
     Init(String),
@@ -352,13 +448,14 @@ pub fn use_colour(stderr_is_terminal: bool, no_color: Option<std::ffi::OsString>
 
 /// Installs the global subscriber.
 pub fn init(cfg: &LogConfig) -> Result<LogGuard, LogError> {
-    let mut guards = Vec::new();
+    let mut flushers = Vec::new();
     let ansi = use_colour(
         std::io::IsTerminal::is_terminal(&std::io::stderr()),
         std::env::var_os("NO_COLOR"),
     );
-    let (term, g) = non_blocking(std::io::stderr());
-    guards.push(g);
+    let (term, f) = Batched::new(std::io::stderr(), "ihex-log-stderr")
+        .map_err(|e| LogError::Thread(e.to_string()))?;
+    flushers.push(f);
     let term_layer = fmt::layer()
         .with_ansi(ansi)
         .with_writer(term)
@@ -382,8 +479,9 @@ pub fn init(cfg: &LogConfig) -> Result<LogGuard, LogError> {
                 .max_log_files(30)
                 .build(dir)
                 .map_err(|e| LogError::File(dir.display().to_string(), e.to_string()))?;
-            let (file, g) = non_blocking(appender);
-            guards.push(g);
+            let (file, f) = Batched::new(appender, "ihex-log-file")
+                .map_err(|e| LogError::Thread(e.to_string()))?;
+            flushers.push(f);
             Some(
                 fmt::layer()
                     .fmt_fields(JsonFields::new())
@@ -407,12 +505,78 @@ pub fn init(cfg: &LogConfig) -> Result<LogGuard, LogError> {
         ),
         None => tracing::info!("no JSON log file (--log-dir -)"),
     }
-    Ok(LogGuard { _guards: guards })
+    Ok(LogGuard {
+        _flushers: flushers,
+    })
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// An inner writer that keeps what it is given and counts the writes.
+    #[derive(Clone, Default)]
+    struct Kept(Arc<Mutex<(Vec<u8>, usize)>>);
+
+    impl std::io::Write for Kept {
+        fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+            let mut kept = self.0.lock().unwrap();
+            kept.0.extend_from_slice(buf);
+            kept.1 += 1;
+            Ok(buf.len())
+        }
+        fn flush(&mut self) -> std::io::Result<()> {
+            Ok(())
+        }
+    }
+
+    #[test]
+    fn lines_are_written_together_in_order_and_all_of_them_at_the_end() {
+        use std::io::Write as _;
+        use tracing_subscriber::fmt::MakeWriter as _;
+        let kept = Kept::default();
+        let (writer, flusher) = Batched::new(kept.clone(), "test-log").unwrap();
+        // The thread's first turn, at once, finds nothing; the next is a period away.
+        std::thread::sleep(FLUSH_EVERY / 4);
+        for i in 0..100 {
+            writeln!(writer.make_writer(), "line {i}").unwrap();
+        }
+        let want: String = (0..100).map(|i| format!("line {i}\n")).collect();
+        let deadline = std::time::Instant::now() + 20 * FLUSH_EVERY;
+        while kept.0.lock().unwrap().0.len() < want.len() {
+            assert!(std::time::Instant::now() < deadline, "not written in time");
+            std::thread::sleep(FLUSH_EVERY / 10);
+        }
+        let (text, writes) = kept.0.lock().unwrap().clone();
+        assert_eq!(String::from_utf8(text).unwrap(), want);
+        // One write for lines logged together; two when a slow start of the thread put its first
+        // turn among them.
+        assert!(writes <= 2, "{writes} writes for 100 lines");
+        writeln!(writer.make_writer(), "the last").unwrap();
+        drop(flusher);
+        let text = String::from_utf8(kept.0.lock().unwrap().0.clone()).unwrap();
+        assert!(text.ends_with("line 99\nthe last\n"), "{text}");
+    }
+
+    #[test]
+    fn a_line_that_does_not_fit_is_dropped_whole() {
+        use std::io::Write as _;
+        let lines = Lines {
+            waiting: Mutex::new(Vec::new()),
+            stop: AtomicBool::new(false),
+        };
+        let line = [b'x'; 1000];
+        for _ in 0..BUFFERED_BYTES / 1000 {
+            assert_eq!((&lines).write(&line).unwrap(), 1000);
+        }
+        let full = lines.lock().len();
+        assert_eq!(full, BUFFERED_BYTES / 1000 * 1000);
+        // Reported as written (the logger must not retry), kept out of the buffer.
+        assert_eq!((&lines).write(&line).unwrap(), 1000);
+        assert_eq!(lines.lock().len(), full);
+        assert_eq!((&lines).write(b"short\n").unwrap(), 6);
+        assert_eq!(lines.lock().len(), full + 6);
+    }
 
     /// The crate's formatter alone: what [`JsonLine`] must write.
     struct CrateFormat(JsonLine);
@@ -433,9 +597,9 @@ mod tests {
     }
 
     #[derive(Clone, Default)]
-    struct Lines(std::sync::Arc<std::sync::Mutex<Vec<u8>>>);
+    struct Captured(std::sync::Arc<std::sync::Mutex<Vec<u8>>>);
 
-    impl std::io::Write for Lines {
+    impl std::io::Write for Captured {
         fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
             self.0.lock().unwrap().extend_from_slice(buf);
             Ok(buf.len())
@@ -445,7 +609,7 @@ mod tests {
         }
     }
 
-    impl Lines {
+    impl Captured {
         /// The lines, each timestamp checked for the timer's shape and then replaced by `T`.
         fn take(&self) -> Vec<String> {
             let text = String::from_utf8(std::mem::take(&mut *self.0.lock().unwrap())).unwrap();
@@ -466,8 +630,8 @@ mod tests {
 
     #[test]
     fn json_lines_are_the_crates_json_lines() {
-        let (ours, theirs) = (Lines::default(), Lines::default());
-        let layer = |format, lines: &Lines| {
+        let (ours, theirs) = (Captured::default(), Captured::default());
+        let layer = |format, lines: &Captured| {
             let lines = lines.clone();
             fmt::layer()
                 .fmt_fields(JsonFields::new())
