@@ -1,6 +1,7 @@
 //! Logging set-up for the binary: human-readable lines on stderr and JSON lines in a rotated file,
-//! both written by threads of their own ([`Batched`]: every [`FLUSH_EVERY`], lossy beyond
-//! [`BUFFERED_BYTES`]), so logging never blocks the data path and never wakes a thread per line.
+//! both written by threads of their own ([`Batched`]: every [`FLUSH_EVERY`] or [`FLUSH_AT`] bytes,
+//! lossy beyond [`BUFFERED_BYTES`]), so logging never blocks the data path and never wakes a
+//! thread per line.
 //! Keep the returned [`LogGuard`] until shutdown: dropping it writes out what is still buffered.
 //!
 //! Every gateway of a machine started with the same log directory writes to the same file (one file
@@ -37,19 +38,26 @@ use crate::config::{LogConfig, Rotation};
 /// (docs/benchmarks.md).
 pub const FLUSH_EVERY: Duration = Duration::from_millis(100);
 
-/// Bytes of lines each writer holds for its thread before further lines are dropped: 256 KiB, two
-/// periods of events at 3,000 a second, allocated only as lines come.
+/// Bytes of waiting lines that wake the writer's thread before its period is over (about 130
+/// lines): above about 1,300 lines a second the buffer stays this small.
+pub const FLUSH_AT: usize = 32 * 1024;
+
+/// Bytes of lines each writer holds for its thread before further lines are dropped (a thread
+/// that cannot keep up: a slow disk, a busy core).
 pub const BUFFERED_BYTES: usize = 256 * 1024;
 
 /// A log writer that never blocks the thread that logs: lines are appended to a buffer, which a
-/// thread of its own writes out every [`FLUSH_EVERY`] (and once more when its [`Flusher`] is
-/// dropped); when the buffer holds [`BUFFERED_BYTES`] a line is dropped.
+/// thread of its own writes out every [`FLUSH_EVERY`], as soon as it holds [`FLUSH_AT`] bytes,
+/// and once more when its [`Flusher`] is dropped; when the buffer holds [`BUFFERED_BYTES`] a line
+/// is dropped.
 #[derive(Clone)]
 struct Batched(Arc<Lines>);
 
 struct Lines {
     waiting: Mutex<Vec<u8>>,
     stop: AtomicBool,
+    /// The writer's thread, woken at [`FLUSH_AT`].
+    thread: std::sync::OnceLock<std::thread::Thread>,
 }
 
 /// Writes out what is left and stops a [`Batched`] writer's thread when dropped.
@@ -59,14 +67,17 @@ struct Flusher {
 }
 
 impl Batched {
-    /// A writer around `out` and the guard of its thread, named `name`.
+    /// A writer around `out` and the guard of its thread, named `name`, which writes `every`
+    /// ([`FLUSH_EVERY`]).
     fn new<W: std::io::Write + Send + 'static>(
         mut out: W,
         name: &str,
+        every: Duration,
     ) -> std::io::Result<(Batched, Flusher)> {
         let lines = Arc::new(Lines {
             waiting: Mutex::new(Vec::new()),
             stop: AtomicBool::new(false),
+            thread: std::sync::OnceLock::new(),
         });
         let theirs = Arc::clone(&lines);
         let thread = std::thread::Builder::new()
@@ -85,9 +96,10 @@ impl Batched {
                     if stop {
                         return;
                     }
-                    std::thread::park_timeout(FLUSH_EVERY);
+                    std::thread::park_timeout(every);
                 }
             })?;
+        let _ = lines.thread.set(thread.thread().clone());
         let flusher = Flusher {
             lines: Arc::clone(&lines),
             thread: Some(thread),
@@ -107,8 +119,15 @@ impl Lines {
 impl std::io::Write for &Lines {
     fn write(&mut self, line: &[u8]) -> std::io::Result<usize> {
         let mut waiting = self.lock();
-        if waiting.len() + line.len() <= BUFFERED_BYTES {
+        let before = waiting.len();
+        if before + line.len() <= BUFFERED_BYTES {
             waiting.extend_from_slice(line);
+        }
+        if before < FLUSH_AT && waiting.len() >= FLUSH_AT {
+            drop(waiting);
+            if let Some(thread) = self.thread.get() {
+                thread.unpark();
+            }
         }
         Ok(line.len())
     }
@@ -453,7 +472,7 @@ pub fn init(cfg: &LogConfig) -> Result<LogGuard, LogError> {
         std::io::IsTerminal::is_terminal(&std::io::stderr()),
         std::env::var_os("NO_COLOR"),
     );
-    let (term, f) = Batched::new(std::io::stderr(), "ihex-log-stderr")
+    let (term, f) = Batched::new(std::io::stderr(), "ihex-log-stderr", FLUSH_EVERY)
         .map_err(|e| LogError::Thread(e.to_string()))?;
     flushers.push(f);
     let term_layer = fmt::layer()
@@ -479,7 +498,7 @@ pub fn init(cfg: &LogConfig) -> Result<LogGuard, LogError> {
                 .max_log_files(30)
                 .build(dir)
                 .map_err(|e| LogError::File(dir.display().to_string(), e.to_string()))?;
-            let (file, f) = Batched::new(appender, "ihex-log-file")
+            let (file, f) = Batched::new(appender, "ihex-log-file", FLUSH_EVERY)
                 .map_err(|e| LogError::Thread(e.to_string()))?;
             flushers.push(f);
             Some(
@@ -535,7 +554,7 @@ mod tests {
         use std::io::Write as _;
         use tracing_subscriber::fmt::MakeWriter as _;
         let kept = Kept::default();
-        let (writer, flusher) = Batched::new(kept.clone(), "test-log").unwrap();
+        let (writer, flusher) = Batched::new(kept.clone(), "test-log", FLUSH_EVERY).unwrap();
         // The thread's first turn, at once, finds nothing; the next is a period away.
         std::thread::sleep(FLUSH_EVERY / 4);
         for i in 0..100 {
@@ -559,11 +578,32 @@ mod tests {
     }
 
     #[test]
+    fn a_full_batch_is_written_before_the_period_is_over() {
+        use std::io::Write as _;
+        use tracing_subscriber::fmt::MakeWriter as _;
+        let kept = Kept::default();
+        // A period longer than the test may take: only the batch's size can wake the thread.
+        let (writer, _flusher) =
+            Batched::new(kept.clone(), "test-log", Duration::from_secs(3600)).unwrap();
+        let line = [b'y'; 1023];
+        for _ in 0..FLUSH_AT / 1024 {
+            writer.make_writer().write_all(&line).unwrap();
+            writer.make_writer().write_all(b"\n").unwrap();
+        }
+        let deadline = std::time::Instant::now() + Duration::from_secs(30);
+        while kept.0.lock().unwrap().0.len() < FLUSH_AT {
+            assert!(std::time::Instant::now() < deadline, "a full batch waited");
+            std::thread::sleep(Duration::from_millis(1));
+        }
+    }
+
+    #[test]
     fn a_line_that_does_not_fit_is_dropped_whole() {
         use std::io::Write as _;
         let lines = Lines {
             waiting: Mutex::new(Vec::new()),
             stop: AtomicBool::new(false),
+            thread: std::sync::OnceLock::new(),
         };
         let line = [b'x'; 1000];
         for _ in 0..BUFFERED_BYTES / 1000 {
