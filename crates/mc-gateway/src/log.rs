@@ -1,5 +1,5 @@
 //! Logging set-up for the binary: human-readable lines on stderr and JSON lines in a rotated file,
-//! both written by threads of their own ([`Batched`]: every [`FLUSH_EVERY`] or [`FLUSH_AT`] bytes,
+//! both written by threads of their own (`Batched`: every [`FLUSH_EVERY`] or [`FLUSH_AT`] bytes,
 //! lossy beyond [`BUFFERED_BYTES`]), so logging never blocks the data path and never wakes a
 //! thread per line.
 //! Keep the returned [`LogGuard`] until shutdown: dropping it writes out what is still buffered.
