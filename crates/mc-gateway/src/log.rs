@@ -268,16 +268,9 @@ where
             .parent()
             .and_then(|id| ctx.span(id))
             .or_else(|| ctx.lookup_current());
-        let ext = span.as_ref().map(|s| s.extensions());
-        let span_fields = match ext.as_ref().map(|e| e.get::<FormattedFields<N>>()) {
-            None => None,
-            Some(Some(f)) => match f.fields.strip_prefix('{').and_then(|f| f.strip_suffix('}')) {
-                Some(inner) => Some(inner),
-                None => return self.crate_format(ctx, writer, event),
-            },
-            Some(None) => return self.crate_format(ctx, writer, event),
-        };
-        let write = |line: &mut String, value: &mut String| {
+        // The span's fields are read after the event's, as the crate's formatter reads them: a
+        // field whose formatting records into that span finds its extensions unlocked.
+        let write = |line: &mut String, value: &mut String| -> bool {
             line.clear();
             line.push_str(&self.head);
             line.push_str("\"timestamp\":\"");
@@ -292,7 +285,15 @@ where
             });
             line.push_str("},\"target\":");
             json_str(line, meta.target());
-            if let (Some(span), Some(inner)) = (&span, span_fields) {
+            if let Some(span) = &span {
+                let ext = span.extensions();
+                let inner = ext
+                    .get::<FormattedFields<N>>()
+                    .and_then(|f| f.fields.strip_prefix('{'))
+                    .and_then(|f| f.strip_suffix('}'));
+                let Some(inner) = inner else {
+                    return false;
+                };
                 line.push_str(",\"span\":{");
                 line.push_str(inner);
                 if !inner.is_empty() {
@@ -303,20 +304,24 @@ where
                 line.push('}');
             }
             line.push_str("}\n");
+            true
         };
         // A field's formatting may log in turn: that line gets buffers of its own.
-        LINE.with(|bufs| match bufs.try_borrow_mut() {
+        let written = LINE.with(|bufs| match bufs.try_borrow_mut() {
             Ok(mut bufs) => {
                 let (line, value) = &mut *bufs;
-                write(line, value);
-                writer.write_str(line)
+                write(line, value).then(|| writer.write_str(line))
             }
             Err(_) => {
                 let (mut line, mut value) = (String::new(), String::new());
-                write(&mut line, &mut value);
-                writer.write_str(&line)
+                write(&mut line, &mut value).then(|| writer.write_str(&line))
             }
-        })
+        });
+        match written {
+            Some(result) => result,
+            // Span fields that are not a JSON object: the crate's formatter says so in its way.
+            None => self.crate_format(ctx, writer, event),
+        }
     }
 }
 
