@@ -28,6 +28,7 @@ use tokio::task::JoinSet;
 use tracing::{error, info, warn};
 
 use crate::config::AuditConfig;
+use crate::lock;
 
 /// Records waiting for the writer; beyond this they are lost (and counted).
 pub const QUEUE: usize = 4096;
@@ -71,11 +72,6 @@ impl AuditStatus {
         *lock(&self.why) = Some(why);
         self.failing.store(true, Ordering::Relaxed);
     }
-}
-
-/// A poisoned lock only means a thread panicked while holding it; the data is still usable.
-fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
 }
 
 /// What the core task hands the writer: a record, or the text of a command or of a publication

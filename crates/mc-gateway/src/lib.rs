@@ -50,3 +50,9 @@ pub use error::GatewayError;
 pub use run::{run, run_with_stats, Gateway};
 /// The shutdown signal [`run()`] takes (re-exported so callers need no direct `tokio-util` dependency).
 pub use tokio_util::sync::CancellationToken;
+
+/// Locks `m`, also when poisoned: a poisoned lock only means a thread panicked while holding it;
+/// the data is still usable.
+pub(crate) fn lock<T>(m: &std::sync::Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
+}

@@ -157,10 +157,7 @@ async fn audit(State(app): State<Arc<App>>) -> Response {
     let Some(status) = &app.audit else {
         return json(StatusCode::OK, r#"{"on":false,"records":[]}"#.to_owned());
     };
-    let records: Vec<serde_json::Value> = status
-        .recent
-        .lock()
-        .unwrap_or_else(std::sync::PoisonError::into_inner)
+    let records: Vec<serde_json::Value> = crate::lock(&status.recent)
         .iter()
         .filter_map(|line| serde_json::from_slice(line).ok())
         .map(|mut v: serde_json::Value| {
