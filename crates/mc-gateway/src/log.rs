@@ -87,7 +87,7 @@ impl Batched {
                 loop {
                     // Read before taking the lines: every line logged before the stop is written.
                     let stop = theirs.stop.load(Ordering::Acquire);
-                    std::mem::swap(&mut taken, &mut *theirs.lock());
+                    std::mem::swap(&mut taken, &mut *crate::lock(&theirs.waiting));
                     if !taken.is_empty() {
                         // Nowhere to report a failing log: the lines are lost, as when full.
                         let _ = out.write_all(&taken).and_then(|()| out.flush());
@@ -108,17 +108,9 @@ impl Batched {
     }
 }
 
-impl Lines {
-    fn lock(&self) -> std::sync::MutexGuard<'_, Vec<u8>> {
-        self.waiting
-            .lock()
-            .unwrap_or_else(std::sync::PoisonError::into_inner)
-    }
-}
-
 impl std::io::Write for &Lines {
     fn write(&mut self, line: &[u8]) -> std::io::Result<usize> {
-        let mut waiting = self.lock();
+        let mut waiting = crate::lock(&self.waiting);
         let before = waiting.len();
         if before + line.len() <= BUFFERED_BYTES {
             waiting.extend_from_slice(line);
@@ -614,31 +606,13 @@ mod tests {
         for _ in 0..BUFFERED_BYTES / 1000 {
             assert_eq!((&lines).write(&line).unwrap(), 1000);
         }
-        let full = lines.lock().len();
+        let full = crate::lock(&lines.waiting).len();
         assert_eq!(full, BUFFERED_BYTES / 1000 * 1000);
         // Reported as written (the logger must not retry), kept out of the buffer.
         assert_eq!((&lines).write(&line).unwrap(), 1000);
-        assert_eq!(lines.lock().len(), full);
+        assert_eq!(crate::lock(&lines.waiting).len(), full);
         assert_eq!((&lines).write(b"short\n").unwrap(), 6);
-        assert_eq!(lines.lock().len(), full + 6);
-    }
-
-    /// The crate's formatter alone: what [`JsonLine`] must write.
-    struct CrateFormat(JsonLine);
-
-    impl<S, N> FormatEvent<S, N> for CrateFormat
-    where
-        S: tracing::Subscriber + for<'a> LookupSpan<'a>,
-        N: for<'a> FormatFields<'a> + 'static,
-    {
-        fn format_event(
-            &self,
-            ctx: &FmtContext<'_, S, N>,
-            writer: Writer<'_>,
-            event: &tracing::Event<'_>,
-        ) -> std::fmt::Result {
-            self.0.crate_format(ctx, writer, event)
-        }
+        assert_eq!(crate::lock(&lines.waiting).len(), full + 6);
     }
 
     #[derive(Clone, Default)]
@@ -688,7 +662,7 @@ mod tests {
             .with(
                 fmt::layer()
                     .fmt_fields(JsonFields::new())
-                    .event_format(CrateFormat(JsonLine::new(4321)))
+                    .event_format(JsonLine::new(4321).json)
                     .with_writer({
                         let lines = theirs.clone();
                         move || lines.clone()
@@ -730,8 +704,9 @@ mod tests {
         });
         let (ours, theirs) = (ours.take(), theirs.take());
         assert_eq!(ours.len(), 10);
+        // The crate's line is ours without the process ID in front.
         for (o, t) in ours.iter().zip(&theirs) {
-            assert_eq!(o, t);
+            assert_eq!(o.replacen("{\"pid\":4321,", "{", 1), *t);
         }
         assert_eq!(ours.len(), theirs.len());
         assert!(
