@@ -14,7 +14,7 @@
 use std::collections::VecDeque;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-use std::sync::{mpsc as std_mpsc, Arc, Mutex};
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant, SystemTime};
 
 use bytes::Bytes;
@@ -32,6 +32,10 @@ use crate::lock;
 
 /// Records waiting for the writer; beyond this they are lost (and counted).
 pub const QUEUE: usize = 4096;
+/// Places for waiting records the writer keeps between two takes: a burst's larger queue is given
+/// back once written, so the queue's memory follows the last 100 ms's records, not the largest
+/// burst since start (a bounded channel allocates all [`QUEUE`] places for good: 768 KiB).
+const KEPT: usize = 256;
 /// Longest time a written record waits for `fdatasync`.
 pub const SYNC_EVERY: Duration = Duration::from_secs(1);
 /// How often the writer's thread takes the records waiting: they are written together, and the
@@ -102,10 +106,20 @@ enum Note {
 /// right before it.
 type Item = (SystemTime, Note, u64);
 
+/// The notes waiting for the writer, which takes them all at once every [`WRITE_EVERY`].
+#[derive(Debug, Default)]
+struct Waiting {
+    items: Vec<Item>,
+    /// The core's end was dropped: the writer writes what is left and stops.
+    closed: bool,
+    /// The writer's end was dropped (its thread ended).
+    gone: bool,
+}
+
 /// The core task's end of the trail.
 #[derive(Debug)]
 pub struct Audit {
-    tx: std_mpsc::SyncSender<Item>,
+    queue: Arc<Mutex<Waiting>>,
     /// Records lost to a full queue since the last one handed over.
     unsent: std::cell::Cell<u64>,
     status: Arc<AuditStatus>,
@@ -128,15 +142,15 @@ impl Audit {
     pub fn open(config: &AuditConfig) -> Option<(Audit, AuditWriter)> {
         let dir = config.dir.clone()?;
         let status = Arc::new(AuditStatus::default());
-        let (tx, rx) = std_mpsc::sync_channel(QUEUE);
+        let queue = Arc::new(Mutex::new(Waiting::default()));
         let options = WriterOptions {
             max_bytes: config.max_bytes,
             ..WriterOptions::default()
         };
-        let writer = AuditWriter::open(dir, options, rx, status.clone());
+        let writer = AuditWriter::open(dir, options, queue.clone(), status.clone());
         let anchor = config.anchor.map(|every| (every, Instant::now(), None));
         let audit = Audit {
-            tx,
+            queue,
             unsent: std::cell::Cell::new(0),
             status,
             reported: false,
@@ -156,20 +170,19 @@ impl Audit {
     }
 
     fn note(&self, note: Note) {
-        match self
-            .tx
-            .try_send((SystemTime::now(), note, self.unsent.get()))
-        {
-            Ok(()) => self.unsent.set(0),
-            Err(std_mpsc::TrySendError::Full(_)) => {
-                self.unsent.set(self.unsent.get() + 1);
-                self.status
-                    .fail("the audit writer's queue is full (a slow disk)".into());
-            }
-            Err(std_mpsc::TrySendError::Disconnected(_)) => {
-                self.status.fail("the audit writer stopped".into());
-            }
-        }
+        let now = SystemTime::now();
+        let mut waiting = lock(&self.queue);
+        let why = if waiting.gone {
+            "the audit writer stopped"
+        } else if waiting.items.len() >= QUEUE {
+            self.unsent.set(self.unsent.get() + 1);
+            "the audit writer's queue is full (a slow disk)"
+        } else {
+            waiting.items.push((now, note, self.unsent.replace(0)));
+            return;
+        };
+        drop(waiting);
+        self.status.fail(why.into());
     }
 
     /// A command as received, with its origin.
@@ -260,6 +273,12 @@ impl Audit {
         }
         *last = Some(head);
         Some(head.to_text())
+    }
+}
+
+impl Drop for Audit {
+    fn drop(&mut self) {
+        lock(&self.queue).closed = true;
     }
 }
 
@@ -358,7 +377,9 @@ pub fn start_record(config: &crate::config::Config) -> Record {
 /// after a failure.
 #[derive(Debug)]
 pub struct AuditWriter {
-    rx: std_mpsc::Receiver<Item>,
+    queue: Arc<Mutex<Waiting>>,
+    /// The notes taken from the queue, being written (its places go back to the queue).
+    taken: Vec<Item>,
     writer: Option<Writer>,
     status: Arc<AuditStatus>,
     /// Written and not yet synced since then.
@@ -371,7 +392,7 @@ impl AuditWriter {
     fn open(
         dir: PathBuf,
         options: WriterOptions,
-        rx: std_mpsc::Receiver<Item>,
+        queue: Arc<Mutex<Waiting>>,
         status: Arc<AuditStatus>,
     ) -> AuditWriter {
         let writer = match Writer::open(&dir, options) {
@@ -393,7 +414,8 @@ impl AuditWriter {
             }
         };
         AuditWriter {
-            rx,
+            queue,
+            taken: Vec::new(),
             writer,
             status,
             unsynced: None,
@@ -430,13 +452,19 @@ impl AuditWriter {
 
     /// Writes every record waiting; false once the core's end is gone and nothing is left.
     fn drain(&mut self) -> bool {
-        loop {
-            match self.rx.try_recv() {
-                Ok((ts, note, unsent)) => self.take(ts, &note, unsent),
-                Err(std_mpsc::TryRecvError::Empty) => return true,
-                Err(std_mpsc::TryRecvError::Disconnected) => return false,
-            }
+        let mut taken = std::mem::take(&mut self.taken);
+        let open = {
+            let mut waiting = lock(&self.queue);
+            std::mem::swap(&mut waiting.items, &mut taken);
+            // Read with the take: every note handed over before the core's end was dropped is in it.
+            !waiting.closed
+        };
+        for (ts, note, unsent) in taken.drain(..) {
+            self.take(ts, &note, unsent);
         }
+        taken.shrink_to(KEPT);
+        self.taken = taken;
+        open
     }
 
     /// Writes the record of `note`, after a `gap` when records were lost right before it
@@ -489,6 +517,12 @@ impl AuditWriter {
                 self.status.failing.store(true, Ordering::Relaxed);
             }
         }
+    }
+}
+
+impl Drop for AuditWriter {
+    fn drop(&mut self) {
+        lock(&self.queue).gone = true;
     }
 }
 
@@ -646,6 +680,53 @@ mod tests {
         drop(audit);
         writer.run();
         assert_eq!(verify_dir(tmp.path(), None).unwrap().broken, None);
+    }
+
+    #[test]
+    fn a_burst_s_queue_is_given_back_once_written() {
+        let tmp = tempfile::tempdir().unwrap();
+        let config = AuditConfig {
+            dir: Some(tmp.path().to_owned()),
+            anchor: None,
+            max_bytes: None,
+        };
+        let (audit, mut writer) = Audit::open(&config).unwrap();
+        let cmd = Bytes::from_static(br#"{"cmd":"list","request_id":"b"}"#);
+        for _ in 0..QUEUE {
+            audit.command(&Origin::default(), &cmd, false);
+        }
+        assert!(lock(&audit.queue).items.capacity() >= QUEUE);
+        // Two takes: the burst's places come back to the writer with the first, and the queue
+        // gets the writer's kept ones with the second.
+        writer.write_waiting();
+        audit.command(&Origin::default(), &cmd, false);
+        writer.write_waiting();
+        assert!(
+            writer.taken.capacity() <= KEPT,
+            "{}",
+            writer.taken.capacity()
+        );
+        assert!(lock(&audit.queue).items.capacity() <= KEPT);
+        assert_eq!(entries(tmp.path()).len(), QUEUE + 1, "every record written");
+        assert_eq!(audit.status().lost.load(Ordering::Relaxed), 0);
+    }
+
+    #[test]
+    fn a_note_after_the_writer_stopped_is_lost_and_says_why() {
+        let tmp = tempfile::tempdir().unwrap();
+        let config = AuditConfig {
+            dir: Some(tmp.path().to_owned()),
+            anchor: None,
+            max_bytes: None,
+        };
+        let (mut audit, writer) = Audit::open(&config).unwrap();
+        drop(writer);
+        audit.command(&Origin::default(), &Bytes::from_static(b"{}"), false);
+        assert_eq!(audit.status().lost.load(Ordering::Relaxed), 1);
+        let Some(Event::AuditError(e)) = audit.poll_error() else {
+            panic!("no audit_error")
+        };
+        assert!(e.reason.contains("writer stopped"), "{}", e.reason);
     }
 
     #[test]
