@@ -57,6 +57,10 @@ pub const WARN_MAX: Duration = Duration::from_secs(300);
 pub const STAGING: usize = 64;
 /// Commands received and not yet taken by the core, beyond which QoS 0 commands are shed.
 pub const HELD_MAX: usize = 1024;
+/// Places the held inputs and the requests keep once empty: a burst from a broker without an
+/// in-flight limit grows them to thousands (136 bytes per held command), given back when they
+/// empty instead of kept for the rest of the run.
+const KEPT: usize = 64;
 /// Inputs held beyond which even a QoS 1 command is shed (acknowledged, counted): the other
 /// inputs' bound plus every packet identifier a broker can have unacknowledged on one connection,
 /// so a broker that follows the protocol never reaches it.
@@ -572,6 +576,9 @@ impl Session {
     #[must_use]
     pub fn poll_input(&mut self) -> Option<MqttInput> {
         let h = self.held.pop_front()?;
+        if self.held.is_empty() {
+            self.held.shrink_to(KEPT);
+        }
         if let Some((pkid, generation)) = h.ack {
             if generation == self.generation && self.is_connected() {
                 self.requests.push_back(Request::Ack(pkid));
@@ -586,7 +593,11 @@ impl Session {
         if !self.is_connected() {
             return None;
         }
-        self.requests.pop_front()
+        let r = self.requests.pop_front();
+        if self.requests.is_empty() {
+            self.requests.shrink_to(KEPT);
+        }
+        r
     }
 
     /// The next publication for the connection: `online` first on each connection, then the

@@ -193,6 +193,21 @@ fn commands_wait_for_the_core_and_only_qos0_floods_are_shed() {
 }
 
 #[test]
+fn a_burst_s_queues_give_their_memory_back_once_empty() {
+    let t0 = Instant::now();
+    let mut s = connected(t0);
+    for n in 1..=5000 {
+        s.handle_publish(command(n, QoS::AtLeastOnce, b"{}"), t0);
+    }
+    assert!(s.held.capacity() >= 5000);
+    while s.poll_input().is_some() {}
+    assert!(s.held.capacity() <= KEPT, "{}", s.held.capacity());
+    assert!(s.requests.capacity() >= 5000, "an ack per command taken");
+    assert_eq!(drain(&mut s).len(), 5000);
+    assert!(s.requests.capacity() <= KEPT, "{}", s.requests.capacity());
+}
+
+#[test]
 fn qos1_commands_are_held_up_to_what_packet_identifiers_allow() {
     let t0 = Instant::now();
     let mut s = connected(t0);
