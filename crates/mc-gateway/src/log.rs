@@ -87,12 +87,7 @@ impl Batched {
                 loop {
                     // Read before taking the lines: every line logged before the stop is written.
                     let stop = theirs.stop.load(Ordering::Acquire);
-                    std::mem::swap(&mut taken, &mut *crate::lock(&theirs.waiting));
-                    if !taken.is_empty() {
-                        // Nowhere to report a failing log: the lines are lost, as when full.
-                        let _ = out.write_all(&taken).and_then(|()| out.flush());
-                        taken.clear();
-                    }
+                    theirs.write_out(&mut taken, &mut out);
                     if stop {
                         return;
                     }
@@ -105,6 +100,20 @@ impl Batched {
             thread: Some(thread),
         };
         Ok((Batched(lines), flusher))
+    }
+}
+
+impl Lines {
+    /// Takes the waiting lines into `taken` (whose room they get in exchange), writes them to `out`
+    /// and keeps at most [`FLUSH_AT`] of room: a flood's larger buffer is given back once written.
+    fn write_out(&self, taken: &mut Vec<u8>, out: &mut impl std::io::Write) {
+        std::mem::swap(taken, &mut *crate::lock(&self.waiting));
+        if !taken.is_empty() {
+            // Nowhere to report a failing log: the lines are lost, as when full.
+            let _ = out.write_all(taken).and_then(|()| out.flush());
+            taken.clear();
+            taken.shrink_to(FLUSH_AT);
+        }
     }
 }
 
@@ -613,6 +622,29 @@ mod tests {
         assert_eq!(crate::lock(&lines.waiting).len(), full);
         assert_eq!((&lines).write(b"short\n").unwrap(), 6);
         assert_eq!(crate::lock(&lines.waiting).len(), full + 6);
+    }
+
+    #[test]
+    fn a_flood_s_buffer_is_given_back_once_written() {
+        use std::io::Write as _;
+        let lines = Lines {
+            waiting: Mutex::new(Vec::new()),
+            stop: AtomicBool::new(false),
+            thread: std::sync::OnceLock::new(),
+        };
+        let line = [b'x'; 1000];
+        for _ in 0..BUFFERED_BYTES / 1000 {
+            (&lines).write_all(&line).unwrap();
+        }
+        let (mut taken, mut out) = (Vec::new(), Vec::new());
+        lines.write_out(&mut taken, &mut out);
+        assert_eq!(out.len(), BUFFERED_BYTES / 1000 * 1000);
+        assert!(taken.capacity() <= FLUSH_AT, "{}", taken.capacity());
+        // The next take hands the kept room to the logger's side.
+        (&lines).write_all(b"one\n").unwrap();
+        lines.write_out(&mut taken, &mut out);
+        assert!(crate::lock(&lines.waiting).capacity() <= FLUSH_AT);
+        assert!(out.ends_with(b"xxone\n"));
     }
 
     #[derive(Clone, Default)]
