@@ -628,15 +628,20 @@ mod tests {
             .collect()
     }
 
+    /// A trail in `dir`, anchored as `anchor` says.
+    fn open_in(dir: &std::path::Path, anchor: Option<Duration>) -> (Audit, AuditWriter) {
+        let config = AuditConfig {
+            dir: Some(dir.to_owned()),
+            anchor,
+            max_bytes: None,
+        };
+        Audit::open(&config).unwrap()
+    }
+
     #[test]
     fn records_lost_to_a_full_queue_are_a_gap_and_an_error_once() {
         let tmp = tempfile::tempdir().unwrap();
-        let config = AuditConfig {
-            dir: Some(tmp.path().to_owned()),
-            anchor: Some(Duration::ZERO),
-            max_bytes: None,
-        };
-        let (mut audit, mut writer) = Audit::open(&config).unwrap();
+        let (mut audit, mut writer) = open_in(tmp.path(), Some(Duration::ZERO));
         let alice = Origin::new(Interface::Web, Some("local".into()));
         // The writer takes nothing meanwhile: the queue fills and the rest is lost.
         for _ in 0..QUEUE + 3 {
@@ -685,12 +690,7 @@ mod tests {
     #[test]
     fn a_burst_s_queue_is_given_back_once_written() {
         let tmp = tempfile::tempdir().unwrap();
-        let config = AuditConfig {
-            dir: Some(tmp.path().to_owned()),
-            anchor: None,
-            max_bytes: None,
-        };
-        let (audit, mut writer) = Audit::open(&config).unwrap();
+        let (audit, mut writer) = open_in(tmp.path(), None);
         let cmd = Bytes::from_static(br#"{"cmd":"list","request_id":"b"}"#);
         for _ in 0..QUEUE {
             audit.command(&Origin::default(), &cmd, false);
@@ -714,12 +714,7 @@ mod tests {
     #[test]
     fn a_note_after_the_writer_stopped_is_lost_and_says_why() {
         let tmp = tempfile::tempdir().unwrap();
-        let config = AuditConfig {
-            dir: Some(tmp.path().to_owned()),
-            anchor: None,
-            max_bytes: None,
-        };
-        let (mut audit, writer) = Audit::open(&config).unwrap();
+        let (mut audit, writer) = open_in(tmp.path(), None);
         drop(writer);
         audit.command(&Origin::default(), &Bytes::from_static(b"{}"), false);
         assert_eq!(audit.status().lost.load(Ordering::Relaxed), 1);
@@ -732,12 +727,7 @@ mod tests {
     #[test]
     fn a_command_record_names_its_elements_and_claim() {
         let tmp = tempfile::tempdir().unwrap();
-        let config = AuditConfig {
-            dir: Some(tmp.path().to_owned()),
-            anchor: None,
-            max_bytes: None,
-        };
-        let (audit, mut writer) = Audit::open(&config).unwrap();
+        let (audit, mut writer) = open_in(tmp.path(), None);
         let cmd =
             br#"{"cmd":"fw_update","image":"x","nodes":"111, 2A","user":"bob","request_id":"f"}"#;
         audit.command(&Origin::default(), &Bytes::from_static(cmd), true);

@@ -53,6 +53,7 @@ pub const BUFFERED_BYTES: usize = 256 * 1024;
 #[derive(Clone)]
 struct Batched(Arc<Lines>);
 
+#[derive(Default)]
 struct Lines {
     waiting: Mutex<Vec<u8>>,
     stop: AtomicBool,
@@ -74,11 +75,7 @@ impl Batched {
         name: &str,
         every: Duration,
     ) -> std::io::Result<(Batched, Flusher)> {
-        let lines = Arc::new(Lines {
-            waiting: Mutex::new(Vec::new()),
-            stop: AtomicBool::new(false),
-            thread: std::sync::OnceLock::new(),
-        });
+        let lines = Arc::new(Lines::default());
         let theirs = Arc::clone(&lines);
         let thread = std::thread::Builder::new()
             .name(name.into())
@@ -606,11 +603,7 @@ mod tests {
     #[test]
     fn a_line_that_does_not_fit_is_dropped_whole() {
         use std::io::Write as _;
-        let lines = Lines {
-            waiting: Mutex::new(Vec::new()),
-            stop: AtomicBool::new(false),
-            thread: std::sync::OnceLock::new(),
-        };
+        let lines = Lines::default();
         let line = [b'x'; 1000];
         for _ in 0..BUFFERED_BYTES / 1000 {
             assert_eq!((&lines).write(&line).unwrap(), 1000);
@@ -627,11 +620,7 @@ mod tests {
     #[test]
     fn a_flood_s_buffer_is_given_back_once_written() {
         use std::io::Write as _;
-        let lines = Lines {
-            waiting: Mutex::new(Vec::new()),
-            stop: AtomicBool::new(false),
-            thread: std::sync::OnceLock::new(),
-        };
+        let lines = Lines::default();
         let line = [b'x'; 1000];
         for _ in 0..BUFFERED_BYTES / 1000 {
             (&lines).write_all(&line).unwrap();
