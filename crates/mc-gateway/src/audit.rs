@@ -114,6 +114,8 @@ struct Waiting {
     closed: bool,
     /// The writer's end was dropped (its thread ended).
     gone: bool,
+    /// The writer's thread, while it sleeps until the next note.
+    asleep: Option<std::thread::Thread>,
 }
 
 /// The core task's end of the trail.
@@ -179,6 +181,11 @@ impl Audit {
             "the audit writer's queue is full (a slow disk)"
         } else {
             waiting.items.push((now, note, self.unsent.replace(0)));
+            let asleep = waiting.asleep.take();
+            drop(waiting);
+            if let Some(writer) = asleep {
+                writer.unpark();
+            }
             return;
         };
         drop(waiting);
@@ -278,7 +285,14 @@ impl Audit {
 
 impl Drop for Audit {
     fn drop(&mut self) {
-        lock(&self.queue).closed = true;
+        let asleep = {
+            let mut waiting = lock(&self.queue);
+            waiting.closed = true;
+            waiting.asleep.take()
+        };
+        if let Some(writer) = asleep {
+            writer.unpark();
+        }
     }
 }
 
@@ -425,7 +439,9 @@ impl AuditWriter {
 
     /// The writer thread: every [`WRITE_EVERY`] writes what came, syncs when [`SYNC_EVERY`] has
     /// passed since the first record not yet synced; once the core's end is dropped, writes the
-    /// rest, syncs and returns.
+    /// rest, syncs and returns. With nothing to write or sync it sleeps until the next note, and
+    /// takes it [`WRITE_EVERY`] later with those that came after it: an idle gateway's writer
+    /// never wakes.
     pub fn run(mut self) {
         loop {
             std::thread::sleep(WRITE_EVERY);
@@ -440,7 +456,21 @@ impl AuditWriter {
             if !open {
                 return;
             }
+            if self.unsynced.is_none() && self.sleep_unless_waiting() {
+                std::thread::park();
+            }
         }
+    }
+
+    /// Marks this thread asleep unless notes wait or the core's end is gone (then false): the
+    /// next note wakes it.
+    fn sleep_unless_waiting(&self) -> bool {
+        let mut waiting = lock(&self.queue);
+        if !waiting.items.is_empty() || waiting.closed {
+            return false;
+        }
+        waiting.asleep = Some(std::thread::current());
+        true
     }
 
     /// Writes every record waiting, without waiting for more (the benchmark's inline writer).
@@ -709,6 +739,35 @@ mod tests {
         assert!(lock(&audit.queue).items.capacity() <= KEPT);
         assert_eq!(entries(tmp.path()).len(), QUEUE + 1, "every record written");
         assert_eq!(audit.status().lost.load(Ordering::Relaxed), 0);
+    }
+
+    #[test]
+    fn an_idle_writer_sleeps_until_the_next_note() {
+        let tmp = tempfile::tempdir().unwrap();
+        let (audit, writer) = open_in(tmp.path(), None);
+        let queue = audit.queue.clone();
+        let status = audit.status();
+        let thread = std::thread::spawn(move || writer.run());
+        let until = |what: &str, done: &dyn Fn() -> bool| {
+            let deadline = Instant::now() + Duration::from_secs(20);
+            while !done() {
+                assert!(Instant::now() < deadline, "{what}: not in time");
+                std::thread::sleep(WRITE_EVERY / 4);
+            }
+        };
+        let cmd = Bytes::from_static(br#"{"cmd":"list","request_id":"i"}"#);
+        audit.command(&Origin::default(), &cmd, false);
+        // Written, synced a second later, then asleep.
+        until("asleep", &|| lock(&queue).asleep.is_some());
+        assert_eq!(status.written.load(Ordering::Relaxed), 1);
+        audit.command(&Origin::default(), &cmd, false);
+        until("the next note written", &|| {
+            status.written.load(Ordering::Relaxed) == 2
+        });
+        drop(audit);
+        thread.join().unwrap();
+        assert_eq!(verify_dir(tmp.path(), None).unwrap().broken, None);
+        assert_eq!(entries(tmp.path()).len(), 2);
     }
 
     #[test]

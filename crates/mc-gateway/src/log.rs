@@ -49,7 +49,8 @@ pub const BUFFERED_BYTES: usize = 256 * 1024;
 /// A log writer that never blocks the thread that logs: lines are appended to a buffer, which a
 /// thread of its own writes out every [`FLUSH_EVERY`], as soon as it holds [`FLUSH_AT`] bytes,
 /// and once more when its [`Flusher`] is dropped; when the buffer holds [`BUFFERED_BYTES`] a line
-/// is dropped.
+/// is dropped. After a period without lines the thread sleeps until the next line, which it
+/// writes a period later with those logged after it: an idle gateway's writers never wake.
 #[derive(Clone)]
 struct Batched(Arc<Lines>);
 
@@ -57,7 +58,9 @@ struct Batched(Arc<Lines>);
 struct Lines {
     waiting: Mutex<Vec<u8>>,
     stop: AtomicBool,
-    /// The writer's thread, woken at [`FLUSH_AT`].
+    /// The writer's thread sleeps until a line comes (read and written with `waiting` locked).
+    asleep: AtomicBool,
+    /// The writer's thread, woken at [`FLUSH_AT`] and by the first line when asleep.
     thread: std::sync::OnceLock<std::thread::Thread>,
 }
 
@@ -84,9 +87,15 @@ impl Batched {
                 loop {
                     // Read before taking the lines: every line logged before the stop is written.
                     let stop = theirs.stop.load(Ordering::Acquire);
-                    theirs.write_out(&mut taken, &mut out);
+                    let wrote = theirs.write_out(&mut taken, &mut out);
                     if stop {
                         return;
+                    }
+                    if !wrote && theirs.sleep_unless_waiting() {
+                        std::thread::park();
+                        if theirs.stop.load(Ordering::Acquire) {
+                            continue;
+                        }
                     }
                     std::thread::park_timeout(every);
                 }
@@ -103,14 +112,26 @@ impl Batched {
 impl Lines {
     /// Takes the waiting lines into `taken` (whose room they get in exchange), writes them to `out`
     /// and keeps at most [`FLUSH_AT`] of room: a flood's larger buffer is given back once written.
-    fn write_out(&self, taken: &mut Vec<u8>, out: &mut impl std::io::Write) {
+    /// False when nothing waited.
+    fn write_out(&self, taken: &mut Vec<u8>, out: &mut impl std::io::Write) -> bool {
         std::mem::swap(taken, &mut *crate::lock(&self.waiting));
-        if !taken.is_empty() {
-            // Nowhere to report a failing log: the lines are lost, as when full.
-            let _ = out.write_all(taken).and_then(|()| out.flush());
-            taken.clear();
-            taken.shrink_to(FLUSH_AT);
+        if taken.is_empty() {
+            return false;
         }
+        // Nowhere to report a failing log: the lines are lost, as when full.
+        let _ = out.write_all(taken).and_then(|()| out.flush());
+        taken.clear();
+        taken.shrink_to(FLUSH_AT);
+        true
+    }
+
+    /// Marks the writer's thread asleep, unless a line came meanwhile (then false): the next
+    /// line wakes it.
+    fn sleep_unless_waiting(&self) -> bool {
+        let waiting = crate::lock(&self.waiting);
+        let asleep = waiting.is_empty();
+        self.asleep.store(asleep, Ordering::Relaxed);
+        asleep
     }
 }
 
@@ -121,8 +142,10 @@ impl std::io::Write for &Lines {
         if before + line.len() <= BUFFERED_BYTES {
             waiting.extend_from_slice(line);
         }
-        if before < FLUSH_AT && waiting.len() >= FLUSH_AT {
-            drop(waiting);
+        let wake = (before < FLUSH_AT && waiting.len() >= FLUSH_AT)
+            || (before == 0 && self.asleep.swap(false, Ordering::Relaxed));
+        drop(waiting);
+        if wake {
             if let Some(thread) = self.thread.get() {
                 thread.unpark();
             }
@@ -578,6 +601,46 @@ mod tests {
         drop(flusher);
         let text = String::from_utf8(kept.0.lock().unwrap().0.clone()).unwrap();
         assert!(text.ends_with("line 99\nthe last\n"), "{text}");
+    }
+
+    #[test]
+    fn an_idle_writer_sleeps_until_the_next_line() {
+        use std::io::Write as _;
+        use tracing_subscriber::fmt::MakeWriter as _;
+        let kept = Kept::default();
+        let every = Duration::from_millis(20);
+        let (writer, _flusher) = Batched::new(kept.clone(), "test-log", every).unwrap();
+        let written = |n: usize| {
+            let deadline = std::time::Instant::now() + 100 * every;
+            while kept.0.lock().unwrap().0.len() < n {
+                assert!(std::time::Instant::now() < deadline, "not written in time");
+                std::thread::sleep(every / 4);
+            }
+        };
+        let asleep = || {
+            let deadline = std::time::Instant::now() + 100 * every;
+            while !writer.0.asleep.load(Ordering::Relaxed) {
+                assert!(std::time::Instant::now() < deadline, "never went to sleep");
+                std::thread::sleep(every / 4);
+            }
+        };
+        asleep();
+        writeln!(writer.make_writer(), "first").unwrap();
+        written(6);
+        asleep();
+        let writes = kept.0.lock().unwrap().1;
+        std::thread::sleep(5 * every);
+        assert_eq!(
+            kept.0.lock().unwrap().1,
+            writes,
+            "nothing written while asleep"
+        );
+        writeln!(writer.make_writer(), "second").unwrap();
+        written(13);
+        assert_eq!(
+            String::from_utf8(kept.0.lock().unwrap().0.clone()).unwrap(),
+            "first\nsecond\n"
+        );
     }
 
     #[test]
