@@ -115,6 +115,15 @@ struct Held {
     ack: Option<(u16, u64)>,
 }
 
+/// The first of `queue`, which gives a burst's room back once it is empty (down to [`KEPT`]).
+fn pop_front<T>(queue: &mut VecDeque<T>) -> Option<T> {
+    let first = queue.pop_front();
+    if queue.is_empty() {
+        queue.shrink_to(KEPT);
+    }
+    first
+}
+
 /// The broker link as the session sees it.
 #[derive(Debug)]
 enum Link {
@@ -575,10 +584,7 @@ impl Session {
     /// The next input for the core, once it has room (its ack, if any, is then queued).
     #[must_use]
     pub fn poll_input(&mut self) -> Option<MqttInput> {
-        let h = self.held.pop_front()?;
-        if self.held.is_empty() {
-            self.held.shrink_to(KEPT);
-        }
+        let h = pop_front(&mut self.held)?;
         if let Some((pkid, generation)) = h.ack {
             if generation == self.generation && self.is_connected() {
                 self.requests.push_back(Request::Ack(pkid));
@@ -593,11 +599,7 @@ impl Session {
         if !self.is_connected() {
             return None;
         }
-        let r = self.requests.pop_front();
-        if self.requests.is_empty() {
-            self.requests.shrink_to(KEPT);
-        }
-        r
+        pop_front(&mut self.requests)
     }
 
     /// The next publication for the connection: `online` first on each connection, then the
