@@ -28,6 +28,7 @@ use tokio::task::JoinSet;
 use tracing::{error, info, warn};
 
 use crate::config::AuditConfig;
+use crate::handover::Handover;
 use crate::lock;
 
 /// Records waiting for the writer; beyond this they are lost (and counted).
@@ -107,21 +108,12 @@ enum Note {
 type Item = (SystemTime, Note, u64);
 
 /// The notes waiting for the writer, which takes them all at once every [`WRITE_EVERY`].
-#[derive(Debug, Default)]
-struct Waiting {
-    items: Vec<Item>,
-    /// The core's end was dropped: the writer writes what is left and stops.
-    closed: bool,
-    /// The writer's end was dropped (its thread ended).
-    gone: bool,
-    /// The writer's thread, while it sleeps until the next note.
-    asleep: Option<std::thread::Thread>,
-}
+type Queue = Arc<Handover<Vec<Item>>>;
 
 /// The core task's end of the trail.
 #[derive(Debug)]
 pub struct Audit {
-    queue: Arc<Mutex<Waiting>>,
+    queue: Queue,
     /// Records lost to a full queue since the last one handed over.
     unsent: std::cell::Cell<u64>,
     status: Arc<AuditStatus>,
@@ -144,7 +136,7 @@ impl Audit {
     pub fn open(config: &AuditConfig) -> Option<(Audit, AuditWriter)> {
         let dir = config.dir.clone()?;
         let status = Arc::new(AuditStatus::default());
-        let queue = Arc::new(Mutex::new(Waiting::default()));
+        let queue = Queue::default();
         let options = WriterOptions {
             max_bytes: config.max_bytes,
             ..WriterOptions::default()
@@ -173,22 +165,22 @@ impl Audit {
 
     fn note(&self, note: Note) {
         let now = SystemTime::now();
-        let mut waiting = lock(&self.queue);
-        let why = if waiting.gone {
-            "the audit writer stopped"
-        } else if waiting.items.len() >= QUEUE {
-            self.unsent.set(self.unsent.get() + 1);
-            "the audit writer's queue is full (a slow disk)"
-        } else {
-            waiting.items.push((now, note, self.unsent.replace(0)));
-            let asleep = waiting.asleep.take();
-            drop(waiting);
-            if let Some(writer) = asleep {
-                writer.unpark();
+        let unsent = self.unsent.get();
+        let queued = self.queue.put(|items| {
+            let room = items.len() < QUEUE;
+            if room {
+                items.push((now, note, unsent));
             }
-            return;
+            (room, false)
+        });
+        let why = match queued {
+            Some(true) => return self.unsent.set(0),
+            Some(false) => {
+                self.unsent.set(unsent + 1);
+                "the audit writer's queue is full (a slow disk)"
+            }
+            None => "the audit writer stopped",
         };
-        drop(waiting);
         self.status.fail(why.into());
     }
 
@@ -285,14 +277,7 @@ impl Audit {
 
 impl Drop for Audit {
     fn drop(&mut self) {
-        let asleep = {
-            let mut waiting = lock(&self.queue);
-            waiting.closed = true;
-            waiting.asleep.take()
-        };
-        if let Some(writer) = asleep {
-            writer.unpark();
-        }
+        self.queue.close();
     }
 }
 
@@ -391,7 +376,7 @@ pub fn start_record(config: &crate::config::Config) -> Record {
 /// after a failure.
 #[derive(Debug)]
 pub struct AuditWriter {
-    queue: Arc<Mutex<Waiting>>,
+    queue: Queue,
     /// The notes taken from the queue, being written (its places go back to the queue).
     taken: Vec<Item>,
     writer: Option<Writer>,
@@ -406,7 +391,7 @@ impl AuditWriter {
     fn open(
         dir: PathBuf,
         options: WriterOptions,
-        queue: Arc<Mutex<Waiting>>,
+        queue: Queue,
         status: Arc<AuditStatus>,
     ) -> AuditWriter {
         let writer = match Writer::open(&dir, options) {
@@ -456,21 +441,11 @@ impl AuditWriter {
             if !open {
                 return;
             }
-            if self.unsynced.is_none() && self.sleep_unless_waiting() {
-                std::thread::park();
+            if self.unsynced.is_none() {
+                // Closed meanwhile: the next turn writes the rest and returns.
+                let _ = self.queue.sleep(Vec::is_empty);
             }
         }
-    }
-
-    /// Marks this thread asleep unless notes wait or the core's end is gone (then false): the
-    /// next note wakes it.
-    fn sleep_unless_waiting(&self) -> bool {
-        let mut waiting = lock(&self.queue);
-        if !waiting.items.is_empty() || waiting.closed {
-            return false;
-        }
-        waiting.asleep = Some(std::thread::current());
-        true
     }
 
     /// Writes every record waiting, without waiting for more (the benchmark's inline writer).
@@ -483,12 +458,7 @@ impl AuditWriter {
     /// Writes every record waiting; false once the core's end is gone and nothing is left.
     fn drain(&mut self) -> bool {
         let mut taken = std::mem::take(&mut self.taken);
-        let open = {
-            let mut waiting = lock(&self.queue);
-            std::mem::swap(&mut waiting.items, &mut taken);
-            // Read with the take: every note handed over before the core's end was dropped is in it.
-            !waiting.closed
-        };
+        let open = self.queue.take(&mut taken);
         for (ts, note, unsent) in taken.drain(..) {
             self.take(ts, &note, unsent);
         }
@@ -552,7 +522,7 @@ impl AuditWriter {
 
 impl Drop for AuditWriter {
     fn drop(&mut self) {
-        lock(&self.queue).gone = true;
+        self.queue.writer_gone();
     }
 }
 
@@ -725,7 +695,7 @@ mod tests {
         for _ in 0..QUEUE {
             audit.command(&Origin::default(), &cmd, false);
         }
-        assert!(lock(&audit.queue).items.capacity() >= QUEUE);
+        assert!(audit.queue.with(Vec::capacity) >= QUEUE);
         // Two takes: the burst's places come back to the writer with the first, and the queue
         // gets the writer's kept ones with the second.
         writer.write_waiting();
@@ -736,7 +706,7 @@ mod tests {
             "{}",
             writer.taken.capacity()
         );
-        assert!(lock(&audit.queue).items.capacity() <= KEPT);
+        assert!(audit.queue.with(Vec::capacity) <= KEPT);
         assert_eq!(entries(tmp.path()).len(), QUEUE + 1, "every record written");
         assert_eq!(audit.status().lost.load(Ordering::Relaxed), 0);
     }
@@ -758,7 +728,7 @@ mod tests {
         let cmd = Bytes::from_static(br#"{"cmd":"list","request_id":"i"}"#);
         audit.command(&Origin::default(), &cmd, false);
         // Written, synced a second later, then asleep.
-        until("asleep", &|| lock(&queue).asleep.is_some());
+        until("asleep", &|| queue.asleep());
         assert_eq!(status.written.load(Ordering::Relaxed), 1);
         audit.command(&Origin::default(), &cmd, false);
         until("the next note written", &|| {

@@ -28,6 +28,7 @@ pub mod doctor;
 pub mod error;
 pub mod feed;
 pub mod fw;
+mod handover;
 pub mod log;
 pub mod metrics;
 pub mod mqtt;

@@ -11,8 +11,7 @@
 
 use std::fmt::Write as _;
 use std::path::PathBuf;
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 use std::time::Duration;
 
 use tracing_appender::rolling;
@@ -31,6 +30,7 @@ use tracing_subscriber::{
 };
 
 use crate::config::{LogConfig, Rotation};
+use crate::handover::Handover;
 
 /// How long a logged line waits for its writer's thread at most. The thread writes what came in
 /// that time in one write: at info every published event is a line, and a writer woken for each
@@ -54,15 +54,9 @@ pub const BUFFERED_BYTES: usize = 256 * 1024;
 #[derive(Clone)]
 struct Batched(Arc<Lines>);
 
+/// The lines waiting for a [`Batched`] writer's thread.
 #[derive(Default)]
-struct Lines {
-    waiting: Mutex<Vec<u8>>,
-    stop: AtomicBool,
-    /// The writer's thread sleeps until a line comes (read and written with `waiting` locked).
-    asleep: AtomicBool,
-    /// The writer's thread, woken at [`FLUSH_AT`] and by the first line when asleep.
-    thread: std::sync::OnceLock<std::thread::Thread>,
-}
+struct Lines(Handover<Vec<u8>>);
 
 /// Writes out what is left and stops a [`Batched`] writer's thread when dropped.
 struct Flusher {
@@ -85,22 +79,17 @@ impl Batched {
             .spawn(move || {
                 let mut taken = Vec::new();
                 loop {
-                    // Read before taking the lines: every line logged before the stop is written.
-                    let stop = theirs.stop.load(Ordering::Acquire);
-                    let wrote = theirs.write_out(&mut taken, &mut out);
-                    if stop {
+                    let open = theirs.0.take(&mut taken);
+                    let wrote = write_out(&mut taken, &mut out);
+                    if !open {
                         return;
                     }
-                    if !wrote && theirs.sleep_unless_waiting() {
-                        std::thread::park();
-                        if theirs.stop.load(Ordering::Acquire) {
-                            continue;
-                        }
+                    if !wrote && !theirs.0.sleep(Vec::is_empty) {
+                        continue;
                     }
                     std::thread::park_timeout(every);
                 }
             })?;
-        let _ = lines.thread.set(thread.thread().clone());
         let flusher = Flusher {
             lines: Arc::clone(&lines),
             thread: Some(thread),
@@ -109,47 +98,29 @@ impl Batched {
     }
 }
 
-impl Lines {
-    /// Takes the waiting lines into `taken` (whose room they get in exchange), writes them to `out`
-    /// and keeps at most [`FLUSH_AT`] of room: a flood's larger buffer is given back once written.
-    /// False when nothing waited.
-    fn write_out(&self, taken: &mut Vec<u8>, out: &mut impl std::io::Write) -> bool {
-        std::mem::swap(taken, &mut *crate::lock(&self.waiting));
-        if taken.is_empty() {
-            return false;
-        }
-        // Nowhere to report a failing log: the lines are lost, as when full.
-        let _ = out.write_all(taken).and_then(|()| out.flush());
-        taken.clear();
-        taken.shrink_to(FLUSH_AT);
-        true
+/// Writes the lines `taken` from the hand-over to `out` and keeps at most [`FLUSH_AT`] of room: a
+/// flood's larger buffer is given back once written. False when there were none.
+fn write_out(taken: &mut Vec<u8>, out: &mut impl std::io::Write) -> bool {
+    if taken.is_empty() {
+        return false;
     }
-
-    /// Marks the writer's thread asleep, unless a line came meanwhile (then false): the next
-    /// line wakes it.
-    fn sleep_unless_waiting(&self) -> bool {
-        let waiting = crate::lock(&self.waiting);
-        let asleep = waiting.is_empty();
-        self.asleep.store(asleep, Ordering::Relaxed);
-        asleep
-    }
+    // Nowhere to report a failing log: the lines are lost, as when full.
+    let _ = out.write_all(taken).and_then(|()| out.flush());
+    taken.clear();
+    taken.shrink_to(FLUSH_AT);
+    true
 }
 
 impl std::io::Write for &Lines {
     fn write(&mut self, line: &[u8]) -> std::io::Result<usize> {
-        let mut waiting = crate::lock(&self.waiting);
-        let before = waiting.len();
-        if before + line.len() <= BUFFERED_BYTES {
-            waiting.extend_from_slice(line);
-        }
-        let wake = (before < FLUSH_AT && waiting.len() >= FLUSH_AT)
-            || (before == 0 && self.asleep.swap(false, Ordering::Relaxed));
-        drop(waiting);
-        if wake {
-            if let Some(thread) = self.thread.get() {
-                thread.unpark();
+        // Refused only once the writer's thread is gone, which the guard's drop alone ends.
+        let _ = self.0.put(|waiting| {
+            let before = waiting.len();
+            if before + line.len() <= BUFFERED_BYTES {
+                waiting.extend_from_slice(line);
             }
-        }
+            ((), before < FLUSH_AT && waiting.len() >= FLUSH_AT)
+        });
         Ok(line.len())
     }
 
@@ -168,9 +139,8 @@ impl<'a> tracing_subscriber::fmt::MakeWriter<'a> for Batched {
 
 impl Drop for Flusher {
     fn drop(&mut self) {
-        self.lines.stop.store(true, Ordering::Release);
+        self.lines.0.close();
         if let Some(thread) = self.thread.take() {
-            thread.thread().unpark();
             let _ = thread.join();
         }
     }
@@ -559,9 +529,9 @@ pub fn init(cfg: &LogConfig) -> Result<LogGuard, LogError> {
 mod tests {
     use super::*;
 
-    /// An inner writer that keeps what it is given and counts the writes.
+    /// A writer that keeps what it is given and counts the writes.
     #[derive(Clone, Default)]
-    struct Kept(Arc<Mutex<(Vec<u8>, usize)>>);
+    struct Kept(Arc<std::sync::Mutex<(Vec<u8>, usize)>>);
 
     impl std::io::Write for Kept {
         fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
@@ -619,7 +589,7 @@ mod tests {
         };
         let asleep = || {
             let deadline = std::time::Instant::now() + 100 * every;
-            while !writer.0.asleep.load(Ordering::Relaxed) {
+            while !writer.0 .0.asleep() {
                 assert!(std::time::Instant::now() < deadline, "never went to sleep");
                 std::thread::sleep(every / 4);
             }
@@ -671,13 +641,13 @@ mod tests {
         for _ in 0..BUFFERED_BYTES / 1000 {
             assert_eq!((&lines).write(&line).unwrap(), 1000);
         }
-        let full = crate::lock(&lines.waiting).len();
+        let full = lines.0.with(Vec::len);
         assert_eq!(full, BUFFERED_BYTES / 1000 * 1000);
         // Reported as written (the logger must not retry), kept out of the buffer.
         assert_eq!((&lines).write(&line).unwrap(), 1000);
-        assert_eq!(crate::lock(&lines.waiting).len(), full);
+        assert_eq!(lines.0.with(Vec::len), full);
         assert_eq!((&lines).write(b"short\n").unwrap(), 6);
-        assert_eq!(crate::lock(&lines.waiting).len(), full + 6);
+        assert_eq!(lines.0.with(Vec::len), full + 6);
     }
 
     #[test]
@@ -689,33 +659,22 @@ mod tests {
             (&lines).write_all(&line).unwrap();
         }
         let (mut taken, mut out) = (Vec::new(), Vec::new());
-        lines.write_out(&mut taken, &mut out);
+        lines.0.take(&mut taken);
+        write_out(&mut taken, &mut out);
         assert_eq!(out.len(), BUFFERED_BYTES / 1000 * 1000);
         assert!(taken.capacity() <= FLUSH_AT, "{}", taken.capacity());
         // The next take hands the kept room to the logger's side.
         (&lines).write_all(b"one\n").unwrap();
-        lines.write_out(&mut taken, &mut out);
-        assert!(crate::lock(&lines.waiting).capacity() <= FLUSH_AT);
+        lines.0.take(&mut taken);
+        write_out(&mut taken, &mut out);
+        assert!(lines.0.with(Vec::capacity) <= FLUSH_AT);
         assert!(out.ends_with(b"xxone\n"));
     }
 
-    #[derive(Clone, Default)]
-    struct Captured(std::sync::Arc<std::sync::Mutex<Vec<u8>>>);
-
-    impl std::io::Write for Captured {
-        fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
-            self.0.lock().unwrap().extend_from_slice(buf);
-            Ok(buf.len())
-        }
-        fn flush(&mut self) -> std::io::Result<()> {
-            Ok(())
-        }
-    }
-
-    impl Captured {
+    impl Kept {
         /// The lines, each timestamp checked for the timer's shape and then replaced by `T`.
         fn take(&self) -> Vec<String> {
-            let text = String::from_utf8(std::mem::take(&mut *self.0.lock().unwrap())).unwrap();
+            let text = String::from_utf8(std::mem::take(&mut self.0.lock().unwrap().0)).unwrap();
             text.lines()
                 .map(|l| {
                     let (head, rest) = l.split_once("\"timestamp\":\"").expect(l);
@@ -733,8 +692,8 @@ mod tests {
 
     #[test]
     fn json_lines_are_the_crates_json_lines() {
-        let (ours, theirs) = (Captured::default(), Captured::default());
-        let layer = |format, lines: &Captured| {
+        let (ours, theirs) = (Kept::default(), Kept::default());
+        let layer = |format, lines: &Kept| {
             let lines = lines.clone();
             fmt::layer()
                 .fmt_fields(JsonFields::new())
