@@ -734,6 +734,44 @@ pub(crate) fn cpu_ms(pid: u32) -> Result<f64> {
     Ok(user + system)
 }
 
+/// Answered commands of the shorter core-alone run ([`core_alone_ms`]); the longer one runs twice
+/// as many.
+const CORE_ALONE_N: u32 = 10_000;
+
+/// CPU per 1,000 answered commands of the gateway's sans-IO core alone: `ihex-bench workload
+/// --path answered` (a command parsed, checked and tracked, its frame, the node's ack, its
+/// `command_result` and the element's state document written as JSON; no I/O, no tokio) run as a
+/// child on the measured CPU for [`CORE_ALONE_N`] commands and for twice as many; the difference of
+/// the two runs' CPU over the difference of their commands, so that start-up and set-up cancel.
+fn core_alone_ms(pinning: Option<&Pinning>) -> Result<f64> {
+    let run = |n: u32| -> Result<f64> {
+        let before = children_cpu_ms()?;
+        let status = Pinning::measured(pinning, || {
+            Command::new(std::env::current_exe()?)
+                .args(["workload", "--path", "answered", "--n", &n.to_string()])
+                .stdin(Stdio::null())
+                .stdout(Stdio::null())
+                .status()
+                .context("running the core-alone workload")
+        })?;
+        if !status.success() {
+            bail!("the core-alone workload (ihex-bench workload --path answered) failed: {status}");
+        }
+        Ok(children_cpu_ms()? - before)
+    };
+    let short = run(CORE_ALONE_N)?;
+    let long = run(2 * CORE_ALONE_N)?;
+    Ok((long - short).max(0.0) * 1000.0 / f64::from(CORE_ALONE_N))
+}
+
+/// User + system CPU of this process's children that have been waited for, ms.
+fn children_cpu_ms() -> Result<f64> {
+    use nix::sys::resource::{getrusage, UsageWho};
+    let u = getrusage(UsageWho::RUSAGE_CHILDREN).context("getrusage(RUSAGE_CHILDREN)")?;
+    let ms = |t: nix::sys::time::TimeVal| t.tv_sec() as f64 * 1e3 + t.tv_usec() as f64 / 1e3;
+    Ok(ms(u.user_time()) + ms(u.system_time()))
+}
+
 /// Context switches of `pid` so far, voluntary and not, summed over its threads (threads that
 /// have ended no longer count: the gateway and Mosquitto keep theirs).
 pub(crate) fn switches(pid: u32) -> Result<u64> {
@@ -1426,8 +1464,9 @@ impl Bench {
         out
     }
 
-    /// [`COST_ROUNDS`] rounds of a gateway command trial and a forwarder trial at `rate`, one
-    /// after the other; returns them with every trial, gateway and forwarder alternately.
+    /// [`COST_ROUNDS`] rounds of a gateway command trial, a forwarder trial at `rate` and the
+    /// core alone ([`core_alone_ms`]), one after the other; returns them with every trial,
+    /// gateway and forwarder alternately.
     fn cost_rounds(&mut self, rate: f64) -> Result<(Vec<CostRound>, Vec<Trial>)> {
         let per_1k = |t: &Trial| t.gateway_cpu_ms * 1000.0 / t.received.max(1) as f64;
         let (mut rounds, mut trials) = (Vec::new(), Vec::new());
@@ -1440,12 +1479,15 @@ impl Bench {
                 forward_ms: per_1k(&forward),
                 gateway_share: gateway.share,
                 forward_share: forward.share,
+                core_ms: Some(core_alone_ms(self.pinning.as_ref())?),
             };
             println!(
-                "bench: cost round {round}/{COST_ROUNDS}: gateway {:.0} ms, forwarder {:.0} ms per 1,000 ({:.2}x)",
+                "bench: cost round {round}/{COST_ROUNDS}: gateway {:.0} ms, forwarder {:.0} ms, the core alone {:.0} ms per 1,000 ({:.2}x; the core alone {:.2}x)",
                 r.gateway_ms,
                 r.forward_ms,
-                r.ratio()
+                r.core_ms.unwrap_or_default(),
+                r.ratio(),
+                r.core_share().unwrap_or_default()
             );
             rounds.push(r);
             trials.extend([gateway, forward]);
@@ -2218,5 +2260,18 @@ mod tests {
         }
         let after = switches(pid).unwrap();
         assert!(after >= before + 3, "{before} -> {after}");
+    }
+
+    #[test]
+    fn a_waited_for_child_adds_its_cpu_to_the_childrens() {
+        let before = children_cpu_ms().unwrap();
+        // About a quarter of a second of the shell's arithmetic.
+        let status = Command::new("sh")
+            .args(["-c", "i=0; while [ $i -lt 300000 ]; do i=$((i+1)); done"])
+            .status()
+            .unwrap();
+        assert!(status.success());
+        let spent = children_cpu_ms().unwrap() - before;
+        assert!(spent > 20.0, "{spent} ms");
     }
 }

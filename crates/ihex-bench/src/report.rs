@@ -180,9 +180,12 @@ fn throughput_goals(o: &mut String, r: &Results) {
         } else {
             String::new()
         };
+        let core = r.core_share.map_or(String::new(), |c| {
+            format!("; its core's own work alone {c:.2}x")
+        });
         let _ = writeln!(
             o,
-            "  (issue 34) CPU per 1,000 acked commands <= 1.2x a raw frame forward{at}  {}  ({:.2}x, the median of {} alternating rounds, {:.2}-{:.2}x; plain MQTT->CAN forwarder)",
+            "  (issue 34) CPU per 1,000 acked commands <= 1.2x a raw frame forward{at}  {}  ({:.2}x, the median of {} alternating rounds, {:.2}-{:.2}x; plain MQTT->CAN forwarder{core})",
             pass(r.median <= 1.2),
             r.median,
             r.rounds,
@@ -412,8 +415,8 @@ fn share_line(what: &str, s: &CpuShare, cpus: usize) -> String {
     )
 }
 
-/// The gateway's and the forwarder's user and system time in a cost round (`None`: a round of
-/// results from before they were kept).
+/// The gateway's and the forwarder's user and system time in a cost round, and the core alone's
+/// CPU when measured (`None`: a round of results from before they were kept).
 fn cost_line(rate: f64, r: &CostRound) -> Option<String> {
     let (g, f) = (r.gateway_share?, r.forward_share?);
     let part = |s: &CpuShare| {
@@ -425,8 +428,11 @@ fn cost_line(rate: f64, r: &CostRound) -> Option<String> {
             s.gateway_switches
         )
     };
+    let core = r
+        .core_ms
+        .map_or(String::new(), |c| format!(", the core alone {c:.0}"));
     Some(format!(
-        "cost at {rate:.0}/s, its median round: gateway {}, forwarder {}",
+        "cost at {rate:.0}/s, its median round: gateway {}, forwarder {}{core}",
         part(&g),
         part(&f)
     ))
@@ -634,8 +640,8 @@ pub fn table(r: &Results) -> String {
                 l.cpu_ms_per_1k_commands / l.bare.cpu_ms_per_1k
             );
         }
-        for (i, (rate, rounds)) in l.cost_series().iter().enumerate() {
-            let rounds: Vec<String> = rounds
+        for (i, (rate, rounds_of)) in l.cost_series().iter().enumerate() {
+            let rounds: Vec<String> = rounds_of
                 .iter()
                 .map(|c| format!("{:.0}/{:.0}", c.gateway_ms, c.forward_ms))
                 .collect();
@@ -654,6 +660,17 @@ pub fn table(r: &Results) -> String {
                 "  cost rounds, gateway/forwarder ms     {} (alternately at {rate:.0} msg/s{headline})",
                 rounds.join("  "),
             );
+            let core: Vec<String> = rounds_of
+                .iter()
+                .filter_map(|c| Some(format!("{:.0}", c.core_ms?)))
+                .collect();
+            if !core.is_empty() {
+                let _ = writeln!(
+                    o,
+                    "      the core alone, ms per 1,000      {} (its answered commands without I/O, on the gateway's CPU after each round)",
+                    core.join("  "),
+                );
+            }
         }
         if let (Some(f), Some((per_1k, what))) = (
             l.raw_forward.as_ref().filter(|f| f.received > 0),
@@ -1737,14 +1754,23 @@ mod tests {
         let third = l.cost_rounds.len() - 1;
         l.cost_rounds[third].gateway_share = Some(share(210.0, 150.0));
         l.cost_rounds[third].forward_share = Some(share(130.0, 170.0));
+        // The core alone after each of them: 0.20, 0.30, 0.10 of the forwarder's 300 ms; the
+        // 1000/s rounds measured no core.
+        for (round, core) in l.cost_rounds[third - 2..]
+            .iter_mut()
+            .zip([60.0, 90.0, 30.0])
+        {
+            round.core_ms = Some(core);
+        }
         assert!((l.cost_ratio().unwrap().median - 1.1).abs() < 1e-9);
+        assert_eq!(l.cost_ratio().unwrap().core_share, None);
         assert_eq!(l.raw_forward_cpu().unwrap().0, 600.0);
         let t = live_table(&l);
         for line in [
             "CPU per 1,000 acked commands <= 1.2x a raw frame forward at 1000/s  pass  (1.10x, the median of 4 alternating rounds, 0.90-2.00x; plain MQTT->CAN forwarder)",
-            "CPU per 1,000 acked commands <= 1.2x a raw frame forward at 3000/s  pass  (1.20x, the median of 3 alternating rounds, 1.10-1.30x; plain MQTT->CAN forwarder)",
-            "cost rounds, gateway/forwarder ms     330/300  390/300  360/300 (alternately at 3000 msg/s)",
-            "cost at 3000/s, its median round: gateway 360 (user 210 + system 150; 60 switches), forwarder 300 (user 130 + system 170; 60 switches)",
+            "CPU per 1,000 acked commands <= 1.2x a raw frame forward at 3000/s  pass  (1.20x, the median of 3 alternating rounds, 1.10-1.30x; plain MQTT->CAN forwarder; its core's own work alone 0.20x)",
+            "cost rounds, gateway/forwarder ms     330/300  390/300  360/300 (alternately at 3000 msg/s)\n      the core alone, ms per 1,000      60  90  30 (its answered commands without I/O, on the gateway's CPU after each round)",
+            "cost at 3000/s, its median round: gateway 360 (user 210 + system 150; 60 switches), forwarder 300 (user 130 + system 170; 60 switches), the core alone 30\n",
         ] {
             assert!(t.contains(line), "missing {line:?} in\n{t}");
         }

@@ -250,12 +250,23 @@ pub struct CostRound {
     /// The same for the forwarder's trial: its `gateway_*` figures are the forwarder's.
     #[serde(default)]
     pub forward_share: Option<CpuShare>,
+    /// CPU per 1,000 answered commands of the gateway's sans-IO core alone, no I/O (the
+    /// `answered` workload on the gateway's CPU, right after the round's two trials; absent from
+    /// older results).
+    #[serde(default)]
+    pub core_ms: Option<f64>,
 }
 
 impl CostRound {
     /// Gateway / forwarder.
     pub fn ratio(&self) -> f64 {
         self.gateway_ms / self.forward_ms
+    }
+
+    /// The core alone / the forwarder: what the gateway's own work, without its I/O, adds to a
+    /// raw forward's CPU ([`CostRound::core_ms`]).
+    pub fn core_share(&self) -> Option<f64> {
+        Some(self.core_ms? / self.forward_ms)
     }
 
     /// The round whose gateway CPU is the median of `rounds`' (the lower middle one of an even
@@ -278,6 +289,9 @@ pub struct CostRatio {
     pub max: f64,
     /// Rounds counted (those where both processes used CPU).
     pub rounds: usize,
+    /// The median of the rounds' [`CostRound::core_share`] (`None`: no round measured the core
+    /// alone).
+    pub core_share: Option<f64>,
 }
 
 impl LiveResults {
@@ -301,17 +315,21 @@ impl LiveResults {
 
     /// The median and range of `rounds`' ratios (`None`: no round measured both).
     pub fn cost_ratio_of(rounds: &[CostRound]) -> Option<CostRatio> {
-        let mut r: Vec<f64> = rounds
-            .iter()
-            .filter(|c| c.gateway_ms > 0.0 && c.forward_ms > 0.0)
-            .map(CostRound::ratio)
-            .collect();
+        let measured = || {
+            rounds
+                .iter()
+                .filter(|c| c.gateway_ms > 0.0 && c.forward_ms > 0.0)
+        };
+        let mut r: Vec<f64> = measured().map(CostRound::ratio).collect();
         r.sort_by(f64::total_cmp);
+        let mut core: Vec<f64> = measured().filter_map(CostRound::core_share).collect();
+        core.sort_by(f64::total_cmp);
         Some(CostRatio {
             median: crate::stats::percentile(&r, 50.0),
             min: *r.first()?,
             max: *r.last()?,
             rounds: r.len(),
+            core_share: (!core.is_empty()).then(|| crate::stats::percentile(&core, 50.0)),
         })
     }
 
