@@ -1482,7 +1482,7 @@ impl Bench {
                 core_ms: Some(core_alone_ms(self.pinning.as_ref())?),
             };
             println!(
-                "bench: cost round {round}/{COST_ROUNDS}: gateway {:.0} ms, forwarder {:.0} ms, the core alone {:.0} ms per 1,000 ({:.2}x; the core alone {:.2}x)",
+                "bench: cost round {round}/{COST_ROUNDS}: gateway {:.0} ms, forwarder {:.0} ms, the core alone {:.0} ms per 1,000 ({:.2}x and {:.2}x the forwarder's)",
                 r.gateway_ms,
                 r.forward_ms,
                 r.core_ms.unwrap_or_default(),

@@ -46,10 +46,7 @@ impl<B> Handover<B> {
     /// Exchanges what waits for `taken` (emptied by the writer); false once closed, and then
     /// everything put before the close is in `taken`. The calling thread is the writer.
     pub fn take(&self, taken: &mut B) -> bool {
-        let mut slot = lock(&self.0);
-        if slot.writer.is_none() {
-            slot.writer = Some(std::thread::current());
-        }
+        let mut slot = self.writers_slot();
         std::mem::swap(&mut slot.waiting, taken);
         !slot.closed
     }
@@ -58,10 +55,7 @@ impl<B> Handover<B> {
     /// waits already (`is_empty` says) or it is closed: false when closed.
     pub fn sleep(&self, is_empty: impl FnOnce(&B) -> bool) -> bool {
         {
-            let mut slot = lock(&self.0);
-            if slot.writer.is_none() {
-                slot.writer = Some(std::thread::current());
-            }
+            let mut slot = self.writers_slot();
             if slot.closed {
                 return false;
             }
@@ -73,6 +67,15 @@ impl<B> Handover<B> {
         // A put or close between the unlock and here leaves its unpark for this park.
         std::thread::park();
         !lock(&self.0).closed
+    }
+
+    /// The slot, locked by the writer: its thread is known from then on, to be woken.
+    fn writers_slot(&self) -> std::sync::MutexGuard<'_, Slot<B>> {
+        let mut slot = lock(&self.0);
+        if slot.writer.is_none() {
+            slot.writer = Some(std::thread::current());
+        }
+        slot
     }
 
     /// The producers' end is gone: wakes the writer to take what is left.
